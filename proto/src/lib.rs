@@ -1,0 +1,87 @@
+//! The stillmap wire contract.
+//!
+//! - [`pb`]: the protobuf / gRPC types generated from `proto/stillmap.proto`
+//!   (package `stillmap.v1`).
+//! - [`codec`]: encoders and decoders for the colour and depth payloads a
+//!   [`pb::Frame`] carries, shared by the robot client and the server so both
+//!   ends agree byte for byte.
+//! - [`keys`]: Zenoh key expressions of the contract.
+
+pub mod codec;
+
+/// Generated protobuf and gRPC code for package `stillmap.v1`.
+pub mod pb {
+    tonic::include_proto!("stillmap.v1");
+}
+
+/// Zenoh key expressions used by the contract.
+pub mod keys {
+    /// Key on which robot `robot_id` publishes `ClientMessage`s (hello, then frames).
+    pub fn frames(robot_id: &str) -> String {
+        format!("stillmap/{robot_id}/frames")
+    }
+    /// Key on which the server publishes `ServerMessage`s for robot `robot_id`.
+    pub fn results(robot_id: &str) -> String {
+        format!("stillmap/{robot_id}/results")
+    }
+    /// Wildcard the server subscribes to for every robot's frames.
+    pub const ALL_FRAMES: &str = "stillmap/*/frames";
+
+    /// The robot id inside a frames key, if the key has the contract's shape.
+    pub fn robot_of_frames_key(key: &str) -> Option<&str> {
+        let rest = key.strip_prefix("stillmap/")?;
+        let robot = rest.strip_suffix("/frames")?;
+        (!robot.is_empty() && !robot.contains('/')).then_some(robot)
+    }
+}
+
+/// Largest robot id the contract accepts.
+pub const MAX_ROBOT_ID_LEN: usize = 64;
+
+/// Checks a robot id: 1–64 characters of `[A-Za-z0-9_-]` (it becomes a Zenoh key segment).
+pub fn validate_robot_id(robot_id: &str) -> Result<(), String> {
+    if robot_id.is_empty() || robot_id.len() > MAX_ROBOT_ID_LEN {
+        return Err(format!(
+            "robot_id must be 1-{MAX_ROBOT_ID_LEN} characters, got {}",
+            robot_id.len()
+        ));
+    }
+    if let Some(c) = robot_id.chars().find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-')) {
+        return Err(format!("robot_id {robot_id:?} contains {c:?}; allowed are A-Z a-z 0-9 _ -"));
+    }
+    Ok(())
+}
+
+impl pb::Pose {
+    /// Builds a pose from a translation and a unit quaternion (x, y, z, w).
+    pub fn from_parts(t: [f64; 3], q_xyzw: [f64; 4]) -> Self {
+        Self {
+            translation: Some(pb::Vector3 { x: t[0], y: t[1], z: t[2] }),
+            rotation: Some(pb::Quaternion { x: q_xyzw[0], y: q_xyzw[1], z: q_xyzw[2], w: q_xyzw[3] }),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_key_round_trip() {
+        assert_eq!(keys::robot_of_frames_key(&keys::frames("r2-d2")), Some("r2-d2"));
+        assert_eq!(keys::robot_of_frames_key("stillmap/a/b/frames"), None);
+        assert_eq!(keys::robot_of_frames_key("stillmap//frames"), None);
+        assert_eq!(keys::robot_of_frames_key("other/a/frames"), None);
+    }
+
+    #[test]
+    fn robot_id_rules() {
+        assert!(validate_robot_id("turtle_01-a").is_ok());
+        assert_eq!(
+            validate_robot_id("a/b").unwrap_err(),
+            "robot_id \"a/b\" contains '/'; allowed are A-Z a-z 0-9 _ -"
+        );
+        assert!(validate_robot_id("").unwrap_err().contains("1-64"));
+        assert!(validate_robot_id(&"x".repeat(65)).is_err());
+    }
+}
