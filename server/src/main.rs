@@ -1,1 +1,133 @@
-fn main(){}
+//! `stillmap-server`: configuration from defaults < TOML file < environment < flags.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use stillmap_server::config::OverloadPolicy;
+use stillmap_server::{ServerConfig, run};
+
+#[derive(Parser, Debug)]
+#[command(name = "stillmap-server", version, about = "stillmap mapping server: gRPC + Zenoh ingest, HTTP API")]
+struct Args {
+    /// TOML configuration file (every key documented in deploy/stillmap-server.toml).
+    #[arg(long, env = "STILLMAP_CONFIG")]
+    config: Option<PathBuf>,
+    /// gRPC listen address [default: 127.0.0.1:50051].
+    #[arg(long, env = "STILLMAP_GRPC_LISTEN")]
+    grpc_listen: Option<String>,
+    /// HTTP listen address [default: 127.0.0.1:8080].
+    #[arg(long, env = "STILLMAP_HTTP_LISTEN")]
+    http_listen: Option<String>,
+    /// Zenoh listen endpoint, repeatable [default: tcp/127.0.0.1:7447].
+    #[arg(long, env = "STILLMAP_ZENOH_LISTEN", value_delimiter = ',')]
+    zenoh_listen: Vec<String>,
+    /// Zenoh endpoint (router or peer) to connect to, repeatable.
+    #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',')]
+    zenoh_connect: Vec<String>,
+    /// Serve gRPC only.
+    #[arg(long, env = "STILLMAP_NO_ZENOH")]
+    no_zenoh: bool,
+    /// Frames queued per session [default: 8].
+    #[arg(long, env = "STILLMAP_QUEUE_CAPACITY")]
+    queue_capacity: Option<usize>,
+    /// Overload policy of the per-session queue [default: drop-oldest].
+    #[arg(long, env = "STILLMAP_OVERLOAD_POLICY", value_parser = parse_policy)]
+    overload_policy: Option<OverloadPolicy>,
+    /// Largest message accepted, in bytes [default: 8388608].
+    #[arg(long, env = "STILLMAP_MAX_MESSAGE_BYTES")]
+    max_message_bytes: Option<usize>,
+    /// Print the effective configuration as TOML and exit.
+    #[arg(long)]
+    print_config: bool,
+}
+
+fn parse_policy(s: &str) -> Result<OverloadPolicy, String> {
+    match s.replace('-', "_").as_str() {
+        "drop_oldest" => Ok(OverloadPolicy::DropOldest),
+        "drop_newest" => Ok(OverloadPolicy::DropNewest),
+        _ => Err(format!("unknown overload policy {s:?}; use drop-oldest or drop-newest")),
+    }
+}
+
+fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
+    let mut c = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+            ServerConfig::from_toml(&text).with_context(|| format!("in {}", path.display()))?
+        }
+        None => ServerConfig::default(),
+    };
+    if let Some(v) = &args.grpc_listen {
+        c.grpc.listen = v.clone();
+    }
+    if let Some(v) = &args.http_listen {
+        c.http.listen = v.clone();
+    }
+    if !args.zenoh_listen.is_empty() {
+        c.zenoh.listen = args.zenoh_listen.clone();
+    }
+    if !args.zenoh_connect.is_empty() {
+        c.zenoh.connect = args.zenoh_connect.clone();
+    }
+    if args.no_zenoh {
+        c.zenoh.enabled = false;
+    }
+    if let Some(v) = args.queue_capacity {
+        c.session.queue_capacity = v;
+    }
+    if let Some(v) = args.overload_policy {
+        c.session.overload_policy = v;
+    }
+    if let Some(v) = args.max_message_bytes {
+        c.grpc.max_message_bytes = v;
+    }
+    c.validate()?;
+    Ok(c)
+}
+
+async fn shutdown_signal() -> anyhow::Result<()> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut term = signal(SignalKind::terminate())?;
+    tokio::select! {
+        r = tokio::signal::ctrl_c() => r?,
+        _ = term.recv() => {}
+    }
+    Ok(())
+}
+
+#[tokio::main]
+async fn main() {
+    if let Err(e) = real_main().await {
+        eprintln!("stillmap-server: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+async fn real_main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("STILLMAP_LOG").unwrap_or_else(|_| "info,zenoh=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let config = effective_config(&args)?;
+    if args.print_config {
+        print!("{}", toml::to_string_pretty(&config)?);
+        return Ok(());
+    }
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    tokio::spawn(async move {
+        if let Err(e) = shutdown_signal().await {
+            tracing::error!("signal handler: {e}");
+        }
+        let _ = stop_tx.send(true);
+    });
+    run(config, stop_rx, |bound| {
+        // One machine-readable line on stdout once every listener is up.
+        println!("stillmap-server ready grpc={} http={} zenoh={}", bound.grpc, bound.http, bound.zenoh.join(","));
+    })
+    .await?;
+    Ok(())
+}

@@ -1,0 +1,180 @@
+//! Server configuration: documented defaults, overridden by a TOML file, then by
+//! environment variables and command-line flags (see `main.rs`).
+//!
+//! `deploy/stillmap-server.toml` spells out every key with its default; a test
+//! checks that file parses to exactly [`ServerConfig::default`].
+
+use serde::{Deserialize, Serialize};
+
+use crate::ServerError;
+
+/// Everything the server can be told.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    pub grpc: GrpcConfig,
+    pub http: HttpConfig,
+    pub zenoh: ZenohConfig,
+    pub session: SessionConfig,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GrpcConfig {
+    /// Address the gRPC ingest and query services listen on.
+    pub listen: String,
+    /// Largest single message accepted, in bytes (larger: RESOURCE_EXHAUSTED).
+    pub max_message_bytes: usize,
+    /// Seconds between HTTP/2 keepalive pings to each client.
+    pub keepalive_interval_s: u64,
+    /// Seconds to wait for a keepalive answer before dropping the connection.
+    pub keepalive_timeout_s: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HttpConfig {
+    /// Address of the HTTP API (`/healthz`, `/api/v1/...`, `/metrics`).
+    pub listen: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ZenohConfig {
+    /// Subscribe to `stillmap/*/frames` on Zenoh.
+    pub enabled: bool,
+    /// Zenoh mode: "peer" or "client" (connect to a router).
+    pub mode: String,
+    /// Endpoints to listen on, e.g. "tcp/0.0.0.0:7447".
+    pub listen: Vec<String>,
+    /// Endpoints (routers or peers) to connect to.
+    pub connect: Vec<String>,
+    /// Multicast scouting (off by default: explicit endpoints only).
+    pub multicast_scouting: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SessionConfig {
+    /// Frames waiting for the pipeline, per session; beyond it the overload policy applies.
+    pub queue_capacity: usize,
+    /// What to do with a frame that finds the queue full.
+    pub overload_policy: OverloadPolicy,
+    /// Results buffered per connection while the client reads slowly.
+    pub result_buffer: usize,
+    /// Dropped-frame notices a session may hold for a client that does not read its
+    /// results; past it the stream ends with RESOURCE_EXHAUSTED.
+    pub max_pending_drop_notices: usize,
+}
+
+/// Overload policy of a session's frame queue. Every dropped frame is counted in
+/// `/metrics` and answered with a `FRAME_STATUS_DROPPED` result.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OverloadPolicy {
+    /// Drop the oldest waiting frame: the freshest view wins (good for tracking).
+    DropOldest,
+    /// Drop the arriving frame: the oldest waiting frames are kept.
+    DropNewest,
+}
+
+impl Default for GrpcConfig {
+    fn default() -> Self {
+        Self {
+            listen: "127.0.0.1:50051".into(),
+            max_message_bytes: 8 * 1024 * 1024,
+            keepalive_interval_s: 10,
+            keepalive_timeout_s: 20,
+        }
+    }
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self { listen: "127.0.0.1:8080".into() }
+    }
+}
+
+impl Default for ZenohConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            mode: "peer".into(),
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            connect: vec![],
+            multicast_scouting: false,
+        }
+    }
+}
+
+impl Default for SessionConfig {
+    fn default() -> Self {
+        Self {
+            queue_capacity: 8,
+            overload_policy: OverloadPolicy::DropOldest,
+            result_buffer: 64,
+            max_pending_drop_notices: 1024,
+        }
+    }
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            grpc: GrpcConfig::default(),
+            http: HttpConfig::default(),
+            zenoh: ZenohConfig::default(),
+            session: SessionConfig::default(),
+        }
+    }
+}
+
+impl ServerConfig {
+    /// Parses a TOML document; keys left out keep their defaults.
+    pub fn from_toml(text: &str) -> Result<Self, ServerError> {
+        let config: Self = toml::from_str(text).map_err(|e| ServerError::Config(e.to_string()))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Rejects values the server cannot run with.
+    pub fn validate(&self) -> Result<(), ServerError> {
+        let bad = |msg: String| Err(ServerError::Config(msg));
+        if self.session.queue_capacity == 0 {
+            return bad("session.queue_capacity must be at least 1".into());
+        }
+        if self.session.result_buffer == 0 {
+            return bad("session.result_buffer must be at least 1".into());
+        }
+        if self.grpc.max_message_bytes < 1024 {
+            return bad(format!("grpc.max_message_bytes {} is below 1024", self.grpc.max_message_bytes));
+        }
+        if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
+            return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_config_file_documents_exactly_the_defaults() {
+        let text = include_str!("../../deploy/stillmap-server.toml");
+        assert_eq!(ServerConfig::from_toml(text).unwrap(), ServerConfig::default());
+    }
+
+    #[test]
+    fn partial_file_keeps_other_defaults_and_unknown_keys_are_named() {
+        let c = ServerConfig::from_toml("[session]\nqueue_capacity = 3\noverload_policy = \"drop_newest\"\n").unwrap();
+        assert_eq!(c.session.queue_capacity, 3);
+        assert_eq!(c.session.overload_policy, OverloadPolicy::DropNewest);
+        assert_eq!(c.grpc, GrpcConfig::default());
+        let err = ServerConfig::from_toml("[grpc]\nlisten_addr = \"x\"\n").unwrap_err().to_string();
+        assert!(err.contains("unknown field `listen_addr`"), "{err}");
+        let err = ServerConfig::from_toml("[session]\nqueue_capacity = 0\n").unwrap_err().to_string();
+        assert_eq!(err, "invalid configuration: session.queue_capacity must be at least 1");
+    }
+}

@@ -1,0 +1,146 @@
+//! The stillmap server as a library: [`run`] serves gRPC, Zenoh and HTTP over one
+//! session registry until the shutdown signal fires.
+//!
+//! Algorithms ([`pipeline`], [`queue`]) are free of network and file I/O; the
+//! shells ([`grpc`], [`zenoh_ingest`], [`http`]) only translate.
+
+pub mod config;
+pub mod grpc;
+pub mod http;
+pub mod metrics;
+pub mod pipeline;
+pub mod queue;
+pub mod session;
+#[cfg(feature = "zenoh")]
+pub mod zenoh_ingest;
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use stillmap_proto::pb::{ingest_server::IngestServer, query_server::QueryServer};
+use tokio::sync::watch;
+
+pub use config::ServerConfig;
+use session::Registry;
+
+/// Time given to open streams after a shutdown signal before the server stops anyway.
+const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error("invalid configuration: {0}")]
+    Config(String),
+    #[error("cannot listen on {addr}: {source}")]
+    Bind { addr: String, source: std::io::Error },
+    #[error("gRPC server failed: {0}")]
+    Grpc(#[from] tonic::transport::Error),
+    #[error("HTTP server failed: {0}")]
+    Http(std::io::Error),
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+/// Where the server ended up listening (ports resolved when 0 was asked for).
+#[derive(Debug, Clone)]
+pub struct Bound {
+    pub grpc: SocketAddr,
+    pub http: SocketAddr,
+    pub zenoh: Vec<String>,
+}
+
+async fn bind(addr: &str) -> Result<tokio::net::TcpListener, ServerError> {
+    tokio::net::TcpListener::bind(addr).await.map_err(|source| ServerError::Bind { addr: addr.into(), source })
+}
+
+/// Serves until `shutdown` becomes true. `on_ready` is called once every listener is up.
+pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
+    config.validate()?;
+    let registry = Arc::new(Registry::new(config.session.clone(), Arc::default()));
+
+    let grpc_listener = bind(&config.grpc.listen).await?;
+    let http_listener = bind(&config.http.listen).await?;
+    let bound_grpc = grpc_listener.local_addr().map_err(ServerError::Http)?;
+    let bound_http = http_listener.local_addr().map_err(ServerError::Http)?;
+
+    #[cfg(feature = "zenoh")]
+    let zenoh_task = if config.zenoh.enabled {
+        let z = zenoh::open(zenoh_ingest::zenoh_config(&config.zenoh)?)
+            .await
+            .map_err(|e| ServerError::Zenoh(format!("open: {e}")))?;
+        let task = tokio::spawn(zenoh_ingest::serve(
+            z.clone(),
+            registry.clone(),
+            config.session.result_buffer,
+            config.grpc.max_message_bytes,
+            shutdown.clone(),
+        ));
+        Some((z, task))
+    } else {
+        None
+    };
+    #[cfg(not(feature = "zenoh"))]
+    if config.zenoh.enabled {
+        tracing::warn!("zenoh.enabled is set but this build has no zenoh feature; serving gRPC only");
+    }
+
+    let max = config.grpc.max_message_bytes;
+    let ingest = IngestServer::new(grpc::IngestService {
+        registry: registry.clone(),
+        result_buffer: config.session.result_buffer,
+        max_message_bytes: max,
+    })
+    .max_decoding_message_size(max);
+    let query = QueryServer::new(grpc::QueryService { registry: registry.clone() });
+    let grpc_shutdown = wait_for(shutdown.clone());
+    let grpc = tonic::transport::Server::builder()
+        .http2_keepalive_interval(Some(Duration::from_secs(config.grpc.keepalive_interval_s)))
+        .http2_keepalive_timeout(Some(Duration::from_secs(config.grpc.keepalive_timeout_s)))
+        .add_service(ingest)
+        .add_service(query)
+        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
+    let http = axum::serve(http_listener, http::router(registry.clone())).with_graceful_shutdown(wait_for(shutdown.clone()));
+
+    let bound = Bound {
+        grpc: bound_grpc,
+        http: bound_http,
+        #[cfg(feature = "zenoh")]
+        zenoh: if config.zenoh.enabled { config.zenoh.listen.clone() } else { vec![] },
+        #[cfg(not(feature = "zenoh"))]
+        zenoh: vec![],
+    };
+    on_ready(&bound);
+
+    let grpc_task = tokio::spawn(grpc);
+    let http_task = tokio::spawn(async move { http.await.map_err(ServerError::Http) });
+    let _ = shutdown.wait_for(|stop| *stop).await;
+    tracing::info!("shutting down");
+    registry.close_all();
+    let finish = async {
+        match grpc_task.await {
+            Ok(r) => r?,
+            Err(e) => tracing::error!("gRPC task: {e}"),
+        }
+        match http_task.await {
+            Ok(r) => r?,
+            Err(e) => tracing::error!("HTTP task: {e}"),
+        }
+        Ok::<(), ServerError>(())
+    };
+    match tokio::time::timeout(SHUTDOWN_GRACE, finish).await {
+        Ok(r) => r?,
+        Err(_) => tracing::warn!("open streams outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway"),
+    }
+    #[cfg(feature = "zenoh")]
+    if let Some((z, task)) = zenoh_task {
+        let _ = task.await;
+        if let Err(e) = z.close().await {
+            tracing::warn!("zenoh close: {e}");
+        }
+    }
+    Ok(())
+}
+
+async fn wait_for(mut shutdown: watch::Receiver<bool>) {
+    let _ = shutdown.wait_for(|stop| *stop).await;
+}

@@ -1,0 +1,99 @@
+//! Prometheus metrics served at `/metrics`.
+
+use prometheus_client::encoding::text::encode;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+type Labels = Vec<(&'static str, String)>;
+
+/// Latency buckets: 50 µs doubling to about 1.6 s.
+const LATENCY_BUCKET_START_S: f64 = 50e-6;
+const LATENCY_BUCKET_FACTOR: f64 = 2.0;
+const LATENCY_BUCKET_COUNT: u16 = 16;
+
+fn latency_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(LATENCY_BUCKET_START_S, LATENCY_BUCKET_FACTOR, LATENCY_BUCKET_COUNT))
+}
+
+/// Every counter the server keeps, labelled by transport, reason or stage.
+pub struct Metrics {
+    registry: Registry,
+    frames_received: Family<Labels, Counter>,
+    frames_processed: Family<Labels, Counter>,
+    frames_dropped: Family<Labels, Counter>,
+    frames_rejected: Family<Labels, Counter>,
+    bytes_received: Family<Labels, Counter>,
+    stage_latency: Family<Labels, Histogram, fn() -> Histogram>,
+    sessions_connected: Gauge,
+    sessions_total: Counter,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        let mut registry = Registry::with_prefix("stillmap");
+        let m = Self {
+            frames_received: Family::default(),
+            frames_processed: Family::default(),
+            frames_dropped: Family::default(),
+            frames_rejected: Family::default(),
+            bytes_received: Family::default(),
+            stage_latency: Family::new_with_constructor(latency_histogram),
+            sessions_connected: Gauge::default(),
+            sessions_total: Counter::default(),
+            registry: Registry::default(),
+        };
+        registry.register("frames_received", "Frames received, by transport", m.frames_received.clone());
+        registry.register("frames_processed", "Frames decoded and processed, by transport", m.frames_processed.clone());
+        registry.register("frames_dropped", "Frames dropped by the overload policy, by transport", m.frames_dropped.clone());
+        registry.register(
+            "frames_rejected",
+            "Frames or messages rejected, by reason (order, color, depth, oversized, no_hello, malformed)",
+            m.frames_rejected.clone(),
+        );
+        registry.register("bytes_received", "Frame payload bytes received, by transport", m.bytes_received.clone());
+        registry.register("stage_latency_seconds", "Server-side time per pipeline stage", m.stage_latency.clone());
+        registry.register("sessions_connected", "Sessions with a connected robot", m.sessions_connected.clone());
+        registry.register("sessions", "Sessions opened", m.sessions_total.clone());
+        Self { registry, ..m }
+    }
+}
+
+fn one(key: &'static str, value: &str) -> Labels {
+    vec![(key, value.to_string())]
+}
+
+impl Metrics {
+    pub fn frame_received(&self, transport: &str, bytes: usize) {
+        self.frames_received.get_or_create(&one("transport", transport)).inc();
+        self.bytes_received.get_or_create(&one("transport", transport)).inc_by(bytes as u64);
+    }
+    pub fn frame_processed(&self, transport: &str) {
+        self.frames_processed.get_or_create(&one("transport", transport)).inc();
+    }
+    pub fn frame_dropped(&self, transport: &str) {
+        self.frames_dropped.get_or_create(&one("transport", transport)).inc();
+    }
+    pub fn rejected(&self, reason: &str) {
+        self.frames_rejected.get_or_create(&one("reason", reason)).inc();
+    }
+    pub fn stage(&self, stage: &str, micros: u32) {
+        self.stage_latency.get_or_create(&one("stage", stage)).observe(f64::from(micros) * 1e-6);
+    }
+    pub fn session_opened(&self) {
+        self.sessions_total.inc();
+    }
+    pub fn connected_delta(&self, delta: i64) {
+        self.sessions_connected.inc_by(delta);
+    }
+
+    /// The Prometheus text exposition of every metric.
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        // Writing into a String cannot fail.
+        let _ = encode(&mut out, &self.registry);
+        out
+    }
+}

@@ -1,0 +1,324 @@
+//! Robot sessions: the registry both ingest transports feed, and one pipeline
+//! worker thread per session.
+//!
+//! A session outlives its connection: a robot that reconnects with
+//! `Hello.resume_session_id` gets the same session back, and queries keep
+//! answering for disconnected sessions. Results go to whichever connection is
+//! attached when the worker finishes a frame.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use stillmap_proto::pb::{self, FrameStatus, TrackingState, server_message::Msg};
+use tokio::sync::{broadcast, mpsc, watch};
+use tonic::Status;
+
+use crate::config::SessionConfig;
+use crate::metrics::Metrics;
+use crate::pipeline::{FramePipeline, validate_camera};
+use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
+
+/// Where a connection's results go: the gRPC response stream, or the Zenoh
+/// publisher task (which turns an `Err` into a `ServerMessage.error`).
+pub type ResultSink = mpsc::Sender<Result<pb::ServerMessage, Status>>;
+
+/// Poses a slow `SubscribePoses` client may lag behind before it skips some.
+const POSE_SUBSCRIBER_BUFFER: usize = 256;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Transport {
+    Grpc,
+    Zenoh,
+}
+
+impl Transport {
+    pub fn label(self) -> &'static str {
+        match self {
+            Self::Grpc => "grpc",
+            Self::Zenoh => "zenoh",
+        }
+    }
+}
+
+/// Per-session counters, readable while the worker runs.
+#[derive(Default)]
+pub struct Counters {
+    pub received: AtomicU64,
+    pub processed: AtomicU64,
+    pub dropped: AtomicU64,
+    pub rejected: AtomicU64,
+    pub bytes: AtomicU64,
+    /// Frames answered (processed, dropped or rejected) — the worker's progress.
+    pub answered: AtomicU64,
+}
+
+/// What tracking knows; filled in by the tracking stage once it exists.
+#[derive(Default)]
+pub struct TrackState {
+    pub state: TrackingState,
+    pub latest: Option<pb::PoseStamped>,
+    pub trajectory: Vec<pb::PoseStamped>,
+}
+
+pub struct Session {
+    pub id: String,
+    pub robot_id: String,
+    pub transport: Transport,
+    pub camera: pb::CameraInfo,
+    pub started_unix_ns: u64,
+    pub counters: Counters,
+    connected: AtomicBool,
+    queue: FrameQueue,
+    sink: Mutex<Option<ResultSink>>,
+    last_received_sequence: Mutex<Option<u64>>,
+    track: Mutex<TrackState>,
+    poses: broadcast::Sender<pb::PoseStamped>,
+    answered_tx: watch::Sender<u64>,
+    metrics: Arc<Metrics>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl Session {
+    /// Queues a received frame. Dropped frames are counted here and answered by the worker.
+    pub fn push(&self, frame: pb::Frame, encoded_len: usize) -> Result<(), QueueError> {
+        let transport = self.transport.label();
+        let sequence = frame.sequence;
+        self.metrics.frame_received(transport, encoded_len);
+        let outcome = self.queue.push(QueuedFrame { frame, received_at: Instant::now() })?;
+        self.counters.received.fetch_add(1, Ordering::Relaxed);
+        self.counters.bytes.fetch_add(encoded_len as u64, Ordering::Relaxed);
+        {
+            let mut last = lock(&self.last_received_sequence);
+            *last = Some(last.map_or(sequence, |l| l.max(sequence)));
+        }
+        if outcome != PushOutcome::Queued {
+            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+            self.metrics.frame_dropped(transport);
+        }
+        Ok(())
+    }
+
+    pub fn last_received_sequence(&self) -> Option<u64> {
+        *lock(&self.last_received_sequence)
+    }
+
+    pub fn is_connected(&self) -> bool {
+        self.connected.load(Ordering::Relaxed)
+    }
+
+    pub fn tracking(&self) -> MutexGuard<'_, TrackState> {
+        lock(&self.track)
+    }
+
+    pub fn subscribe_poses(&self) -> broadcast::Receiver<pb::PoseStamped> {
+        self.poses.subscribe()
+    }
+
+    /// Attaches a connection's result sink, replacing any older one.
+    pub fn attach(&self, sink: ResultSink) {
+        *lock(&self.sink) = Some(sink);
+        if !self.connected.swap(true, Ordering::Relaxed) {
+            self.metrics.connected_delta(1);
+        }
+    }
+
+    /// Detaches `sink` if it is still the attached one (a newer connection may have replaced it).
+    pub fn detach(&self, sink: &ResultSink) {
+        let mut current = lock(&self.sink);
+        if current.as_ref().is_some_and(|s| s.same_channel(sink)) {
+            *current = None;
+            if self.connected.swap(false, Ordering::Relaxed) {
+                self.metrics.connected_delta(-1);
+            }
+        }
+    }
+
+    /// Waits until every frame received so far has been answered.
+    pub async fn drained(&self) {
+        let mut rx = self.answered_tx.subscribe();
+        let received = self.counters.received.load(Ordering::Relaxed);
+        // The worker keeps the sender alive as long as the session exists.
+        let _ = rx.wait_for(|answered| *answered >= received).await;
+    }
+
+    fn deliver(&self, result: pb::FrameResult) {
+        let sink = lock(&self.sink).clone();
+        if let Some(sink) = sink {
+            // Blocking here is the back-pressure of a slow reader: the queue in front
+            // of the worker then applies the overload policy.
+            let _ = sink.blocking_send(Ok(pb::ServerMessage { msg: Some(Msg::Result(result)) }));
+        }
+        let answered = self.counters.answered.fetch_add(1, Ordering::Relaxed) + 1;
+        self.answered_tx.send_replace(answered);
+    }
+
+    /// The worker loop: one thread per session, until the queue closes.
+    fn run_worker(self: Arc<Self>) {
+        let mut pipeline = FramePipeline::new(self.camera.clone());
+        let transport = self.transport.label();
+        while let Some(work) = self.queue.pop() {
+            let result = match work {
+                Work::Dropped { sequence, capture_time_ns } => pb::FrameResult {
+                    sequence,
+                    capture_time_ns,
+                    status: FrameStatus::Dropped as i32,
+                    tracking_state: self.tracking().state as i32,
+                    ..Default::default()
+                },
+                Work::Frame(queued) => {
+                    let out = pipeline.process(&queued.frame, queued.received_at.elapsed());
+                    if let Some(reason) = out.rejected {
+                        self.counters.rejected.fetch_add(1, Ordering::Relaxed);
+                        self.metrics.rejected(reason.label());
+                    } else {
+                        self.counters.processed.fetch_add(1, Ordering::Relaxed);
+                        self.metrics.frame_processed(transport);
+                        for l in &out.result.latency {
+                            self.metrics.stage(&l.stage, l.micros);
+                        }
+                    }
+                    out.result
+                }
+            };
+            self.deliver(result);
+        }
+        tracing::debug!(session = %self.id, "worker stopped");
+    }
+}
+
+/// A summary of one session, for the query APIs.
+pub fn summary(s: &Session) -> pb::SessionSummary {
+    let c = &s.counters;
+    pb::SessionSummary {
+        session_id: s.id.clone(),
+        robot_id: s.robot_id.clone(),
+        transport: s.transport.label().into(),
+        connected: s.is_connected(),
+        camera: Some(s.camera.clone()),
+        frames_received: c.received.load(Ordering::Relaxed),
+        frames_processed: c.processed.load(Ordering::Relaxed),
+        frames_dropped: c.dropped.load(Ordering::Relaxed),
+        frames_rejected: c.rejected.load(Ordering::Relaxed),
+        tracking_state: s.tracking().state as i32,
+        started_unix_ns: s.started_unix_ns,
+    }
+}
+
+/// A hello the server cannot open a session for.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct BadHello(pub String);
+
+/// Every session of this server process.
+pub struct Registry {
+    config: SessionConfig,
+    metrics: Arc<Metrics>,
+    sessions: RwLock<HashMap<String, Arc<Session>>>,
+    next_id: AtomicU64,
+    /// Distinguishes session ids of different server runs.
+    epoch: u64,
+}
+
+/// The result of a hello.
+pub struct Opened {
+    pub session: Arc<Session>,
+    pub resumed: bool,
+}
+
+impl Registry {
+    pub fn new(config: SessionConfig, metrics: Arc<Metrics>) -> Self {
+        let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        Self { config, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+    }
+
+    pub fn metrics(&self) -> &Arc<Metrics> {
+        &self.metrics
+    }
+
+    pub fn get(&self, id: &str) -> Option<Arc<Session>> {
+        self.sessions.read().unwrap_or_else(|p| p.into_inner()).get(id).cloned()
+    }
+
+    /// All sessions, oldest first.
+    pub fn list(&self) -> Vec<Arc<Session>> {
+        let mut all: Vec<_> = self.sessions.read().unwrap_or_else(|p| p.into_inner()).values().cloned().collect();
+        all.sort_by_key(|s| (s.started_unix_ns, s.id.clone()));
+        all
+    }
+
+    /// Opens a session for `hello`, or resumes the one it names, and attaches `sink`.
+    pub fn open(&self, hello: &pb::Hello, transport: Transport, sink: ResultSink) -> Result<Opened, BadHello> {
+        stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello)?;
+        if !hello.resume_session_id.is_empty()
+            && let Some(session) = self.get(&hello.resume_session_id)
+        {
+            if session.robot_id != hello.robot_id {
+                return Err(BadHello(format!(
+                    "session {} belongs to robot {:?}, not {:?}",
+                    session.id, session.robot_id, hello.robot_id
+                )));
+            }
+            session.attach(sink);
+            return Ok(Opened { session, resumed: true });
+        }
+        let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello)?.clone();
+        let n = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
+        let started_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        let session = Arc::new(Session {
+            id: id.clone(),
+            robot_id: hello.robot_id.clone(),
+            transport,
+            camera,
+            started_unix_ns,
+            counters: Counters::default(),
+            connected: AtomicBool::new(false),
+            queue: FrameQueue::new(
+                self.config.queue_capacity,
+                self.config.max_pending_drop_notices,
+                self.config.overload_policy,
+            ),
+            sink: Mutex::new(None),
+            last_received_sequence: Mutex::new(None),
+            track: Mutex::new(TrackState { state: TrackingState::Initializing, ..Default::default() }),
+            poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
+            answered_tx: watch::channel(0).0,
+            metrics: self.metrics.clone(),
+        });
+        session.attach(sink);
+        let worker = session.clone();
+        std::thread::Builder::new()
+            .name(format!("pipeline-{n}"))
+            .spawn(move || worker.run_worker())
+            .map_err(|e| BadHello(format!("cannot start a pipeline worker: {e}")))?;
+        self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session.clone());
+        self.metrics.session_opened();
+        tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
+        Ok(Opened { session, resumed: false })
+    }
+
+    /// Stops every worker once its queue is drained (server shutdown).
+    pub fn close_all(&self) {
+        for s in self.list() {
+            s.queue.close();
+        }
+    }
+}
+
+/// The first message on a connection: accepted (or resumed) session.
+pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::ServerMessage {
+    pb::ServerMessage {
+        msg: Some(Msg::Accepted(pb::SessionAccepted {
+            session_id: opened.session.id.clone(),
+            resumed: opened.resumed,
+            last_received_sequence: if opened.resumed { opened.session.last_received_sequence() } else { None },
+            max_message_bytes: max_message_bytes as u64,
+            server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
+        })),
+    }
+}

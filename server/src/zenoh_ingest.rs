@@ -1,0 +1,167 @@
+//! Zenoh shell: robots publish `ClientMessage`s on `stillmap/<robot>/frames`;
+//! the server answers with `ServerMessage`s on `stillmap/<robot>/results`.
+//!
+//! Zenoh has no call status, so stream-level problems (a frame before the hello,
+//! an oversized or undecodable message, an overloaded session) are published as
+//! `ServerMessage.error` with the gRPC code the same problem gets on gRPC.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use prost::Message;
+use stillmap_proto::{keys, pb, pb::client_message::Msg as ClientMsg, pb::server_message::Msg};
+use tokio::sync::mpsc;
+use tonic::Status;
+use zenoh::qos::CongestionControl;
+
+use crate::ServerError;
+use crate::config::ZenohConfig;
+use crate::grpc::{frame_before_hello, queue_status};
+use crate::session::{Registry, ResultSink, Session, Transport, accepted_message};
+
+/// Builds the Zenoh configuration of the server from its config section.
+pub fn zenoh_config(cfg: &ZenohConfig) -> Result<zenoh::Config, ServerError> {
+    let mut c = zenoh::Config::default();
+    let set = |c: &mut zenoh::Config, key: &str, value: String| {
+        c.insert_json5(key, &value).map_err(|e| ServerError::Zenoh(format!("config {key}: {e}")))
+    };
+    let list = |v: &[String]| serde_json::to_string(v).unwrap_or_else(|_| "[]".into());
+    set(&mut c, "mode", format!("{:?}", cfg.mode))?;
+    set(&mut c, "scouting/multicast/enabled", cfg.multicast_scouting.to_string())?;
+    set(&mut c, "listen/endpoints", list(&cfg.listen))?;
+    set(&mut c, "connect/endpoints", list(&cfg.connect))?;
+    Ok(c)
+}
+
+/// One robot's link over Zenoh: its session and the sink feeding its publisher.
+struct Link {
+    session: Arc<Session>,
+    sink: ResultSink,
+}
+
+/// Subscribes to every robot's frames until `shutdown` fires.
+pub async fn serve(
+    zenoh: zenoh::Session,
+    registry: Arc<Registry>,
+    result_buffer: usize,
+    max_message_bytes: usize,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), ServerError> {
+    let subscriber = zenoh
+        .declare_subscriber(keys::ALL_FRAMES)
+        .await
+        .map_err(|e| ServerError::Zenoh(format!("subscribe {}: {e}", keys::ALL_FRAMES)))?;
+    let mut links: HashMap<String, Link> = HashMap::new();
+    loop {
+        let sample = tokio::select! {
+            s = subscriber.recv_async() => match s { Ok(s) => s, Err(_) => break },
+            _ = shutdown.changed() => break,
+        };
+        let Some(robot) = keys::robot_of_frames_key(sample.key_expr().as_str()).map(str::to_owned) else {
+            continue;
+        };
+        let payload = sample.payload().to_bytes();
+        let metrics = registry.metrics();
+        let reply = |links: &HashMap<String, Link>, status: Status| {
+            let z = zenoh.clone();
+            let key = keys::results(&robot);
+            let sink = links.get(&robot).map(|l| l.sink.clone());
+            async move {
+                match sink {
+                    Some(sink) => {
+                        let _ = sink.send(Err(status)).await;
+                    }
+                    None => publish(&z, &key, &error_message(status)).await,
+                }
+            }
+        };
+        if payload.len() > max_message_bytes {
+            metrics.rejected("oversized");
+            let status = Status::resource_exhausted(format!(
+                "message of {} bytes exceeds the limit of {max_message_bytes} bytes",
+                payload.len()
+            ));
+            reply(&links, status).await;
+            continue;
+        }
+        let message = match pb::ClientMessage::decode(payload.as_ref()) {
+            Ok(m) => m,
+            Err(e) => {
+                metrics.rejected("malformed");
+                reply(&links, Status::invalid_argument(format!("undecodable message: {e}"))).await;
+                continue;
+            }
+        };
+        match message.msg {
+            Some(ClientMsg::Hello(hello)) => {
+                if hello.robot_id != robot {
+                    let msg = format!("hello for robot {:?} published on the key of robot {robot:?}", hello.robot_id);
+                    reply(&links, Status::invalid_argument(msg)).await;
+                    continue;
+                }
+                // A repeated hello for the session already attached is a retry: answer it again.
+                if let Some(link) = links.get(&robot)
+                    && hello.resume_session_id == link.session.id
+                {
+                    let opened = crate::session::Opened { session: link.session.clone(), resumed: true };
+                    let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
+                    continue;
+                }
+                let sink = spawn_publisher(zenoh.clone(), keys::results(&robot), result_buffer);
+                match registry.open(&hello, Transport::Zenoh, sink.clone()) {
+                    Ok(opened) => {
+                        let _ = sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
+                        if let Some(old) = links.insert(robot.clone(), Link { session: opened.session, sink }) {
+                            old.session.detach(&old.sink);
+                        }
+                    }
+                    Err(e) => {
+                        let _ = sink.send(Err(Status::invalid_argument(format!("bad hello: {e}")))).await;
+                    }
+                }
+            }
+            Some(ClientMsg::Frame(frame)) => {
+                let Some(link) = links.get(&robot) else {
+                    metrics.rejected("no_hello");
+                    reply(&links, frame_before_hello(frame.sequence)).await;
+                    continue;
+                };
+                if let Err(e) = link.session.push(frame, payload.len()) {
+                    let _ = link.sink.send(Err(queue_status(e))).await;
+                }
+            }
+            None => {
+                metrics.rejected("malformed");
+                reply(&links, Status::invalid_argument("empty client message")).await;
+            }
+        }
+    }
+    for link in links.values() {
+        link.session.detach(&link.sink);
+    }
+    Ok(())
+}
+
+fn error_message(status: Status) -> pb::ServerMessage {
+    pb::ServerMessage {
+        msg: Some(Msg::Error(pb::RpcStatus { code: status.code() as i32, message: status.message().to_string() })),
+    }
+}
+
+async fn publish(zenoh: &zenoh::Session, key: &str, message: &pb::ServerMessage) {
+    if let Err(e) = zenoh.put(key, message.encode_to_vec()).congestion_control(CongestionControl::Block).await {
+        tracing::warn!(key, "zenoh put failed: {e}");
+    }
+}
+
+/// A task that publishes everything sent to the returned sink on `key`, in order.
+fn spawn_publisher(zenoh: zenoh::Session, key: String, buffer: usize) -> ResultSink {
+    let (tx, mut rx) = mpsc::channel::<Result<pb::ServerMessage, Status>>(buffer);
+    tokio::spawn(async move {
+        while let Some(item) = rx.recv().await {
+            let message = item.unwrap_or_else(error_message);
+            publish(&zenoh, &key, &message).await;
+        }
+    });
+    tx
+}
