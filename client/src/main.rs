@@ -1,1 +1,214 @@
-fn main(){}
+//! `stillmap-client`: stream RGB-D frames to a stillmap server; measure codecs.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use stillmap_client::link::{self, GrpcOptions, ZenohOptions};
+use stillmap_client::source::SourceSpec;
+use stillmap_client::streamer::{self, Rate, StreamOptions};
+use stillmap_client::{ClientError, bench};
+use stillmap_proto::pb::{ColorEncoding, DepthEncoding};
+
+#[derive(Parser)]
+#[command(name = "stillmap-client", version, about = "stillmap robot client")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum TransportArg {
+    Grpc,
+    Zenoh,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum DepthArg {
+    Rvl,
+    Png16,
+    Zstd,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ColorArg {
+    Jpeg,
+    Png,
+    Rgb8,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Stream a source to the server and print a summary.
+    Stream {
+        /// tum:<dir> (a TUM RGB-D folder), openni2 (first device) or openni2:<uri> (e.g. openni2:Dummy).
+        #[arg(long)]
+        source: SourceSpec,
+        #[arg(long, value_enum, default_value = "grpc")]
+        transport: TransportArg,
+        /// gRPC server address.
+        #[arg(long, env = "STILLMAP_SERVER", default_value = "http://127.0.0.1:50051")]
+        server: String,
+        /// Zenoh endpoints to connect to (the server's, or a router's).
+        #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
+        zenoh_connect: Vec<String>,
+        /// Zenoh mode: peer or client.
+        #[arg(long, default_value = "peer")]
+        zenoh_mode: String,
+        #[arg(long, env = "STILLMAP_ROBOT_ID", default_value = "robot1")]
+        robot_id: String,
+        #[arg(long, env = "STILLMAP_TOKEN", default_value = "")]
+        token: String,
+        /// realtime, max, or a rate in Hz.
+        #[arg(long, default_value = "realtime")]
+        rate: Rate,
+        /// Stop after this many frames.
+        #[arg(long)]
+        max_frames: Option<usize>,
+        #[arg(long, default_value_t = 90, value_parser = clap::value_parser!(u8).range(1..=100))]
+        jpeg_quality: u8,
+        #[arg(long, value_enum, default_value = "jpeg")]
+        color_codec: ColorArg,
+        #[arg(long, value_enum, default_value = "rvl")]
+        depth_codec: DepthArg,
+        /// Frames sent but not yet answered, at most.
+        #[arg(long, default_value_t = 8)]
+        max_in_flight: usize,
+        /// Reconnection attempts (gRPC) before giving up.
+        #[arg(long, default_value_t = 10)]
+        reconnect_attempts: u32,
+        /// Seconds to wait for the server (Zenoh hello, late results; gRPC connect).
+        #[arg(long, default_value_t = 10.0)]
+        timeout: f64,
+        /// Write the returned poses here in TUM format.
+        #[arg(long)]
+        trajectory: Option<PathBuf>,
+        /// Write the summary here as JSON.
+        #[arg(long)]
+        summary_json: Option<PathBuf>,
+        /// No progress bar.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// Measure the depth codecs and JPEG on real TUM frames; print a Markdown table.
+    BenchCodecs {
+        /// A TUM RGB-D folder.
+        #[arg(long)]
+        tum: PathBuf,
+        #[arg(long, default_value_t = 150)]
+        frames: usize,
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        #[arg(long, default_value_t = 90)]
+        jpeg_quality: u8,
+    },
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("STILLMAP_LOG").unwrap_or_else(|_| "warn,zenoh=error".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Cli::parse()).await {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("stillmap-client: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    match cli.command {
+        Command::BenchCodecs { tum, frames, repeats, jpeg_quality } => {
+            let rows = tokio::task::spawn_blocking(move || bench::bench_codecs(&tum, frames, repeats, jpeg_quality)).await??;
+            print!("{}", bench::table(&rows, frames));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Stream {
+            source,
+            transport,
+            server,
+            zenoh_connect,
+            zenoh_mode,
+            robot_id,
+            token,
+            rate,
+            max_frames,
+            jpeg_quality,
+            color_codec,
+            depth_codec,
+            max_in_flight,
+            reconnect_attempts,
+            timeout,
+            trajectory,
+            summary_json,
+            quiet,
+        } => {
+            stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
+            if max_in_flight == 0 {
+                return Err(ClientError::Usage("--max-in-flight must be at least 1".into()).into());
+            }
+            let timeout = Duration::try_from_secs_f64(timeout)
+                .map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
+            let options = StreamOptions {
+                robot_id,
+                auth_token: token,
+                source,
+                max_frames,
+                rate,
+                jpeg_quality,
+                color_encoding: match color_codec {
+                    ColorArg::Jpeg => ColorEncoding::Jpeg,
+                    ColorArg::Png => ColorEncoding::Png,
+                    ColorArg::Rgb8 => ColorEncoding::Rgb8,
+                },
+                depth_encoding: match depth_codec {
+                    DepthArg::Rvl => DepthEncoding::Rvl,
+                    DepthArg::Png16 => DepthEncoding::Png16,
+                    DepthArg::Zstd => DepthEncoding::Zstd,
+                },
+                max_in_flight,
+                progress: !quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
+            };
+            let summary = match transport {
+                TransportArg::Grpc => {
+                    let grpc = GrpcOptions {
+                        endpoint: server,
+                        keepalive: Duration::from_secs(10),
+                        connect_timeout: timeout,
+                        initial_backoff: Duration::from_millis(100),
+                        max_backoff: Duration::from_secs(5),
+                        max_attempts: reconnect_attempts,
+                    };
+                    streamer::run(&options, "grpc", |hello| link::start_grpc(hello, grpc)).await?
+                }
+                #[cfg(feature = "zenoh")]
+                TransportArg::Zenoh => {
+                    let z = ZenohOptions { connect: zenoh_connect, mode: zenoh_mode, timeout };
+                    streamer::run(&options, "zenoh", |hello| link::start_zenoh(hello, z)).await?
+                }
+                #[cfg(not(feature = "zenoh"))]
+                TransportArg::Zenoh => {
+                    let _ = (zenoh_connect, zenoh_mode, ZenohOptions::clone);
+                    return Err(ClientError::Usage("this client was built without the zenoh feature".into()).into());
+                }
+            };
+            println!("{}", summary.report());
+            if let Some(path) = trajectory {
+                std::fs::write(&path, summary.tum_trajectory())
+                    .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
+            }
+            if let Some(path) = summary_json {
+                std::fs::write(&path, serde_json::to_string_pretty(&summary)?)
+                    .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
+            }
+            let clean = summary.frames_rejected == 0 && summary.depth_mismatch == 0;
+            Ok(if clean { ExitCode::SUCCESS } else { ExitCode::from(2) })
+        }
+    }
+}

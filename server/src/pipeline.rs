@@ -183,8 +183,8 @@ mod tests {
         pb::Frame {
             sequence,
             capture_time_ns: t,
-            color: vec![7; 8 * 4 * 3],
-            depth: codec::encode_depth(DepthEncoding::Rvl, &depth).unwrap(),
+            color: vec![7; 8 * 4 * 3].into(),
+            depth: codec::encode_depth(DepthEncoding::Rvl, &depth).unwrap().into(),
             accel_in_camera: None,
         }
     }
@@ -231,7 +231,7 @@ mod tests {
         f.color.truncate(5);
         assert_eq!(error_of(&p.process(&f, Duration::ZERO)).1, "frame 1: raw RGB8 colour holds 5 bytes, expected 96 (8x4x3)");
         let mut f = frame(2, 2);
-        f.depth = vec![0, 0, 0];
+        f.depth = vec![0, 0, 0].into();
         let out = p.process(&f, Duration::ZERO);
         assert_eq!(out.rejected, Some(RejectReason::Depth));
         assert_eq!(error_of(&out).1, "frame 2: RVL depth is malformed: length is not a whole number of 32-bit words");

@@ -1,0 +1,27 @@
+//! The stillmap robot client as a library: frame sources ([`source`], [`tum`],
+//! `openni`), the transport links ([`link`]) and the streaming core ([`streamer`]).
+
+pub mod bench;
+pub mod link;
+#[cfg(feature = "openni2")]
+pub mod openni;
+pub mod progress;
+pub mod source;
+pub mod streamer;
+pub mod tum;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error("{0}")]
+    Usage(String),
+    #[error("source: {0}")]
+    Source(String),
+    #[error("cannot connect: {0}")]
+    Connect(String),
+    #[error("server refused: {code:?}: {message}")]
+    Server { code: tonic::Code, message: String },
+    #[error("protocol: {0}")]
+    Protocol(String),
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}

@@ -1,0 +1,346 @@
+//! Transports between the streamer and the server. Each link is a task that
+//! takes frames from a channel and reports events on another; the streamer never
+//! sees which transport it talks to.
+//!
+//! - gRPC: one bidirectional `Ingest.Stream` with HTTP/2 keepalive; on a
+//!   transport failure it reconnects with exponential backoff, resumes the session
+//!   (`Hello.resume_session_id`) and resends the frames the server had not received.
+//! - Zenoh: publishes on `stillmap/<robot>/frames`, listens on `stillmap/<robot>/results`.
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use prost::Message;
+use stillmap_proto::pb::{self, client_message::Msg as ClientMsg, ingest_client::IngestClient, server_message::Msg};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+
+use crate::ClientError;
+
+/// What a link reports to the streamer.
+#[derive(Debug)]
+pub enum LinkEvent {
+    Accepted(pb::SessionAccepted),
+    Result(pb::FrameResult),
+    /// The connection broke and was re-established (attempt number).
+    Reconnected(u32),
+    /// Frames the server had received before a reconnect but whose results were lost.
+    Unanswered(Vec<u64>),
+}
+
+/// Reconnection and keepalive settings of the gRPC link.
+#[derive(Debug, Clone)]
+pub struct GrpcOptions {
+    pub endpoint: String,
+    pub keepalive: Duration,
+    pub connect_timeout: Duration,
+    pub initial_backoff: Duration,
+    pub max_backoff: Duration,
+    /// Consecutive failed attempts before giving up.
+    pub max_attempts: u32,
+}
+
+/// Zenoh link settings.
+#[derive(Debug, Clone)]
+pub struct ZenohOptions {
+    /// Endpoints to connect to (the server's listen endpoints, or a router).
+    pub connect: Vec<String>,
+    /// "peer" or "client".
+    pub mode: String,
+    /// How long to wait for the server to accept the hello, and for late results.
+    pub timeout: Duration,
+}
+
+/// A started link.
+pub struct Link {
+    pub frames: mpsc::Sender<pb::Frame>,
+    pub events: mpsc::Receiver<LinkEvent>,
+    pub task: tokio::task::JoinHandle<Result<(), ClientError>>,
+}
+
+/// Frames the link may buffer between the streamer and the wire.
+const LINK_BUFFER: usize = 4;
+
+fn is_transient(code: Code) -> bool {
+    matches!(code, Code::Unavailable | Code::Unknown | Code::Cancelled | Code::Internal | Code::DeadlineExceeded)
+}
+
+fn frame_message(frame: pb::Frame) -> pb::ClientMessage {
+    pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)) }
+}
+
+pub fn start_grpc(hello: pb::Hello, options: GrpcOptions) -> Link {
+    let (frames_tx, frames_rx) = mpsc::channel(LINK_BUFFER);
+    let (events_tx, events_rx) = mpsc::channel(LINK_BUFFER * 16);
+    let task = tokio::spawn(run_grpc(hello, options, frames_rx, events_tx));
+    Link { frames: frames_tx, events: events_rx, task }
+}
+
+/// Why a connection attempt or a stream ended without finishing.
+enum Broke {
+    /// Reconnect and resume.
+    Transient(String),
+    /// Give up: the server refused (bad hello, frame before hello, …).
+    Fatal(ClientError),
+}
+
+fn classify(status: tonic::Status) -> Broke {
+    if is_transient(status.code()) {
+        Broke::Transient(format!("{}: {}", status.code(), status.message()))
+    } else {
+        Broke::Fatal(ClientError::Server { code: status.code(), message: status.message().into() })
+    }
+}
+
+/// An open, accepted stream.
+struct Connected {
+    out: mpsc::Sender<pb::ClientMessage>,
+    inbound: tonic::Streaming<pb::ServerMessage>,
+    accepted: pb::SessionAccepted,
+}
+
+/// Connects, sends the hello (resuming `session_id` when set) and waits for the accept.
+async fn connect_once(endpoint: &tonic::transport::Endpoint, hello: &pb::Hello, session_id: &str) -> Result<Connected, Broke> {
+    let channel = endpoint.connect().await.map_err(|e| Broke::Transient(e.to_string()))?;
+    let mut client = IngestClient::new(channel);
+    let (out, out_rx) = mpsc::channel(LINK_BUFFER);
+    let hello = pb::Hello { resume_session_id: session_id.to_string(), ..hello.clone() };
+    out.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) })
+        .await
+        .map_err(|_| Broke::Transient("outbound stream closed".into()))?;
+    let mut inbound = client.stream(ReceiverStream::new(out_rx)).await.map_err(classify)?.into_inner();
+    match inbound.message().await.map_err(classify)? {
+        Some(pb::ServerMessage { msg: Some(Msg::Accepted(accepted)) }) => Ok(Connected { out, inbound, accepted }),
+        Some(other) => Err(Broke::Fatal(ClientError::Protocol(format!("expected SessionAccepted first, got {other:?}")))),
+        None => Err(Broke::Transient("server closed the stream before accepting".into())),
+    }
+}
+
+async fn run_grpc(
+    hello: pb::Hello,
+    options: GrpcOptions,
+    mut frames_rx: mpsc::Receiver<pb::Frame>,
+    events: mpsc::Sender<LinkEvent>,
+) -> Result<(), ClientError> {
+    let endpoint = tonic::transport::Endpoint::from_shared(options.endpoint.clone())
+        .map_err(|e| ClientError::Usage(format!("bad server address {:?}: {e}", options.endpoint)))?
+        .connect_timeout(options.connect_timeout)
+        .http2_keep_alive_interval(options.keepalive)
+        .keep_alive_timeout(options.keepalive * 2)
+        .keep_alive_while_idle(true);
+    // Frames sent whose result has not come back: resent after a reconnect.
+    let mut unacked: VecDeque<pb::Frame> = VecDeque::new();
+    let mut session_id = String::new();
+    let mut input_done = false;
+    let mut failures = 0u32;
+    let mut backoff = options.initial_backoff;
+    loop {
+        if failures > 0 {
+            if failures > options.max_attempts {
+                return Err(ClientError::Connect(format!("gave up on {} after {} attempts", options.endpoint, options.max_attempts)));
+            }
+            tokio::time::sleep(backoff).await;
+            backoff = (backoff * 2).min(options.max_backoff);
+        }
+        let Connected { out, mut inbound, accepted } = match connect_once(&endpoint, &hello, &session_id).await {
+            Ok(c) => c,
+            Err(Broke::Fatal(e)) => return Err(e),
+            Err(Broke::Transient(why)) => {
+                failures += 1;
+                tracing::warn!("connecting to {} failed ({why}); attempt {failures}", options.endpoint);
+                continue;
+            }
+        };
+        if !session_id.is_empty() {
+            let _ = events.send(LinkEvent::Reconnected(failures)).await;
+        }
+        failures = 0;
+        backoff = options.initial_backoff;
+        // Frames the server already has are never sent twice; their results are lost.
+        if accepted.resumed
+            && let Some(last) = accepted.last_received_sequence
+        {
+            let lost: Vec<u64> = unacked.iter().map(|f| f.sequence).filter(|&s| s <= last).collect();
+            unacked.retain(|f| f.sequence > last);
+            if !lost.is_empty() {
+                let _ = events.send(LinkEvent::Unanswered(lost)).await;
+            }
+        }
+        session_id = accepted.session_id.clone();
+        let _ = events.send(LinkEvent::Accepted(accepted)).await;
+        for f in &unacked {
+            if out.send(frame_message(f.clone())).await.is_err() {
+                break;
+            }
+        }
+        // Dropping the sender half-closes the stream: the server answers what it has, then ends it.
+        let mut sender = (!input_done).then_some(out);
+        let broke = loop {
+            tokio::select! {
+                frame = frames_rx.recv(), if sender.is_some() => match (frame, &sender) {
+                    (Some(frame), Some(out)) => {
+                        unacked.push_back(frame.clone());
+                        if out.send(frame_message(frame)).await.is_err() {
+                            break Broke::Transient("outbound stream closed".into());
+                        }
+                    }
+                    _ => {
+                        input_done = true;
+                        sender = None;
+                    }
+                },
+                message = inbound.message() => match message {
+                    Ok(Some(pb::ServerMessage { msg: Some(Msg::Result(r)) })) => {
+                        while unacked.front().is_some_and(|f| f.sequence <= r.sequence) {
+                            unacked.pop_front();
+                        }
+                        let _ = events.send(LinkEvent::Result(r)).await;
+                    }
+                    Ok(Some(_)) => {}
+                    Ok(None) if input_done && unacked.is_empty() => return Ok(()),
+                    Ok(None) => break Broke::Transient("server ended the stream early".into()),
+                    Err(status) => break classify(status),
+                },
+            }
+        };
+        match broke {
+            Broke::Fatal(e) => return Err(e),
+            Broke::Transient(why) => {
+                failures += 1;
+                tracing::warn!("stream to {} broke ({why}); reconnecting", options.endpoint);
+            }
+        }
+    }
+}
+
+#[cfg(feature = "zenoh")]
+pub fn start_zenoh(hello: pb::Hello, options: ZenohOptions) -> Link {
+    let (frames_tx, frames_rx) = mpsc::channel(LINK_BUFFER);
+    let (events_tx, events_rx) = mpsc::channel(LINK_BUFFER * 16);
+    let task = tokio::spawn(run_zenoh(hello, options, frames_rx, events_tx));
+    Link { frames: frames_tx, events: events_rx, task }
+}
+
+#[cfg(feature = "zenoh")]
+async fn run_zenoh(
+    hello: pb::Hello,
+    options: ZenohOptions,
+    mut frames_rx: mpsc::Receiver<pb::Frame>,
+    events: mpsc::Sender<LinkEvent>,
+) -> Result<(), ClientError> {
+    use stillmap_proto::keys;
+    use zenoh::qos::CongestionControl;
+
+    /// How often the hello is repeated until the server accepts it.
+    const HELLO_RETRY: Duration = Duration::from_millis(500);
+    /// How often to check that the peer connection is up.
+    const PEER_POLL: Duration = Duration::from_millis(20);
+
+    let zerr = |what: &str| {
+        let what = what.to_string();
+        move |e: zenoh::Error| ClientError::Connect(format!("zenoh {what}: {e}"))
+    };
+    let mut config = zenoh::Config::default();
+    let list = serde_json::to_string(&options.connect).unwrap_or_else(|_| "[]".into());
+    for (key, value) in [
+        ("mode", format!("{:?}", options.mode)),
+        ("scouting/multicast/enabled", "false".to_string()),
+        ("listen/endpoints", "[]".to_string()),
+        ("connect/endpoints", list),
+    ] {
+        config.insert_json5(key, &value).map_err(zerr(key))?;
+    }
+    let session = zenoh::open(config).await.map_err(zerr("open"))?;
+    // Wait until the server (or router) is connected, so the hello is not published into the void.
+    let deadline = tokio::time::Instant::now() + options.timeout;
+    loop {
+        let peers = session.info().peers_zid().await.count() + session.info().routers_zid().await.count();
+        if peers > 0 {
+            break;
+        }
+        if tokio::time::Instant::now() > deadline {
+            return Err(ClientError::Connect(format!("no Zenoh peer reachable at {:?}", options.connect)));
+        }
+        tokio::time::sleep(PEER_POLL).await;
+    }
+    let robot = hello.robot_id.clone();
+    let subscriber = session.declare_subscriber(keys::results(&robot)).await.map_err(zerr("subscribe"))?;
+    let publisher = session
+        .declare_publisher(keys::frames(&robot))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(zerr("publisher"))?;
+    let hello_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }.encode_to_vec();
+
+    // Hello until accepted.
+    let deadline = tokio::time::Instant::now() + options.timeout;
+    let accepted = loop {
+        publisher.put(hello_bytes.clone()).await.map_err(zerr("put hello"))?;
+        let wait = tokio::time::sleep(HELLO_RETRY);
+        tokio::pin!(wait);
+        let got = loop {
+            tokio::select! {
+                s = subscriber.recv_async() => {
+                    let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
+                    match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
+                        Ok(pb::ServerMessage { msg: Some(Msg::Accepted(a)) }) => break Some(a),
+                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
+                            return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
+                        }
+                        _ => {}
+                    }
+                }
+                _ = &mut wait => break None,
+            }
+        };
+        if let Some(a) = got {
+            break a;
+        }
+        if tokio::time::Instant::now() > deadline {
+            return Err(ClientError::Connect(format!("the server did not accept the hello within {:?}", options.timeout)));
+        }
+    };
+    let _ = events.send(LinkEvent::Accepted(accepted)).await;
+
+    let mut in_flight: u64 = 0;
+    let mut input_done = false;
+    loop {
+        if input_done && in_flight == 0 {
+            break;
+        }
+        tokio::select! {
+            frame = frames_rx.recv(), if !input_done => match frame {
+                Some(frame) => {
+                    publisher.put(frame_message(frame).encode_to_vec()).await.map_err(zerr("put frame"))?;
+                    in_flight += 1;
+                }
+                None => input_done = true,
+            },
+            s = tokio::time::timeout(options.timeout, subscriber.recv_async()) => {
+                let Ok(s) = s else {
+                    if input_done {
+                        return Err(ClientError::Protocol(format!("{in_flight} results did not arrive within {:?}", options.timeout)));
+                    }
+                    continue;
+                };
+                let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
+                match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
+                    Ok(pb::ServerMessage { msg: Some(Msg::Result(r)) }) => {
+                        in_flight = in_flight.saturating_sub(1);
+                        let _ = events.send(LinkEvent::Result(r)).await;
+                    }
+                    Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
+                        return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
+                    }
+                    Ok(_) => {}
+                    Err(e) => return Err(ClientError::Protocol(format!("undecodable result: {e}"))),
+                }
+            }
+        }
+    }
+    drop(publisher);
+    drop(subscriber);
+    session.close().await.map_err(zerr("close"))?;
+    Ok(())
+}

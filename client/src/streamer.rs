@@ -1,0 +1,379 @@
+//! The streaming core: read and encode frames on a source thread, pace them,
+//! keep at most `max_in_flight` unanswered, and account for every result.
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use prost::Message;
+use serde::Serialize;
+use stillmap_proto::codec;
+use stillmap_proto::pb::{self, ColorEncoding, DepthEncoding, FrameStatus};
+use tokio::sync::{mpsc, oneshot};
+
+use crate::ClientError;
+use crate::link::{Link, LinkEvent};
+use crate::source::{self, SourceSpec};
+
+/// Frames read and encoded ahead of the sender.
+const ENCODE_AHEAD: usize = 4;
+/// Rejection messages kept for the summary.
+const MAX_REPORTED_ERRORS: usize = 5;
+
+/// How fast frames go out.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Rate {
+    /// At the pace they were captured (recordings replay in real time).
+    Realtime,
+    /// As fast as the window of unanswered frames allows.
+    Max,
+    /// A fixed rate in Hz.
+    Fixed(f64),
+}
+
+impl std::str::FromStr for Rate {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "realtime" => Ok(Self::Realtime),
+            "max" => Ok(Self::Max),
+            hz => match hz.parse::<f64>() {
+                Ok(v) if v > 0.0 && v.is_finite() => Ok(Self::Fixed(v)),
+                _ => Err(format!("rate {s:?} is not realtime, max or a positive number of Hz")),
+            },
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct StreamOptions {
+    pub robot_id: String,
+    pub auth_token: String,
+    pub source: SourceSpec,
+    pub max_frames: Option<usize>,
+    pub rate: Rate,
+    pub jpeg_quality: u8,
+    pub color_encoding: ColorEncoding,
+    pub depth_encoding: DepthEncoding,
+    pub max_in_flight: usize,
+    pub progress: bool,
+}
+
+/// A frame ready to send, with what the client needs to check its result.
+struct Encoded {
+    frame: pb::Frame,
+    depth_crc32: u32,
+}
+
+/// A pose the server returned, for `--trajectory`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReturnedPose {
+    pub capture_time_ns: u64,
+    pub translation: [f64; 3],
+    pub rotation_xyzw: [f64; 4],
+}
+
+/// What happened to a streaming run.
+#[derive(Debug, Default, Clone, Serialize)]
+pub struct Summary {
+    pub transport: String,
+    pub session_id: String,
+    pub frames_sent: u64,
+    /// Results with status OK.
+    pub frames_acknowledged: u64,
+    pub frames_dropped: u64,
+    pub frames_rejected: u64,
+    /// Frames too large for the server's message limit, never sent.
+    pub frames_too_large: u64,
+    /// Frames whose results were lost in a reconnect.
+    pub frames_unanswered: u64,
+    /// OK results whose depth CRC matched the frame sent.
+    pub depth_bit_exact: u64,
+    pub depth_mismatch: u64,
+    /// Results that arrived with a lower sequence than an earlier result.
+    pub results_out_of_order: u64,
+    pub reconnects: u64,
+    pub bytes_sent: u64,
+    pub bytes_per_frame: f64,
+    pub seconds: f64,
+    pub frames_per_second: f64,
+    pub mbit_per_second: f64,
+    /// Mbit/s this stream would need at the camera's nominal rate.
+    pub mbit_per_second_at_nominal_rate: f64,
+    pub nominal_rate_hz: f64,
+    pub latency_ms_p50: f64,
+    pub latency_ms_p95: f64,
+    pub first_errors: Vec<String>,
+    #[serde(skip)]
+    pub poses: Vec<ReturnedPose>,
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let rank = (p / 100.0 * (sorted.len() - 1) as f64).round() as usize;
+    sorted[rank.min(sorted.len() - 1)]
+}
+
+/// Reads the source on its own thread (OpenNI2 handles stay on one thread) and encodes.
+fn spawn_source(
+    options: &StreamOptions,
+) -> (oneshot::Receiver<Result<(pb::CameraInfo, Option<usize>), ClientError>>, mpsc::Receiver<Result<Encoded, ClientError>>) {
+    let (camera_tx, camera_rx) = oneshot::channel();
+    let (frames_tx, frames_rx) = mpsc::channel(ENCODE_AHEAD);
+    let (spec, max_frames, quality) = (options.source.clone(), options.max_frames, options.jpeg_quality);
+    let (color_encoding, depth_encoding) = (options.color_encoding, options.depth_encoding);
+    std::thread::spawn(move || {
+        let mut src = match source::open(&spec, max_frames) {
+            Ok(s) => s,
+            Err(e) => {
+                let _ = camera_tx.send(Err(e));
+                return;
+            }
+        };
+        let _ = camera_tx.send(Ok((src.camera(), src.len_hint())));
+        let mut sequence = 0u64;
+        loop {
+            let item = match src.next_frame() {
+                Ok(None) => break,
+                Ok(Some(raw)) => (|| {
+                    let depth_crc32 = raw.depth.crc32();
+                    let frame = pb::Frame {
+                        sequence,
+                        capture_time_ns: raw.capture_time_ns,
+                        color: codec::encode_color(color_encoding, &raw.color, quality)?.into(),
+                        depth: codec::encode_depth(depth_encoding, &raw.depth)?.into(),
+                        accel_in_camera: raw.accel_in_camera.map(|[x, y, z]| pb::Vector3 { x, y, z }),
+                    };
+                    Ok(Encoded { frame, depth_crc32 })
+                })()
+                .map_err(|e: codec::CodecError| ClientError::Source(format!("encoding frame {sequence}: {e}"))),
+                Err(e) => Err(e),
+            };
+            sequence += 1;
+            let failed = item.is_err();
+            if frames_tx.blocking_send(item).is_err() || failed {
+                break;
+            }
+        }
+    });
+    (camera_rx, frames_rx)
+}
+
+/// Streams the source through a link built by `connect` from the hello.
+pub async fn run(
+    options: &StreamOptions,
+    transport: &str,
+    connect: impl FnOnce(pb::Hello) -> Link,
+) -> Result<Summary, ClientError> {
+    let (camera_rx, mut encoded_rx) = spawn_source(options);
+    let (mut camera, len_hint) =
+        camera_rx.await.map_err(|_| ClientError::Source("the source thread stopped".into()))??;
+    camera.color_encoding = options.color_encoding as i32;
+    camera.depth_encoding = options.depth_encoding as i32;
+    let nominal_rate_hz = camera.nominal_rate_hz;
+    let hello = pb::Hello {
+        robot_id: options.robot_id.clone(),
+        auth_token: options.auth_token.clone(),
+        camera: Some(camera),
+        resume_session_id: String::new(),
+        client_version: concat!("stillmap-client ", env!("CARGO_PKG_VERSION")).into(),
+    };
+    let Link { frames, mut events, task } = connect(hello);
+    let mut frames = Some(frames);
+
+    let progress = crate::progress::bar(options.progress, len_hint);
+    let mut summary = Summary { transport: transport.into(), nominal_rate_hz, ..Default::default() };
+    let mut sent_at: HashMap<u64, (Instant, u32)> = HashMap::new();
+    let mut latencies_ms: Vec<f64> = Vec::new();
+    let mut last_result_seq: Option<u64> = None;
+    let mut max_message_bytes: Option<u64> = None;
+    let mut pending: Option<Encoded> = None;
+    let mut source_done = false;
+    let mut first_capture: Option<(u64, tokio::time::Instant)> = None;
+    let mut next_send = tokio::time::Instant::now();
+    let started = Instant::now();
+
+    loop {
+        let in_flight = sent_at.len();
+        let can_send = pending.is_some() && max_message_bytes.is_some() && in_flight < options.max_in_flight;
+        if source_done && pending.is_none() && frames.is_some() {
+            frames = None; // every frame is handed over: let the link finish
+        }
+        tokio::select! {
+            event = events.recv() => match event {
+                None => break,
+                Some(LinkEvent::Accepted(a)) => {
+                    summary.session_id = a.session_id;
+                    max_message_bytes = Some(a.max_message_bytes);
+                }
+                Some(LinkEvent::Reconnected(_)) => summary.reconnects += 1,
+                Some(LinkEvent::Unanswered(seqs)) => {
+                    summary.frames_unanswered += seqs.len() as u64;
+                    for s in seqs {
+                        sent_at.remove(&s);
+                    }
+                }
+                Some(LinkEvent::Result(r)) => {
+                    if last_result_seq.is_some_and(|l| r.sequence < l) {
+                        summary.results_out_of_order += 1;
+                    }
+                    last_result_seq = Some(r.sequence);
+                    let Some((at, crc)) = sent_at.remove(&r.sequence) else { continue };
+                    latencies_ms.push(at.elapsed().as_secs_f64() * 1e3);
+                    match r.status() {
+                        FrameStatus::Ok => {
+                            summary.frames_acknowledged += 1;
+                            if r.depth_crc32 == crc { summary.depth_bit_exact += 1 } else { summary.depth_mismatch += 1 }
+                        }
+                        FrameStatus::Dropped => summary.frames_dropped += 1,
+                        _ => {
+                            summary.frames_rejected += 1;
+                            if summary.first_errors.len() < MAX_REPORTED_ERRORS {
+                                let msg = r.error.as_ref().map_or("no reason given".into(), |e| e.message.clone());
+                                summary.first_errors.push(msg);
+                            }
+                        }
+                    }
+                    if let Some(p) = r.world_from_camera.as_ref() {
+                        let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
+                        summary.poses.push(ReturnedPose {
+                            capture_time_ns: r.capture_time_ns,
+                            translation: [t.x, t.y, t.z],
+                            rotation_xyzw: [q.x, q.y, q.z, q.w],
+                        });
+                    }
+                    progress.inc(1);
+                }
+            },
+            item = encoded_rx.recv(), if pending.is_none() && !source_done => match item {
+                None => source_done = true,
+                Some(Err(e)) => return Err(e),
+                Some(Ok(enc)) => {
+                    next_send = match options.rate {
+                        Rate::Max => tokio::time::Instant::now(),
+                        Rate::Fixed(_) => next_send.max(tokio::time::Instant::now() - Duration::from_secs(1)),
+                        Rate::Realtime => {
+                            let (t0, wall0) = *first_capture.get_or_insert((enc.frame.capture_time_ns, tokio::time::Instant::now()));
+                            wall0 + Duration::from_nanos(enc.frame.capture_time_ns.saturating_sub(t0))
+                        }
+                    };
+                    pending = Some(enc);
+                }
+            },
+            _ = tokio::time::sleep_until(next_send), if can_send => {
+                let Some(enc) = pending.take() else { continue };
+                let Some(tx) = frames.as_ref() else { continue };
+                let size = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(enc.frame.clone())) }.encoded_len() as u64;
+                if max_message_bytes.is_some_and(|m| size > m) {
+                    summary.frames_too_large += 1;
+                    progress.inc(1);
+                    continue;
+                }
+                let sequence = enc.frame.sequence;
+                if tx.send(enc.frame).await.is_err() {
+                    break;
+                }
+                sent_at.insert(sequence, (Instant::now(), enc.depth_crc32));
+                summary.frames_sent += 1;
+                summary.bytes_sent += size;
+                if let Rate::Fixed(hz) = options.rate {
+                    next_send += Duration::from_secs_f64(1.0 / hz);
+                }
+            },
+        }
+    }
+    progress.finish_and_clear();
+    task.await.map_err(|e| ClientError::Protocol(format!("link task: {e}")))??;
+
+    summary.seconds = started.elapsed().as_secs_f64();
+    let frames_done = summary.frames_sent.max(1) as f64;
+    summary.bytes_per_frame = summary.bytes_sent as f64 / frames_done;
+    summary.frames_per_second = summary.frames_sent as f64 / summary.seconds.max(1e-9);
+    summary.mbit_per_second = summary.bytes_sent as f64 * 8.0 / 1e6 / summary.seconds.max(1e-9);
+    summary.mbit_per_second_at_nominal_rate = summary.bytes_per_frame * 8.0 * nominal_rate_hz / 1e6;
+    latencies_ms.sort_by(f64::total_cmp);
+    summary.latency_ms_p50 = percentile(&latencies_ms, 50.0);
+    summary.latency_ms_p95 = percentile(&latencies_ms, 95.0);
+    summary.frames_unanswered += sent_at.len() as u64;
+    Ok(summary)
+}
+
+impl Summary {
+    /// The human-readable report printed at the end of a run.
+    pub fn report(&self) -> String {
+        let mut s = format!(
+            "stillmap-client summary ({} session {})\n\
+             frames: sent {} | acknowledged {} | dropped {} | rejected {} | too large {} | unanswered {}\n\
+             depth: {} bit-exact, {} mismatched | results out of order: {} | reconnects: {}\n\
+             bytes: {} ({:.0} per frame) | {:.1} frames/s | {:.2} Mbit/s ({:.2} Mbit/s at {:.0} Hz)\n\
+             result latency: p50 {:.1} ms, p95 {:.1} ms over {:.2} s",
+            self.transport,
+            self.session_id,
+            self.frames_sent,
+            self.frames_acknowledged,
+            self.frames_dropped,
+            self.frames_rejected,
+            self.frames_too_large,
+            self.frames_unanswered,
+            self.depth_bit_exact,
+            self.depth_mismatch,
+            self.results_out_of_order,
+            self.reconnects,
+            self.bytes_sent,
+            self.bytes_per_frame,
+            self.frames_per_second,
+            self.mbit_per_second,
+            self.mbit_per_second_at_nominal_rate,
+            self.nominal_rate_hz,
+            self.latency_ms_p50,
+            self.latency_ms_p95,
+            self.seconds,
+        );
+        for e in &self.first_errors {
+            s.push_str(&format!("\nrejected: {e}"));
+        }
+        s
+    }
+
+    /// The returned poses in TUM format: `timestamp tx ty tz qx qy qz qw`.
+    pub fn tum_trajectory(&self) -> String {
+        let mut out = String::from("# stillmap poses: timestamp tx ty tz qx qy qz qw (world_from_camera)\n");
+        for p in &self.poses {
+            let t = p.capture_time_ns;
+            out.push_str(&format!(
+                "{}.{:09} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n",
+                t / 1_000_000_000,
+                t % 1_000_000_000,
+                p.translation[0],
+                p.translation[1],
+                p.translation[2],
+                p.rotation_xyzw[0],
+                p.rotation_xyzw[1],
+                p.rotation_xyzw[2],
+                p.rotation_xyzw[3]
+            ));
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_parse() {
+        assert_eq!("max".parse(), Ok(Rate::Max));
+        assert_eq!("15".parse(), Ok(Rate::Fixed(15.0)));
+        assert!("0".parse::<Rate>().is_err());
+    }
+
+    #[test]
+    fn percentiles() {
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(percentile(&v, 50.0), 51.0);
+        assert_eq!(percentile(&v, 95.0), 95.0);
+        assert_eq!(percentile(&[], 50.0), 0.0);
+    }
+}
