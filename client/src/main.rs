@@ -70,7 +70,8 @@ enum Command {
         jpeg_quality: u8,
         #[arg(long, value_enum, default_value = "jpeg")]
         color_codec: ColorArg,
-        #[arg(long, value_enum, default_value = "rvl")]
+        /// Lossless depth codec; zstd is the default by measurement (README, bench-codecs).
+        #[arg(long, value_enum, default_value = "zstd")]
         depth_codec: DepthArg,
         /// Frames sent but not yet answered, at most.
         #[arg(long, default_value_t = 8)]

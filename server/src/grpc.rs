@@ -107,9 +107,10 @@ async fn read_frames(
                 return Err(status);
             }
         };
+        // Counted as the whole message, as on Zenoh.
+        let len = message.encoded_len();
         match message.msg {
             Some(ClientMsg::Frame(frame)) => {
-                let len = frame.encoded_len();
                 session.push(frame, len).map_err(queue_status)?;
             }
             Some(ClientMsg::Hello(_)) => {
