@@ -15,6 +15,10 @@ use crate::source::{FrameSource, RawFrame};
 /// Depth units per metre of OpenNI2's two metric depth formats.
 const DEPTH_1_MM_UNITS: f64 = 1000.0;
 const DEPTH_100_UM_UNITS: f64 = 10_000.0;
+/// Nominal field of view of PrimeSense-class sensors (Kinect v1, Xtion), radians,
+/// used when a driver does not report one (the Dummy device does not).
+const NOMINAL_HFOV_RAD: f64 = 1.0144; // 58.1 degrees
+const NOMINAL_VFOV_RAD: f64 = 0.7898; // 45.3 degrees
 
 pub struct OpenNiSource {
     depth: Stream<'static>,
@@ -76,8 +80,13 @@ impl OpenNiSource {
         }
         let (w, h) = (cmode.resolution_x as u32, cmode.resolution_y as u32);
         // Pinhole intrinsics from the colour stream's field of view.
-        let hfov = f64::from(color.get_horizontal_fov().map_err(err("horizontal FOV"))?);
-        let vfov = f64::from(color.get_vertical_fov().map_err(err("vertical FOV"))?);
+        let (hfov, vfov) = match (color.get_horizontal_fov(), color.get_vertical_fov()) {
+            (Ok(h), Ok(v)) => (f64::from(h), f64::from(v)),
+            _ => {
+                tracing::warn!("device reports no field of view; assuming the PrimeSense nominal 58.1 x 45.3 degrees");
+                (NOMINAL_HFOV_RAD, NOMINAL_VFOV_RAD)
+            }
+        };
         let fx = f64::from(w) / (2.0 * (hfov / 2.0).tan());
         let fy = f64::from(h) / (2.0 * (vfov / 2.0).tan());
         let camera = pb::CameraInfo {

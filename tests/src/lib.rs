@@ -1,1 +1,190 @@
-//! Helpers shared by the end-to-end tests live in `tests/common`.
+//! Helpers for the end-to-end tests: run the real `stillmap-server` and
+//! `stillmap-client` binaries as processes on loopback, with the real TUM frames.
+
+use std::io::{BufRead, BufReader};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use stillmap_proto::codec::{self, ColorImage, DepthImage};
+use stillmap_proto::pb;
+
+/// How long a server may take to print its ready line.
+const SERVER_START_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// The folder holding the workspace's binaries (`target/<profile>`).
+pub fn bin_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    // target/<profile>/deps/<test> -> target/<profile>
+    exe.parent().and_then(Path::parent).expect("target/<profile>").to_path_buf()
+}
+
+pub fn bin(name: &str) -> PathBuf {
+    let path = bin_dir().join(name);
+    assert!(path.exists(), "{} is missing: run `cargo build --workspace --bins` first (make test does)", path.display());
+    path
+}
+
+/// The real TUM clip beside the checkout.
+pub fn tum_dir() -> PathBuf {
+    let dir = std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(|| {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy")
+    });
+    assert!(dir.join("rgb.txt").exists(), "TUM clip not found at {}", dir.display());
+    dir
+}
+
+/// A port nobody listens on right now.
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("free port")
+}
+
+/// A running server, killed on drop.
+pub struct Server {
+    child: Child,
+    pub grpc: String,
+    pub http: String,
+    pub zenoh: String,
+}
+
+impl Server {
+    pub fn start(extra: &[&str]) -> Self {
+        let (grpc, http, zenoh) = (
+            format!("127.0.0.1:{}", free_port()),
+            format!("127.0.0.1:{}", free_port()),
+            format!("tcp/127.0.0.1:{}", free_port()),
+        );
+        let mut child = Command::new(bin("stillmap-server"))
+            .args(["--grpc-listen", &grpc, "--http-listen", &http, "--zenoh-listen", &zenoh])
+            .args(extra)
+            .env("STILLMAP_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("spawn stillmap-server");
+        let stdout = child.stdout.take().expect("server stdout");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if line.contains("ready") {
+                    let _ = tx.send(line);
+                }
+            }
+        });
+        let line = rx.recv_timeout(SERVER_START_TIMEOUT).expect("server printed no ready line");
+        assert!(line.contains(&grpc), "{line}");
+        Self { child, grpc, http, zenoh }
+    }
+
+    pub fn grpc_url(&self) -> String {
+        format!("http://{}", self.grpc)
+    }
+
+    /// GET on the HTTP API: (status, JSON body).
+    pub async fn get_json(&self, path: &str) -> (u16, serde_json::Value) {
+        let r = reqwest::get(format!("http://{}{path}", self.http)).await.expect("HTTP GET");
+        let status = r.status().as_u16();
+        (status, r.json().await.expect("JSON body"))
+    }
+
+    pub async fn get_text(&self, path: &str) -> String {
+        reqwest::get(format!("http://{}{path}", self.http)).await.expect("HTTP GET").text().await.expect("text")
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Runs the real client to completion; returns its output and parsed JSON summary.
+pub fn run_client(args: &[&str]) -> (Output, Option<serde_json::Value>) {
+    let summary = tempfile_path("summary.json");
+    let output = Command::new(bin("stillmap-client"))
+        .arg("stream")
+        .args(args)
+        .args(["--quiet", "--summary-json"])
+        .arg(&summary)
+        .env("STILLMAP_LOG", "warn")
+        .output()
+        .expect("run stillmap-client");
+    let json = std::fs::read_to_string(&summary).ok().and_then(|t| serde_json::from_str(&t).ok());
+    let _ = std::fs::remove_file(&summary);
+    (output, json)
+}
+
+/// A unique path in the temp folder.
+pub fn tempfile_path(name: &str) -> PathBuf {
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    std::env::temp_dir().join(format!("stillmap-e2e-{}-{n}-{name}", std::process::id()))
+}
+
+/// The first real TUM frame, decoded.
+pub fn first_tum_frame() -> (ColorImage, DepthImage) {
+    let dir = tum_dir();
+    let list = |f: &str| {
+        std::fs::read_to_string(dir.join(f))
+            .expect("list")
+            .lines()
+            .find(|l| !l.starts_with('#'))
+            .and_then(|l| l.split_whitespace().nth(1).map(str::to_owned))
+            .expect("first entry")
+    };
+    let read = |p: PathBuf| {
+        let mut r = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).expect("png"))).read_info().expect("png");
+        let mut buf = vec![0; r.output_buffer_size().expect("size")];
+        r.next_frame(&mut buf).expect("png frame");
+        buf
+    };
+    let color = ColorImage { width: 640, height: 480, data: read(dir.join(list("rgb.txt"))) };
+    let raw = read(dir.join(list("depth.txt")));
+    let depth = DepthImage { width: 640, height: 480, data: raw.chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect() };
+    (color, depth)
+}
+
+/// A hello for a 640×480 TUM camera with JPEG + zstd.
+pub fn tum_hello(robot_id: &str) -> pb::Hello {
+    pb::Hello {
+        robot_id: robot_id.into(),
+        camera: Some(pb::CameraInfo {
+            width: 640,
+            height: 480,
+            fx: 517.3,
+            fy: 516.5,
+            cx: 318.6,
+            cy: 255.3,
+            distortion_model: pb::DistortionModel::None as i32,
+            depth_units_per_metre: 5000.0,
+            color_encoding: pb::ColorEncoding::Jpeg as i32,
+            depth_encoding: pb::DepthEncoding::Zstd as i32,
+            nominal_rate_hz: 30.0,
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
+}
+
+/// A real TUM frame encoded as `tum_hello` declares.
+pub fn tum_frame(sequence: u64, capture_time_ns: u64) -> pb::Frame {
+    let (color, depth) = first_tum_frame();
+    pb::Frame {
+        sequence,
+        capture_time_ns,
+        color: codec::encode_jpeg(&color, 90).expect("jpeg").into(),
+        depth: codec::encode_depth(pb::DepthEncoding::Zstd, &depth).expect("zstd").into(),
+        accel_in_camera: None,
+    }
+}
+
+/// Waits until `f` returns true, or panics after `timeout`.
+pub async fn eventually(timeout: Duration, what: &str, mut f: impl AsyncFnMut() -> bool) {
+    let start = Instant::now();
+    while !f().await {
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}

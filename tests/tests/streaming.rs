@@ -1,0 +1,160 @@
+//! The real client streams real frames to the real server, over gRPC and Zenoh.
+
+use stillmap_e2e::{Server, run_client, tum_dir};
+
+fn tum_source() -> String {
+    format!("tum:{}", tum_dir().display())
+}
+
+const TUM_FRAMES: u64 = 150;
+
+fn assert_complete(summary: &serde_json::Value, frames: u64) {
+    for (key, want) in [
+        ("frames_sent", frames),
+        ("frames_acknowledged", frames),
+        ("depth_bit_exact", frames),
+        ("depth_mismatch", 0),
+        ("frames_dropped", 0),
+        ("frames_rejected", 0),
+        ("frames_unanswered", 0),
+        ("results_out_of_order", 0),
+    ] {
+        assert_eq!(summary[key].as_u64(), Some(want), "{key} in {summary:#}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn grpc_delivers_every_tum_frame_bit_exact_and_in_order() {
+    let server = Server::start(&[]);
+    let (out, summary) = run_client(&["--source", &tum_source(), "--server", &server.grpc_url(), "--rate", "max"]);
+    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    let summary = summary.expect("summary JSON");
+    assert_complete(&summary, TUM_FRAMES);
+    let id = summary["session_id"].as_str().expect("session id");
+
+    let (status, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!(status, 200);
+    assert_eq!(session["counters"]["frames_received"], TUM_FRAMES);
+    assert_eq!(session["counters"]["frames_processed"], TUM_FRAMES);
+    assert_eq!(session["camera"]["fx"], 517.3);
+    assert_eq!(session["camera"]["distortion_model"], "DISTORTION_MODEL_PLUMB_BOB");
+    assert_eq!(session["camera"]["depth_encoding"], "DEPTH_ENCODING_ZSTD");
+    // Until tracking lands the server never invents a pose.
+    assert_eq!(session["tracking_state"], "TRACKING_STATE_INITIALIZING");
+
+    let metrics = server.get_text("/metrics").await;
+    assert!(metrics.contains("stillmap_frames_processed_total{transport=\"grpc\"} 150"), "{metrics}");
+    assert!(metrics.contains("stillmap_stage_latency_seconds_count{stage=\"decode_depth\"} 150"), "{metrics}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn zenoh_delivers_every_tum_frame_bit_exact_and_in_order() {
+    let server = Server::start(&[]);
+    let (out, summary) = run_client(&[
+        "--source",
+        &tum_source(),
+        "--transport",
+        "zenoh",
+        "--zenoh-connect",
+        &server.zenoh,
+        "--rate",
+        "max",
+        "--robot-id",
+        "zenoh-bot",
+    ]);
+    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    let summary = summary.expect("summary JSON");
+    assert_complete(&summary, TUM_FRAMES);
+    let (_, sessions) = server.get_json("/api/v1/sessions").await;
+    let s = &sessions["sessions"][0];
+    assert_eq!(s["transport"], "zenoh");
+    assert_eq!(s["robot_id"], "zenoh-bot");
+    assert_eq!(s["counters"]["frames_processed"], TUM_FRAMES);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn every_depth_codec_arrives_bit_exact() {
+    let server = Server::start(&[]);
+    for codec in ["rvl", "png16"] {
+        let (out, summary) = run_client(&[
+            "--source", &tum_source(), "--server", &server.grpc_url(), "--rate", "max",
+            "--max-frames", "20", "--depth-codec", codec,
+        ]);
+        assert!(out.status.success(), "{codec}: {}", String::from_utf8_lossy(&out.stderr));
+        assert_complete(&summary.expect("summary"), 20);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn openni2_dummy_device_streams_through_the_real_client() {
+    let server = Server::start(&[]);
+    let (out, summary) = run_client(&[
+        "--source", "openni2:Dummy", "--server", &server.grpc_url(), "--max-frames", "12", "--robot-id", "kinect",
+    ]);
+    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert_complete(&summary.expect("summary"), 12);
+    let (_, sessions) = server.get_json("/api/v1/sessions").await;
+    let camera_id = sessions["sessions"][0]["session_id"].as_str().expect("id").to_string();
+    let (_, detail) = server.get_json(&format!("/api/v1/sessions/{camera_id}")).await;
+    assert_eq!(detail["camera"]["width"], 320);
+    assert_eq!(detail["camera"]["height"], 240);
+    assert_eq!(detail["camera"]["depth_units_per_metre"], 1000.0);
+}
+
+#[test]
+fn no_openni2_device_is_a_clear_error() {
+    let (out, _) = run_client(&["--source", "openni2", "--server", "http://127.0.0.1:9"]);
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("no OpenNI2 device found"), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "one line: {stderr}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn two_robots_at_once_stay_separate() {
+    let server = Server::start(&[]);
+    let src = tum_source();
+    let (grpc, zenoh) = (server.grpc_url(), server.zenoh.clone());
+    let a = {
+        let src = src.clone();
+        std::thread::spawn(move || {
+            run_client(&["--source", &src, "--server", &grpc, "--rate", "max", "--max-frames", "60", "--robot-id", "alpha"])
+        })
+    };
+    let b = std::thread::spawn(move || {
+        run_client(&[
+            "--source", &src, "--transport", "zenoh", "--zenoh-connect", &zenoh, "--rate", "max",
+            "--max-frames", "40", "--robot-id", "beta",
+        ])
+    });
+    let (a, b) = (a.join().expect("alpha"), b.join().expect("beta"));
+    assert!(a.0.status.success() && b.0.status.success());
+    let (sa, sb) = (a.1.expect("alpha summary"), b.1.expect("beta summary"));
+    assert_complete(&sa, 60);
+    assert_complete(&sb, 40);
+    assert_ne!(sa["session_id"], sb["session_id"]);
+    let (_, sessions) = server.get_json("/api/v1/sessions").await;
+    let mut seen: Vec<(String, u64)> = sessions["sessions"]
+        .as_array()
+        .expect("sessions")
+        .iter()
+        .map(|s| (s["robot_id"].as_str().unwrap_or("").to_string(), s["counters"]["frames_processed"].as_u64().unwrap_or(0)))
+        .collect();
+    seen.sort();
+    assert_eq!(seen, [("alpha".to_string(), 60), ("beta".to_string(), 40)]);
+}
+
+#[test]
+fn trajectory_file_holds_only_returned_poses() {
+    // No tracking yet: the server returns no pose, so the file has only its header.
+    let server = Server::start(&[]);
+    let path = stillmap_e2e::tempfile_path("traj.txt");
+    let (out, _) = run_client(&[
+        "--source", &tum_source(), "--server", &server.grpc_url(), "--rate", "max", "--max-frames", "5",
+        "--trajectory", path.to_str().expect("utf-8 path"),
+    ]);
+    assert!(out.status.success());
+    let text = std::fs::read_to_string(&path).expect("trajectory file");
+    assert_eq!(text.lines().filter(|l| !l.starts_with('#')).count(), 0, "{text}");
+    let _ = std::fs::remove_file(path);
+}
