@@ -100,12 +100,7 @@ async fn read_frames(
         let message = match inbound.message().await {
             Ok(Some(m)) => m,
             Ok(None) => return Ok(()),
-            Err(status) => {
-                if status.code() == tonic::Code::ResourceExhausted {
-                    metrics.rejected("oversized");
-                }
-                return Err(status);
-            }
+            Err(status) => return Err(oversized_as_resource_exhausted(status, metrics)),
         };
         // Counted as the whole message, as on Zenoh.
         let len = message.encoded_len();
@@ -123,6 +118,18 @@ async fn read_frames(
             }
         }
     }
+}
+
+/// tonic reports a message above `max_decoding_message_size` as OUT_OF_RANGE; the
+/// contract promises RESOURCE_EXHAUSTED, with the sizes in the message.
+fn oversized_as_resource_exhausted(status: Status, metrics: &crate::metrics::Metrics) -> Status {
+    const TONIC_TOO_LARGE: &str = "decoded message length too large";
+    if status.code() == tonic::Code::OutOfRange && status.message().contains(TONIC_TOO_LARGE) {
+        metrics.rejected("oversized");
+        let detail = status.message().trim_start_matches("Error, ");
+        return Status::resource_exhausted(format!("message too large: {detail}"));
+    }
+    status
 }
 
 pub struct QueryService {

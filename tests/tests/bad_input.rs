@@ -1,0 +1,217 @@
+//! Bad input against a real server process: every case gets a gRPC status (or a
+//! rejected result carrying one) whose message names the problem, the session
+//! survives a bad frame, and the server survives everything.
+
+use std::time::Duration;
+
+use stillmap_e2e::{Server, first_tum_frame, tum_frame, tum_hello};
+use stillmap_proto::codec;
+use stillmap_proto::pb::{
+    self, FrameStatus, client_message::Msg as ClientMsg, ingest_client::IngestClient, query_client::QueryClient,
+    server_message::Msg,
+};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+
+/// One raw ingest stream.
+struct Stream {
+    tx: mpsc::Sender<pb::ClientMessage>,
+    rx: tonic::Streaming<pb::ServerMessage>,
+}
+
+impl Stream {
+    async fn open(server: &Server) -> Self {
+        let mut client = IngestClient::connect(server.grpc_url()).await.expect("connect");
+        let (tx, rx) = mpsc::channel(16);
+        let rx = client.stream(ReceiverStream::new(rx)).await.expect("stream").into_inner();
+        Self { tx, rx }
+    }
+
+    async fn send(&self, msg: ClientMsg) {
+        self.tx.send(pb::ClientMessage { msg: Some(msg) }).await.expect("send");
+    }
+
+    async fn next(&mut self) -> Result<pb::ServerMessage, tonic::Status> {
+        tokio::time::timeout(Duration::from_secs(20), self.rx.message())
+            .await
+            .expect("answer in time")
+            .map(|m| m.expect("stream open"))
+    }
+
+    async fn hello(server: &Server, hello: pb::Hello) -> (Self, pb::SessionAccepted) {
+        let mut s = Self::open(server).await;
+        s.send(ClientMsg::Hello(hello)).await;
+        match s.next().await.expect("accepted").msg {
+            Some(Msg::Accepted(a)) => (s, a),
+            other => panic!("expected accepted, got {other:?}"),
+        }
+    }
+
+    async fn result(&mut self) -> pb::FrameResult {
+        match self.next().await.expect("result").msg {
+            Some(Msg::Result(r)) => r,
+            other => panic!("expected a result, got {other:?}"),
+        }
+    }
+}
+
+fn rejected(r: &pb::FrameResult) -> (Code, String) {
+    assert_eq!(r.status(), FrameStatus::Rejected, "{r:?}");
+    let e = r.error.clone().expect("error");
+    (Code::from_i32(e.code), e.message)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn frame_before_hello_is_failed_precondition() {
+    let server = Server::start(&[]);
+    let mut s = Stream::open(&server).await;
+    s.send(ClientMsg::Frame(tum_frame(0, 1))).await;
+    let status = s.next().await.expect_err("status");
+    assert_eq!(status.code(), Code::FailedPrecondition);
+    assert_eq!(status.message(), "frame 0 arrived before the hello: the first message of a session must be a hello");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn bad_hello_is_invalid_argument() {
+    let server = Server::start(&[]);
+    let mut s = Stream::open(&server).await;
+    s.send(ClientMsg::Hello(pb::Hello { robot_id: "r".into(), camera: None, ..Default::default() })).await;
+    let status = s.next().await.expect_err("status");
+    assert_eq!((status.code(), status.message()), (Code::InvalidArgument, "bad hello: hello has no camera info"));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn bad_frames_are_rejected_by_name_and_the_session_goes_on() {
+    let server = Server::start(&[]);
+    let (mut s, accepted) = Stream::hello(&server, tum_hello("bad-frames")).await;
+    let (color, depth) = first_tum_frame();
+
+    // 1. Size differs from the hello: a 320x240 colour image.
+    let small = codec::ColorImage {
+        width: 320,
+        height: 240,
+        data: color.data.chunks_exact(640 * 3).step_by(2).flat_map(|row| row.chunks_exact(6).flat_map(|p| [p[0], p[1], p[2]])).collect(),
+    };
+    let mut f = tum_frame(1, 1_000);
+    f.color = codec::encode_jpeg(&small, 90).expect("jpeg").into();
+    s.send(ClientMsg::Frame(f)).await;
+    assert_eq!(
+        rejected(&s.result().await),
+        (Code::InvalidArgument, "frame 1: colour image is 320x240, but the session's camera is 640x480".into())
+    );
+
+    // 2. Undecodable colour.
+    let mut f = tum_frame(2, 2_000);
+    f.color = b"\xFF\xD8\xFF this is no JPEG".to_vec().into();
+    s.send(ClientMsg::Frame(f)).await;
+    let (code, msg) = rejected(&s.result().await);
+    assert_eq!(code, Code::InvalidArgument);
+    assert!(msg.starts_with("frame 2: colour JPEG payload is not decodable"), "{msg}");
+
+    // 3. Depth with the wrong bit depth: 8-bit samples in the zstd payload.
+    let mut f = tum_frame(3, 3_000);
+    let eight_bit: Vec<u8> = depth.data.iter().map(|&d| (d >> 8) as u8).collect();
+    f.depth = zstd_compress(&eight_bit).into();
+    s.send(ClientMsg::Frame(f)).await;
+    assert_eq!(
+        rejected(&s.result().await),
+        (
+            Code::InvalidArgument,
+            "frame 3: depth payload holds 307200 bytes after decompression, expected 614400 (16-bit, 640x480) — looks like 8-bit depth".into()
+        )
+    );
+
+    // 4. Timestamps going backwards.
+    s.send(ClientMsg::Frame(tum_frame(4, 500))).await;
+    assert_eq!(
+        rejected(&s.result().await),
+        (
+            Code::InvalidArgument,
+            "capture timestamp went backwards: frame 4 at 500 ns is not after the previous frame's 3000 ns".into()
+        )
+    );
+
+    // The session survives: a good frame is processed, bit-exact.
+    s.send(ClientMsg::Frame(tum_frame(5, 5_000))).await;
+    let ok = s.result().await;
+    assert_eq!(ok.status(), FrameStatus::Ok, "{ok:?}");
+    assert_eq!(ok.depth_crc32, depth.crc32());
+
+    let (_, detail) = server.get_json(&format!("/api/v1/sessions/{}", accepted.session_id)).await;
+    assert_eq!(detail["counters"]["frames_rejected"], 4);
+    assert_eq!(detail["counters"]["frames_processed"], 1);
+    let metrics = server.get_text("/metrics").await;
+    for line in [
+        "stillmap_frames_rejected_total{reason=\"color\"} 2",
+        "stillmap_frames_rejected_total{reason=\"depth\"} 1",
+        "stillmap_frames_rejected_total{reason=\"order\"} 1",
+    ] {
+        assert!(metrics.contains(line), "{line} missing in\n{metrics}");
+    }
+}
+
+fn zstd_compress(bytes: &[u8]) -> Vec<u8> {
+    zstd::bulk::compress(bytes, codec::DEPTH_ZSTD_LEVEL).expect("zstd")
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn oversized_message_is_resource_exhausted_and_the_session_can_resume() {
+    let server = Server::start(&["--max-message-bytes", "200000"]);
+    let (mut s, accepted) = Stream::hello(&server, tum_hello("big")).await;
+    s.send(ClientMsg::Frame(tum_frame(0, 10))).await;
+    assert_eq!(s.result().await.status(), FrameStatus::Ok);
+    let mut big = tum_frame(1, 20);
+    big.color = vec![0u8; 300_000].into();
+    s.send(ClientMsg::Frame(big)).await;
+    let status = s.next().await.expect_err("status");
+    assert_eq!(status.code(), Code::ResourceExhausted);
+    assert!(status.message().contains("200000"), "{}", status.message());
+
+    // The session survives: resume it and go on after the last frame it received.
+    let hello = pb::Hello { resume_session_id: accepted.session_id.clone(), ..tum_hello("big") };
+    let (mut s2, again) = Stream::hello(&server, hello).await;
+    assert!(again.resumed);
+    assert_eq!(again.session_id, accepted.session_id);
+    assert_eq!(again.last_received_sequence, Some(0));
+    s2.send(ClientMsg::Frame(tum_frame(2, 30))).await;
+    assert_eq!(s2.result().await.status(), FrameStatus::Ok);
+    let metrics = server.get_text("/metrics").await;
+    assert!(metrics.contains("stillmap_frames_rejected_total{reason=\"oversized\"} 1"), "{metrics}");
+    // And the server survived everything.
+    assert_eq!(server.get_json("/healthz").await.0, 200);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn unknown_session_in_queries_is_not_found() {
+    let server = Server::start(&[]);
+    let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
+    let r = pb::SessionRef { session_id: "nope".into() };
+    let status = q.get_latest_pose(r.clone()).await.expect_err("not found");
+    assert_eq!((status.code(), status.message()), (Code::NotFound, "unknown session \"nope\""));
+    let status = q.subscribe_poses(r).await.expect_err("not found");
+    assert_eq!(status.code(), Code::NotFound);
+    let status = q
+        .get_trajectory(pb::TrajectoryRequest { session_id: "nope".into(), ..Default::default() })
+        .await
+        .expect_err("not found");
+    assert_eq!(status.code(), Code::NotFound);
+    let (code, body) = server.get_json("/api/v1/sessions/nope").await;
+    assert_eq!((code, body), (404, serde_json::json!({ "error": "unknown session \"nope\"" })));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn queries_answer_for_a_live_session_without_inventing_poses() {
+    let server = Server::start(&[]);
+    let (mut s, accepted) = Stream::hello(&server, tum_hello("q")).await;
+    s.send(ClientMsg::Frame(tum_frame(0, 10))).await;
+    assert_eq!(s.result().await.status(), FrameStatus::Ok);
+    let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
+    let list = q.list_sessions(pb::ListSessionsRequest {}).await.expect("list").into_inner();
+    assert_eq!(list.sessions.len(), 1);
+    assert_eq!(list.sessions[0].frames_processed, 1);
+    assert!(list.sessions[0].connected);
+    let latest = q.get_latest_pose(pb::SessionRef { session_id: accepted.session_id.clone() }).await.expect("pose").into_inner();
+    assert_eq!(latest.tracking_state(), pb::TrackingState::Initializing);
+    assert!(latest.pose.is_none());
+}
