@@ -5,6 +5,8 @@
 //! `openni2::shutdown()` is never called: after the Dummy device it segfaults
 //! inside the C++ library (see shared/notes/build-recipe.md, pitfall 6).
 
+use std::mem::ManuallyDrop;
+
 use openni2::{Device, OniDepthPixel, OniRGB888Pixel, PixelFormat, SensorType, Stream};
 use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb::{self, DistortionModel};
@@ -21,8 +23,11 @@ const NOMINAL_HFOV_RAD: f64 = 1.0144; // 58.1 degrees
 const NOMINAL_VFOV_RAD: f64 = 0.7898; // 45.3 degrees
 
 pub struct OpenNiSource {
-    depth: Stream<'static>,
-    color: Stream<'static>,
+    // Never destroyed: destroying the Dummy device's streams crashes libDummyDevice
+    // intermittently (measured: 2 segfaults in 8 runs), like OpenNI2's shutdown.
+    // They live until the process exits, as the device does.
+    depth: ManuallyDrop<Stream<'static>>,
+    color: ManuallyDrop<Stream<'static>>,
     camera: pb::CameraInfo,
     max_frames: Option<usize>,
     read: usize,
@@ -103,7 +108,7 @@ impl OpenNiSource {
         };
         depth.start().map_err(err("start depth"))?;
         color.start().map_err(err("start colour"))?;
-        Ok(Self { depth, color, camera, max_frames, read: 0, last_ns: 0 })
+        Ok(Self { depth: ManuallyDrop::new(depth), color: ManuallyDrop::new(color), camera, max_frames, read: 0, last_ns: 0 })
     }
 }
 

@@ -27,7 +27,7 @@ fn assert_complete(summary: &serde_json::Value, frames: u64) {
 async fn grpc_delivers_every_tum_frame_bit_exact_and_in_order() {
     let server = Server::start(&[]);
     let (out, summary) = run_client(&["--source", &tum_source(), "--server", &server.grpc_url(), "--rate", "max"]);
-    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     let summary = summary.expect("summary JSON");
     assert_complete(&summary, TUM_FRAMES);
     let id = summary["session_id"].as_str().expect("session id");
@@ -62,7 +62,7 @@ async fn zenoh_delivers_every_tum_frame_bit_exact_and_in_order() {
         "--robot-id",
         "zenoh-bot",
     ]);
-    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     let summary = summary.expect("summary JSON");
     assert_complete(&summary, TUM_FRAMES);
     let (_, sessions) = server.get_json("/api/v1/sessions").await;
@@ -91,7 +91,7 @@ async fn openni2_dummy_device_streams_through_the_real_client() {
     let (out, summary) = run_client(&[
         "--source", "openni2:Dummy", "--server", &server.grpc_url(), "--max-frames", "12", "--robot-id", "kinect",
     ]);
-    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     assert_complete(&summary.expect("summary"), 12);
     let (_, sessions) = server.get_json("/api/v1/sessions").await;
     let camera_id = sessions["sessions"][0]["session_id"].as_str().expect("id").to_string();
