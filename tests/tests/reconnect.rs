@@ -1,0 +1,79 @@
+//! The real client loses its connection mid-stream (a loopback TCP proxy cuts
+//! the first connection) and must reconnect, resume the same session and finish.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use stillmap_e2e::{Server, free_port, run_client, tum_dir};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+/// Bytes the first connection may carry towards the server before it is cut (about 10 frames).
+const CUT_AFTER_BYTES: usize = 1_500_000;
+
+async fn proxy(listener: TcpListener, upstream: String) {
+    let connections = Arc::new(AtomicUsize::new(0));
+    while let Ok((mut client, _)) = listener.accept().await {
+        let n = connections.fetch_add(1, Ordering::Relaxed);
+        let upstream = upstream.clone();
+        tokio::spawn(async move {
+            let Ok(mut server) = TcpStream::connect(&upstream).await else { return };
+            if n > 0 {
+                let _ = tokio::io::copy_bidirectional(&mut client, &mut server).await;
+                return;
+            }
+            // First connection: forward until the budget is spent, then drop both sides.
+            let (mut cr, mut cw) = client.split();
+            let (mut sr, mut sw) = server.split();
+            let up = async {
+                let mut buf = vec![0u8; 64 * 1024];
+                let mut sent = 0;
+                while sent < CUT_AFTER_BYTES {
+                    let Ok(k) = cr.read(&mut buf).await else { break };
+                    if k == 0 || sw.write_all(&buf[..k]).await.is_err() {
+                        break;
+                    }
+                    sent += k;
+                }
+            };
+            let down = tokio::io::copy(&mut sr, &mut cw);
+            tokio::select! {
+                _ = up => {}
+                _ = down => {}
+            }
+        });
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn client_reconnects_and_resumes_the_session() {
+    let server = Server::start(&[]);
+    let port = free_port();
+    let listener = TcpListener::bind(("127.0.0.1", port)).await.expect("proxy bind");
+    tokio::spawn(proxy(listener, server.grpc.clone()));
+
+    let src = format!("tum:{}", tum_dir().display());
+    let url = format!("http://127.0.0.1:{port}");
+    let (out, summary) =
+        tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &url, "--rate", "max"]))
+            .await
+            .expect("client thread");
+    assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
+    let s = summary.expect("summary");
+    assert!(s["reconnects"].as_u64() >= Some(1), "{s:#}");
+    assert_eq!(s["frames_sent"], 150);
+    // Every frame is answered, except those whose result died with the connection.
+    let acked = s["frames_acknowledged"].as_u64().expect("acked");
+    let unanswered = s["frames_unanswered"].as_u64().expect("unanswered");
+    assert_eq!(acked + unanswered, 150, "{s:#}");
+    assert!(unanswered <= 8, "at most one window of results may be lost: {s:#}");
+    assert_eq!(s["depth_mismatch"], 0);
+    assert_eq!(s["frames_rejected"], 0, "no frame may be sent twice: {s:#}");
+
+    // One session, resumed: the server received each frame exactly once.
+    let (_, sessions) = server.get_json("/api/v1/sessions").await;
+    let list = sessions["sessions"].as_array().expect("sessions");
+    assert_eq!(list.len(), 1, "{sessions:#}");
+    assert_eq!(list[0]["counters"]["frames_received"], 150);
+    assert_eq!(list[0]["counters"]["frames_processed"], 150);
+}
