@@ -4,11 +4,9 @@
 //! Colour and depth are paired like TUM's `associate.py`: every candidate pair
 //! closer than 20 ms, closest first, each image used once, then sorted by time.
 
-use std::fs::File;
-use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
-use stillmap_proto::codec::{ColorImage, DepthImage};
+use stillmap_proto::codec;
 use stillmap_proto::pb::{self, DistortionModel};
 
 use crate::ClientError;
@@ -104,7 +102,6 @@ pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
 }
 
 pub struct TumSource {
-    dir: PathBuf,
     frames: Vec<(u64, PathBuf, PathBuf, Option<[f64; 3]>)>,
     next: usize,
     camera: pb::CameraInfo,
@@ -154,7 +151,7 @@ impl TumSource {
         if !known {
             tracing::warn!("{}: not a freiburg1/2/3 sequence name; using the ROS default intrinsics", dir.display());
         }
-        Ok(Self { dir: dir.to_path_buf(), frames, next: 0, camera })
+        Ok(Self { frames, next: 0, camera })
     }
 
     /// Capture times of the associated frames, in order.
@@ -163,38 +160,10 @@ impl TumSource {
     }
 }
 
-fn png_reader(path: &Path) -> Result<png::Reader<BufReader<File>>, ClientError> {
-    let file = File::open(path).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
-    png::Decoder::new(BufReader::new(file))
-        .read_info()
-        .map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))
-}
-
-/// Reads an 8-bit RGB PNG.
-pub fn read_color_png(path: &Path) -> Result<ColorImage, ClientError> {
-    let mut reader = png_reader(path)?;
-    let info = reader.info();
-    let (w, h) = (info.width, info.height);
-    if (info.bit_depth, info.color_type) != (png::BitDepth::Eight, png::ColorType::Rgb) {
-        return Err(ClientError::Source(format!("{}: expected an 8-bit RGB PNG", path.display())));
-    }
-    let mut data = vec![0u8; w as usize * h as usize * 3];
-    reader.next_frame(&mut data).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
-    Ok(ColorImage { width: w, height: h, data })
-}
-
-/// Reads a 16-bit greyscale PNG.
-pub fn read_depth_png(path: &Path) -> Result<DepthImage, ClientError> {
-    let mut reader = png_reader(path)?;
-    let info = reader.info();
-    let (w, h) = (info.width, info.height);
-    if (info.bit_depth, info.color_type) != (png::BitDepth::Sixteen, png::ColorType::Grayscale) {
-        return Err(ClientError::Source(format!("{}: expected a 16-bit greyscale PNG", path.display())));
-    }
-    let mut buf = vec![0u8; w as usize * h as usize * 2];
-    reader.next_frame(&mut buf).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
-    let data = buf.chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect();
-    Ok(DepthImage { width: w, height: h, data })
+/// Reads one image file and decodes it with the contract's decoders (the same code the server runs).
+fn read_image<T>(path: &Path, decode: impl FnOnce(&[u8]) -> Result<T, codec::CodecError>) -> Result<T, ClientError> {
+    let bytes = std::fs::read(path).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
+    decode(&bytes).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))
 }
 
 impl FrameSource for TumSource {
@@ -211,18 +180,9 @@ impl FrameSource for TumSource {
             return Ok(None);
         };
         self.next += 1;
-        let color = read_color_png(rgb)?;
-        let depth = read_depth_png(depth)?;
-        for (what, w, h) in [("colour", color.width, color.height), ("depth", depth.width, depth.height)] {
-            if (w, h) != (self.camera.width, self.camera.height) {
-                return Err(ClientError::Source(format!(
-                    "{}: {what} frame at {ts} is {w}x{h}, expected {}x{}",
-                    self.dir.display(),
-                    self.camera.width,
-                    self.camera.height
-                )));
-            }
-        }
+        let (w, h) = (self.camera.width, self.camera.height);
+        let color = read_image(rgb, |b| codec::decode_color(pb::ColorEncoding::Png, b, w, h))?;
+        let depth = read_image(depth, |b| codec::decode_depth(pb::DepthEncoding::Png16, b, w, h))?;
         Ok(Some(RawFrame { capture_time_ns: *ts, color, depth, accel_in_camera: *accel }))
     }
 }

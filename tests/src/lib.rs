@@ -134,15 +134,9 @@ pub fn first_tum_frame() -> (ColorImage, DepthImage) {
             .and_then(|l| l.split_whitespace().nth(1).map(str::to_owned))
             .expect("first entry")
     };
-    let read = |p: PathBuf| {
-        let mut r = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).expect("png"))).read_info().expect("png");
-        let mut buf = vec![0; r.output_buffer_size().expect("size")];
-        r.next_frame(&mut buf).expect("png frame");
-        buf
-    };
-    let color = ColorImage { width: 640, height: 480, data: read(dir.join(list("rgb.txt"))) };
-    let raw = read(dir.join(list("depth.txt")));
-    let depth = DepthImage { width: 640, height: 480, data: raw.chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect() };
+    let read = |f: &str| std::fs::read(dir.join(list(f))).expect("image file");
+    let color = codec::decode_color(pb::ColorEncoding::Png, &read("rgb.txt"), 640, 480).expect("colour PNG");
+    let depth = codec::decode_depth(pb::DepthEncoding::Png16, &read("depth.txt"), 640, 480).expect("depth PNG");
     (color, depth)
 }
 
