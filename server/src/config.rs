@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use crate::ServerError;
 
 /// Everything the server can be told.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
     pub grpc: GrpcConfig,
@@ -114,17 +114,6 @@ impl Default for SessionConfig {
             overload_policy: OverloadPolicy::DropOldest,
             result_buffer: 64,
             max_pending_drop_notices: 1024,
-        }
-    }
-}
-
-impl Default for ServerConfig {
-    fn default() -> Self {
-        Self {
-            grpc: GrpcConfig::default(),
-            http: HttpConfig::default(),
-            zenoh: ZenohConfig::default(),
-            session: SessionConfig::default(),
         }
     }
 }

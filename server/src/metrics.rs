@@ -34,30 +34,37 @@ pub struct Metrics {
 impl Default for Metrics {
     fn default() -> Self {
         let mut registry = Registry::with_prefix("stillmap");
-        let m = Self {
-            frames_received: Family::default(),
-            frames_processed: Family::default(),
-            frames_dropped: Family::default(),
-            frames_rejected: Family::default(),
-            bytes_received: Family::default(),
-            stage_latency: Family::new_with_constructor(latency_histogram),
-            sessions_connected: Gauge::default(),
-            sessions_total: Counter::default(),
-            registry: Registry::default(),
-        };
-        registry.register("frames_received", "Frames received, by transport", m.frames_received.clone());
-        registry.register("frames_processed", "Frames decoded and processed, by transport", m.frames_processed.clone());
-        registry.register("frames_dropped", "Frames dropped by the overload policy, by transport", m.frames_dropped.clone());
+        let frames_received = Family::<Labels, Counter>::default();
+        let frames_processed = Family::<Labels, Counter>::default();
+        let frames_dropped = Family::<Labels, Counter>::default();
+        let frames_rejected = Family::<Labels, Counter>::default();
+        let bytes_received = Family::<Labels, Counter>::default();
+        let stage_latency = Family::<Labels, Histogram, fn() -> Histogram>::new_with_constructor(latency_histogram);
+        let sessions_connected = Gauge::default();
+        let sessions_total = Counter::default();
+        registry.register("frames_received", "Frames received, by transport", frames_received.clone());
+        registry.register("frames_processed", "Frames decoded and processed, by transport", frames_processed.clone());
+        registry.register("frames_dropped", "Frames dropped by the overload policy, by transport", frames_dropped.clone());
         registry.register(
             "frames_rejected",
             "Frames or messages rejected, by reason (order, color, depth, oversized, no_hello, malformed)",
-            m.frames_rejected.clone(),
+            frames_rejected.clone(),
         );
-        registry.register("bytes_received", "Frame payload bytes received, by transport", m.bytes_received.clone());
-        registry.register("stage_latency_seconds", "Server-side time per pipeline stage", m.stage_latency.clone());
-        registry.register("sessions_connected", "Sessions with a connected robot", m.sessions_connected.clone());
-        registry.register("sessions", "Sessions opened", m.sessions_total.clone());
-        Self { registry, ..m }
+        registry.register("bytes_received", "Frame payload bytes received, by transport", bytes_received.clone());
+        registry.register("stage_latency_seconds", "Server-side time per pipeline stage", stage_latency.clone());
+        registry.register("sessions_connected", "Sessions with a connected robot", sessions_connected.clone());
+        registry.register("sessions", "Sessions opened", sessions_total.clone());
+        Self {
+            registry,
+            frames_received,
+            frames_processed,
+            frames_dropped,
+            frames_rejected,
+            bytes_received,
+            stage_latency,
+            sessions_connected,
+            sessions_total,
+        }
     }
 }
 
