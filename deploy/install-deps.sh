@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Installs what the build and the tests need, skipping what is already there:
-# Debian packages (OpenCV, clang for its bindings, OpenNI2, protoc) and the
-# ONNX Runtime shared library from PyPI's onnxruntime wheel (Debian has none).
+# Debian packages (OpenCV, clang for its bindings, OpenNI2, protoc), the ONNX
+# Runtime shared library from PyPI's onnxruntime wheel (Debian has none), and evo
+# (PyPI, in a virtual environment) for the trajectory-evaluation parity test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl)
+APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core)
 ORT_VERSION=1.31.1
 
 missing=()
@@ -38,4 +39,20 @@ for name in wheel.namelist():
             out.write(wheel.read(name))
 PY
   test -f "$lib"
+fi
+
+# evo, the reference `stillmap-client eval` is tested against (client/tests/evo_parity.rs),
+# in its own virtual environment: ~25 s and ~470 MB (numpy, scipy, matplotlib, pandas).
+EVO_VERSION=1.38.1
+if [ ! -x .deps/evo/bin/evo_ape ]; then
+  echo "install-deps: installing evo ${EVO_VERSION} into .deps/evo"
+  if ! python3 -c "import ensurepip, venv" 2>/dev/null; then
+    SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends python3-venv >/dev/null
+  fi
+  rm -rf .deps/evo
+  python3 -m venv .deps/evo
+  .deps/evo/bin/pip install -q --disable-pip-version-check "evo==${EVO_VERSION}"
+  test -x .deps/evo/bin/evo_ape
 fi

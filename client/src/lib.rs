@@ -1,7 +1,9 @@
 //! The stillmap robot client as a library: frame sources ([`source`], [`tum`],
-//! `openni`), the transport links ([`link`]) and the streaming core ([`streamer`]).
+//! `openni`), the transport links ([`link`]), the streaming core ([`streamer`]) and
+//! trajectory evaluation like evo ([`eval`]).
 
 pub mod bench;
+pub mod eval;
 pub mod link;
 #[cfg(feature = "openni2")]
 pub mod openni;

@@ -1,10 +1,12 @@
-//! `stillmap-client`: stream RGB-D frames to a stillmap server; measure codecs.
+//! `stillmap-client`: stream RGB-D frames to a stillmap server; measure codecs;
+//! evaluate trajectories like evo.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use stillmap_client::eval::{self, Alignment, EvalOptions, Metric, Relation};
 use stillmap_client::link::{self, GrpcOptions, ZenohOptions};
 use stillmap_client::source::SourceSpec;
 use stillmap_client::streamer::{self, Rate, StreamOptions};
@@ -36,6 +38,22 @@ enum ColorArg {
     Jpeg,
     Png,
     Rgb8,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MetricArg {
+    /// Absolute pose error (evo_ape).
+    Ape,
+    /// Relative pose error (evo_rpe).
+    Rpe,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum RelationArg {
+    /// Translation part, metres.
+    Trans,
+    /// Rotation angle, degrees.
+    Rot,
 }
 
 #[derive(Subcommand)]
@@ -103,6 +121,39 @@ enum Command {
         repeats: usize,
         #[arg(long, default_value_t = 90)]
         jpeg_quality: u8,
+    },
+    /// Evaluate an estimated trajectory against a reference (TUM files), as evo_ape / evo_rpe do.
+    Eval {
+        #[arg(value_enum)]
+        metric: MetricArg,
+        /// Reference (ground truth) trajectory, TUM format.
+        reference: PathBuf,
+        /// Estimated trajectory, TUM format.
+        estimate: PathBuf,
+        /// Align the estimate with SE(3) Umeyama first (evo -a).
+        #[arg(long, conflicts_with = "align_origin")]
+        align: bool,
+        /// Move the first estimated pose onto the first reference pose (evo --align_origin).
+        #[arg(long)]
+        align_origin: bool,
+        /// Only this relation (default: both).
+        #[arg(long, value_enum)]
+        relation: Option<RelationArg>,
+        /// RPE: frames between the poses of a pair (consecutive pairs, like evo).
+        #[arg(long)]
+        delta: Option<usize>,
+        /// Largest timestamp difference of associated poses, seconds.
+        #[arg(long, default_value_t = eval::DEFAULT_MAX_DIFF_S)]
+        t_max_diff: f64,
+        /// Added to the estimate's timestamps before association, seconds.
+        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+        t_offset: f64,
+        /// Write the result here as JSON.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Plot the trajectories here (.png or .svg).
+        #[arg(long)]
+        plot: Option<PathBuf>,
     },
 }
 
@@ -210,6 +261,39 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             }
             let clean = summary.frames_rejected == 0 && summary.depth_mismatch == 0;
             Ok(if clean { ExitCode::SUCCESS } else { ExitCode::from(2) })
+        }
+        Command::Eval {
+            metric,
+            reference,
+            estimate,
+            align,
+            align_origin,
+            relation,
+            delta,
+            t_max_diff,
+            t_offset,
+            json,
+            plot,
+        } => {
+            let metric = match (metric, delta) {
+                (MetricArg::Ape, Some(_)) => Err(ClientError::Usage("--delta applies to rpe only".into()))?,
+                (MetricArg::Ape, None) => Metric::Ape,
+                (MetricArg::Rpe, delta) => Metric::Rpe { delta: delta.unwrap_or(eval::DEFAULT_DELTA) },
+            };
+            let relations = match relation {
+                None => vec![Relation::Translation, Relation::RotationDeg],
+                Some(RelationArg::Trans) => vec![Relation::Translation],
+                Some(RelationArg::Rot) => vec![Relation::RotationDeg],
+            };
+            let alignment = match (align, align_origin) {
+                (true, _) => Alignment::Se3,
+                (false, true) => Alignment::Origin,
+                (false, false) => Alignment::None,
+            };
+            let options = EvalOptions { metric, alignment, relations, max_diff: t_max_diff, offset: t_offset };
+            let args = eval::RunArgs { reference, estimate, options, json, plot };
+            print!("{}", eval::run(&args)?);
+            Ok(ExitCode::SUCCESS)
         }
     }
 }

@@ -1,5 +1,30 @@
 //! stillmap camera tracking, free of network and file I/O.
+//!
+//! [`Tracker`] estimates `world_from_camera` for every RGB-D frame from ORB
+//! features outside the dynamic mask, against a local map of keyframes and points
+//! refined by sliding-window bundle adjustment (see ARCHITECTURE.md).
 
+pub mod ba;
 pub mod camera;
+pub mod config;
+pub mod features;
+pub mod geometry;
+pub mod map;
+pub mod optimize;
+pub mod synthetic;
+pub mod tracker;
 
 pub use camera::Camera;
+pub use config::TrackerConfig;
+pub use tracker::{FrameInput, StageTimes, TrackOutput, Tracker, TrackingState};
+
+/// Errors of the tracking crate.
+#[derive(Debug, thiserror::Error)]
+pub enum TrackingError {
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+    #[error("bad tracking input: {0}")]
+    Input(String),
+    #[error("bad tracking configuration: {0}")]
+    Config(String),
+}

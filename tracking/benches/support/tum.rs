@@ -1,0 +1,155 @@
+//! Test and bench support (not part of the library): loads a TUM RGB-D folder and
+//! scores a trajectory. Shared by the tests, benches and examples via `#[path]`.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use stillmap_proto::codec;
+use stillmap_proto::pb::{ColorEncoding, DepthEncoding};
+use stillmap_tracking::Camera;
+
+pub struct TumFrame {
+    pub timestamp_ns: u64,
+    pub rgb: Vec<u8>,
+    pub depth: Vec<u16>,
+}
+
+/// The real fr1_rpy clip beside the repository.
+pub fn fr1_rpy_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy")
+}
+
+/// TUM freiburg1 calibration (from the dataset's documentation).
+pub fn fr1_camera() -> Camera {
+    Camera {
+        distortion: Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
+        ..Camera::pinhole(640, 480, 517.3, 516.5, 318.6, 255.3, 5000.0)
+    }
+}
+
+fn parse_ts(s: &str) -> u64 {
+    let (sec, frac) = s.split_once('.').unwrap_or((s, "0"));
+    let frac = format!("{frac:0<9}");
+    sec.parse::<u64>().expect("seconds") * 1_000_000_000 + frac[..9].parse::<u64>().expect("fraction")
+}
+
+fn list(dir: &Path, name: &str) -> Vec<(u64, String)> {
+    std::fs::read_to_string(dir.join(name))
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.join(name).display()))
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let mut it = l.split_whitespace();
+            (parse_ts(it.next().expect("ts")), it.next().expect("file").to_string())
+        })
+        .collect()
+}
+
+/// Associates colour and depth like TUM's associate.py (greedy closest first, 20 ms).
+pub fn load(dir: &Path, max_frames: usize) -> Vec<TumFrame> {
+    let rgb = list(dir, "rgb.txt");
+    let depth = list(dir, "depth.txt");
+    let mut cands = Vec::new();
+    for (i, (a, _)) in rgb.iter().enumerate() {
+        for (j, (b, _)) in depth.iter().enumerate() {
+            let d = a.abs_diff(*b);
+            if d < 20_000_000 {
+                cands.push((d, i, j));
+            }
+        }
+    }
+    cands.sort();
+    let (mut ui, mut uj) = (vec![false; rgb.len()], vec![false; depth.len()]);
+    let mut pairs = Vec::new();
+    for (_, i, j) in cands {
+        if !ui[i] && !uj[j] {
+            ui[i] = true;
+            uj[j] = true;
+            pairs.push((i, j));
+        }
+    }
+    pairs.sort();
+    pairs
+        .into_iter()
+        .take(max_frames)
+        .map(|(i, j)| {
+            let c = std::fs::read(dir.join(&rgb[i].1)).expect("rgb");
+            let d = std::fs::read(dir.join(&depth[j].1)).expect("depth");
+            TumFrame {
+                timestamp_ns: rgb[i].0,
+                rgb: codec::decode_color(ColorEncoding::Png, &c, 640, 480).expect("decode rgb").data,
+                depth: codec::decode_depth(DepthEncoding::Png16, &d, 640, 480).expect("decode depth").data,
+            }
+        })
+        .collect()
+}
+
+/// `groundtruth.txt` as (timestamp, world_from_camera).
+pub fn groundtruth(dir: &Path) -> Vec<(u64, Isometry3<f64>)> {
+    std::fs::read_to_string(dir.join("groundtruth.txt"))
+        .expect("groundtruth")
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<&str> = l.split_whitespace().collect();
+            let f = |i: usize| v[i].parse::<f64>().expect("number");
+            let q = UnitQuaternion::from_quaternion(Quaternion::new(f(7), f(4), f(5), f(6)));
+            (parse_ts(v[0]), Isometry3::from_parts(Translation3::new(f(1), f(2), f(3)), q))
+        })
+        .collect()
+}
+
+/// Scores of a trajectory against ground truth (evo semantics: nearest timestamp
+/// within 20 ms, SE(3) Umeyama alignment for ATE; RPE over consecutive poses).
+#[derive(Debug, Clone, Copy)]
+pub struct Scores {
+    pub pairs: usize,
+    pub ate_m: f64,
+    pub ate_deg: f64,
+    pub ate_origin_deg: f64,
+    pub rpe_m: f64,
+    pub rpe_deg: f64,
+}
+
+pub fn score(gt: &[(u64, Isometry3<f64>)], est: &[(u64, Isometry3<f64>)]) -> Scores {
+    let mut pairs = Vec::new();
+    for (t, p) in est {
+        let best = gt.iter().min_by_key(|(g, _)| g.abs_diff(*t)).expect("gt");
+        if best.0.abs_diff(*t) <= 20_000_000 {
+            pairs.push((best.1, *p));
+        }
+    }
+    let n = pairs.len() as f64;
+    let mu_g = pairs.iter().map(|(g, _)| g.translation.vector).sum::<Vector3<f64>>() / n;
+    let mu_e = pairs.iter().map(|(_, e)| e.translation.vector).sum::<Vector3<f64>>() / n;
+    let mut cov = Matrix3::zeros();
+    for (g, e) in &pairs {
+        cov += (g.translation.vector - mu_g) * (e.translation.vector - mu_e).transpose();
+    }
+    cov /= n;
+    let svd = cov.svd(true, true);
+    let (u, vt) = (svd.u.expect("u"), svd.v_t.expect("v"));
+    let mut s = Matrix3::identity();
+    if (u.determinant() * vt.determinant()) < 0.0 {
+        s[(2, 2)] = -1.0;
+    }
+    let r = u * s * vt;
+    let t = mu_g - r * mu_e;
+    let align = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r));
+    let origin = pairs[0].0 * pairs[0].1.inverse();
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+    let te: Vec<f64> = pairs.iter().map(|(g, e)| ((align * e).translation.vector - g.translation.vector).norm()).collect();
+    let re: Vec<f64> = pairs.iter().map(|(g, e)| (g.inverse() * (align * e)).rotation.angle().to_degrees()).collect();
+    let ro: Vec<f64> = pairs.iter().map(|(g, e)| (g.inverse() * (origin * e)).rotation.angle().to_degrees()).collect();
+    let mut rt = Vec::new();
+    let mut rr = Vec::new();
+    for w in pairs.windows(2) {
+        let dg = w[0].0.inverse() * w[1].0;
+        let de = w[0].1.inverse() * w[1].1;
+        let err = dg.inverse() * de;
+        rt.push(err.translation.vector.norm());
+        rr.push(err.rotation.angle().to_degrees());
+    }
+    Scores { pairs: pairs.len(), ate_m: rms(&te), ate_deg: rms(&re), ate_origin_deg: rms(&ro), rpe_m: rms(&rt), rpe_deg: rms(&rr) }
+}

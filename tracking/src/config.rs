@@ -1,0 +1,113 @@
+//! Every tunable of the tracker, with its documented default.
+//!
+//! Defaults are chosen for any indoor structured-light or time-of-flight RGB-D
+//! camera at VGA resolution and 15–30 Hz; none is fitted to a particular clip.
+
+use serde::{Deserialize, Serialize};
+
+/// Tracking configuration (`[tracking]` in the server's TOML).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackerConfig {
+    /// ORB features kept per frame after spreading them over the image grid.
+    pub features: usize,
+    /// Candidate corners detected before the grid spreads them (≥ `features`).
+    pub candidate_features: usize,
+    /// ORB pyramid scale factor between levels.
+    pub scale_factor: f32,
+    /// ORB pyramid levels.
+    pub pyramid_levels: u32,
+    /// FAST threshold for corner detection (intensity steps, 0–255).
+    pub fast_threshold: u32,
+    /// Side of the square grid cells (pixels) over which features are spread evenly.
+    pub grid_cell_px: u32,
+    /// Nearest valid depth in metres; closer readings are treated as missing.
+    pub min_depth_m: f64,
+    /// Farthest trusted depth in metres; farther readings are treated as missing.
+    pub max_depth_m: f64,
+    /// A keypoint's depth is unreliable when its 3×3 neighbourhood spans more than
+    /// this fraction of its depth (it sits on a depth edge).
+    pub depth_edge_ratio: f64,
+    /// Virtual stereo baseline (metres) that turns a depth reading into a disparity
+    /// residual `fx·b/z`, in pixels: inverse depth matches the quadratic noise of
+    /// structured-light sensors. 0.08 m is the Kinect/Xtion projector baseline.
+    pub depth_baseline_m: f64,
+    /// Features with valid depth the first frame needs to start the map.
+    pub min_init_features: usize,
+    /// Search radius (pixels at pyramid level 0) when matching the last frame's points
+    /// projected with the motion model.
+    pub motion_search_radius_px: f64,
+    /// Search radius (pixels at level 0) when matching the local map after a first pose.
+    pub local_map_search_radius_px: f64,
+    /// Largest Hamming distance (of 256 bits) of an accepted match.
+    pub max_descriptor_distance: u32,
+    /// Best/second-best distance ratio a match must beat when two candidates compete.
+    pub match_ratio: f32,
+    /// Predict each frame's pose with a constant-velocity model (else: the last pose).
+    /// Off by default: on real handheld data (TUM fr1_rpy) and on the synthetic
+    /// sequence the prediction fed its own error back through the motion-model
+    /// search and made tracking worse (README, "Tracking accuracy").
+    pub constant_velocity: bool,
+    /// Matches below which the motion-model search is repeated with a wider radius,
+    /// then replaced by PnP-RANSAC.
+    pub min_motion_matches: usize,
+    /// Inlier matches (after optimisation) for a frame to count as tracked.
+    pub min_tracked_inliers: usize,
+    /// Inlier matches a relocalization must reach to be accepted.
+    pub min_relocalization_inliers: usize,
+    /// Keyframes whose points form the local map used for tracking.
+    pub local_keyframes: usize,
+    /// A new keyframe is taken when the tracked points fall below this fraction of
+    /// the reference keyframe's tracked points.
+    pub keyframe_tracked_ratio: f64,
+    /// A new keyframe is taken at least every this many frames.
+    pub keyframe_max_interval: u32,
+    /// New map points created per keyframe, at most (nearest depth first).
+    pub max_new_points_per_keyframe: usize,
+    /// Keyframes optimised together by local bundle adjustment (0 disables it).
+    pub ba_window: usize,
+    /// Levenberg–Marquardt iterations of one local bundle adjustment.
+    pub ba_iterations: u32,
+    /// Largest plausible camera motion between consecutive frames (metres); a pose
+    /// recovered beyond it breaks continuity and the frame is reported lost.
+    pub max_frame_translation_m: f64,
+    /// Largest plausible rotation between consecutive frames (degrees).
+    pub max_frame_rotation_deg: f64,
+    /// Keyframes tried by one relocalization attempt (most similar first).
+    pub relocalization_candidates: usize,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        Self {
+            features: 1000,
+            candidate_features: 3000,
+            scale_factor: 1.2,
+            pyramid_levels: 8,
+            fast_threshold: 12,
+            grid_cell_px: 32,
+            min_depth_m: 0.1,
+            max_depth_m: 6.0,
+            depth_edge_ratio: 0.05,
+            depth_baseline_m: 0.08,
+            min_init_features: 100,
+            motion_search_radius_px: 15.0,
+            local_map_search_radius_px: 4.0,
+            max_descriptor_distance: 80,
+            match_ratio: 0.9,
+            constant_velocity: false,
+            min_motion_matches: 20,
+            min_tracked_inliers: 30,
+            min_relocalization_inliers: 50,
+            local_keyframes: 10,
+            keyframe_tracked_ratio: 0.75,
+            keyframe_max_interval: 5,
+            max_new_points_per_keyframe: 400,
+            ba_window: 6,
+            ba_iterations: 8,
+            max_frame_translation_m: 0.3,
+            max_frame_rotation_deg: 30.0,
+            relocalization_candidates: 5,
+        }
+    }
+}

@@ -1,0 +1,132 @@
+//! The measurement model shared by pose optimisation and bundle adjustment.
+//!
+//! An observation of a map point is its ideal pixel (u, v) and, when the keypoint
+//! has depth, a virtual disparity `d = fx·b/z` (pixels). Predictions come from the
+//! point in the camera frame; the pose is perturbed on the left,
+//! `camera_from_world ← exp(δ) · camera_from_world` with `δ = (ω, v)`.
+
+use nalgebra::{Isometry3, Matrix3, Matrix3x6, Point2, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
+
+use crate::camera::Camera;
+
+/// χ² 95 % quantile for 2 degrees of freedom (pixel residual).
+pub const CHI2_2DOF: f64 = 5.991;
+/// χ² 95 % quantile for 3 degrees of freedom (pixel + disparity residual).
+pub const CHI2_3DOF: f64 = 7.815;
+
+/// One measurement of a point in an image.
+#[derive(Debug, Clone, Copy)]
+pub struct Measurement {
+    pub ideal: Point2<f64>,
+    /// `fx·b/z` when the keypoint had depth.
+    pub disparity: Option<f64>,
+    /// 1/σ² of the pixel (and disparity) noise; σ grows with the pyramid level.
+    pub information: f64,
+}
+
+impl Measurement {
+    pub fn chi2_threshold(&self) -> f64 {
+        if self.disparity.is_some() { CHI2_3DOF } else { CHI2_2DOF }
+    }
+}
+
+/// A linearised residual: `e = measured − predicted`, and the Jacobians of the
+/// prediction with respect to the pose perturbation and the point in the world.
+pub struct Linearised {
+    pub error: Vector3<f64>,
+    /// Rows used: 2 without disparity, 3 with.
+    pub rows: usize,
+    pub d_pose: Matrix3x6<f64>,
+    pub d_point: Matrix3<f64>,
+}
+
+impl Linearised {
+    /// Mahalanobis squared error.
+    pub fn chi2(&self, information: f64) -> f64 {
+        self.error.rows(0, self.rows).norm_squared() * information
+    }
+}
+
+/// Linearises a measurement of `point_in_world` seen from `camera_from_world`.
+/// `None` when the point is behind or too close to the camera.
+pub fn linearise(
+    camera: &Camera,
+    bf: f64,
+    camera_from_world: &Isometry3<f64>,
+    point_in_world: &Point3<f64>,
+    m: &Measurement,
+) -> Option<Linearised> {
+    const MIN_Z: f64 = 1e-3;
+    let pc = camera_from_world * point_in_world;
+    if pc.z < MIN_Z {
+        return None;
+    }
+    let inv_z = 1.0 / pc.z;
+    let inv_z2 = inv_z * inv_z;
+    let u = camera.fx * pc.x * inv_z + camera.cx;
+    let v = camera.fy * pc.y * inv_z + camera.cy;
+    let mut d_proj = Matrix3::zeros();
+    d_proj[(0, 0)] = camera.fx * inv_z;
+    d_proj[(0, 2)] = -camera.fx * pc.x * inv_z2;
+    d_proj[(1, 1)] = camera.fy * inv_z;
+    d_proj[(1, 2)] = -camera.fy * pc.y * inv_z2;
+    let mut error = Vector3::new(m.ideal.x - u, m.ideal.y - v, 0.0);
+    let rows = if let Some(d) = m.disparity {
+        d_proj[(2, 2)] = -bf * inv_z2;
+        error.z = d - bf * inv_z;
+        3
+    } else {
+        2
+    };
+    // d(pc)/dδ = [ -[pc]× | I ]
+    let mut d_pc_pose = Matrix3x6::zeros();
+    d_pc_pose.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-pc.coords.cross_matrix()));
+    d_pc_pose.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
+    let d_pose = d_proj * d_pc_pose;
+    let d_point = d_proj * camera_from_world.rotation.to_rotation_matrix().matrix();
+    Some(Linearised { error, rows, d_pose, d_point })
+}
+
+/// Applies a left perturbation `δ = (ω, v)` to a pose.
+pub fn perturb(delta: &Vector6<f64>, camera_from_world: &Isometry3<f64>) -> Isometry3<f64> {
+    let omega = Vector3::new(delta[0], delta[1], delta[2]);
+    let v = Vector3::new(delta[3], delta[4], delta[5]);
+    Isometry3::from_parts(Translation3::from(v), UnitQuaternion::from_scaled_axis(omega)) * camera_from_world
+}
+
+/// Huber weight for a residual of Mahalanobis norm² `chi2` with threshold `delta2`.
+#[inline]
+pub fn huber_weight(chi2: f64, delta2: f64) -> f64 {
+    if chi2 <= delta2 { 1.0 } else { (delta2 / chi2).sqrt() }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn jacobians_match_finite_differences() {
+        let camera = Camera::pinhole(640, 480, 520.0, 515.0, 320.0, 240.0, 5000.0);
+        let bf = 41.0;
+        let pose = Isometry3::new(Vector3::new(0.1, -0.2, 0.3), Vector3::new(0.05, -0.1, 0.2));
+        let pw = Point3::new(0.4, 0.3, 2.5);
+        let m = Measurement { ideal: Point2::new(300.0, 250.0), disparity: Some(15.0), information: 1.0 };
+        let lin = linearise(&camera, bf, &pose, &pw, &m).unwrap();
+        let h = 1e-6;
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = h;
+            let e2 = linearise(&camera, bf, &perturb(&d, &pose), &pw, &m).unwrap().error;
+            // e = measured − predicted, so de/dδ = −d_pose
+            let numeric = (e2 - lin.error) / h;
+            assert!((numeric + lin.d_pose.column(k)).norm() < 1e-3, "pose column {k}");
+        }
+        for k in 0..3 {
+            let mut p = pw;
+            p[k] += h;
+            let e2 = linearise(&camera, bf, &pose, &p, &m).unwrap().error;
+            let numeric = (e2 - lin.error) / h;
+            assert!((numeric + lin.d_point.column(k)).norm() < 1e-3, "point column {k}");
+        }
+    }
+}

@@ -1,0 +1,136 @@
+//! Motion-only optimisation: one camera pose against fixed map points, robust
+//! (Huber) Gauss–Newton on reprojection plus disparity residuals, with rounds of
+//! outlier classification as in ORB-SLAM.
+
+use nalgebra::{Isometry3, Matrix6, Point3, Vector6};
+
+use crate::camera::Camera;
+use crate::geometry::{Measurement, huber_weight, linearise, perturb};
+
+/// Classification rounds; the last one runs without the robust kernel.
+const ROUNDS: usize = 4;
+/// Levenberg–Marquardt iterations per round, at most.
+const ITERATIONS: usize = 15;
+/// Stop iterating once the update is this small (radians / metres) …
+const CONVERGED_STEP: f64 = 1e-7;
+/// … and the relative cost decrease this small.
+const CONVERGED_COST: f64 = 1e-9;
+/// Levenberg–Marquardt damping: start, bounds of its decrease, and change factor.
+const INITIAL_LAMBDA: f64 = 1e-4;
+const MIN_LAMBDA: f64 = 1e-9;
+const LAMBDA_FACTOR: f64 = 10.0;
+
+/// The result of a pose optimisation.
+pub struct PoseEstimate {
+    pub camera_from_world: Isometry3<f64>,
+    /// Per correspondence: whether it was an inlier in the final round.
+    pub inliers: Vec<bool>,
+    pub inlier_count: usize,
+}
+
+/// Optimises `camera_from_world` from 3D–2D(+depth) correspondences.
+pub fn optimize_pose(
+    camera: &Camera,
+    bf: f64,
+    initial: Isometry3<f64>,
+    correspondences: &[(Point3<f64>, Measurement)],
+) -> PoseEstimate {
+    let mut pose = initial;
+    let mut inliers = vec![true; correspondences.len()];
+    for round in 0..ROUNDS {
+        let robust = round + 1 < ROUNDS;
+        let cost = |pose: &Isometry3<f64>, inliers: &[bool]| -> f64 {
+            correspondences
+                .iter()
+                .zip(inliers)
+                .filter(|(_, i)| **i)
+                .map(|((pw, m), _)| match linearise(camera, bf, pose, pw, m) {
+                    Some(lin) => {
+                        let chi2 = lin.chi2(m.information);
+                        if robust { robust_cost(chi2, m.chi2_threshold()) } else { chi2 }
+                    }
+                    None => 2.0 * m.chi2_threshold(),
+                })
+                .sum()
+        };
+        let mut current = cost(&pose, &inliers);
+        let mut lambda = INITIAL_LAMBDA;
+        for _ in 0..ITERATIONS {
+            let mut h = Matrix6::zeros();
+            let mut b = Vector6::zeros();
+            let mut used = 0;
+            for ((pw, m), &inlier) in correspondences.iter().zip(&inliers) {
+                if !inlier {
+                    continue;
+                }
+                let Some(lin) = linearise(camera, bf, &pose, pw, m) else { continue };
+                let chi2 = lin.chi2(m.information);
+                let w = m.information * if robust { huber_weight(chi2, m.chi2_threshold()) } else { 1.0 };
+                let j = lin.d_pose.rows(0, lin.rows);
+                let e = lin.error.rows(0, lin.rows);
+                h += j.transpose() * j * w;
+                b += j.transpose() * e * w;
+                used += 1;
+            }
+            if used < 3 {
+                break;
+            }
+            let mut damped = h;
+            for i in 0..6 {
+                damped[(i, i)] *= 1.0 + lambda;
+            }
+            let Some(delta) = damped.cholesky().map(|c| c.solve(&b)) else { break };
+            let candidate = perturb(&delta, &pose);
+            let next = cost(&candidate, &inliers);
+            if next <= current {
+                pose = candidate;
+                lambda = (lambda / LAMBDA_FACTOR).max(MIN_LAMBDA);
+                let done = current - next < CONVERGED_COST * current.max(1.0) && delta.norm() < CONVERGED_STEP;
+                current = next;
+                if done {
+                    break;
+                }
+            } else {
+                lambda *= LAMBDA_FACTOR;
+            }
+        }
+        for ((pw, m), inlier) in correspondences.iter().zip(inliers.iter_mut()) {
+            *inlier = linearise(camera, bf, &pose, pw, m).is_some_and(|lin| lin.chi2(m.information) <= m.chi2_threshold());
+        }
+    }
+    let inlier_count = inliers.iter().filter(|&&i| i).count();
+    PoseEstimate { camera_from_world: pose, inliers, inlier_count }
+}
+
+fn robust_cost(chi2: f64, delta2: f64) -> f64 {
+    if chi2 <= delta2 { chi2 } else { 2.0 * (delta2 * chi2).sqrt() - delta2 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Point2, Vector3};
+
+    #[test]
+    fn recovers_a_pose_despite_outliers() {
+        let camera = Camera::pinhole(640, 480, 520.0, 520.0, 320.0, 240.0, 5000.0);
+        let bf = 41.6;
+        let truth = Isometry3::new(Vector3::new(0.05, -0.02, 0.1), Vector3::new(0.02, 0.05, -0.01));
+        let mut corr = Vec::new();
+        for i in 0..200 {
+            let pw = Point3::new(((i * 37) % 200) as f64 / 100.0 - 1.0, ((i * 91) % 150) as f64 / 100.0 - 0.75, 1.5 + (i % 7) as f64 * 0.3);
+            let pc = truth * pw;
+            let mut ideal = camera.project(&pc).unwrap();
+            if i % 10 == 0 {
+                ideal += nalgebra::Vector2::new(40.0, -25.0); // gross outlier
+            }
+            corr.push((pw, Measurement { ideal: Point2::from(ideal.coords), disparity: Some(bf / pc.z), information: 1.0 }));
+        }
+        let est = optimize_pose(&camera, bf, Isometry3::identity(), &corr);
+        let err = est.camera_from_world.inverse() * truth;
+        assert!(err.translation.vector.norm() < 1e-6, "{}", err.translation.vector.norm());
+        assert!(err.rotation.angle() < 1e-6);
+        assert_eq!(est.inlier_count, 180);
+        assert!(corr.iter().zip(&est.inliers).enumerate().all(|(i, (_, &inl))| inl == (i % 10 != 0)));
+    }
+}

@@ -1,0 +1,767 @@
+//! The tracker: one per camera session. Feed it frames in capture order; it
+//! returns a tracking state for every frame and a pose whenever it has one.
+
+use std::collections::{HashMap, HashSet};
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use opencv::core::{Mat, Point2f, Point3f, Vector};
+use opencv::prelude::*;
+
+use crate::TrackingError;
+use crate::ba;
+use crate::camera::Camera;
+use crate::config::TrackerConfig;
+use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales};
+use crate::geometry::Measurement;
+use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
+use crate::optimize::optimize_pose;
+
+/// The state of tracking for one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrackingState {
+    /// No map yet: the frame could not start one (too few features with depth).
+    Initializing,
+    /// Tracked continuously from the previous frame.
+    Tracking,
+    /// No pose for this frame.
+    Lost,
+    /// Continuity was broken and the pose was recovered against the map's keyframes.
+    Relocalized,
+}
+
+/// One RGB-D frame, borrowed.
+pub struct FrameInput<'a> {
+    pub timestamp_ns: u64,
+    /// RGB8, row-major, `width × height × 3` bytes.
+    pub rgb: &'a [u8],
+    /// Raw depth, row-major, `width × height`, in `Camera::depth_units_per_metre`; 0 = no reading.
+    pub depth: &'a [u16],
+    /// Dynamic-pixel mask, `width × height`, nonzero = dynamic; `None` = all static.
+    pub dynamic_mask: Option<&'a [u8]>,
+}
+
+/// Time spent per tracking stage on one frame.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StageTimes {
+    pub extraction: Duration,
+    pub matching: Duration,
+    pub optimization: Duration,
+    pub local_ba: Duration,
+    pub total: Duration,
+}
+
+/// What the tracker made of one frame.
+#[derive(Debug, Clone)]
+pub struct TrackOutput {
+    pub state: TrackingState,
+    /// Never set without a real estimate.
+    pub world_from_camera: Option<Isometry3<f64>>,
+    /// Features extracted (after the dynamic mask).
+    pub features: usize,
+    /// Keypoints removed by the dynamic mask.
+    pub masked_features: usize,
+    /// Map points matched as inliers.
+    pub tracked_points: usize,
+    /// Whether the frame became a keyframe.
+    pub keyframe: bool,
+    pub times: StageTimes,
+}
+
+/// The previous frame, kept for the motion model.
+struct LastFrame {
+    camera_from_world: Isometry3<f64>,
+    points: Vec<PointId>,
+}
+
+/// Relocalization: Hamming ratio test for brute-force matches.
+const RELOC_MATCH_RATIO: f32 = 0.75;
+/// Relocalization: correspondences needed before PnP is tried.
+const RELOC_MIN_MATCHES: usize = 15;
+/// PnP-RANSAC iterations, inlier reprojection threshold (pixels) and confidence.
+const PNP_ITERATIONS: i32 = 200;
+const PNP_REPROJECTION_PX: f32 = 4.0;
+const PNP_CONFIDENCE: f64 = 0.99;
+/// Thumbnail size for relocalization candidate ranking.
+const THUMB_W: usize = 40;
+const THUMB_H: usize = 30;
+/// Factor applied to the motion-model radius for the wider second search.
+const WIDE_SEARCH_FACTOR: f64 = 3.0;
+/// Keyframes created since a point's birth after which it must have ≥ 2 observations.
+const CULL_AFTER_KEYFRAMES: u64 = 3;
+/// Points matched in fewer than this fraction of the frames predicting them are culled.
+const CULL_FOUND_RATIO: f64 = 0.25;
+/// Visibility count before the found ratio is trusted.
+const CULL_MIN_VISIBLE: u32 = 10;
+/// Fixed keyframes (outside the window) anchoring a local BA, at most.
+const BA_MAX_FIXED: usize = 10;
+
+/// RGB-D camera tracker.
+pub struct Tracker {
+    camera: Camera,
+    config: TrackerConfig,
+    extractor: Extractor,
+    map: Map,
+    scales: Vec<f64>,
+    bf: f64,
+    initialized: bool,
+    lost: bool,
+    last: Option<LastFrame>,
+    /// `camera_from_world(k) · world_from_camera(k−1)`, when the last two frames were tracked.
+    velocity: Option<Isometry3<f64>>,
+    reference: Option<KeyframeId>,
+    reference_inliers: usize,
+    frames_since_keyframe: u32,
+}
+
+fn to_gray(rgb: &[u8]) -> Vec<u8> {
+    // ITU-R BT.601 luma in 8-bit fixed point, as OpenCV's RGB2GRAY.
+    rgb.chunks_exact(3)
+        .map(|p| ((u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29 + 128) >> 8) as u8)
+        .collect()
+}
+
+fn thumbnail(gray: &[u8], w: usize, h: usize) -> Vec<f32> {
+    let mut t = vec![0f32; THUMB_W * THUMB_H];
+    for ty in 0..THUMB_H {
+        for tx in 0..THUMB_W {
+            let (x0, x1) = (tx * w / THUMB_W, ((tx + 1) * w / THUMB_W).max(tx * w / THUMB_W + 1));
+            let (y0, y1) = (ty * h / THUMB_H, ((ty + 1) * h / THUMB_H).max(ty * h / THUMB_H + 1));
+            let mut s = 0u32;
+            for y in y0..y1.min(h) {
+                for x in x0..x1.min(w) {
+                    s += u32::from(gray[y * w + x]);
+                }
+            }
+            t[ty * THUMB_W + tx] = s as f32 / ((y1 - y0) * (x1 - x0)) as f32;
+        }
+    }
+    let n = t.len() as f32;
+    let mean = t.iter().sum::<f32>() / n;
+    let var = t.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
+    let inv = if var > f32::EPSILON { 1.0 / var.sqrt() } else { 0.0 };
+    t.iter_mut().for_each(|v| *v = (*v - mean) * inv);
+    t
+}
+
+impl Tracker {
+    pub fn new(camera: Camera, config: TrackerConfig) -> Result<Self, TrackingError> {
+        if camera.width < 3 || camera.height < 3 {
+            return Err(TrackingError::Config(format!("image {}x{} is too small to track", camera.width, camera.height)));
+        }
+        if config.features == 0 || config.candidate_features < config.features {
+            return Err(TrackingError::Config("tracking.features must be ≥ 1 and ≤ tracking.candidate_features".into()));
+        }
+        let extractor = Extractor::new(&config)?;
+        let bf = camera.fx * config.depth_baseline_m;
+        Ok(Self {
+            scales: level_scales(&config),
+            camera,
+            extractor,
+            map: Map::default(),
+            bf,
+            config,
+            initialized: false,
+            lost: false,
+            last: None,
+            velocity: None,
+            reference: None,
+            reference_inliers: 0,
+            frames_since_keyframe: 0,
+        })
+    }
+
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    pub fn map(&self) -> &Map {
+        &self.map
+    }
+
+    fn measurement(&self, f: &Feature) -> Measurement {
+        let s = self.scales[usize::from(f.octave).min(self.scales.len() - 1)];
+        Measurement { ideal: f.ideal, disparity: f.depth.map(|z| self.bf / z), information: 1.0 / (s * s) }
+    }
+
+    /// Tracks one frame.
+    pub fn track(&mut self, frame: &FrameInput<'_>) -> Result<TrackOutput, TrackingError> {
+        let start = Instant::now();
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        if frame.rgb.len() != w * h * 3 {
+            return Err(TrackingError::Input(format!("colour has {} bytes, expected {} ({w}x{h}x3)", frame.rgb.len(), w * h * 3)));
+        }
+        if frame.depth.len() != w * h {
+            return Err(TrackingError::Input(format!("depth has {} pixels, expected {} ({w}x{h})", frame.depth.len(), w * h)));
+        }
+        if let Some(m) = frame.dynamic_mask
+            && m.len() != w * h
+        {
+            return Err(TrackingError::Input(format!("dynamic mask has {} pixels, expected {} ({w}x{h})", m.len(), w * h)));
+        }
+        let mut times = StageTimes::default();
+        let t = Instant::now();
+        let gray = to_gray(frame.rgb);
+        let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask)?;
+        times.extraction = t.elapsed();
+
+        let mut out = TrackOutput {
+            state: TrackingState::Lost,
+            world_from_camera: None,
+            features: feats.features.len(),
+            masked_features: feats.masked_out,
+            tracked_points: 0,
+            keyframe: false,
+            times,
+        };
+
+        if !self.initialized {
+            out.state = TrackingState::Initializing;
+            if feats.features.iter().filter(|f| f.depth.is_some()).count() >= self.config.min_init_features {
+                let t = Instant::now();
+                let points = self.insert_keyframe(frame.timestamp_ns, Isometry3::identity(), feats, &gray, Vec::new());
+                out.times.local_ba = t.elapsed();
+                self.initialized = true;
+                self.reference_inliers = points.len();
+                self.last = Some(LastFrame { camera_from_world: Isometry3::identity(), points });
+                out.state = TrackingState::Tracking;
+                out.world_from_camera = Some(Isometry3::identity());
+                out.tracked_points = self.reference_inliers;
+                out.keyframe = true;
+            }
+            out.times.total = start.elapsed();
+            return Ok(out);
+        }
+
+        let index = GridIndex::new(&self.camera, &feats.features);
+        let mut tracked = None;
+        let mut relocalized = false;
+        if !self.lost {
+            tracked = self.track_with_motion_model(&feats, &index, &mut out.times);
+        }
+        if tracked.is_none() {
+            tracked = self.relocalize(&feats, &gray, &mut out.times);
+            relocalized = tracked.is_some();
+        }
+        let Some((camera_from_world, matches)) = tracked else {
+            self.lost = true;
+            self.last = None;
+            self.velocity = None;
+            out.times.total = start.elapsed();
+            return Ok(out);
+        };
+
+        let inliers = matches.iter().filter(|m| m.is_some()).count();
+        out.tracked_points = inliers;
+        out.state = if relocalized { TrackingState::Relocalized } else { TrackingState::Tracking };
+        out.world_from_camera = Some(camera_from_world.inverse());
+        self.velocity = match (&self.last, relocalized) {
+            (Some(last), false) => Some(camera_from_world * last.camera_from_world.inverse()),
+            _ => None,
+        };
+        self.lost = false;
+        self.frames_since_keyframe += 1;
+
+        let need_keyframe = relocalized
+            || self.frames_since_keyframe >= self.config.keyframe_max_interval
+            || (inliers as f64) < self.config.keyframe_tracked_ratio * self.reference_inliers as f64;
+        let points = if need_keyframe {
+            let t = Instant::now();
+            let points = self.insert_keyframe(frame.timestamp_ns, camera_from_world.inverse(), feats, &gray, matches);
+            self.reference_inliers = inliers;
+            out.times.local_ba = t.elapsed();
+            out.keyframe = true;
+            // Local BA may have moved this keyframe: report the refined pose.
+            if let Some(kf) = self.reference.and_then(|r| self.map.keyframes.get(&r)) {
+                out.world_from_camera = Some(kf.world_from_camera);
+            }
+            points
+        } else {
+            matches.into_iter().flatten().collect()
+        };
+        let camera_from_world = out.world_from_camera.map_or(camera_from_world, |p| p.inverse());
+        self.last = Some(LastFrame { camera_from_world, points });
+        out.times.total = start.elapsed();
+        Ok(out)
+    }
+
+    /// Motion-model projection of the last frame's points, widened once, then the
+    /// local map; returns the pose and per-feature inlier matches.
+    fn track_with_motion_model(
+        &mut self,
+        feats: &FrameFeatures,
+        index: &GridIndex,
+        times: &mut StageTimes,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
+        let last = self.last.as_ref()?;
+        let predicted = match self.velocity {
+            Some(v) if self.config.constant_velocity => v * last.camera_from_world,
+            _ => last.camera_from_world,
+        };
+        let candidates = last.points.clone();
+        let mut pose = None;
+        for factor in [1.0, WIDE_SEARCH_FACTOR] {
+            let t = Instant::now();
+            let mut matches = vec![None; feats.features.len()];
+            let radius = self.config.motion_search_radius_px * factor;
+            let n = self.search_by_projection(feats, index, &predicted, &candidates, radius, false, &mut matches);
+            times.matching += t.elapsed();
+            if n < self.config.min_motion_matches {
+                continue;
+            }
+            let t = Instant::now();
+            let result = self.optimize(feats, predicted, &mut matches);
+            times.optimization += t.elapsed();
+            if let Some(p) = result
+                && matches.iter().filter(|m| m.is_some()).count() >= self.config.min_motion_matches
+            {
+                pose = Some(p);
+                break;
+            }
+        }
+        let pose = pose?;
+        self.track_local_map(feats, index, pose, times)
+    }
+
+    /// Projects the local map into the frame around `pose`, re-optimises, and checks
+    /// the frame has enough inliers (with depth) to count as tracked.
+    fn track_local_map(
+        &mut self,
+        feats: &FrameFeatures,
+        index: &GridIndex,
+        pose: Isometry3<f64>,
+        times: &mut StageTimes,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
+        let t = Instant::now();
+        let local = self.local_points(pose);
+        let mut matches = vec![None; feats.features.len()];
+        self.search_by_projection(feats, index, &pose, &local, self.config.local_map_search_radius_px, true, &mut matches);
+        times.matching += t.elapsed();
+        let t = Instant::now();
+        let pose = self.optimize(feats, pose, &mut matches);
+        times.optimization += t.elapsed();
+        let pose = pose?;
+        let inliers = matches.iter().filter(|m| m.is_some()).count();
+        let with_depth = matches.iter().zip(&feats.features).filter(|(m, f)| m.is_some() && f.depth.is_some()).count();
+        for id in matches.iter().flatten() {
+            if let Some(mp) = self.map.points.get_mut(id) {
+                mp.found += 1;
+            }
+        }
+        (inliers >= self.config.min_tracked_inliers && with_depth >= self.config.min_tracked_inliers / 2).then_some((pose, matches))
+    }
+
+    /// Points of the keyframes nearest in covisibility to `pose`: the most recent
+    /// keyframes plus the reference, up to `local_keyframes`.
+    fn local_points(&self, camera_from_world: Isometry3<f64>) -> Vec<PointId> {
+        let world_from_camera = camera_from_world.inverse();
+        // Rank keyframes by viewpoint distance: translation plus rotation (1 rad ≈ 1 m).
+        let mut kfs: Vec<(f64, KeyframeId)> = self
+            .map
+            .keyframes
+            .values()
+            .map(|kf| {
+                let rel = kf.world_from_camera.inverse() * world_from_camera;
+                (rel.translation.vector.norm() + rel.rotation.angle(), kf.id)
+            })
+            .collect();
+        kfs.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut seen = HashSet::new();
+        let mut points = Vec::new();
+        for (_, id) in kfs.iter().take(self.config.local_keyframes) {
+            if let Some(kf) = self.map.keyframes.get(id) {
+                for p in kf.points.iter().flatten() {
+                    if seen.insert(*p) {
+                        points.push(*p);
+                    }
+                }
+            }
+        }
+        points
+    }
+
+    /// Matches map points projected with `camera_from_world` to features within
+    /// `radius` pixels (scaled by the point's pyramid level). Returns the number of matches.
+    #[allow(clippy::too_many_arguments)]
+    fn search_by_projection(
+        &mut self,
+        feats: &FrameFeatures,
+        index: &GridIndex,
+        camera_from_world: &Isometry3<f64>,
+        candidates: &[PointId],
+        radius: f64,
+        count_visible: bool,
+        matches: &mut [Option<PointId>],
+    ) -> usize {
+        let ratio = self.config.match_ratio;
+        let mut best_distance = vec![u32::MAX; feats.features.len()];
+        let max_level = self.scales.len() - 1;
+        for &id in candidates {
+            let Some(mp) = self.map.points.get_mut(&id) else { continue };
+            let pc = camera_from_world * mp.point_in_world;
+            if pc.z < self.config.min_depth_m {
+                continue;
+            }
+            let Some(px) = self.camera.project(&pc) else { continue };
+            if !self.camera.contains(&px) {
+                continue;
+            }
+            if count_visible {
+                mp.visible += 1;
+            }
+            let r = radius * self.scales[usize::from(mp.octave).min(max_level)];
+            let predicted_disparity = self.bf / pc.z;
+            let (mut best, mut second, mut best_i, mut second_i) = (u32::MAX, u32::MAX, usize::MAX, usize::MAX);
+            let descriptor = mp.descriptor;
+            index.for_each_near(&feats.features, &px, r, |i| {
+                let f = &feats.features[i];
+                if let Some(z) = f.depth
+                    && (self.bf / z - predicted_disparity).abs() > r
+                {
+                    return;
+                }
+                let d = hamming(&descriptor, &feats.descriptors[i]);
+                if d < best {
+                    (second, second_i) = (best, best_i);
+                    (best, best_i) = (d, i);
+                } else if d < second {
+                    (second, second_i) = (d, i);
+                }
+            });
+            if best > self.config.max_descriptor_distance {
+                continue;
+            }
+            // The same corner is often detected at two pyramid levels with nearly the
+            // same descriptor: the ratio test only compares candidates of one level.
+            if second_i != usize::MAX
+                && feats.features[second_i].octave == feats.features[best_i].octave
+                && best as f32 > ratio * second as f32
+            {
+                continue;
+            }
+            if best < best_distance[best_i] {
+                best_distance[best_i] = best;
+                matches[best_i] = Some(id);
+            }
+        }
+        matches.iter().filter(|m| m.is_some()).count()
+    }
+
+    /// Robust pose optimisation over the current matches; outliers are unmatched.
+    fn optimize(&self, feats: &FrameFeatures, initial: Isometry3<f64>, matches: &mut [Option<PointId>]) -> Option<Isometry3<f64>> {
+        let mut which = Vec::new();
+        let mut corr = Vec::new();
+        for (i, m) in matches.iter().enumerate() {
+            if let Some(mp) = m.and_then(|id| self.map.points.get(&id)) {
+                which.push(i);
+                corr.push((mp.point_in_world, self.measurement(&feats.features[i])));
+            }
+        }
+        if corr.len() < 3 {
+            return None;
+        }
+        let est = optimize_pose(&self.camera, self.bf, initial, &corr);
+        for (k, &i) in which.iter().enumerate() {
+            if !est.inliers[k] {
+                matches[i] = None;
+            }
+        }
+        Some(est.camera_from_world)
+    }
+
+    /// Global recovery: brute-force matching against the most similar keyframes,
+    /// PnP-RANSAC, pose optimisation and the local map.
+    fn relocalize(&mut self, feats: &FrameFeatures, gray: &[u8], times: &mut StageTimes) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
+        if feats.features.len() < RELOC_MIN_MATCHES {
+            return None;
+        }
+        let t = Instant::now();
+        let thumb = thumbnail(gray, self.camera.width as usize, self.camera.height as usize);
+        let mut ranked: Vec<(f32, KeyframeId)> = self
+            .map
+            .keyframes
+            .values()
+            .map(|kf| (-kf.thumbnail.iter().zip(&thumb).map(|(a, b)| a * b).sum::<f32>(), kf.id))
+            .collect();
+        ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut candidates: Vec<KeyframeId> = ranked.iter().take(self.config.relocalization_candidates).map(|r| r.1).collect();
+        if let Some(r) = self.reference
+            && !candidates.contains(&r)
+        {
+            candidates.push(r);
+        }
+        times.matching += t.elapsed();
+        let index = GridIndex::new(&self.camera, &feats.features);
+        let mut best: Option<(usize, Isometry3<f64>, Vec<Option<PointId>>)> = None;
+        for kf_id in candidates {
+            let t = Instant::now();
+            let Some(kf) = self.map.keyframes.get(&kf_id) else { continue };
+            let kf_points: Vec<(Descriptor, PointId)> = kf
+                .points
+                .iter()
+                .enumerate()
+                .filter_map(|(i, p)| p.map(|id| (kf.features.descriptors[i], id)))
+                .collect();
+            let pairs = brute_force_match(&feats.descriptors, &kf_points, self.config.max_descriptor_distance);
+            if pairs.len() < RELOC_MIN_MATCHES {
+                times.matching += t.elapsed();
+                continue;
+            }
+            let pnp = self.pnp_ransac(feats, &pairs);
+            times.matching += t.elapsed();
+            let Some((pose, inlier_pairs)) = pnp else { continue };
+            let mut matches = vec![None; feats.features.len()];
+            for (fi, id) in inlier_pairs {
+                matches[fi] = Some(id);
+            }
+            let t = Instant::now();
+            let refined = self.optimize(feats, pose, &mut matches);
+            times.optimization += t.elapsed();
+            let Some(refined) = refined else { continue };
+            let Some((pose, matches)) = self.track_local_map(feats, &index, refined, times) else { continue };
+            let n = matches.iter().filter(|m| m.is_some()).count();
+            if n >= self.config.min_relocalization_inliers && best.as_ref().is_none_or(|b| n > b.0) {
+                best = Some((n, pose, matches));
+            }
+        }
+        best.map(|(_, pose, matches)| (pose, matches))
+    }
+
+    /// PnP-RANSAC (OpenCV) on ideal pixels; returns `camera_from_world` and the inlier pairs.
+    fn pnp_ransac(&self, feats: &FrameFeatures, pairs: &[(usize, PointId)]) -> Option<(Isometry3<f64>, Vec<(usize, PointId)>)> {
+        let mut object = Vector::<Point3f>::new();
+        let mut image = Vector::<Point2f>::new();
+        let mut used = Vec::new();
+        for &(fi, id) in pairs {
+            let Some(mp) = self.map.points.get(&id) else { continue };
+            let p = mp.point_in_world;
+            object.push(Point3f::new(p.x as f32, p.y as f32, p.z as f32));
+            let f = &feats.features[fi];
+            image.push(Point2f::new(f.ideal.x as f32, f.ideal.y as f32));
+            used.push((fi, id));
+        }
+        if used.len() < RELOC_MIN_MATCHES {
+            return None;
+        }
+        let c = &self.camera;
+        let k = Mat::from_slice_2d(&[[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]]).ok()?;
+        let mut rvec = Mat::default();
+        let mut tvec = Mat::default();
+        let mut inliers = Mat::default();
+        let ok = opencv::calib3d::solve_pnp_ransac(
+            &object,
+            &image,
+            &k,
+            &opencv::core::no_array(),
+            &mut rvec,
+            &mut tvec,
+            false,
+            PNP_ITERATIONS,
+            PNP_REPROJECTION_PX,
+            PNP_CONFIDENCE,
+            &mut inliers,
+            opencv::calib3d::SOLVEPNP_EPNP,
+        )
+        .ok()?;
+        if !ok || inliers.rows() < RELOC_MIN_MATCHES as i32 {
+            return None;
+        }
+        let r = Vector3::new(*rvec.at::<f64>(0).ok()?, *rvec.at::<f64>(1).ok()?, *rvec.at::<f64>(2).ok()?);
+        let t = Vector3::new(*tvec.at::<f64>(0).ok()?, *tvec.at::<f64>(1).ok()?, *tvec.at::<f64>(2).ok()?);
+        let pose = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&Rotation3::new(r)));
+        let mut kept = Vec::new();
+        for i in 0..inliers.rows() {
+            let idx = *inliers.at::<i32>(i).ok()?;
+            if let Some(&pair) = used.get(usize::try_from(idx).ok()?) {
+                kept.push(pair);
+            }
+        }
+        Some((pose, kept))
+    }
+
+    /// Makes the frame a keyframe: records its matches, creates points from its
+    /// unmatched features with depth, runs local BA and culls points. Returns the
+    /// keyframe's points (for the next frame's motion model).
+    fn insert_keyframe(
+        &mut self,
+        timestamp_ns: u64,
+        world_from_camera: Isometry3<f64>,
+        feats: FrameFeatures,
+        gray: &[u8],
+        matches: Vec<Option<PointId>>,
+    ) -> Vec<PointId> {
+        let id = self.map.next_keyframe_id();
+        let n = feats.features.len();
+        let thumb = thumbnail(gray, self.camera.width as usize, self.camera.height as usize);
+        let mut new: Vec<(f64, usize)> = feats
+            .features
+            .iter()
+            .enumerate()
+            .filter(|(i, f)| f.depth.is_some() && matches.get(*i).is_none_or(|m| m.is_none()))
+            .map(|(i, f)| (f.depth.unwrap_or(f64::MAX), i))
+            .collect();
+        new.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let limit = if self.map.keyframes.is_empty() { usize::MAX } else { self.config.max_new_points_per_keyframe };
+        let kf = Keyframe { id, timestamp_ns, world_from_camera, features: feats, points: vec![None; n], thumbnail: thumb };
+        self.map.keyframes.insert(id, kf);
+        for (i, m) in matches.iter().enumerate() {
+            if let Some(p) = m {
+                self.map.add_observation(*p, id, i);
+            }
+        }
+        for &(_, i) in new.iter().take(limit) {
+            let Some(kf) = self.map.keyframes.get(&id) else { break };
+            let f = &kf.features.features[i];
+            let Some(pc) = f.point_in_camera(&self.camera) else { continue };
+            let point = MapPoint {
+                point_in_world: world_from_camera * pc,
+                descriptor: kf.features.descriptors[i],
+                octave: f.octave,
+                observations: Vec::new(),
+                created_by: id,
+                visible: 1,
+                found: 1,
+            };
+            let pid = self.map.add_point(point);
+            self.map.add_observation(pid, id, i);
+        }
+        self.reference = Some(id);
+        self.frames_since_keyframe = 0;
+        self.local_bundle_adjustment(id);
+        self.cull_points(id);
+        self.map.keyframes.get(&id).map(|kf| kf.points.iter().flatten().copied().collect()).unwrap_or_default()
+    }
+
+    /// Sliding-window BA over the newest keyframes and their points.
+    fn local_bundle_adjustment(&mut self, newest: KeyframeId) {
+        if self.config.ba_window < 2 || self.map.keyframes.len() < 2 {
+            return;
+        }
+        let window: Vec<KeyframeId> = self.map.keyframes.keys().rev().take(self.config.ba_window).copied().collect();
+        let window_set: HashSet<KeyframeId> = window.iter().copied().collect();
+        let mut points = ba::Indexer::<PointId>::default();
+        for kf in &window {
+            for p in self.map.keyframes[kf].points.iter().flatten() {
+                points.get_or_insert(*p);
+            }
+        }
+        // Fixed keyframes: those outside the window sharing the most points with it.
+        let mut shared: HashMap<KeyframeId, usize> = HashMap::new();
+        for p in &points.keys {
+            for (kf, _) in &self.map.points[p].observations {
+                if !window_set.contains(kf) {
+                    *shared.entry(*kf).or_default() += 1;
+                }
+            }
+        }
+        let mut fixed: Vec<(usize, KeyframeId)> = shared.into_iter().map(|(k, n)| (n, k)).collect();
+        fixed.sort_by(|a, b| b.cmp(a));
+        let fixed: Vec<KeyframeId> = fixed.into_iter().take(BA_MAX_FIXED).map(|(_, k)| k).collect();
+        let mut poses = ba::Indexer::<KeyframeId>::default();
+        let mut problem = ba::Problem { poses: Vec::new(), fixed: Vec::new(), points: Vec::new(), observations: Vec::new() };
+        // The very first keyframe defines the world frame: keep it fixed.
+        let first = self.map.keyframes.keys().next().copied();
+        for kf in window.iter().chain(&fixed) {
+            poses.get_or_insert(*kf);
+            problem.poses.push(self.map.keyframes[kf].world_from_camera.inverse());
+            problem.fixed.push(!window_set.contains(kf) || Some(*kf) == first);
+        }
+        for p in &points.keys {
+            problem.points.push(self.map.points[p].point_in_world);
+        }
+        let mut obs_keys = Vec::new();
+        for (pi, p) in points.keys.iter().enumerate() {
+            for &(kf, fi) in &self.map.points[p].observations {
+                if let Some(&ci) = poses.index.get(&kf) {
+                    let m = self.measurement(&self.map.keyframes[&kf].features.features[fi]);
+                    problem.observations.push((ci, pi, m));
+                    obs_keys.push((*p, kf));
+                }
+            }
+        }
+        ba::solve(&self.camera, self.bf, &mut problem, self.config.ba_iterations);
+        for (ci, kf) in poses.keys.iter().enumerate() {
+            if !problem.fixed[ci]
+                && let Some(k) = self.map.keyframes.get_mut(kf)
+            {
+                k.world_from_camera = problem.poses[ci].inverse();
+            }
+        }
+        for (pi, p) in points.keys.iter().enumerate() {
+            if let Some(mp) = self.map.points.get_mut(p) {
+                mp.point_in_world = problem.points[pi];
+            }
+        }
+        for k in ba::outliers(&self.camera, self.bf, &problem) {
+            let (p, kf) = obs_keys[k];
+            self.map.remove_observation(p, kf);
+        }
+        let _ = newest;
+    }
+
+    /// Removes points that were rarely re-found or never seen from a second keyframe.
+    fn cull_points(&mut self, newest: KeyframeId) {
+        let doomed: Vec<PointId> = self
+            .map
+            .points
+            .iter()
+            .filter(|(_, mp)| {
+                let old = newest.saturating_sub(mp.created_by) >= CULL_AFTER_KEYFRAMES;
+                (mp.visible >= CULL_MIN_VISIBLE && f64::from(mp.found) < CULL_FOUND_RATIO * f64::from(mp.visible))
+                    || (old && mp.observations.len() < 2)
+            })
+            .map(|(id, _)| *id)
+            .collect();
+        for id in doomed {
+            self.map.erase_point(id);
+        }
+    }
+}
+
+/// Brute-force Hamming matching of frame descriptors against keyframe points with
+/// the ratio test; one frame feature per point. Returns (feature index, point).
+fn brute_force_match(frame: &[Descriptor], points: &[(Descriptor, PointId)], max_distance: u32) -> Vec<(usize, PointId)> {
+    let mut best_for_point: HashMap<PointId, (u32, usize)> = HashMap::new();
+    for (fi, d) in frame.iter().enumerate() {
+        let (mut best, mut second, mut best_p) = (u32::MAX, u32::MAX, None);
+        for (pd, id) in points {
+            let dist = hamming(d, pd);
+            if dist < best {
+                second = best;
+                best = dist;
+                best_p = Some(*id);
+            } else if dist < second {
+                second = dist;
+            }
+        }
+        let Some(id) = best_p else { continue };
+        if best > max_distance || (best as f32) > RELOC_MATCH_RATIO * second as f32 {
+            continue;
+        }
+        let e = best_for_point.entry(id).or_insert((u32::MAX, fi));
+        if best < e.0 {
+            *e = (best, fi);
+        }
+    }
+    let mut out: Vec<(usize, PointId)> = best_for_point.into_iter().map(|(id, (_, fi))| (fi, id)).collect();
+    out.sort_unstable();
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gray_matches_bt601() {
+        assert_eq!(to_gray(&[255, 255, 255, 0, 0, 0, 255, 0, 0]), vec![255, 0, 77]);
+    }
+
+    #[test]
+    fn brute_force_keeps_one_feature_per_point() {
+        let a = [0u64, 0, 0, 0];
+        let b = [u64::MAX, u64::MAX, 0, 0];
+        let m = brute_force_match(&[a, a, b], &[(a, 7), (b, 9)], 50);
+        assert_eq!(m, vec![(0, 7), (2, 9)]);
+    }
+}
