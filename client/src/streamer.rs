@@ -103,8 +103,13 @@ pub struct Summary {
     pub latency_ms_p50: f64,
     pub latency_ms_p95: f64,
     pub first_errors: Vec<String>,
-    #[serde(skip)]
+    /// Poses the server returned (the JSON summary holds their count as `poses_returned`).
+    #[serde(rename = "poses_returned", serialize_with = "serialize_count")]
     pub poses: Vec<ReturnedPose>,
+}
+
+fn serialize_count<S: serde::Serializer>(poses: &[ReturnedPose], s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_u64(poses.len() as u64)
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {

@@ -16,6 +16,8 @@ pub struct ServerConfig {
     pub http: HttpConfig,
     pub zenoh: ZenohConfig,
     pub session: SessionConfig,
+    /// Camera tracking (defaults documented in `stillmap_tracking::TrackerConfig`).
+    pub tracking: stillmap_tracking::TrackerConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -138,6 +140,7 @@ impl ServerConfig {
         if self.grpc.max_message_bytes < 1024 {
             return bad(format!("grpc.max_message_bytes {} is below 1024", self.grpc.max_message_bytes));
         }
+        self.tracking.validate().map_err(ServerError::Config)?;
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }

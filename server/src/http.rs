@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -17,6 +17,8 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/healthz", get(|| async { Json(json!({ "status": "ok" })) }))
         .route("/api/v1/sessions", get(list_sessions))
         .route("/api/v1/sessions/{id}", get(get_session))
+        .route("/api/v1/sessions/{id}/pose", get(get_pose))
+        .route("/api/v1/sessions/{id}/trajectory", get(get_trajectory))
         .route("/metrics", get(metrics))
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
         .with_state(registry)
@@ -76,6 +78,82 @@ async fn get_session(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
     match registry.get(&id) {
         Some(s) => Json(session_json(&s, true)).into_response(),
         None => error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")),
+    }
+}
+
+fn pose_json(p: &pb::PoseStamped) -> Value {
+    let pose = p.world_from_camera.clone().unwrap_or_default();
+    let t = pose.translation.unwrap_or_default();
+    let q = pose.rotation.unwrap_or_default();
+    json!({
+        "sequence": p.sequence,
+        "capture_time_ns": p.capture_time_ns,
+        "tracking_state": enum_name(p.tracking_state, |t: pb::TrackingState| t.as_str_name()),
+        "translation": [t.x, t.y, t.z],
+        "rotation_xyzw": [q.x, q.y, q.z, q.w],
+    })
+}
+
+/// What the pose endpoints say about the frame of reference.
+const WORLD_FRAME: &str = "world = the camera frame of the session's first tracked frame (x right, y down, z forward); poses are world_from_camera";
+
+async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    let Some(s) = registry.get(&id) else {
+        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    };
+    let track = s.tracking();
+    Json(json!({
+        "session_id": s.id,
+        "tracking_state": track.state.as_str_name(),
+        "frame": WORLD_FRAME,
+        "pose": track.latest.as_ref().map(pose_json),
+    }))
+    .into_response()
+}
+
+#[derive(serde::Deserialize)]
+struct TrajectoryQuery {
+    format: Option<String>,
+}
+
+async fn get_trajectory(
+    State(registry): State<Arc<Registry>>,
+    Path(id): Path<String>,
+    Query(q): Query<TrajectoryQuery>,
+) -> Response {
+    let Some(s) = registry.get(&id) else {
+        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    };
+    let poses = s.tracking().trajectory.clone();
+    match q.format.as_deref() {
+        None | Some("json") => Json(json!({
+            "session_id": s.id,
+            "frame": WORLD_FRAME,
+            "poses": poses.iter().map(pose_json).collect::<Vec<_>>(),
+        }))
+        .into_response(),
+        Some("tum") => {
+            let mut text = String::from("# timestamp tx ty tz qx qy qz qw (stillmap world_from_camera)\n");
+            for p in &poses {
+                let pose = p.world_from_camera.clone().unwrap_or_default();
+                let (t, r) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
+                let ns = p.capture_time_ns;
+                text.push_str(&format!(
+                    "{}.{:09} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}\n",
+                    ns / 1_000_000_000,
+                    ns % 1_000_000_000,
+                    t.x,
+                    t.y,
+                    t.z,
+                    r.x,
+                    r.y,
+                    r.z,
+                    r.w
+                ));
+            }
+            ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response()
+        }
+        Some(other) => error(StatusCode::BAD_REQUEST, format!("unknown trajectory format {other:?}; use json or tum")),
     }
 }
 

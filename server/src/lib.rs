@@ -11,6 +11,7 @@ pub mod metrics;
 pub mod pipeline;
 pub mod queue;
 pub mod session;
+pub mod tracking;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_ingest;
 
@@ -56,7 +57,7 @@ async fn bind(addr: &str) -> Result<tokio::net::TcpListener, ServerError> {
 /// Serves until `shutdown` becomes true. `on_ready` is called once every listener is up.
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
-    let registry = Arc::new(Registry::new(config.session.clone(), Arc::default()));
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), Arc::default()));
 
     let grpc_listener = bind(&config.grpc.listen).await?;
     let http_listener = bind(&config.http.listen).await?;

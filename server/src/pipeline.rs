@@ -1,8 +1,10 @@
 //! Per-frame processing, free of network and file I/O.
 //!
 //! [`FramePipeline::process`] checks a frame against the session's order and
-//! camera, decodes both images and returns the frame's result. Until tracking
-//! lands it reports `TRACKING_STATE_INITIALIZING` and never a pose.
+//! camera, decodes both images and returns the frame's result (state
+//! `TRACKING_STATE_INITIALIZING`, no pose). The session worker then hands the
+//! decoded images to the tracking stage (`tracking.rs`), which sets the state,
+//! the pose and the tracking stage times.
 
 use std::time::{Duration, Instant};
 

@@ -16,6 +16,8 @@ use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
 use crate::config::SessionConfig;
+use crate::tracking::SessionTracker;
+use stillmap_tracking::TrackerConfig;
 use crate::metrics::Metrics;
 use crate::pipeline::{FramePipeline, validate_camera};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
@@ -77,6 +79,7 @@ pub struct Session {
     poses: broadcast::Sender<pb::PoseStamped>,
     answered_tx: watch::Sender<u64>,
     metrics: Arc<Metrics>,
+    tracker_config: TrackerConfig,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -157,9 +160,36 @@ impl Session {
         self.answered_tx.send_replace(answered);
     }
 
+    /// Publishes a tracked frame's state and pose to the query APIs and subscribers.
+    fn record_pose(&self, result: &pb::FrameResult, pose: Option<pb::Pose>) {
+        let state = result.tracking_state();
+        let stamped = pose.map(|p| pb::PoseStamped {
+            sequence: result.sequence,
+            capture_time_ns: result.capture_time_ns,
+            world_from_camera: Some(p),
+            tracking_state: state as i32,
+        });
+        let mut track = self.tracking();
+        track.state = state;
+        if let Some(s) = stamped {
+            track.latest = Some(s.clone());
+            track.trajectory.push(s.clone());
+            drop(track);
+            // No subscriber is fine.
+            let _ = self.poses.send(s);
+        }
+    }
+
     /// The worker loop: one thread per session, until the queue closes.
     fn run_worker(self: Arc<Self>) {
         let mut pipeline = FramePipeline::new(self.camera.clone());
+        let mut tracker = match SessionTracker::new(&self.camera, &self.tracker_config) {
+            Ok(t) => Some(t),
+            Err(e) => {
+                tracing::error!(session = %self.id, "tracking unavailable for this session: {e}");
+                None
+            }
+        };
         let transport = self.transport.label();
         while let Some(work) = self.queue.pop() {
             let result = match work {
@@ -171,7 +201,11 @@ impl Session {
                     ..Default::default()
                 },
                 Work::Frame(queued) => {
-                    let out = pipeline.process(&queued.frame, queued.received_at.elapsed());
+                    let mut out = pipeline.process(&queued.frame, queued.received_at.elapsed());
+                    if let (Some(tracker), Some((color, depth))) = (tracker.as_mut(), out.images.as_ref()) {
+                        let pose = tracker.track(&mut out.result, color, depth);
+                        self.record_pose(&out.result, pose);
+                    }
                     if let Some(reason) = out.rejected {
                         self.counters.rejected.fetch_add(1, Ordering::Relaxed);
                         self.metrics.rejected(reason.label());
@@ -217,6 +251,7 @@ pub struct BadHello(pub String);
 /// Every session of this server process.
 pub struct Registry {
     config: SessionConfig,
+    tracking: TrackerConfig,
     metrics: Arc<Metrics>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
     next_id: AtomicU64,
@@ -231,9 +266,9 @@ pub struct Opened {
 }
 
 impl Registry {
-    pub fn new(config: SessionConfig, metrics: Arc<Metrics>) -> Self {
+    pub fn new(config: SessionConfig, tracking: TrackerConfig, metrics: Arc<Metrics>) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+        Self { config, tracking, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -289,6 +324,7 @@ impl Registry {
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
             answered_tx: watch::channel(0).0,
             metrics: self.metrics.clone(),
+            tracker_config: self.tracking.clone(),
         });
         session.attach(sink);
         let worker = session.clone();

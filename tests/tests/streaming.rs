@@ -39,8 +39,9 @@ async fn grpc_delivers_every_tum_frame_bit_exact_and_in_order() {
     assert_eq!(session["camera"]["fx"], 517.3);
     assert_eq!(session["camera"]["distortion_model"], "DISTORTION_MODEL_PLUMB_BOB");
     assert_eq!(session["camera"]["depth_encoding"], "DEPTH_ENCODING_ZSTD");
-    // Until tracking lands the server never invents a pose.
-    assert_eq!(session["tracking_state"], "TRACKING_STATE_INITIALIZING");
+    assert_eq!(session["tracking_state"], "TRACKING_STATE_TRACKING");
+    // Every frame's result carried a pose back on the gRPC stream.
+    assert_eq!(summary["poses_returned"], TUM_FRAMES);
 
     let metrics = server.get_text("/metrics").await;
     assert!(metrics.contains("stillmap_frames_processed_total{transport=\"grpc\"} 150"), "{metrics}");
@@ -70,6 +71,9 @@ async fn zenoh_delivers_every_tum_frame_bit_exact_and_in_order() {
     assert_eq!(s["transport"], "zenoh");
     assert_eq!(s["robot_id"], "zenoh-bot");
     assert_eq!(s["counters"]["frames_processed"], TUM_FRAMES);
+    // Poses come back on the Zenoh results topic too.
+    assert_eq!(s["tracking_state"], "TRACKING_STATE_TRACKING");
+    assert_eq!(summary["poses_returned"], TUM_FRAMES);
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -146,7 +150,7 @@ async fn two_robots_at_once_stay_separate() {
 
 #[test]
 fn trajectory_file_holds_only_returned_poses() {
-    // No tracking yet: the server returns no pose, so the file has only its header.
+    // Every returned pose, one line each, after the header.
     let server = Server::start(&[]);
     let path = stillmap_e2e::tempfile_path("traj.txt");
     let (out, _) = run_client(&[
@@ -155,6 +159,7 @@ fn trajectory_file_holds_only_returned_poses() {
     ]);
     assert!(out.status.success());
     let text = std::fs::read_to_string(&path).expect("trajectory file");
-    assert_eq!(text.lines().filter(|l| !l.starts_with('#')).count(), 0, "{text}");
+    assert_eq!(text.lines().filter(|l| !l.starts_with('#')).count(), 5, "{text}");
+    assert!(text.lines().nth(1).is_some_and(|l| l.ends_with(" 0.000000 0.000000 0.000000 0.000000 0.000000 0.000000 1.000000")), "{text}");
     let _ = std::fs::remove_file(path);
 }

@@ -68,13 +68,33 @@ pub struct TrackerConfig {
     pub ba_window: usize,
     /// Levenberg–Marquardt iterations of one local bundle adjustment.
     pub ba_iterations: u32,
-    /// Largest plausible camera motion between consecutive frames (metres); a pose
-    /// recovered beyond it breaks continuity and the frame is reported lost.
-    pub max_frame_translation_m: f64,
-    /// Largest plausible rotation between consecutive frames (degrees).
-    pub max_frame_rotation_deg: f64,
     /// Keyframes tried by one relocalization attempt (most similar first).
     pub relocalization_candidates: usize,
+}
+
+impl TrackerConfig {
+    /// Rejects values the tracker cannot run with; the message names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.features == 0 || self.candidate_features < self.features {
+            return Err("tracking.features must be at least 1 and at most tracking.candidate_features".into());
+        }
+        if !(self.scale_factor > 1.0) || self.pyramid_levels == 0 {
+            return Err("tracking.scale_factor must be above 1 and tracking.pyramid_levels at least 1".into());
+        }
+        if !(self.min_depth_m > 0.0 && self.max_depth_m > self.min_depth_m) {
+            return Err("tracking.min_depth_m must be positive and below tracking.max_depth_m".into());
+        }
+        if !(self.depth_baseline_m > 0.0) {
+            return Err("tracking.depth_baseline_m must be positive".into());
+        }
+        if !(self.match_ratio > 0.0 && self.match_ratio <= 1.0) {
+            return Err("tracking.match_ratio must be in (0, 1]".into());
+        }
+        if self.min_tracked_inliers < 3 || self.min_relocalization_inliers < 3 {
+            return Err("tracking.min_tracked_inliers and tracking.min_relocalization_inliers must be at least 3".into());
+        }
+        Ok(())
+    }
 }
 
 impl Default for TrackerConfig {
@@ -105,8 +125,6 @@ impl Default for TrackerConfig {
             max_new_points_per_keyframe: 400,
             ba_window: 6,
             ba_iterations: 8,
-            max_frame_translation_m: 0.3,
-            max_frame_rotation_deg: 30.0,
             relocalization_candidates: 5,
         }
     }

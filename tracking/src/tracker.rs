@@ -149,9 +149,7 @@ impl Tracker {
         if camera.width < 3 || camera.height < 3 {
             return Err(TrackingError::Config(format!("image {}x{} is too small to track", camera.width, camera.height)));
         }
-        if config.features == 0 || config.candidate_features < config.features {
-            return Err(TrackingError::Config("tracking.features must be ≥ 1 and ≤ tracking.candidate_features".into()));
-        }
+        config.validate().map_err(TrackingError::Config)?;
         let extractor = Extractor::new(&config)?;
         let bf = camera.fx * config.depth_baseline_m;
         Ok(Self {

@@ -1,0 +1,137 @@
+//! The tracking stage of a session's pipeline: adapts decoded frames to
+//! [`stillmap_tracking::Tracker`] and its output to the frame result.
+
+use std::time::Duration;
+
+use nalgebra::Isometry3;
+use stillmap_proto::codec::{ColorImage, DepthImage};
+use stillmap_proto::pb::{self, TrackingState};
+use stillmap_tracking::{Camera, FrameInput, Tracker, TrackerConfig, TrackingError};
+
+use crate::pipeline::stage;
+
+/// Stage names of tracking, as they appear in results and `/metrics`.
+pub mod tracking_stage {
+    pub const EXTRACT: &str = "track_extract";
+    pub const MATCH: &str = "track_match";
+    pub const OPTIMIZE: &str = "track_optimize";
+    pub const LOCAL_BA: &str = "track_local_ba";
+    pub const TRACK: &str = "track";
+}
+
+/// The session's camera model from its hello (validated by `validate_camera`).
+pub fn camera_of(info: &pb::CameraInfo) -> Camera {
+    let distortion = match pb::DistortionModel::try_from(info.distortion_model) {
+        Ok(pb::DistortionModel::PlumbBob) => <[f64; 5]>::try_from(info.distortion_coeffs.as_slice()).ok(),
+        _ => None,
+    };
+    Camera {
+        width: info.width,
+        height: info.height,
+        fx: info.fx,
+        fy: info.fy,
+        cx: info.cx,
+        cy: info.cy,
+        distortion,
+        depth_units_per_metre: info.depth_units_per_metre,
+    }
+}
+
+/// `world_from_camera` as a protobuf pose.
+pub fn pose_of(world_from_camera: &Isometry3<f64>) -> pb::Pose {
+    let t = world_from_camera.translation.vector;
+    let q = world_from_camera.rotation.coords; // (i, j, k, w)
+    pb::Pose::from_parts([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
+}
+
+fn state_of(s: stillmap_tracking::TrackingState) -> TrackingState {
+    match s {
+        stillmap_tracking::TrackingState::Initializing => TrackingState::Initializing,
+        stillmap_tracking::TrackingState::Tracking => TrackingState::Tracking,
+        stillmap_tracking::TrackingState::Lost => TrackingState::Lost,
+        stillmap_tracking::TrackingState::Relocalized => TrackingState::Relocalized,
+    }
+}
+
+fn micros(d: Duration) -> u32 {
+    u32::try_from(d.as_micros()).unwrap_or(u32::MAX)
+}
+
+/// One session's tracker.
+pub struct SessionTracker {
+    tracker: Tracker,
+}
+
+impl SessionTracker {
+    pub fn new(camera: &pb::CameraInfo, config: &TrackerConfig) -> Result<Self, TrackingError> {
+        Ok(Self { tracker: Tracker::new(camera_of(camera), config.clone())? })
+    }
+
+    /// Tracks a decoded frame and writes state, pose, counts and stage times into
+    /// `result`. Returns the pose when there is one. A tracking error (which only
+    /// malformed input can cause) leaves the frame `LOST` without a pose.
+    pub fn track(&mut self, result: &mut pb::FrameResult, color: &ColorImage, depth: &DepthImage) -> Option<pb::Pose> {
+        let input = FrameInput { timestamp_ns: result.capture_time_ns, rgb: &color.data, depth: &depth.data, dynamic_mask: None };
+        let out = match self.tracker.track(&input) {
+            Ok(out) => out,
+            Err(e) => {
+                tracing::warn!(sequence = result.sequence, "tracking failed: {e}");
+                result.tracking_state = TrackingState::Lost as i32;
+                return None;
+            }
+        };
+        result.tracking_state = state_of(out.state) as i32;
+        let pose = out.world_from_camera.as_ref().map(pose_of);
+        result.world_from_camera = pose.clone();
+        result.counts = Some(pb::FrameCounts { features: out.tracked_points as u32, dynamic_fraction: 0.0 });
+        let t = out.times;
+        let stages = [
+            (tracking_stage::EXTRACT, t.extraction),
+            (tracking_stage::MATCH, t.matching),
+            (tracking_stage::OPTIMIZE, t.optimization),
+            (tracking_stage::LOCAL_BA, t.local_ba),
+            (tracking_stage::TRACK, t.total),
+        ];
+        // Keep `total` last and make it include tracking.
+        let total = result.latency.iter().position(|l| l.stage == stage::TOTAL);
+        let total_entry = total.map(|i| result.latency.remove(i));
+        for (name, d) in stages {
+            result.latency.push(pb::StageLatency { stage: name.into(), micros: micros(d) });
+        }
+        if let Some(mut e) = total_entry {
+            e.micros = e.micros.saturating_add(micros(t.total));
+            result.latency.push(e);
+        }
+        pose
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn camera_and_pose_conversions() {
+        let info = pb::CameraInfo {
+            width: 640,
+            height: 480,
+            fx: 517.3,
+            fy: 516.5,
+            cx: 318.6,
+            cy: 255.3,
+            distortion_model: pb::DistortionModel::PlumbBob as i32,
+            distortion_coeffs: vec![0.2624, -0.9531, -0.0054, 0.0026, 1.1633],
+            depth_units_per_metre: 5000.0,
+            ..Default::default()
+        };
+        let cam = camera_of(&info);
+        assert_eq!(cam.distortion, Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]));
+        assert_eq!((cam.fx, cam.cy, cam.depth_units_per_metre), (517.3, 255.3, 5000.0));
+        let q = UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3);
+        let p = pose_of(&Isometry3::from_parts(Translation3::new(1.0, 2.0, 3.0), q));
+        let r = p.rotation.unwrap();
+        assert_eq!(p.translation.unwrap(), pb::Vector3 { x: 1.0, y: 2.0, z: 3.0 });
+        assert_eq!([r.x, r.y, r.z, r.w], [q.i, q.j, q.k, q.w]);
+    }
+}
