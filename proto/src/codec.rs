@@ -179,7 +179,7 @@ pub fn rvl_encode(pixels: &[u16]) -> Vec<u8> {
 
 /// Decodes RVL into exactly `pixel_count` pixels.
 pub fn rvl_decode(payload: &[u8], pixel_count: usize) -> Result<Vec<u16>, CodecError> {
-    if payload.len() % 4 != 0 {
+    if !payload.len().is_multiple_of(4) {
         return Err(CodecError::Rvl("length is not a whole number of 32-bit words"));
     }
     let mut r = NibbleReader { words: payload.chunks_exact(4), word: 0, left: 0 };

@@ -154,7 +154,7 @@ impl Query for QueryService {
     async fn get_latest_pose(&self, request: Request<pb::SessionRef>) -> Result<Response<pb::LatestPose>, Status> {
         let session = self.session(&request.get_ref().session_id)?;
         let track = session.tracking();
-        Ok(Response::new(pb::LatestPose { tracking_state: track.state as i32, pose: track.latest.clone() }))
+        Ok(Response::new(pb::LatestPose { tracking_state: track.state as i32, pose: track.latest }))
     }
 
     async fn get_trajectory(&self, request: Request<pb::TrajectoryRequest>) -> Result<Response<pb::Trajectory>, Status> {

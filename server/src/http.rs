@@ -82,7 +82,7 @@ async fn get_session(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
 }
 
 fn pose_json(p: &pb::PoseStamped) -> Value {
-    let pose = p.world_from_camera.clone().unwrap_or_default();
+    let pose = p.world_from_camera.unwrap_or_default();
     let t = pose.translation.unwrap_or_default();
     let q = pose.rotation.unwrap_or_default();
     json!({
@@ -135,7 +135,7 @@ async fn get_trajectory(
         Some("tum") => {
             let mut text = String::from("# timestamp tx ty tz qx qy qz qw (stillmap world_from_camera)\n");
             for p in &poses {
-                let pose = p.world_from_camera.clone().unwrap_or_default();
+                let pose = p.world_from_camera.unwrap_or_default();
                 let (t, r) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
                 let ns = p.capture_time_ns;
                 text.push_str(&format!(

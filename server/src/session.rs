@@ -172,8 +172,8 @@ impl Session {
         let mut track = self.tracking();
         track.state = state;
         if let Some(s) = stamped {
-            track.latest = Some(s.clone());
-            track.trajectory.push(s.clone());
+            track.latest = Some(s);
+            track.trajectory.push(s);
             drop(track);
             // No subscriber is fine.
             let _ = self.poses.send(s);

@@ -82,7 +82,7 @@ impl SessionTracker {
         };
         result.tracking_state = state_of(out.state) as i32;
         let pose = out.world_from_camera.as_ref().map(pose_of);
-        result.world_from_camera = pose.clone();
+        result.world_from_camera = pose;
         result.counts = Some(pb::FrameCounts { features: out.tracked_points as u32, dynamic_fraction: 0.0 });
         let t = out.times;
         let stages = [

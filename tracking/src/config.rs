@@ -74,6 +74,8 @@ pub struct TrackerConfig {
 
 impl TrackerConfig {
     /// Rejects values the tracker cannot run with; the message names the key.
+    /// (Comparisons are negated so that NaN fails them too.)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn validate(&self) -> Result<(), String> {
         if self.features == 0 || self.candidate_features < self.features {
             return Err("tracking.features must be at least 1 and at most tracking.candidate_features".into());

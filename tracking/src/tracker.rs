@@ -96,6 +96,9 @@ const CULL_MIN_VISIBLE: u32 = 10;
 /// Fixed keyframes (outside the window) anchoring a local BA, at most.
 const BA_MAX_FIXED: usize = 10;
 
+/// `camera_from_world` and the (feature, point) pairs PnP-RANSAC kept as inliers.
+type PnpSolution = (Isometry3<f64>, Vec<(usize, PointId)>);
+
 /// RGB-D camera tracker.
 pub struct Tracker {
     camera: Camera,
@@ -526,7 +529,7 @@ impl Tracker {
     }
 
     /// PnP-RANSAC (OpenCV) on ideal pixels; returns `camera_from_world` and the inlier pairs.
-    fn pnp_ransac(&self, feats: &FrameFeatures, pairs: &[(usize, PointId)]) -> Option<(Isometry3<f64>, Vec<(usize, PointId)>)> {
+    fn pnp_ransac(&self, feats: &FrameFeatures, pairs: &[(usize, PointId)]) -> Option<PnpSolution> {
         let mut object = Vector::<Point3f>::new();
         let mut image = Vector::<Point2f>::new();
         let mut used = Vec::new();
