@@ -201,7 +201,7 @@ async fn unknown_session_in_queries_is_not_found() {
 }
 
 #[tokio::test(flavor = "multi_thread")]
-async fn queries_answer_for_a_live_session_without_inventing_poses() {
+async fn queries_answer_for_a_live_session() {
     let server = Server::start(&[]);
     let (mut s, accepted) = Stream::hello(&server, tum_hello("q")).await;
     s.send(ClientMsg::Frame(tum_frame(0, 10))).await;
@@ -212,6 +212,14 @@ async fn queries_answer_for_a_live_session_without_inventing_poses() {
     assert_eq!(list.sessions[0].frames_processed, 1);
     assert!(list.sessions[0].connected);
     let latest = q.get_latest_pose(pb::SessionRef { session_id: accepted.session_id.clone() }).await.expect("pose").into_inner();
-    assert_eq!(latest.tracking_state(), pb::TrackingState::Initializing);
-    assert!(latest.pose.is_none());
+    // The first real frame starts the map: it defines the world frame.
+    assert_eq!(latest.tracking_state(), pb::TrackingState::Tracking);
+    let pose = latest.pose.expect("pose").world_from_camera.expect("world_from_camera");
+    assert_eq!(pose, pb::Pose::from_parts([0.0; 3], [0.0, 0.0, 0.0, 1.0]));
+    let trajectory = q
+        .get_trajectory(pb::TrajectoryRequest { session_id: accepted.session_id.clone(), ..Default::default() })
+        .await
+        .expect("trajectory")
+        .into_inner();
+    assert_eq!(trajectory.poses.iter().map(|p| p.sequence).collect::<Vec<_>>(), [0]);
 }
