@@ -12,7 +12,7 @@ use std::collections::HashMap;
 use nalgebra::{DMatrix, DVector, Isometry3, Matrix3, Matrix6x3, Point3, Vector3, Vector6};
 
 use crate::camera::Camera;
-use crate::geometry::{Measurement, huber_weight, linearise, perturb};
+use crate::geometry::{Measurement, huber_weight, linearise, perturb, robust_cost};
 
 /// Initial LM damping, relative to the mean diagonal of the system.
 const INITIAL_LAMBDA: f64 = 1e-4;
@@ -38,10 +38,6 @@ pub struct Report {
     pub initial_cost: f64,
     pub final_cost: f64,
     pub iterations: u32,
-}
-
-fn robust_cost(chi2: f64, delta2: f64) -> f64 {
-    if chi2 <= delta2 { chi2 } else { 2.0 * (delta2 * chi2).sqrt() - delta2 }
 }
 
 fn total_cost(camera: &Camera, bf: f64, p: &Problem) -> f64 {

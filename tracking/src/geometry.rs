@@ -94,6 +94,12 @@ pub fn perturb(delta: &Vector6<f64>, camera_from_world: &Isometry3<f64>) -> Isom
     Isometry3::from_parts(Translation3::from(v), UnitQuaternion::from_scaled_axis(omega)) * camera_from_world
 }
 
+/// Huber cost of a residual of Mahalanobis norm² `chi2` with threshold `delta2`.
+#[inline]
+pub fn robust_cost(chi2: f64, delta2: f64) -> f64 {
+    if chi2 <= delta2 { chi2 } else { 2.0 * (delta2 * chi2).sqrt() - delta2 }
+}
+
 /// Huber weight for a residual of Mahalanobis norm² `chi2` with threshold `delta2`.
 #[inline]
 pub fn huber_weight(chi2: f64, delta2: f64) -> f64 {

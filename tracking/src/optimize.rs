@@ -5,7 +5,7 @@
 use nalgebra::{Isometry3, Matrix6, Point3, Vector6};
 
 use crate::camera::Camera;
-use crate::geometry::{Measurement, huber_weight, linearise, perturb};
+use crate::geometry::{Measurement, huber_weight, linearise, perturb, robust_cost};
 
 /// Classification rounds; the last one runs without the robust kernel.
 const ROUNDS: usize = 4;
@@ -100,10 +100,6 @@ pub fn optimize_pose(
     }
     let inlier_count = inliers.iter().filter(|&&i| i).count();
     PoseEstimate { camera_from_world: pose, inliers, inlier_count }
-}
-
-fn robust_cost(chi2: f64, delta2: f64) -> f64 {
-    if chi2 <= delta2 { chi2 } else { 2.0 * (delta2 * chi2).sqrt() - delta2 }
 }
 
 #[cfg(test)]

@@ -241,7 +241,7 @@ impl Tracker {
             tracked = self.track_with_motion_model(&feats, &index, &mut out.times);
         }
         if tracked.is_none() {
-            tracked = self.relocalize(&feats, &gray, &mut out.times);
+            tracked = self.relocalize(&feats, &index, &gray, &mut out.times);
             relocalized = tracked.is_some();
         }
         let Some((camera_from_world, matches)) = tracked else {
@@ -472,7 +472,7 @@ impl Tracker {
 
     /// Global recovery: brute-force matching against the most similar keyframes,
     /// PnP-RANSAC, pose optimisation and the local map.
-    fn relocalize(&mut self, feats: &FrameFeatures, gray: &[u8], times: &mut StageTimes) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
+    fn relocalize(&mut self, feats: &FrameFeatures, index: &GridIndex, gray: &[u8], times: &mut StageTimes) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
         if feats.features.len() < RELOC_MIN_MATCHES {
             return None;
         }
@@ -492,7 +492,6 @@ impl Tracker {
             candidates.push(r);
         }
         times.matching += t.elapsed();
-        let index = GridIndex::new(&self.camera, &feats.features);
         let mut best: Option<(usize, Isometry3<f64>, Vec<Option<PointId>>)> = None;
         for kf_id in candidates {
             let t = Instant::now();
@@ -519,7 +518,7 @@ impl Tracker {
             let refined = self.optimize(feats, pose, &mut matches);
             times.optimization += t.elapsed();
             let Some(refined) = refined else { continue };
-            let Some((pose, matches)) = self.track_local_map(feats, &index, refined, times) else { continue };
+            let Some((pose, matches)) = self.track_local_map(feats, index, refined, times) else { continue };
             let n = matches.iter().filter(|m| m.is_some()).count();
             if n >= self.config.min_relocalization_inliers && best.as_ref().is_none_or(|b| n > b.0) {
                 best = Some((n, pose, matches));
@@ -628,13 +627,13 @@ impl Tracker {
         }
         self.reference = Some(id);
         self.frames_since_keyframe = 0;
-        self.local_bundle_adjustment(id);
+        self.local_bundle_adjustment();
         self.cull_points(id);
         self.map.keyframes.get(&id).map(|kf| kf.points.iter().flatten().copied().collect()).unwrap_or_default()
     }
 
     /// Sliding-window BA over the newest keyframes and their points.
-    fn local_bundle_adjustment(&mut self, newest: KeyframeId) {
+    fn local_bundle_adjustment(&mut self) {
         if self.config.ba_window < 2 || self.map.keyframes.len() < 2 {
             return;
         }
@@ -697,7 +696,6 @@ impl Tracker {
             let (p, kf) = obs_keys[k];
             self.map.remove_observation(p, kf);
         }
-        let _ = newest;
     }
 
     /// Removes points that were rarely re-found or never seen from a second keyframe.
