@@ -117,7 +117,7 @@ pub struct Tracker {
     frames_since_keyframe: u32,
 }
 
-fn to_gray(rgb: &[u8]) -> Vec<u8> {
+pub fn to_gray(rgb: &[u8]) -> Vec<u8> {
     // ITU-R BT.601 luma in 8-bit fixed point, as OpenCV's RGB2GRAY.
     rgb.chunks_exact(3)
         .map(|p| ((u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29 + 128) >> 8) as u8)
@@ -178,6 +178,12 @@ impl Tracker {
 
     pub fn map(&self) -> &Map {
         &self.map
+    }
+
+    /// The last inter-frame motion `camera_k_from_camera_k−1`, when the last two
+    /// frames were tracked (the constant-velocity prediction of the next step).
+    pub fn velocity(&self) -> Option<Isometry3<f64>> {
+        self.velocity
     }
 
     fn measurement(&self, f: &Feature) -> Measurement {

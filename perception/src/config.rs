@@ -1,0 +1,281 @@
+//! Every tunable of perception, with its documented default.
+//!
+//! Defaults hold for any indoor RGB-D camera at VGA resolution and 15–30 Hz; none
+//! is fitted to a particular clip. Flow thresholds are in pixels of the full-size
+//! image so they do not change meaning with `flow.subsample`.
+
+use serde::{Deserialize, Serialize};
+
+/// Perception configuration (`[perception]` in the server's TOML).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PerceptionConfig {
+    /// Run perception at all; off means tracking gets an all-static mask.
+    pub enabled: bool,
+    pub segmentation: SegmentationConfig,
+    pub flow: FlowConfig,
+    pub ego_motion: EgoMotionConfig,
+    pub fusion: FusionConfig,
+}
+
+/// Where segmentation runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ExecutionProvider {
+    /// ONNX Runtime's CPU provider.
+    Cpu,
+    /// CUDA when built with the `cuda` feature and a GPU is present; otherwise
+    /// the CPU, with a warning.
+    Cuda,
+}
+
+/// Instance segmentation (YOLOv8-seg style ONNX model).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentationConfig {
+    /// Run the segmenter (off: flow alone decides, every pixel is prior-static).
+    pub enabled: bool,
+    /// Path of the ONNX model. Empty: the server looks for
+    /// `../shared/models/yolov8n-seg_fp32_640.onnx` beside its working directory
+    /// and `STILLMAP_MODEL`. The weights are not part of stillmap (AGPL-3.0).
+    pub model_path: String,
+    /// Path of `libonnxruntime.so`; empty: `ORT_DYLIB_PATH`.
+    pub onnxruntime_library: String,
+    /// Square input side in pixels; 0 takes it from the model (640 and 320 files both work).
+    pub input_size: u32,
+    /// Detections scoring below this are dropped (class score, 0–1).
+    pub score_threshold: f32,
+    /// Class-aware non-maximum suppression: boxes of one class overlapping more than this IoU merge.
+    pub nms_iou_threshold: f32,
+    /// Mask probability above which a pixel belongs to its instance.
+    pub mask_threshold: f32,
+    /// Most instances kept per frame (highest scores first).
+    pub max_instances: usize,
+    /// ONNX Runtime intra-op threads (0: ONNX Runtime's default, one per core).
+    pub intra_threads: usize,
+    pub execution_provider: ExecutionProvider,
+    /// Class names that are dynamic a priori (they may move by themselves).
+    /// Default: person, the COCO animals and vehicles.
+    pub prior_dynamic_classes: Vec<String>,
+    /// Server: segmentation worker threads shared by all sessions (each owns a model).
+    pub workers: usize,
+    /// A segmentation is carried forward through the flow for at most this many
+    /// frames; older, it is dropped and flow alone decides until a new one arrives.
+    pub max_mask_age_frames: u32,
+}
+
+/// Dense optical flow (OpenCV Farneback) on a subsampled grey image.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FlowConfig {
+    /// Integer subsampling of the image before flow (2: 640×480 → 320×240; the paper subsamples too).
+    pub subsample: u32,
+    /// Farneback pyramid scale between levels (< 1).
+    pub pyr_scale: f64,
+    /// Farneback pyramid levels.
+    pub levels: i32,
+    /// Farneback averaging window (pixels of the subsampled image).
+    pub winsize: i32,
+    /// Farneback iterations per level.
+    pub iterations: i32,
+    /// Farneback polynomial neighbourhood (5 or 7).
+    pub poly_n: i32,
+    /// Farneback Gaussian σ for the polynomial fit (1.1 for poly_n 5, 1.5 for 7).
+    pub poly_sigma: f64,
+}
+
+/// Ego-motion compensation: the camera's own motion explains most flow; only
+/// what is left over (the residual) can mean motion in the world.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EgoMotionConfig {
+    /// Spacing (pixels of the subsampled image) of the flow samples the camera
+    /// motion is refined from.
+    pub sample_step: u32,
+    /// Flow noise σ in full-size pixels (Farneback on real images: about one pixel).
+    pub flow_sigma_px: f64,
+    /// Depth noise model σ_z = a + b·z² (metres): the constant part a …
+    pub depth_sigma_a_m: f64,
+    /// … and the quadratic part b (1/m); Kinect-type structured light ≈ 0.0015–0.003.
+    pub depth_sigma_b_per_m: f64,
+    /// A pixel has residual flow when its residual exceeds this many σ (flow
+    /// noise and the depth uncertainty propagated into the predicted flow) …
+    pub residual_sigmas: f64,
+    /// … and at least this many full-size pixels.
+    pub min_residual_px: f64,
+    /// Nearest and farthest depth (metres) used; others have no predicted flow.
+    pub min_depth_m: f64,
+    pub max_depth_m: f64,
+    /// Samples with valid depth needed to refine the motion; fewer: the prior is used alone.
+    pub min_samples: usize,
+}
+
+/// How a prior-dynamic instance (a person, say) that does not move is treated by tracking.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PriorDynamicTracking {
+    /// Never track on prior-dynamic classes.
+    AlwaysExclude,
+    /// Exclude them only while their instance moves (a parked car, a seated person may help).
+    ExcludeWhileMoving,
+}
+
+/// Fusion of segmentation and residual flow into the dynamic/static mask.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FusionConfig {
+    /// 3×3 neighbourhood test: a pixel carries flow when at least this many of the
+    /// 9 pixels around it (itself included) have residual flow.
+    pub neighbourhood_votes: u32,
+    /// An instance moves when at least this fraction of its pixels with a
+    /// predicted flow carry residual flow.
+    pub instance_moving_fraction: f64,
+    /// Flow-only dynamic regions smaller than this (full-size pixels) are noise.
+    pub min_region_px: u32,
+    /// A flow-only region grows over neighbouring pixels whose depth is within this
+    /// fraction of the region's own (an object moves as a whole; its still-looking
+    /// inner texture belongs to it). 0 disables growing.
+    pub region_depth_ratio: f64,
+    /// Flow-only regions wider than this fraction of the image are rejected as an
+    /// ego-motion failure rather than reported as motion.
+    pub max_region_fraction: f64,
+    pub prior_dynamic_tracking: PriorDynamicTracking,
+}
+
+impl PerceptionConfig {
+    /// Rejects values perception cannot run with; the message names the key.
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    pub fn validate(&self) -> Result<(), String> {
+        let s = &self.segmentation;
+        if s.input_size != 0 && (s.input_size % 32 != 0 || s.input_size > 2048) {
+            return Err(format!("perception.segmentation.input_size must be 0 or a multiple of 32 up to 2048, got {}", s.input_size));
+        }
+        for (k, v) in [("score_threshold", s.score_threshold), ("nms_iou_threshold", s.nms_iou_threshold), ("mask_threshold", s.mask_threshold)] {
+            if !(v > 0.0 && v < 1.0) {
+                return Err(format!("perception.segmentation.{k} must be in (0, 1), got {v}"));
+            }
+        }
+        if s.max_instances == 0 || s.max_instances > usize::from(u16::MAX) {
+            return Err("perception.segmentation.max_instances must be in 1..=65535".into());
+        }
+        if s.max_mask_age_frames == 0 {
+            return Err("perception.segmentation.max_mask_age_frames must be at least 1".into());
+        }
+        if s.workers == 0 {
+            return Err("perception.segmentation.workers must be at least 1".into());
+        }
+        let f = &self.flow;
+        if !(1..=8).contains(&f.subsample) {
+            return Err(format!("perception.flow.subsample must be in 1..=8, got {}", f.subsample));
+        }
+        if !(f.pyr_scale > 0.0 && f.pyr_scale < 1.0) || f.levels < 1 || f.winsize < 3 || f.iterations < 1 {
+            return Err("perception.flow: pyr_scale must be in (0, 1), levels and iterations ≥ 1, winsize ≥ 3".into());
+        }
+        if f.poly_n != 5 && f.poly_n != 7 {
+            return Err(format!("perception.flow.poly_n must be 5 or 7, got {}", f.poly_n));
+        }
+        let e = &self.ego_motion;
+        if e.sample_step == 0 {
+            return Err("perception.ego_motion.sample_step must be at least 1".into());
+        }
+        if !(e.flow_sigma_px > 0.0 && e.residual_sigmas > 0.0 && e.min_residual_px >= 0.0) {
+            return Err("perception.ego_motion: flow_sigma_px and residual_sigmas must be positive, min_residual_px ≥ 0".into());
+        }
+        if !(e.depth_sigma_a_m >= 0.0 && e.depth_sigma_b_per_m >= 0.0) {
+            return Err("perception.ego_motion: depth noise terms must be ≥ 0".into());
+        }
+        if !(e.min_depth_m > 0.0 && e.max_depth_m > e.min_depth_m) {
+            return Err("perception.ego_motion.min_depth_m must be positive and below max_depth_m".into());
+        }
+        if e.min_samples < 6 {
+            return Err("perception.ego_motion.min_samples must be at least 6".into());
+        }
+        let u = &self.fusion;
+        if !(1..=9).contains(&u.neighbourhood_votes) {
+            return Err(format!("perception.fusion.neighbourhood_votes must be in 1..=9, got {}", u.neighbourhood_votes));
+        }
+        if !(u.instance_moving_fraction > 0.0 && u.instance_moving_fraction <= 1.0) {
+            return Err("perception.fusion.instance_moving_fraction must be in (0, 1]".into());
+        }
+        if !(u.region_depth_ratio >= 0.0 && u.region_depth_ratio < 1.0) {
+            return Err("perception.fusion.region_depth_ratio must be in [0, 1)".into());
+        }
+        if !(u.max_region_fraction > 0.0 && u.max_region_fraction <= 1.0) {
+            return Err("perception.fusion.max_region_fraction must be in (0, 1]".into());
+        }
+        Ok(())
+    }
+}
+
+/// COCO names (Ultralytics spelling) that are dynamic a priori: person, vehicles, animals.
+pub const DEFAULT_PRIOR_DYNAMIC: &[&str] = &[
+    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat", "bird", "cat", "dog", "horse",
+    "sheep", "cow", "elephant", "bear", "zebra", "giraffe",
+];
+
+impl Default for PerceptionConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            segmentation: SegmentationConfig::default(),
+            flow: FlowConfig::default(),
+            ego_motion: EgoMotionConfig::default(),
+            fusion: FusionConfig::default(),
+        }
+    }
+}
+
+impl Default for SegmentationConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            model_path: String::new(),
+            onnxruntime_library: String::new(),
+            input_size: 0,
+            score_threshold: 0.25,
+            nms_iou_threshold: 0.45,
+            mask_threshold: 0.5,
+            max_instances: 100,
+            intra_threads: 0,
+            execution_provider: ExecutionProvider::Cpu,
+            prior_dynamic_classes: DEFAULT_PRIOR_DYNAMIC.iter().map(|s| (*s).to_string()).collect(),
+            workers: 1,
+            max_mask_age_frames: 15,
+        }
+    }
+}
+
+impl Default for FlowConfig {
+    fn default() -> Self {
+        Self { subsample: 2, pyr_scale: 0.5, levels: 3, winsize: 13, iterations: 3, poly_n: 5, poly_sigma: 1.1 }
+    }
+}
+
+impl Default for EgoMotionConfig {
+    fn default() -> Self {
+        Self {
+            sample_step: 6,
+            flow_sigma_px: 1.0,
+            depth_sigma_a_m: 0.002,
+            depth_sigma_b_per_m: 0.003,
+            residual_sigmas: 3.0,
+            min_residual_px: 2.0,
+            min_depth_m: 0.3,
+            max_depth_m: 6.0,
+            min_samples: 50,
+        }
+    }
+}
+
+impl Default for FusionConfig {
+    fn default() -> Self {
+        Self {
+            neighbourhood_votes: 5,
+            instance_moving_fraction: 0.2,
+            min_region_px: 400,
+            region_depth_ratio: 0.05,
+            max_region_fraction: 0.5,
+            prior_dynamic_tracking: PriorDynamicTracking::ExcludeWhileMoving,
+        }
+    }
+}

@@ -1,0 +1,43 @@
+//! stillmap perception, free of network I/O (the model file is the one file it reads).
+//!
+//! - [`segment`]: the [`Segmenter`] trait and [`YoloSegmenter`] (YOLOv8-seg on ONNX Runtime),
+//!   with the tensor contract in [`yolo`].
+//! - [`flow`]: Farneback dense flow on a subsampled grey image (OpenCV).
+//! - [`ego`]: ego-motion compensation: predicted flow from depth and camera motion, residuals
+//!   scaled by the depth uncertainty.
+//! - [`fusion`]: the paper's four cases with the 3×3 neighbourhood test, per pixel and per instance.
+//! - [`warp`]: carrying a late segmentation forward through the flow.
+//! - [`masker`]: the per-session state machine tying them together.
+//! - [`composite`]: pastes a moving textured plane into real RGB-D frames with exact masks (tests, benches).
+
+pub mod composite;
+pub mod config;
+pub mod ego;
+pub mod flow;
+pub mod fusion;
+pub mod masker;
+pub mod segment;
+pub mod warp;
+pub mod yolo;
+
+pub use config::PerceptionConfig;
+pub use fusion::{Fused, InstanceState, PixelLabel};
+pub use masker::{DynamicMasker, MaskOutput, MaskSource, MaskerInput};
+pub use segment::{Instance, Segmentation, Segmenter, YoloSegmenter};
+
+/// Errors of the perception crate.
+#[derive(Debug, thiserror::Error)]
+pub enum PerceptionError {
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+    /// The segmentation model file: missing, unreadable, or not the expected kind.
+    #[error("{0}")]
+    Model(String),
+    /// ONNX Runtime itself: library missing or inference failing.
+    #[error("ONNX Runtime: {0}")]
+    Runtime(String),
+    #[error("bad perception input: {0}")]
+    Input(String),
+    #[error("bad perception configuration: {0}")]
+    Config(String),
+}

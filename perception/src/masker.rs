@@ -1,0 +1,280 @@
+//! The per-session perception state machine: flow to the previous frame,
+//! ego-motion compensation, the latest segmentation carried to the current frame,
+//! and the fused dynamic/static mask.
+//!
+//! Segmentation runs elsewhere (its own worker, see the server) and arrives when
+//! it is ready, tagged with the frame it was computed on. A result for the current
+//! frame is used as is (`Fresh`); an older one, or the last one when nothing new
+//! came, is carried forward through the stored flows (`Warped`, with its age).
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use nalgebra::Isometry3;
+use stillmap_tracking::Camera;
+use stillmap_tracking::tracker::to_gray;
+
+use crate::PerceptionError;
+use crate::config::PerceptionConfig;
+use crate::ego::{EgoMotion, EgoResult};
+use crate::flow::{FlowField, SmallGray, farneback};
+use crate::fusion::{Fused, dynamic_fraction, fuse};
+use crate::segment::Segmentation;
+use crate::warp::warp_segmentation;
+
+/// Where the frame's segmentation came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MaskSource {
+    /// No segmentation available: flow alone decided.
+    None,
+    /// Segmented on this very frame.
+    Fresh,
+    /// An earlier frame's segmentation, warped by the flow; `age_frames` frames old.
+    Warped { age_frames: u32 },
+}
+
+/// One frame for the masker.
+pub struct MaskerInput<'a> {
+    pub sequence: u64,
+    /// RGB8, `width × height × 3`.
+    pub rgb: &'a [u8],
+    /// Raw depth, `width × height`, 0 = no reading.
+    pub depth: &'a [u16],
+    /// A segmentation finished since the last frame: the sequence of the frame it
+    /// was computed on, and the result.
+    pub segmentation: Option<(u64, Segmentation)>,
+    /// The camera motion `previous_from_current` predicted by the tracker.
+    pub motion_prior: Option<Isometry3<f64>>,
+}
+
+/// Time per perception stage on one frame.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MaskTimes {
+    pub flow: Duration,
+    pub ego_motion: Duration,
+    pub warp: Duration,
+    pub fusion: Duration,
+    pub total: Duration,
+}
+
+/// What the masker made of one frame.
+#[derive(Debug, Clone)]
+pub struct MaskOutput {
+    pub fused: Fused,
+    /// Nonzero = keep features out (per the configured prior-dynamic policy).
+    pub tracking_mask: Vec<u8>,
+    pub source: MaskSource,
+    /// The frame the segmentation in use was computed on.
+    pub segmentation_sequence: Option<u64>,
+    /// Ego-motion compensation of this frame (none on the first frame).
+    pub ego: Option<EgoSummary>,
+    /// Fraction of valid-depth pixels that are dynamic or prior-dynamic.
+    pub dynamic_fraction: f32,
+    pub times: MaskTimes,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub struct EgoSummary {
+    pub previous_from_current: Isometry3<f64>,
+    pub refined: bool,
+    pub samples: usize,
+    pub inliers: usize,
+}
+
+struct FlowStep {
+    from: u64,
+    to: u64,
+    flow: FlowField,
+}
+
+struct Carried {
+    segmentation: Segmentation,
+    source_sequence: u64,
+    at_sequence: u64,
+}
+
+/// Per-camera perception state.
+pub struct DynamicMasker {
+    camera: Camera,
+    config: PerceptionConfig,
+    ego: EgoMotion,
+    prior_dynamic: Vec<bool>,
+    previous: Option<(u64, SmallGray)>,
+    flows: VecDeque<FlowStep>,
+    carried: Option<Carried>,
+    last_ego: Option<EgoResult>,
+}
+
+impl DynamicMasker {
+    /// `class_names` are the segmenter's (indexed by class id); the configured
+    /// prior-dynamic names are looked up in them.
+    pub fn new(camera: Camera, config: PerceptionConfig, class_names: &[String]) -> Result<Self, PerceptionError> {
+        config.validate().map_err(PerceptionError::Config)?;
+        let s = config.flow.subsample as usize;
+        if (camera.width as usize) < 8 * s || (camera.height as usize) < 8 * s {
+            return Err(PerceptionError::Config(format!("image {}x{} is too small for flow at 1/{s}", camera.width, camera.height)));
+        }
+        let prior_dynamic = class_names.iter().map(|n| config.segmentation.prior_dynamic_classes.iter().any(|p| p == n)).collect();
+        let ego = EgoMotion::new(camera.clone(), config.ego_motion.clone(), config.flow.subsample);
+        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None })
+    }
+
+    /// The segmentation in the current frame's coordinates, if any.
+    pub fn segmentation(&self) -> Option<&Segmentation> {
+        self.carried.as_ref().map(|c| &c.segmentation)
+    }
+
+    /// The last frame's ego-motion classification on the flow grid.
+    pub fn last_ego(&self) -> Option<&EgoResult> {
+        self.last_ego.as_ref()
+    }
+
+    /// Processes one frame (frames in increasing sequence order).
+    pub fn process(&mut self, input: MaskerInput<'_>) -> Result<MaskOutput, PerceptionError> {
+        let start = Instant::now();
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        if input.rgb.len() != w * h * 3 {
+            return Err(PerceptionError::Input(format!("colour has {} bytes, expected {} ({w}x{h}x3)", input.rgb.len(), w * h * 3)));
+        }
+        if input.depth.len() != w * h {
+            return Err(PerceptionError::Input(format!("depth has {} pixels, expected {} ({w}x{h})", input.depth.len(), w * h)));
+        }
+        if let Some((k, seg)) = &input.segmentation {
+            if *k > input.sequence {
+                return Err(PerceptionError::Input(format!("segmentation of frame {k} arrived before frame {} itself", input.sequence)));
+            }
+            if (seg.width, seg.height) != (self.camera.width, self.camera.height) || seg.instance_map.len() != w * h {
+                return Err(PerceptionError::Input(format!("segmentation is {}x{}, expected {w}x{h}", seg.width, seg.height)));
+            }
+        }
+        let mut times = MaskTimes::default();
+        let s = self.config.flow.subsample;
+
+        let t = Instant::now();
+        let small = SmallGray::from_gray(&to_gray(input.rgb), w, h, s)?;
+        let flow = match self.previous.take() {
+            Some((prev_seq, prev)) if prev_seq < input.sequence => {
+                Some(FlowStep { from: prev_seq, to: input.sequence, flow: farneback(&small, &prev, &self.config.flow, s)? })
+            }
+            _ => None,
+        };
+        self.previous = Some((input.sequence, small));
+        times.flow = t.elapsed();
+
+        let t = Instant::now();
+        let max_age = u64::from(self.config.segmentation.max_mask_age_frames);
+        match &flow {
+            Some(step) => {
+                // Carry the last segmentation forward one frame.
+                if let Some(c) = self.carried.take_if(|c| c.at_sequence == step.from) {
+                    self.carried = Some(Carried { segmentation: warp_segmentation(&c.segmentation, &step.flow), at_sequence: step.to, ..c });
+                }
+            }
+            None => {
+                self.flows.clear();
+                self.carried = None;
+            }
+        }
+        if let Some(step) = flow {
+            self.flows.push_back(step);
+            while self.flows.len() > max_age as usize {
+                self.flows.pop_front();
+            }
+        }
+        if let Some((k, seg)) = input.segmentation {
+            let newer = self.carried.as_ref().is_none_or(|c| c.source_sequence < k);
+            if newer && let Some(seg) = self.carry_to(k, seg, input.sequence) {
+                self.carried = Some(Carried { segmentation: seg, source_sequence: k, at_sequence: input.sequence });
+            }
+        }
+        self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
+        times.warp = t.elapsed();
+
+        let t = Instant::now();
+        let exclude = self.carried.as_ref().map(|c| self.prior_dynamic_grid(&c.segmentation));
+        let ego = match self.flows.back() {
+            Some(step) if step.to == input.sequence => {
+                let prior = input.motion_prior.unwrap_or_else(Isometry3::identity);
+                Some(self.ego.compensate(&step.flow, input.depth, prior, exclude.as_deref()))
+            }
+            _ => None,
+        };
+        times.ego_motion = t.elapsed();
+
+        let t = Instant::now();
+        let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
+        let fused = fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion);
+        let tracking_mask = fused.tracking_mask(self.config.fusion.prior_dynamic_tracking);
+        let dynamic_fraction = dynamic_fraction(&fused.labels, input.depth);
+        times.fusion = t.elapsed();
+
+        let source = match &self.carried {
+            None => MaskSource::None,
+            Some(c) if c.source_sequence == input.sequence => MaskSource::Fresh,
+            Some(c) => MaskSource::Warped { age_frames: u32::try_from(input.sequence - c.source_sequence).unwrap_or(u32::MAX) },
+        };
+        let summary = ego.as_ref().map(|e| EgoSummary {
+            previous_from_current: e.previous_from_current,
+            refined: e.refined,
+            samples: e.samples,
+            inliers: e.inliers,
+        });
+        self.last_ego = ego;
+        times.total = start.elapsed();
+        Ok(MaskOutput {
+            fused,
+            tracking_mask,
+            source,
+            segmentation_sequence: self.carried.as_ref().map(|c| c.source_sequence),
+            ego: summary,
+            dynamic_fraction,
+            times,
+        })
+    }
+
+    /// Warps a segmentation of frame `k` through the stored flows up to frame `to`;
+    /// `None` when the chain of flows from `k` is not (or no longer) complete.
+    fn carry_to(&self, k: u64, seg: Segmentation, to: u64) -> Option<Segmentation> {
+        if k == to {
+            return Some(seg);
+        }
+        let first = self.flows.iter().position(|f| f.from == k)?;
+        let mut seg = seg;
+        let mut at = k;
+        for step in self.flows.iter().skip(first) {
+            if step.from != at {
+                return None;
+            }
+            seg = warp_segmentation(&seg, &step.flow);
+            at = step.to;
+            if at == to {
+                return Some(seg);
+            }
+        }
+        None
+    }
+
+    /// Prior-dynamic instance pixels on the flow grid (kept out of the ego-motion refinement).
+    fn prior_dynamic_grid(&self, seg: &Segmentation) -> Vec<u8> {
+        let s = self.config.flow.subsample as usize;
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let (gw, gh) = self.ego.grid_size();
+        let dynamic_ids: Vec<bool> = {
+            let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
+            let mut v = vec![false; max + 1];
+            for i in &seg.instances {
+                v[usize::from(i.id)] = self.prior_dynamic.get(usize::from(i.class_id)).copied().unwrap_or(false);
+            }
+            v
+        };
+        let mut grid = vec![0u8; gw * gh];
+        for y in 0..gh {
+            for x in 0..gw {
+                let (fx, fy) = ((x * s + s / 2).min(w - 1), (y * s + s / 2).min(h - 1));
+                let id = usize::from(seg.instance_map[fy * w + fx]);
+                grid[y * gw + x] = u8::from(dynamic_ids.get(id).copied().unwrap_or(false));
+            }
+        }
+        grid
+    }
+}

@@ -1,0 +1,79 @@
+//! Carrying a segmentation forward through the flow, for frames whose own
+//! segmentation is not ready yet.
+
+use crate::flow::FlowField;
+use crate::segment::{NO_INSTANCE, Segmentation};
+
+/// Warps a segmentation of the previous frame into the current one: each current
+/// pixel takes the instance at the position the flow (current → previous) points
+/// to. Instances that leave the image are dropped; counts and boxes are recomputed.
+pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentation {
+    let (w, h) = (previous.width as usize, previous.height as usize);
+    let s = flow.subsample.max(1) as f32;
+    let mut map = vec![NO_INSTANCE; w * h];
+    for y in 0..h {
+        // Full-size pixel → flow-grid coordinates (pixel centres aligned).
+        let gy = (y as f32 + 0.5) / s - 0.5;
+        for x in 0..w {
+            let gx = (x as f32 + 0.5) / s - 0.5;
+            let f = flow.sample(gx, gy);
+            let (sx, sy) = ((x as f32 + f[0] * s).round(), (y as f32 + f[1] * s).round());
+            if sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h {
+                map[y * w + x] = previous.instance_map[sy as usize * w + sx as usize];
+            }
+        }
+    }
+    let max_id = previous.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
+    let mut pixels = vec![0u32; max_id + 1];
+    let mut boxes = vec![[f32::MAX, f32::MAX, f32::MIN, f32::MIN]; max_id + 1];
+    for y in 0..h {
+        for x in 0..w {
+            let id = usize::from(map[y * w + x]);
+            if id != 0 && id <= max_id {
+                pixels[id] += 1;
+                let b = &mut boxes[id];
+                b[0] = b[0].min(x as f32);
+                b[1] = b[1].min(y as f32);
+                b[2] = b[2].max(x as f32 + 1.0);
+                b[3] = b[3].max(y as f32 + 1.0);
+            }
+        }
+    }
+    let instances = previous
+        .instances
+        .iter()
+        .filter(|i| pixels[usize::from(i.id)] > 0)
+        .map(|i| {
+            let mut i = i.clone();
+            i.pixels = pixels[usize::from(i.id)];
+            i.bbox = boxes[usize::from(i.id)];
+            i
+        })
+        .collect();
+    Segmentation { width: previous.width, height: previous.height, instance_map: map, instances }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::segment::Instance;
+
+    #[test]
+    fn a_translated_instance_follows_the_flow() {
+        let (w, h) = (64, 48);
+        let mut seg = Segmentation::empty(w, h);
+        for y in 10..20 {
+            for x in 10..30 {
+                seg.instance_map[y * w as usize + x] = 1;
+            }
+        }
+        seg.instances.push(Instance { id: 1, class_id: 0, class_name: "person".into(), score: 0.8, bbox: [10.0, 10.0, 30.0, 20.0], pixels: 200 });
+        // The scene moved 6 px right: current (x, y) shows previous (x − 6, y).
+        let flow = FlowField { width: 32, height: 24, subsample: 2, data: vec![[-3.0, 0.0]; 32 * 24] };
+        let out = warp_segmentation(&seg, &flow);
+        assert_eq!(out.instances[0].pixels, 200);
+        assert_eq!(out.instances[0].bbox, [16.0, 10.0, 36.0, 20.0]);
+        assert_eq!(out.instance_map[15 * w as usize + 16], 1);
+        assert_eq!(out.instance_map[15 * w as usize + 15], 0);
+    }
+}
