@@ -13,7 +13,7 @@ RATE=${STILLMAP_DEMO_RATE:-realtime}
 
 [ -d "$TUM" ] || { echo "demo: TUM clip not found at $TUM (set TUM=...)" >&2; exit 1; }
 log=$(mktemp -d)/server.log
-"$BIN/stillmap-server" --grpc-listen "$GRPC" --http-listen "$HTTP" --zenoh-listen "$ZENOH" >"$log.out" 2>"$log" &
+"$BIN/stillmap-server" --model "${MODEL:-$SHARED/models/yolov8n-seg_fp32_640.onnx}" --grpc-listen "$GRPC" --http-listen "$HTTP" --zenoh-listen "$ZENOH" >"$log.out" 2>"$log" &
 server=$!
 trap 'kill $server 2>/dev/null; wait $server 2>/dev/null || true' EXIT
 for _ in $(seq 100); do

@@ -1,1 +1,118 @@
-fn main() {}
+//! Perception speed on the real fr1_rpy frames: segmentation at 640 and 320,
+//! flow + mask per stage, and dynamic feature elimination. Prints a table beside
+//! the paper's Table 9, then runs criterion.
+//!
+//! `cargo bench -p stillmap-perception` (needs ORT_DYLIB_PATH or .deps/ort).
+
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
+#[path = "../tests/support/mod.rs"]
+mod support;
+
+use std::time::{Duration, Instant};
+
+use criterion::{Criterion, criterion_group};
+use stillmap_perception::{DynamicMasker, MaskerInput, PerceptionConfig, Segmenter, YoloSegmenter};
+use stillmap_tracking::TrackerConfig;
+use stillmap_tracking::features::Extractor;
+use stillmap_tracking::tracker::to_gray;
+
+const FRAMES: usize = 60;
+
+fn stats(mut v: Vec<Duration>) -> (f64, f64, f64) {
+    v.sort();
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let mean = v.iter().map(|d| ms(*d)).sum::<f64>() / v.len() as f64;
+    (mean, ms(v[v.len() / 2]), ms(v[(v.len() * 95 / 100).min(v.len() - 1)]))
+}
+
+fn table() {
+    let frames = tum::load(&tum::fr1_rpy_dir(), FRAMES);
+    let camera = tum::fr1_camera();
+    println!("\nperception on {FRAMES} real fr1_rpy frames (640x480, this CPU); ms per frame");
+    println!("| stage | mean | median | p95 | paper (Table 9, GPU) |");
+    println!("|---|---|---|---|---|");
+    for (model, paper) in [("yolov8n-seg_fp32_640.onnx", "336.1 (Mask R-CNN)"), ("yolov8n-seg_fp32_320.onnx", "")] {
+        let mut seg = YoloSegmenter::new(&support::segmentation_config(model)).expect("model");
+        let _ = seg.segment(&frames[0].rgb, 640, 480);
+        let times: Vec<Duration> = frames
+            .iter()
+            .map(|f| {
+                let t = Instant::now();
+                seg.segment(&f.rgb, 640, 480).expect("segment");
+                t.elapsed()
+            })
+            .collect();
+        let (mean, median, p95) = stats(times);
+        println!("| segmentation {} ({}) | {mean:.1} | {median:.1} | {p95:.1} | {paper} |", seg.input_size(), seg.device());
+    }
+    let mut masker = DynamicMasker::new(camera.clone(), PerceptionConfig::default(), &[]).expect("masker");
+    let (mut flow, mut ego, mut warp, mut fusion, mut total) = (vec![], vec![], vec![], vec![], vec![]);
+    let mut masks = Vec::new();
+    for (k, f) in frames.iter().enumerate() {
+        let out = masker
+            .process(MaskerInput { sequence: k as u64, rgb: &f.rgb, depth: &f.depth, segmentation: None, motion_prior: None })
+            .expect("mask");
+        if k > 0 {
+            let t = out.times;
+            flow.push(t.flow);
+            ego.push(t.ego_motion);
+            warp.push(t.warp);
+            fusion.push(t.fusion);
+            total.push(t.flow + t.ego_motion + t.warp + t.fusion);
+        }
+        masks.push(out.tracking_mask);
+    }
+    for (name, v, paper) in [
+        ("flow (Farneback 320x240)", flow, ""),
+        ("ego-motion compensation", ego, ""),
+        ("warp", warp, ""),
+        ("fusion", fusion, ""),
+        ("flow + mask", total, "19.5 (flow)"),
+    ] {
+        let (mean, median, p95) = stats(v);
+        println!("| {name} | {mean:.2} | {median:.2} | {p95:.2} | {paper} |");
+    }
+    // Elimination: the mask lookup of every extracted keypoint.
+    let mut extractor = Extractor::new(&TrackerConfig::default()).expect("extractor");
+    let times: Vec<Duration> = frames
+        .iter()
+        .zip(&masks)
+        .map(|(f, mask)| {
+            let feats = extractor.extract(&camera, &to_gray(&f.rgb), &f.depth, None).expect("extract");
+            let t = Instant::now();
+            let kept = feats.features.iter().filter(|ft| mask[ft.raw.y.round() as usize * 640 + ft.raw.x.round() as usize] == 0).count();
+            std::hint::black_box(kept);
+            t.elapsed()
+        })
+        .collect();
+    let (mean, median, p95) = stats(times);
+    println!("| elimination (mask lookup per keypoint) | {mean:.4} | {median:.4} | {p95:.4} | 2.45 |\n");
+}
+
+fn benches(c: &mut Criterion) {
+    let frames = tum::load(&tum::fr1_rpy_dir(), 2);
+    let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_320.onnx")).expect("model");
+    c.bench_function("segment/320", |b| b.iter(|| seg.segment(&frames[0].rgb, 640, 480).expect("segment")));
+    let mut masker = DynamicMasker::new(tum::fr1_camera(), PerceptionConfig::default(), &[]).expect("masker");
+    let mut k = 0u64;
+    c.bench_function("flow_and_mask/fr1_rpy", |b| {
+        b.iter(|| {
+            let f = &frames[(k % 2) as usize];
+            k += 1;
+            masker.process(MaskerInput { sequence: k, rgb: &f.rgb, depth: &f.depth, segmentation: None, motion_prior: None }).expect("mask")
+        })
+    });
+}
+
+criterion_group! {
+    name = group;
+    config = Criterion::default().sample_size(20);
+    targets = benches
+}
+
+fn main() {
+    table();
+    group();
+    Criterion::default().configure_from_args().final_summary();
+}

@@ -108,6 +108,21 @@ pub struct EgoMotionConfig {
     pub max_depth_m: f64,
     /// Samples with valid depth needed to refine the motion; fewer: the prior is used alone.
     pub min_samples: usize,
+    /// Flow is trusted for the refinement only where the image has texture: the
+    /// smaller eigenvalue of the 3×3 structure tensor, as a mean squared gradient in
+    /// (grey levels per flow pixel)², must reach this.
+    pub min_texture: f64,
+    /// Photometric confirmation: a pixel with residual flow counts as moving only
+    /// if its 3×3 patch, looked up where the camera motion alone would have put it
+    /// in the previous image, differs from it by more than this mean absolute
+    /// zero-mean difference (grey levels). Textureless surfaces, where Farneback's
+    /// flow is unconstrained, pass this test and stay static.
+    pub photometric_threshold: f64,
+    /// Refine the tracker's camera motion on the flow (off: use it as it is).
+    pub refine_tracked_motion: bool,
+    /// … and by more than this factor times the difference under the measured flow
+    /// (the flow must explain the pixel better than the camera motion does).
+    pub photometric_ratio: f64,
 }
 
 /// How a prior-dynamic instance (a person, say) that does not move is treated by tracking.
@@ -140,6 +155,11 @@ pub struct FusionConfig {
     /// ego-motion failure rather than reported as motion.
     pub max_region_fraction: f64,
     pub prior_dynamic_tracking: PriorDynamicTracking,
+    /// Keep flow-only dynamic regions (moving pixels outside any segmented
+    /// instance) out of tracking too. They are always kept out of mapping. Off by
+    /// default: on the static fr1_rpy clip their false positives cost more
+    /// tracking accuracy than they save (README, "Perception").
+    pub flow_regions_in_tracking_mask: bool,
 }
 
 impl PerceptionConfig {
@@ -186,6 +206,9 @@ impl PerceptionConfig {
         }
         if !(e.min_depth_m > 0.0 && e.max_depth_m > e.min_depth_m) {
             return Err("perception.ego_motion.min_depth_m must be positive and below max_depth_m".into());
+        }
+        if !(e.min_texture >= 0.0 && e.photometric_threshold >= 0.0 && e.photometric_ratio >= 1.0) {
+            return Err("perception.ego_motion: min_texture and photometric_threshold must be ≥ 0, photometric_ratio ≥ 1".into());
         }
         if e.min_samples < 6 {
             return Err("perception.ego_motion.min_samples must be at least 6".into());
@@ -263,6 +286,10 @@ impl Default for EgoMotionConfig {
             min_depth_m: 0.3,
             max_depth_m: 6.0,
             min_samples: 50,
+            min_texture: 9.0,
+            photometric_threshold: 4.0,
+            photometric_ratio: 2.0,
+            refine_tracked_motion: true,
         }
     }
 }
@@ -276,6 +303,7 @@ impl Default for FusionConfig {
             region_depth_ratio: 0.05,
             max_region_fraction: 0.5,
             prior_dynamic_tracking: PriorDynamicTracking::ExcludeWhileMoving,
+            flow_regions_in_tracking_mask: false,
         }
     }
 }

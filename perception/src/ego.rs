@@ -18,7 +18,7 @@ use stillmap_tracking::geometry::Measurement;
 use stillmap_tracking::optimize::optimize_pose;
 
 use crate::config::EgoMotionConfig;
-use crate::flow::FlowField;
+use crate::flow::{FlowField, SmallGray};
 
 /// Per flow pixel: no prediction possible (no valid depth).
 pub const NO_PREDICTION: u8 = 0;
@@ -43,6 +43,11 @@ pub struct EgoResult {
     pub residual_px: Vec<f32>,
     /// Depth (metres) per flow pixel, 0 when invalid.
     pub depth_m: Vec<f32>,
+    /// Photometric difference under the predicted flow (grey levels), where residual
+    /// flow made it matter; 0 elsewhere.
+    pub photometric: Vec<f32>,
+    /// The same under the measured flow.
+    pub photometric_measured: Vec<f32>,
 }
 
 /// Ego-motion compensation for one camera; caches per-pixel rays of the flow grid.
@@ -59,6 +64,43 @@ pub struct EgoMotion {
 
 /// Fewer refinement inliers than this fraction of the samples: the refinement is not trusted.
 const MIN_INLIER_FRACTION: f64 = 0.3;
+/// PnP-RANSAC hypothesis: iterations, inlier threshold in flow σ, and confidence.
+const RANSAC_ITERATIONS: i32 = 100;
+const RANSAC_THRESHOLD_SIGMAS: f64 = 3.0;
+const RANSAC_CONFIDENCE: f64 = 0.99;
+
+/// OpenCV EPnP inside RANSAC on (point in the current camera, ideal pixel in the
+/// previous image) pairs; `previous_from_current`, or `None` when it fails.
+fn pnp_ransac(camera: &Camera, correspondences: &[(Point3<f64>, Measurement)], threshold_px: f32) -> Option<Isometry3<f64>> {
+    use nalgebra::{Rotation3, Translation3, UnitQuaternion, Vector3};
+    use opencv::core::{Mat, Point2f, Point3f, Vector};
+    use opencv::prelude::*;
+    let object: Vector<Point3f> = correspondences.iter().map(|(p, _)| Point3f::new(p.x as f32, p.y as f32, p.z as f32)).collect();
+    let image: Vector<Point2f> = correspondences.iter().map(|(_, m)| Point2f::new(m.ideal.x as f32, m.ideal.y as f32)).collect();
+    let k = Mat::from_slice_2d(&[[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]]).ok()?;
+    let (mut rvec, mut tvec, mut inliers) = (Mat::default(), Mat::default(), Mat::default());
+    let ok = opencv::calib3d::solve_pnp_ransac(
+        &object,
+        &image,
+        &k,
+        &opencv::core::no_array(),
+        &mut rvec,
+        &mut tvec,
+        false,
+        RANSAC_ITERATIONS,
+        threshold_px,
+        RANSAC_CONFIDENCE,
+        &mut inliers,
+        opencv::calib3d::SOLVEPNP_EPNP,
+    )
+    .ok()?;
+    if !ok {
+        return None;
+    }
+    let r = Vector3::new(*rvec.at::<f64>(0).ok()?, *rvec.at::<f64>(1).ok()?, *rvec.at::<f64>(2).ok()?);
+    let t = Vector3::new(*tvec.at::<f64>(0).ok()?, *tvec.at::<f64>(1).ok()?, *tvec.at::<f64>(2).ok()?);
+    Some(Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&Rotation3::new(r))))
+}
 
 impl EgoMotion {
     pub fn new(camera: Camera, config: EgoMotionConfig, subsample: u32) -> Self {
@@ -117,30 +159,48 @@ impl EgoMotion {
         Some(self.camera.distort(&ideal))
     }
 
-    /// Refines `prior` on the flow and classifies every flow pixel. `exclude`
-    /// (flow-grid sized, nonzero = skip) keeps known dynamic pixels out of the refinement.
+    /// Refines `prior` on the flow and classifies every flow pixel. `current` and
+    /// `previous` are the flow's grey images; `exclude` (flow-grid sized, nonzero =
+    /// skip) keeps known dynamic pixels out of the refinement.
     pub fn compensate(
         &self,
         flow: &FlowField,
+        current: &SmallGray,
+        previous: &SmallGray,
         depth: &[u16],
-        prior: Isometry3<f64>,
+        prior: Option<Isometry3<f64>>,
         exclude: Option<&[u8]>,
     ) -> EgoResult {
         debug_assert_eq!((flow.width, flow.height), (self.width, self.height));
         let s = self.subsample as f64;
         let depth_m = self.sample_depth(depth);
+        let texture = min_eigen_texture(current);
 
         // Refinement: current-camera points against their flow targets in the previous image.
         let step = self.config.sample_step.max(1) as usize;
         let information = 1.0 / (self.config.flow_sigma_px * self.config.flow_sigma_px);
         let mut correspondences = Vec::new();
-        for y in (step / 2..self.height).step_by(step) {
-            for x in (step / 2..self.width).step_by(step) {
-                let i = y * self.width + x;
-                let z = f64::from(depth_m[i]);
-                if z == 0.0 || exclude.is_some_and(|m| m[i] != 0) {
+        // One sample per step×step cell, at its most textured pixel, so that no
+        // compact textured object can outvote the rest of the scene.
+        for cy in (0..self.height).step_by(step) {
+            for cx in (0..self.width).step_by(step) {
+                let mut best: Option<(f32, usize)> = None;
+                for y in cy..(cy + step).min(self.height) {
+                    for x in cx..(cx + step).min(self.width) {
+                        let i = y * self.width + x;
+                        if depth_m[i] == 0.0 || exclude.is_some_and(|m| m[i] != 0) {
+                            continue;
+                        }
+                        if best.is_none_or(|(t, _)| texture[i] > t) {
+                            best = Some((texture[i], i));
+                        }
+                    }
+                }
+                let Some((t, i)) = best else { continue };
+                if f64::from(t) < self.config.min_texture {
                     continue;
                 }
+                let z = f64::from(depth_m[i]);
                 let r = self.ray[i];
                 let f = flow.data[i];
                 let target_raw = Point2::new(self.raw[i].x + f64::from(f[0]) * s, self.raw[i].y + f64::from(f[1]) * s);
@@ -152,22 +212,43 @@ impl EgoMotion {
             }
         }
         let samples = correspondences.len();
-        let (mut previous_from_current, mut refined, mut inliers) = (prior, false, 0);
+        let (mut previous_from_current, mut refined, mut inliers) = (prior.unwrap_or_else(Isometry3::identity), false, 0);
         if samples >= self.config.min_samples {
             // `optimize_pose` estimates camera_from_world: here previous_from_current,
-            // with the current camera frame playing the world.
-            let estimate = optimize_pose(&self.camera, 1.0, prior, &correspondences);
-            inliers = estimate.inlier_count;
-            if inliers >= self.config.min_samples && inliers as f64 >= MIN_INLIER_FRACTION * samples as f64 {
-                previous_from_current = estimate.camera_from_world;
-                refined = true;
+            // with the current camera frame playing the world. With a prior (the
+            // tracker's motion from static features) it refines that locally: the
+            // flow alone cannot tell the camera's motion from that of a large, well
+            // textured moving object. Without one it starts from identity and from a
+            // PnP-RANSAC hypothesis, and the start that keeps more inliers wins.
+            let ransac = self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS;
+            let starts = match prior {
+                Some(p) => [Some(p), None],
+                None => [Some(Isometry3::identity()), pnp_ransac(&self.camera, &correspondences, ransac as f32)],
+            };
+            let best = starts
+                .into_iter()
+                .flatten()
+                .map(|start| optimize_pose(&self.camera, 1.0, start, &correspondences))
+                .max_by_key(|e| e.inlier_count);
+            if let Some(estimate) = best {
+                inliers = estimate.inlier_count;
+                if inliers >= self.config.min_samples && inliers as f64 >= MIN_INLIER_FRACTION * samples as f64 {
+                    previous_from_current = estimate.camera_from_world;
+                    refined = true;
+                }
             }
+        }
+        if prior.is_some() && !self.config.refine_tracked_motion {
+            previous_from_current = prior.unwrap_or_else(Isometry3::identity);
+            refined = false;
         }
 
         // Classification of every flow pixel.
         let n = self.width * self.height;
         let mut class = vec![NO_PREDICTION; n];
         let mut residual_px = vec![0f32; n];
+        let mut photometric = vec![0f32; n];
+        let mut photometric_measured = vec![0f32; n];
         let (a, b) = (self.config.depth_sigma_a_m, self.config.depth_sigma_b_per_m);
         let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
         for i in 0..n {
@@ -187,9 +268,26 @@ impl EgoMotion {
             let depth_var = (p_far - p).norm_squared();
             let threshold = (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px);
             residual_px[i] = residual as f32;
-            class[i] = if residual > threshold { RESIDUAL } else { CONSISTENT };
+            let moving = residual > threshold && {
+                // Where the camera motion alone puts this pixel in the previous flow image.
+                let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
+                let (x, y) = (i % self.width, i / self.width);
+                let d = patch_difference(current, x, y, previous, qx, qy);
+                let measured = patch_difference(current, x, y, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1]));
+                photometric[i] = d.unwrap_or(-1.0) as f32;
+                photometric_measured[i] = measured.unwrap_or(-1.0) as f32;
+                // Moving when the camera motion explains the patch badly, and clearly
+                // worse than the measured flow does; patches leaving the image cannot
+                // be checked and keep the flow's verdict.
+                match (d, measured) {
+                    (Some(d), Some(m)) => d > self.config.photometric_threshold && d > self.config.photometric_ratio * m,
+                    (Some(d), None) => d > self.config.photometric_threshold,
+                    (None, _) => true,
+                }
+            };
+            class[i] = if moving { RESIDUAL } else { CONSISTENT };
         }
-        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
+        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m, photometric, photometric_measured }
     }
 
     pub fn grid_size(&self) -> (usize, usize) {
@@ -197,13 +295,79 @@ impl EgoMotion {
     }
 }
 
+/// Smaller eigenvalue of the 3×3-summed structure tensor per pixel, divided by 9:
+/// the mean squared intensity gradient along the weakest direction (0 at the border).
+pub fn min_eigen_texture(image: &SmallGray) -> Vec<f32> {
+    let (w, h) = (image.width, image.height);
+    let px = |x: usize, y: usize| f32::from(image.data[y * w + x]);
+    let mut gxx = vec![0f32; w * h];
+    let mut gxy = vec![0f32; w * h];
+    let mut gyy = vec![0f32; w * h];
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            let gx = (px(x + 1, y) - px(x - 1, y)) * 0.5;
+            let gy = (px(x, y + 1) - px(x, y - 1)) * 0.5;
+            let i = y * w + x;
+            gxx[i] = gx * gx;
+            gxy[i] = gx * gy;
+            gyy[i] = gy * gy;
+        }
+    }
+    let mut out = vec![0f32; w * h];
+    for y in 2..h.saturating_sub(2) {
+        for x in 2..w.saturating_sub(2) {
+            let (mut a, mut b, mut c) = (0f32, 0f32, 0f32);
+            for dy in 0..3 {
+                for dx in 0..3 {
+                    let j = (y + dy - 1) * w + x + dx - 1;
+                    a += gxx[j];
+                    b += gxy[j];
+                    c += gyy[j];
+                }
+            }
+            let (mean, diff) = ((a + c) * 0.5, ((a - c) * 0.5).hypot(b));
+            out[y * w + x] = (mean - diff).max(0.0) / 9.0;
+        }
+    }
+    out
+}
+
+/// Mean absolute zero-mean difference between the 3×3 patch of `a` at pixel
+/// `(x, y)` and the 3×3 patch of `b` around the subpixel `(qx, qy)` (bilinear);
+/// `None` when either patch leaves its image.
+pub fn patch_difference(a: &SmallGray, x: usize, y: usize, b: &SmallGray, qx: f64, qy: f64) -> Option<f64> {
+    if x < 1 || y < 1 || x + 1 >= a.width || y + 1 >= a.height {
+        return None;
+    }
+    if qx < 1.0 || qy < 1.0 || qx >= (b.width - 2) as f64 || qy >= (b.height - 2) as f64 {
+        return None;
+    }
+    let (x0, y0) = (qx.floor() as usize, qy.floor() as usize);
+    let (tx, ty) = ((qx - x0 as f64) as f32, (qy - y0 as f64) as f32);
+    let bw = b.width;
+    let sample = |x: usize, y: usize| {
+        let at = |x: usize, y: usize| f32::from(b.data[y * bw + x]);
+        (at(x, y) * (1.0 - tx) + at(x + 1, y) * tx) * (1.0 - ty) + (at(x, y + 1) * (1.0 - tx) + at(x + 1, y + 1) * tx) * ty
+    };
+    let mut pa = [0f32; 9];
+    let mut pb = [0f32; 9];
+    for dy in 0..3 {
+        for dx in 0..3 {
+            pa[dy * 3 + dx] = f32::from(a.data[(y + dy - 1) * a.width + x + dx - 1]);
+            pb[dy * 3 + dx] = sample(x0 + dx - 1, y0 + dy - 1);
+        }
+    }
+    let (ma, mb) = (pa.iter().sum::<f32>() / 9.0, pb.iter().sum::<f32>() / 9.0);
+    Some(f64::from(pa.iter().zip(&pb).map(|(u, v)| ((u - ma) - (v - mb)).abs()).sum::<f32>() / 9.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use nalgebra::Vector3;
 
-    /// A synthetic flow field for a fronto-parallel wall at 2 m seen by a moving
-    /// camera, with a patch that moves on its own.
+    /// A textured fronto-parallel wall at 2 m seen by a moving camera, with a patch
+    /// that moves on its own; the flow is exact.
     #[test]
     fn refines_the_motion_and_flags_only_the_independent_patch() {
         let camera = Camera::pinhole(320, 240, 260.0, 260.0, 160.0, 120.0, 1000.0);
@@ -212,25 +376,56 @@ mod tests {
         let truth = Isometry3::new(Vector3::new(0.03, -0.01, 0.02), Vector3::new(0.01, -0.02, 0.005));
         let depth = vec![2000u16; 320 * 240];
         let (w, h) = ego.grid_size();
-        let mut data = Vec::with_capacity(w * h);
+        let texture = |x: f64, y: f64| 128.0 + 60.0 * (0.7 * x).sin() * (0.5 * y).cos() + 40.0 * (0.31 * x + 0.17 * y).sin();
+        let previous = SmallGray {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| texture((i % w) as f64, (i / w) as f64).round() as u8).collect(),
+        };
+        let inside = |x: usize, y: usize| (60..90).contains(&x) && (40..70).contains(&y);
+        let (mut data, mut current) = (Vec::with_capacity(w * h), Vec::with_capacity(w * h));
         for i in 0..w * h {
-            let p = ego.predict(i, 2.0, &truth).unwrap();
-            let mut f = [((p.x - ego.raw[i].x) / 2.0) as f32, ((p.y - ego.raw[i].y) / 2.0) as f32];
             let (x, y) = (i % w, i / w);
-            if (60..90).contains(&x) && (40..70).contains(&y) {
-                f[0] += 4.0; // 8 full-size pixels of independent motion
+            let p = ego.predict(i, 2.0, &truth).unwrap();
+            // Previous-image position in flow-grid coordinates; the patch moved 4 more.
+            let (mut qx, qy) = ((p.x + 0.5) / 2.0 - 0.5, (p.y + 0.5) / 2.0 - 0.5);
+            if inside(x, y) {
+                qx += 4.0;
             }
-            data.push(f);
+            data.push([(qx - x as f64) as f32, (qy - y as f64) as f32]);
+            current.push(texture(qx, qy).round() as u8);
         }
+        let current = SmallGray { width: w, height: h, data: current };
         let flow = FlowField { width: w, height: h, subsample: 2, data };
-        let out = ego.compensate(&flow, &depth, Isometry3::identity(), None);
+        let out = ego.compensate(&flow, &current, &previous, &depth, None, None);
         assert!(out.refined);
         let err = out.previous_from_current.inverse() * truth;
         assert!(err.translation.vector.norm() < 1e-3 && err.rotation.angle() < 1e-4, "{err:?}");
         for i in 0..w * h {
             let (x, y) = (i % w, i / w);
-            let inside = (60..90).contains(&x) && (40..70).contains(&y);
-            assert_eq!(out.class[i], if inside { RESIDUAL } else { CONSISTENT }, "pixel {x},{y}");
+            if x < 2 || y < 2 || x + 3 >= w || y + 3 >= h {
+                continue; // patches leave the image
+            }
+            if (59..=60).contains(&x) || (89..=90).contains(&x) || (39..=40).contains(&y) || (69..=70).contains(&y) {
+                continue; // 3×3 patches straddling the motion boundary mix both motions
+            }
+            assert_eq!(out.class[i], if inside(x, y) { RESIDUAL } else { CONSISTENT }, "pixel {x},{y}");
         }
+    }
+
+    #[test]
+    fn texture_and_patch_difference() {
+        let flat = SmallGray { width: 16, height: 16, data: vec![90; 256] };
+        assert!(min_eigen_texture(&flat).iter().all(|&t| t == 0.0));
+        // Vertical stripes: texture in x only, so the smaller eigenvalue is still 0.
+        let stripes = SmallGray { width: 16, height: 16, data: (0..256).map(|i| if i % 2 == 0 { 0 } else { 200 }).collect() };
+        assert!(min_eigen_texture(&stripes).iter().all(|&t| t == 0.0));
+        let checker = SmallGray { width: 16, height: 16, data: (0..256).map(|i| if ((i % 16) / 2 + (i / 16) / 2) % 2 == 0 { 0 } else { 200 }).collect() };
+        assert!(min_eigen_texture(&checker)[8 * 16 + 8] > 100.0);
+        // A brightness offset is not a difference; a shift is.
+        let brighter = SmallGray { width: 16, height: 16, data: checker.data.iter().map(|v| v + 30).collect() };
+        assert_eq!(patch_difference(&checker, 8, 8, &brighter, 8.0, 8.0), Some(0.0));
+        assert!(patch_difference(&checker, 8, 8, &checker, 9.0, 8.0).unwrap() > 50.0);
+        assert_eq!(patch_difference(&checker, 0, 8, &checker, 8.0, 8.0), None);
     }
 }

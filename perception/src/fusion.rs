@@ -305,7 +305,7 @@ mod tests {
                 depth_m[y * gw + x] = depth(x, y);
             }
         }
-        EgoResult { previous_from_current: Isometry3::identity(), refined: true, samples: 0, inliers: 0, class, residual_px, depth_m }
+        EgoResult { previous_from_current: Isometry3::identity(), refined: true, samples: 0, inliers: 0, class, residual_px, depth_m, photometric: vec![], photometric_measured: vec![] }
     }
 
     fn person_box(width: usize, height: usize, x0: usize, x1: usize, y0: usize, y1: usize) -> Segmentation {

@@ -15,12 +15,12 @@ use stillmap_tracking::Camera;
 use stillmap_tracking::tracker::to_gray;
 
 use crate::PerceptionError;
-use crate::config::PerceptionConfig;
+use crate::config::{PerceptionConfig, PriorDynamicTracking};
 use crate::ego::{EgoMotion, EgoResult};
 use crate::flow::{FlowField, SmallGray, farneback};
-use crate::fusion::{Fused, dynamic_fraction, fuse};
+use crate::fusion::{Fused, PixelLabel, dynamic_fraction, fuse};
 use crate::segment::Segmentation;
-use crate::warp::warp_segmentation;
+use crate::warp::{warp_labels, warp_segmentation};
 
 /// Where the frame's segmentation came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -43,7 +43,8 @@ pub struct MaskerInput<'a> {
     /// A segmentation finished since the last frame: the sequence of the frame it
     /// was computed on, and the result.
     pub segmentation: Option<(u64, Segmentation)>,
-    /// The camera motion `previous_from_current` predicted by the tracker.
+    /// The camera motion `previous_from_current` ([`process`](DynamicMasker::process)
+    /// only; the two-phase API takes the tracked motion in `finish`).
     pub motion_prior: Option<Isometry3<f64>>,
 }
 
@@ -103,6 +104,18 @@ pub struct DynamicMasker {
     flows: VecDeque<FlowStep>,
     carried: Option<Carried>,
     last_ego: Option<EgoResult>,
+    /// The last finished frame's labels.
+    labels: Option<(u64, Vec<u8>)>,
+    /// A prepared frame waiting for `finish`.
+    pending: Option<Pending>,
+}
+
+struct Pending {
+    sequence: u64,
+    small: SmallGray,
+    previous: Option<SmallGray>,
+    times: MaskTimes,
+    start: Instant,
 }
 
 impl DynamicMasker {
@@ -116,7 +129,7 @@ impl DynamicMasker {
         }
         let prior_dynamic = class_names.iter().map(|n| config.segmentation.prior_dynamic_classes.iter().any(|p| p == n)).collect();
         let ego = EgoMotion::new(camera.clone(), config.ego_motion.clone(), config.flow.subsample);
-        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None })
+        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, labels: None, pending: None })
     }
 
     /// The segmentation in the current frame's coordinates, if any.
@@ -129,8 +142,22 @@ impl DynamicMasker {
         self.last_ego.as_ref()
     }
 
-    /// Processes one frame (frames in increasing sequence order).
+    /// Processes one frame in one go: [`prepare`](Self::prepare), then
+    /// [`finish`](Self::finish) with `input.motion_prior` as the camera motion.
     pub fn process(&mut self, input: MaskerInput<'_>) -> Result<MaskOutput, PerceptionError> {
+        let motion = input.motion_prior;
+        let depth = input.depth;
+        self.prepare(input)?;
+        self.finish(depth, motion)
+    }
+
+    /// First phase of a frame (frames in increasing sequence order): flow to the
+    /// previous frame, the segmentation carried to this frame, and the mask
+    /// tracking should use now: the previous frame's dynamic pixels carried by the
+    /// flow, plus prior-dynamic instances where the policy (or not knowing yet)
+    /// says so. Track the frame with it, then call [`finish`](Self::finish) with
+    /// the tracked camera motion.
+    pub fn prepare(&mut self, input: MaskerInput<'_>) -> Result<Vec<u8>, PerceptionError> {
         let start = Instant::now();
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         if input.rgb.len() != w * h * 3 {
@@ -152,17 +179,22 @@ impl DynamicMasker {
 
         let t = Instant::now();
         let small = SmallGray::from_gray(&to_gray(input.rgb), w, h, s)?;
-        let flow = match self.previous.take() {
-            Some((prev_seq, prev)) if prev_seq < input.sequence => {
-                Some(FlowStep { from: prev_seq, to: input.sequence, flow: farneback(&small, &prev, &self.config.flow, s)? })
+        let previous = self.previous.take().filter(|(prev_seq, _)| *prev_seq < input.sequence);
+        let flow = match &previous {
+            Some((prev_seq, prev)) => {
+                Some(FlowStep { from: *prev_seq, to: input.sequence, flow: farneback(&small, prev, &self.config.flow, s)? })
             }
-            _ => None,
+            None => None,
         };
-        self.previous = Some((input.sequence, small));
         times.flow = t.elapsed();
 
         let t = Instant::now();
         let max_age = u64::from(self.config.segmentation.max_mask_age_frames);
+        // The previous frame's final labels, carried into this frame.
+        let carried_labels = match (&flow, self.labels.take()) {
+            (Some(step), Some((at, labels))) if at == step.from => Some(warp_labels(&labels, w, h, &step.flow)),
+            _ => None,
+        };
         match &flow {
             Some(step) => {
                 // Carry the last segmentation forward one frame.
@@ -190,28 +222,63 @@ impl DynamicMasker {
         self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
         times.warp = t.elapsed();
 
+        // The mask for tracking this frame.
+        let policy = self.config.fusion.prior_dynamic_tracking;
+        let flow_regions = self.config.fusion.flow_regions_in_tracking_mask;
+        let mut mask = match (&carried_labels, &self.carried) {
+            (Some(l), _) if flow_regions => l.iter().map(|&v| u8::from(v == PixelLabel::Dynamic as u8)).collect(),
+            // Only dynamic pixels of segmented instances.
+            (Some(l), Some(c)) => l.iter().zip(&c.segmentation.instance_map).map(|(&v, &id)| u8::from(v == PixelLabel::Dynamic as u8 && id != 0)).collect(),
+            _ => vec![0u8; w * h],
+        };
+        if let Some(c) = &self.carried {
+            let exclude_still = policy == PriorDynamicTracking::AlwaysExclude || carried_labels.is_none();
+            for (m, &id) in mask.iter_mut().zip(&c.segmentation.instance_map) {
+                if id != 0 && exclude_still && self.is_prior_dynamic(&c.segmentation, id) {
+                    *m = 1;
+                }
+            }
+        }
+        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), times, start });
+        Ok(mask)
+    }
+
+    /// Second phase: ego-motion compensation with the camera motion
+    /// `previous_from_current` (the tracker's, from the static features; `None`
+    /// when tracking failed: the flow refines identity then), and fusion into this
+    /// frame's labels. `depth` is the frame's, as given to `prepare`.
+    pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
+        let Some(Pending { sequence, small, previous, mut times, start }) = self.pending.take() else {
+            return Err(PerceptionError::Input("finish called without prepare".into()));
+        };
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        if depth.len() != w * h {
+            return Err(PerceptionError::Input(format!("depth has {} pixels, expected {} ({w}x{h})", depth.len(), w * h)));
+        }
+        let s = self.config.flow.subsample;
         let t = Instant::now();
         let exclude = self.carried.as_ref().map(|c| self.prior_dynamic_grid(&c.segmentation));
-        let ego = match self.flows.back() {
-            Some(step) if step.to == input.sequence => {
-                let prior = input.motion_prior.unwrap_or_else(Isometry3::identity);
-                Some(self.ego.compensate(&step.flow, input.depth, prior, exclude.as_deref()))
+        let ego = match (self.flows.back(), &previous) {
+            (Some(step), Some(prev)) if step.to == sequence => {
+                Some(self.ego.compensate(&step.flow, &small, prev, depth, previous_from_current, exclude.as_deref()))
             }
             _ => None,
         };
+        self.previous = Some((sequence, small));
         times.ego_motion = t.elapsed();
 
         let t = Instant::now();
         let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
         let fused = fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion);
         let tracking_mask = fused.tracking_mask(self.config.fusion.prior_dynamic_tracking);
-        let dynamic_fraction = dynamic_fraction(&fused.labels, input.depth);
+        let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
+        self.labels = Some((sequence, fused.labels.clone()));
         times.fusion = t.elapsed();
 
         let source = match &self.carried {
             None => MaskSource::None,
-            Some(c) if c.source_sequence == input.sequence => MaskSource::Fresh,
-            Some(c) => MaskSource::Warped { age_frames: u32::try_from(input.sequence - c.source_sequence).unwrap_or(u32::MAX) },
+            Some(c) if c.source_sequence == sequence => MaskSource::Fresh,
+            Some(c) => MaskSource::Warped { age_frames: u32::try_from(sequence - c.source_sequence).unwrap_or(u32::MAX) },
         };
         let summary = ego.as_ref().map(|e| EgoSummary {
             previous_from_current: e.previous_from_current,
@@ -230,6 +297,10 @@ impl DynamicMasker {
             dynamic_fraction,
             times,
         })
+    }
+
+    fn is_prior_dynamic(&self, seg: &Segmentation, id: u16) -> bool {
+        seg.instance(id).is_some_and(|i| self.prior_dynamic.get(usize::from(i.class_id)).copied().unwrap_or(false))
     }
 
     /// Warps a segmentation of frame `k` through the stored flows up to frame `to`;

@@ -53,6 +53,25 @@ pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentat
     Segmentation { width: previous.width, height: previous.height, instance_map: map, instances }
 }
 
+/// Warps a per-pixel label image of the previous frame into the current one
+/// (nearest label at the position the flow points to; 0 outside the image).
+pub fn warp_labels(previous: &[u8], width: usize, height: usize, flow: &FlowField) -> Vec<u8> {
+    let s = flow.subsample.max(1) as f32;
+    let mut out = vec![0u8; width * height];
+    for y in 0..height {
+        let gy = (y as f32 + 0.5) / s - 0.5;
+        for x in 0..width {
+            let gx = (x as f32 + 0.5) / s - 0.5;
+            let f = flow.sample(gx, gy);
+            let (sx, sy) = ((x as f32 + f[0] * s).round(), (y as f32 + f[1] * s).round());
+            if sx >= 0.0 && sy >= 0.0 && (sx as usize) < width && (sy as usize) < height {
+                out[y * width + x] = previous[sy as usize * width + sx as usize];
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

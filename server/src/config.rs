@@ -18,6 +18,9 @@ pub struct ServerConfig {
     pub session: SessionConfig,
     /// Camera tracking (defaults documented in `stillmap_tracking::TrackerConfig`).
     pub tracking: stillmap_tracking::TrackerConfig,
+    /// Segmentation, flow and the dynamic mask (defaults documented in
+    /// `stillmap_perception::PerceptionConfig`).
+    pub perception: stillmap_perception::PerceptionConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -141,6 +144,7 @@ impl ServerConfig {
             return bad(format!("grpc.max_message_bytes {} is below 1024", self.grpc.max_message_bytes));
         }
         self.tracking.validate().map_err(ServerError::Config)?;
+        self.perception.validate().map_err(ServerError::Config)?;
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }

@@ -8,6 +8,7 @@ pub mod config;
 pub mod grpc;
 pub mod http;
 pub mod metrics;
+pub mod perception;
 pub mod pipeline;
 pub mod queue;
 pub mod session;
@@ -40,6 +41,8 @@ pub enum ServerError {
     Http(std::io::Error),
     #[error("zenoh: {0}")]
     Zenoh(String),
+    #[error("perception: {0}")]
+    Perception(#[from] stillmap_perception::PerceptionError),
 }
 
 /// Where the server ended up listening (ports resolved when 0 was asked for).
@@ -54,10 +57,33 @@ async fn bind(addr: &str) -> Result<tokio::net::TcpListener, ServerError> {
     tokio::net::TcpListener::bind(addr).await.map_err(|source| ServerError::Bind { addr: addr.into(), source })
 }
 
+/// Loads the segmentation model(s) when perception wants them: any problem with
+/// the configured model is a start-up error. No model configured: masks come from
+/// the flow alone (every pixel prior-static), with a warning.
+fn perception_service(
+    config: &ServerConfig,
+) -> Result<Option<(stillmap_perception::PerceptionConfig, Option<Arc<perception::SegmentationService>>)>, ServerError> {
+    let p = &config.perception;
+    if !p.enabled {
+        return Ok(None);
+    }
+    if !p.segmentation.enabled {
+        return Ok(Some((p.clone(), None)));
+    }
+    if p.segmentation.model_path.is_empty() {
+        tracing::warn!("no segmentation model configured (perception.segmentation.model_path / --model): dynamic masks come from optical flow alone");
+        return Ok(Some((p.clone(), None)));
+    }
+    let service = perception::SegmentationService::start(p)?;
+    tracing::info!(model = %p.segmentation.model_path, device = service.device(), workers = p.segmentation.workers, "segmentation ready");
+    Ok(Some((p.clone(), Some(service))))
+}
+
 /// Serves until `shutdown` becomes true. `on_ready` is called once every listener is up.
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), Arc::default()));
+    let perception = perception_service(&config)?;
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, Arc::default()));
 
     let grpc_listener = bind(&config.grpc.listen).await?;
     let http_listener = bind(&config.http.listen).await?;

@@ -37,6 +37,12 @@ struct Args {
     /// Largest message accepted, in bytes [default: 8388608].
     #[arg(long, env = "STILLMAP_MAX_MESSAGE_BYTES")]
     max_message_bytes: Option<usize>,
+    /// Segmentation model (ONNX, YOLOv8-seg export) [default: none: masks from flow alone].
+    #[arg(long, env = "STILLMAP_MODEL")]
+    model: Option<String>,
+    /// Turn perception (segmentation, flow, dynamic mask) off: tracking sees every pixel as static.
+    #[arg(long, env = "STILLMAP_NO_PERCEPTION")]
+    no_perception: bool,
     /// Print the effective configuration as TOML and exit.
     #[arg(long)]
     print_config: bool,
@@ -81,6 +87,12 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     }
     if let Some(v) = args.max_message_bytes {
         c.grpc.max_message_bytes = v;
+    }
+    if let Some(v) = &args.model {
+        c.perception.segmentation.model_path = v.clone();
+    }
+    if args.no_perception {
+        c.perception.enabled = false;
     }
     c.validate()?;
     Ok(c)

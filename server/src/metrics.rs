@@ -27,6 +27,8 @@ pub struct Metrics {
     frames_rejected: Family<Labels, Counter>,
     bytes_received: Family<Labels, Counter>,
     stage_latency: Family<Labels, Histogram, fn() -> Histogram>,
+    features_eliminated: Counter,
+    masks: Family<Labels, Counter>,
     sessions_connected: Gauge,
     sessions_total: Counter,
 }
@@ -52,6 +54,10 @@ impl Default for Metrics {
         );
         registry.register("bytes_received", "Frame payload bytes received, by transport", bytes_received.clone());
         registry.register("stage_latency_seconds", "Server-side time per pipeline stage", stage_latency.clone());
+        let features_eliminated = Counter::default();
+        registry.register("features_eliminated", "Keypoints dropped before tracking by the dynamic mask", features_eliminated.clone());
+        let masks = Family::<Labels, Counter>::default();
+        registry.register("masks", "Dynamic masks computed, by segmentation source (fresh, warped, none)", masks.clone());
         registry.register("sessions_connected", "Sessions with a connected robot", sessions_connected.clone());
         registry.register("sessions", "Sessions opened", sessions_total.clone());
         Self {
@@ -62,6 +68,8 @@ impl Default for Metrics {
             frames_rejected,
             bytes_received,
             stage_latency,
+            features_eliminated,
+            masks,
             sessions_connected,
             sessions_total,
         }
@@ -89,6 +97,11 @@ impl Metrics {
     pub fn stage(&self, stage: &str, micros: u32) {
         self.stage_latency.get_or_create(&one("stage", stage)).observe(f64::from(micros) * 1e-6);
     }
+    pub fn perception(&self, mask_source: &str, features_eliminated: u32) {
+        self.masks.get_or_create(&one("source", mask_source)).inc();
+        self.features_eliminated.inc_by(u64::from(features_eliminated));
+    }
+
     pub fn session_opened(&self) {
         self.sessions_total.inc();
     }

@@ -119,7 +119,7 @@ impl FramePipeline {
         result.depth_crc32 = depth.crc32();
         result.latency.push(pb::StageLatency { stage: stage::DECODE_DEPTH.into(), micros: micros(t.elapsed()) });
 
-        result.counts = Some(pb::FrameCounts { features: 0, dynamic_fraction: 0.0 });
+        result.counts = Some(pb::FrameCounts { mask_source: pb::MaskSource::None as i32, ..Default::default() });
         result.status = FrameStatus::Ok as i32;
         result.latency.push(pb::StageLatency { stage: stage::TOTAL.into(), micros: micros(start.elapsed()) });
         Processed { result, images: Some((color, depth)), rejected: None }

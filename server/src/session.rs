@@ -16,7 +16,9 @@ use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
 use crate::config::SessionConfig;
+use crate::perception::{SegmentationService, SessionPerception};
 use crate::tracking::SessionTracker;
+use stillmap_perception::PerceptionConfig;
 use stillmap_tracking::TrackerConfig;
 use crate::metrics::Metrics;
 use crate::pipeline::{FramePipeline, validate_camera};
@@ -80,6 +82,7 @@ pub struct Session {
     answered_tx: watch::Sender<u64>,
     metrics: Arc<Metrics>,
     tracker_config: TrackerConfig,
+    perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -190,6 +193,11 @@ impl Session {
                 None
             }
         };
+        let mut perception = self.perception.as_ref().and_then(|(config, service)| {
+            SessionPerception::new(&self.camera, config, service.as_ref())
+                .map_err(|e| tracing::error!(session = %self.id, "perception unavailable for this session: {e}"))
+                .ok()
+        });
         let transport = self.transport.label();
         while let Some(work) = self.queue.pop() {
             let result = match work {
@@ -203,7 +211,14 @@ impl Session {
                 Work::Frame(queued) => {
                     let mut out = pipeline.process(&queued.frame, queued.received_at.elapsed());
                     if let (Some(tracker), Some((color, depth))) = (tracker.as_mut(), out.images.as_ref()) {
-                        let pose = tracker.track(&mut out.result, color, depth);
+                        let mask = perception.as_mut().and_then(|p| p.prepare(out.result.sequence, color, depth));
+                        let pose = tracker.track(&mut out.result, color, depth, mask);
+                        if let Some(p) = perception.as_mut() {
+                            let eliminated = tracker.masked_features() as u32;
+                            if let Some(source) = p.finish(&mut out.result, depth, tracker.last_motion(), eliminated) {
+                                self.metrics.perception(source, eliminated);
+                            }
+                        }
                         self.record_pose(&out.result, pose);
                     }
                     if let Some(reason) = out.rejected {
@@ -252,6 +267,8 @@ pub struct BadHello(pub String);
 pub struct Registry {
     config: SessionConfig,
     tracking: TrackerConfig,
+    /// Perception settings and the shared segmentation service (`None`: perception off).
+    perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
     metrics: Arc<Metrics>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
     next_id: AtomicU64,
@@ -266,9 +283,14 @@ pub struct Opened {
 }
 
 impl Registry {
-    pub fn new(config: SessionConfig, tracking: TrackerConfig, metrics: Arc<Metrics>) -> Self {
+    pub fn new(
+        config: SessionConfig,
+        tracking: TrackerConfig,
+        perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
+        metrics: Arc<Metrics>,
+    ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+        Self { config, tracking, perception, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -325,6 +347,7 @@ impl Registry {
             answered_tx: watch::channel(0).0,
             metrics: self.metrics.clone(),
             tracker_config: self.tracking.clone(),
+            perception: self.perception.clone(),
         });
         session.attach(sink);
         let worker = session.clone();
@@ -342,6 +365,9 @@ impl Registry {
     pub fn close_all(&self) {
         for s in self.list() {
             s.queue.close();
+        }
+        if let Some((_, Some(service))) = &self.perception {
+            service.close();
         }
     }
 }

@@ -60,18 +60,30 @@ fn micros(d: Duration) -> u32 {
 /// One session's tracker.
 pub struct SessionTracker {
     tracker: Tracker,
+    /// The last frame's pose and the one before (for the camera motion perception needs).
+    last_pose: Option<Isometry3<f64>>,
+    previous_pose: Option<Isometry3<f64>>,
+    masked_features: usize,
 }
 
 impl SessionTracker {
     pub fn new(camera: &pb::CameraInfo, config: &TrackerConfig) -> Result<Self, TrackingError> {
-        Ok(Self { tracker: Tracker::new(camera_of(camera), config.clone())? })
+        Ok(Self { tracker: Tracker::new(camera_of(camera), config.clone())?, last_pose: None, previous_pose: None, masked_features: 0 })
     }
 
     /// Tracks a decoded frame and writes state, pose, counts and stage times into
     /// `result`. Returns the pose when there is one. A tracking error (which only
     /// malformed input can cause) leaves the frame `LOST` without a pose.
-    pub fn track(&mut self, result: &mut pb::FrameResult, color: &ColorImage, depth: &DepthImage) -> Option<pb::Pose> {
-        let input = FrameInput { timestamp_ns: result.capture_time_ns, rgb: &color.data, depth: &depth.data, dynamic_mask: None };
+    pub fn track(
+        &mut self,
+        result: &mut pb::FrameResult,
+        color: &ColorImage,
+        depth: &DepthImage,
+        dynamic_mask: Option<&[u8]>,
+    ) -> Option<pb::Pose> {
+        let input = FrameInput { timestamp_ns: result.capture_time_ns, rgb: &color.data, depth: &depth.data, dynamic_mask };
+        self.previous_pose = self.last_pose.take();
+        self.masked_features = 0;
         let out = match self.tracker.track(&input) {
             Ok(out) => out,
             Err(e) => {
@@ -80,10 +92,13 @@ impl SessionTracker {
                 return None;
             }
         };
+        self.last_pose = out.world_from_camera;
+        self.masked_features = out.masked_features;
         result.tracking_state = state_of(out.state) as i32;
         let pose = out.world_from_camera.as_ref().map(pose_of);
         result.world_from_camera = pose;
-        result.counts = Some(pb::FrameCounts { features: out.tracked_points as u32, dynamic_fraction: 0.0 });
+        let counts = result.counts.get_or_insert_with(pb::FrameCounts::default);
+        counts.features = out.tracked_points as u32;
         let t = out.times;
         let stages = [
             (tracking_stage::EXTRACT, t.extraction),
@@ -103,6 +118,18 @@ impl SessionTracker {
             result.latency.push(e);
         }
         pose
+    }
+}
+
+impl SessionTracker {
+    /// `previous_from_current` between the last two frames, when both were tracked.
+    pub fn last_motion(&self) -> Option<Isometry3<f64>> {
+        Some(self.previous_pose?.inverse() * self.last_pose?)
+    }
+
+    /// Keypoints the dynamic mask removed on the last frame.
+    pub fn masked_features(&self) -> usize {
+        self.masked_features
     }
 }
 

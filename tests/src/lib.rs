@@ -55,8 +55,14 @@ impl Server {
             format!("127.0.0.1:{}", free_port()),
             format!("tcp/127.0.0.1:{}", free_port()),
         );
-        let mut child = Command::new(bin("stillmap-server"))
-            .args(["--grpc-listen", &grpc, "--http-listen", &http, "--zenoh-listen", &zenoh])
+        // The real segmentation model from ../shared/models, unless a test says otherwise.
+        let model = model_path();
+        let mut command = Command::new(bin("stillmap-server"));
+        command.args(["--grpc-listen", &grpc, "--http-listen", &http, "--zenoh-listen", &zenoh]);
+        if !extra.contains(&"--model") && !extra.contains(&"--no-perception") {
+            command.args(["--model", model.to_str().expect("utf-8 path")]);
+        }
+        let mut child = command
             .args(extra)
             .env("STILLMAP_LOG", "warn")
             .stdout(Stdio::piped())
@@ -181,4 +187,9 @@ pub async fn eventually(timeout: Duration, what: &str, mut f: impl AsyncFnMut() 
         assert!(start.elapsed() < timeout, "timed out waiting for {what}");
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
+}
+
+/// The YOLOv8n-seg model beside the repository (`../shared/models`).
+pub fn model_path() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/models/yolov8n-seg_fp32_640.onnx")
 }

@@ -1,0 +1,67 @@
+//! The dynamic mask on real data with the camera moving: a textured board moving in
+//! world coordinates is pasted into the real TUM fr1_rpy frames (rotation-heavy
+//! hand-held motion) consistently with the ground truth, and the fused mask is
+//! scored against the board's exact mask. Run with `--nocapture` for the numbers.
+
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
+mod support;
+#[path = "support/composite_run.rs"]
+mod composite_run;
+
+use std::sync::OnceLock;
+
+use stillmap_perception::YoloSegmenter;
+use composite_run::{CompositeFrame, Schedule};
+
+fn clip() -> &'static (Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgebra::Isometry3<f64>)>) {
+    static CLIP: OnceLock<(Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgebra::Isometry3<f64>)>)> = OnceLock::new();
+    CLIP.get_or_init(|| {
+        let dir = tum::fr1_rpy_dir();
+        let frames = tum::load(&dir, 150);
+        let gt = tum::groundtruth(&dir);
+        let composite = composite_run::composite(&frames, &gt);
+        (frames, composite, gt)
+    })
+}
+
+#[test]
+fn moving_board_is_found_while_the_camera_rotates() {
+    let (frames, composite, gt) = clip();
+    let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
+    let s = composite_run::run(composite, Some(&mut seg), Schedule::EveryFrame, false);
+    let plain = composite_run::track_plain(frames);
+    let with_object = tum::score(gt, &s.trajectory);
+    let without = tum::score(gt, &plain);
+    eprintln!(
+        "scored {} frames: IoU mean {:.3} min {:.3}; false-dynamic {:.4}; features on object {} eliminated {:.4}; ATE with object {:.4} m / without {:.4} m; RPE {:.4} / {:.4} m",
+        s.scored_frames, s.mean_iou, s.min_iou, s.false_dynamic, s.object_features, s.eliminated_fraction, with_object.ate_m, without.ate_m, with_object.rpe_m, without.rpe_m
+    );
+    // Measured (this machine, deterministic): 107 frames scored, IoU mean 0.53, false-dynamic
+    // 2.8 %, 53 % of the object's features eliminated, ATE 11 cm with the object vs 3.2 cm
+    // without. The targets (IoU ≥ 0.7, ≤ 2 %, ≥ 95 %, ATE within 20 %) are NOT met
+    // yet: on motion-blurred frames the flow on the background is poor and the board's
+    // motion wins (see the closing note). These bounds guard what works.
+    assert!(s.scored_frames >= 100, "object visible in {} frames", s.scored_frames);
+    assert!(s.mean_iou >= 0.45, "IoU {:.3}", s.mean_iou);
+    assert!(s.false_dynamic <= 0.04, "false-dynamic {:.4}", s.false_dynamic);
+    assert!(s.eliminated_fraction >= 0.45, "eliminated {:.4}", s.eliminated_fraction);
+    assert_eq!(s.trajectory.len(), frames.len(), "every composite frame tracked");
+    assert!(with_object.ate_m <= 0.15, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
+}
+
+/// Segmentation that arrives late (every third frame, two frames after its own) is
+/// carried forward by the flow: results say so, and the mask holds up as well as
+/// with segmentation on every frame (the board is found by flow either way).
+#[test]
+fn late_segmentation_is_warped_forward() {
+    let (_, composite, _) = clip();
+    let frames = &composite[..60];
+    let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_320.onnx")).expect("model");
+    let late = composite_run::run(frames, Some(&mut seg), Schedule::Late { every: 3, delay: 2 }, false);
+    let none = composite_run::run(frames, None, Schedule::EveryFrame, false);
+    eprintln!("late: IoU {:.3}, warped {} frames; no segmentation: IoU {:.3}", late.mean_iou, late.warped_frames, none.mean_iou);
+    // Frames 2.. carry a segmentation 1 or 2 frames old except where one arrives fresh (never: delay 2).
+    assert_eq!(late.warped_frames, 58);
+    assert!((late.mean_iou - none.mean_iou).abs() < 0.1, "{:.3} vs {:.3}", late.mean_iou, none.mean_iou);
+}
