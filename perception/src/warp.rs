@@ -9,20 +9,7 @@ use crate::segment::{NO_INSTANCE, Segmentation};
 /// to. Instances that leave the image are dropped; counts and boxes are recomputed.
 pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentation {
     let (w, h) = (previous.width as usize, previous.height as usize);
-    let s = flow.subsample.max(1) as f32;
-    let mut map = vec![NO_INSTANCE; w * h];
-    for y in 0..h {
-        // Full-size pixel → flow-grid coordinates (pixel centres aligned).
-        let gy = (y as f32 + 0.5) / s - 0.5;
-        for x in 0..w {
-            let gx = (x as f32 + 0.5) / s - 0.5;
-            let f = flow.sample(gx, gy);
-            let (sx, sy) = ((x as f32 + f[0] * s).round(), (y as f32 + f[1] * s).round());
-            if sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h {
-                map[y * w + x] = previous.instance_map[sy as usize * w + sx as usize];
-            }
-        }
-    }
+    let map = warp_map(&previous.instance_map, w, h, flow, NO_INSTANCE);
     let max_id = previous.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
     let mut pixels = vec![0u32; max_id + 1];
     let mut boxes = vec![[f32::MAX, f32::MAX, f32::MIN, f32::MIN]; max_id + 1];
@@ -56,9 +43,16 @@ pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentat
 /// Warps a per-pixel label image of the previous frame into the current one
 /// (nearest label at the position the flow points to; 0 outside the image).
 pub fn warp_labels(previous: &[u8], width: usize, height: usize, flow: &FlowField) -> Vec<u8> {
+    warp_map(previous, width, height, flow, 0)
+}
+
+/// Backward warping of a per-pixel map by the flow (nearest; `outside` where the
+/// flow leaves the image).
+fn warp_map<T: Copy>(previous: &[T], width: usize, height: usize, flow: &FlowField, outside: T) -> Vec<T> {
     let s = flow.subsample.max(1) as f32;
-    let mut out = vec![0u8; width * height];
+    let mut out = vec![outside; width * height];
     for y in 0..height {
+        // Full-size pixel → flow-grid coordinates (pixel centres aligned).
         let gy = (y as f32 + 0.5) / s - 0.5;
         for x in 0..width {
             let gx = (x as f32 + 0.5) / s - 0.5;
