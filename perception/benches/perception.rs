@@ -12,6 +12,7 @@ mod support;
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, criterion_group};
+use stillmap_perception::config::PriorDynamicTracking;
 use stillmap_perception::{DynamicMasker, MaskerInput, PerceptionConfig, Segmenter, YoloSegmenter};
 use stillmap_tracking::TrackerConfig;
 use stillmap_tracking::features::Extractor;
@@ -59,9 +60,9 @@ fn table() {
             ego.push(t.ego_motion);
             warp.push(t.warp);
             fusion.push(t.fusion);
-            total.push(t.flow + t.ego_motion + t.warp + t.fusion);
+            total.push(t.total);
         }
-        masks.push(out.tracking_mask);
+        masks.push(out.fused.tracking_mask(PriorDynamicTracking::ExcludeWhileMoving));
     }
     for (name, v, paper) in [
         ("flow (Farneback 320x240)", flow, ""),

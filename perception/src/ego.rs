@@ -14,7 +14,7 @@
 
 use nalgebra::{Isometry3, Point2, Point3};
 use stillmap_tracking::Camera;
-use stillmap_tracking::geometry::Measurement;
+use stillmap_tracking::geometry::{Measurement, PnpRansac, pnp_ransac};
 use stillmap_tracking::optimize::optimize_pose;
 
 use crate::config::EgoMotionConfig;
@@ -43,11 +43,6 @@ pub struct EgoResult {
     pub residual_px: Vec<f32>,
     /// Depth (metres) per flow pixel, 0 when invalid.
     pub depth_m: Vec<f32>,
-    /// Photometric difference under the predicted flow (grey levels), where residual
-    /// flow made it matter; 0 elsewhere.
-    pub photometric: Vec<f32>,
-    /// The same under the measured flow.
-    pub photometric_measured: Vec<f32>,
 }
 
 /// Ego-motion compensation for one camera; caches per-pixel rays of the flow grid.
@@ -68,39 +63,6 @@ const MIN_INLIER_FRACTION: f64 = 0.3;
 const RANSAC_ITERATIONS: i32 = 100;
 const RANSAC_THRESHOLD_SIGMAS: f64 = 3.0;
 const RANSAC_CONFIDENCE: f64 = 0.99;
-
-/// OpenCV EPnP inside RANSAC on (point in the current camera, ideal pixel in the
-/// previous image) pairs; `previous_from_current`, or `None` when it fails.
-fn pnp_ransac(camera: &Camera, correspondences: &[(Point3<f64>, Measurement)], threshold_px: f32) -> Option<Isometry3<f64>> {
-    use nalgebra::{Rotation3, Translation3, UnitQuaternion, Vector3};
-    use opencv::core::{Mat, Point2f, Point3f, Vector};
-    use opencv::prelude::*;
-    let object: Vector<Point3f> = correspondences.iter().map(|(p, _)| Point3f::new(p.x as f32, p.y as f32, p.z as f32)).collect();
-    let image: Vector<Point2f> = correspondences.iter().map(|(_, m)| Point2f::new(m.ideal.x as f32, m.ideal.y as f32)).collect();
-    let k = Mat::from_slice_2d(&[[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]]).ok()?;
-    let (mut rvec, mut tvec, mut inliers) = (Mat::default(), Mat::default(), Mat::default());
-    let ok = opencv::calib3d::solve_pnp_ransac(
-        &object,
-        &image,
-        &k,
-        &opencv::core::no_array(),
-        &mut rvec,
-        &mut tvec,
-        false,
-        RANSAC_ITERATIONS,
-        threshold_px,
-        RANSAC_CONFIDENCE,
-        &mut inliers,
-        opencv::calib3d::SOLVEPNP_EPNP,
-    )
-    .ok()?;
-    if !ok {
-        return None;
-    }
-    let r = Vector3::new(*rvec.at::<f64>(0).ok()?, *rvec.at::<f64>(1).ok()?, *rvec.at::<f64>(2).ok()?);
-    let t = Vector3::new(*tvec.at::<f64>(0).ok()?, *tvec.at::<f64>(1).ok()?, *tvec.at::<f64>(2).ok()?);
-    Some(Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&Rotation3::new(r))))
-}
 
 impl EgoMotion {
     pub fn new(camera: Camera, config: EgoMotionConfig, subsample: u32) -> Self {
@@ -223,7 +185,11 @@ impl EgoMotion {
             let ransac = self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS;
             let starts = match prior {
                 Some(p) => [Some(p), None],
-                None => [Some(Isometry3::identity()), pnp_ransac(&self.camera, &correspondences, ransac as f32)],
+                None => {
+                    let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
+                    let params = PnpRansac { iterations: RANSAC_ITERATIONS, threshold_px: ransac as f32, confidence: RANSAC_CONFIDENCE };
+                    [Some(Isometry3::identity()), pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose)]
+                }
             };
             let best = starts
                 .into_iter()
@@ -247,8 +213,6 @@ impl EgoMotion {
         let n = self.width * self.height;
         let mut class = vec![NO_PREDICTION; n];
         let mut residual_px = vec![0f32; n];
-        let mut photometric = vec![0f32; n];
-        let mut photometric_measured = vec![0f32; n];
         let (a, b) = (self.config.depth_sigma_a_m, self.config.depth_sigma_b_per_m);
         let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
         for i in 0..n {
@@ -274,8 +238,6 @@ impl EgoMotion {
                 let (x, y) = (i % self.width, i / self.width);
                 let d = patch_difference(current, x, y, previous, qx, qy);
                 let measured = patch_difference(current, x, y, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1]));
-                photometric[i] = d.unwrap_or(-1.0) as f32;
-                photometric_measured[i] = measured.unwrap_or(-1.0) as f32;
                 // Moving when the camera motion explains the patch badly, and clearly
                 // worse than the measured flow does; patches leaving the image cannot
                 // be checked and keep the flow's verdict.
@@ -287,7 +249,7 @@ impl EgoMotion {
             };
             class[i] = if moving { RESIDUAL } else { CONSISTENT };
         }
-        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m, photometric, photometric_measured }
+        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
     }
 
     pub fn grid_size(&self) -> (usize, usize) {

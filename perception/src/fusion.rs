@@ -15,7 +15,7 @@
 //! Farneback's window smears onto the background behind a moving object.
 
 use crate::config::{FusionConfig, PriorDynamicTracking};
-use crate::ego::{CONSISTENT, EgoResult, NO_PREDICTION, RESIDUAL};
+use crate::ego::{EgoResult, NO_PREDICTION, RESIDUAL};
 use crate::segment::{NO_INSTANCE, Segmentation};
 
 /// Per-pixel label of the fused mask.
@@ -42,6 +42,8 @@ pub struct InstanceState {
     /// Fraction of its judged pixels that carry residual flow.
     pub moving_fraction: f32,
     pub pixels: u32,
+    /// x0, y0, x1, y1 in frame pixels.
+    pub bbox: [f32; 4],
 }
 
 /// Fusion output at full resolution.
@@ -150,6 +152,7 @@ pub fn fuse(
                 moving,
                 moving_fraction: fraction as f32,
                 pixels: inst.pixels,
+                bbox: inst.bbox,
             });
         }
     }
@@ -283,12 +286,10 @@ pub fn dynamic_fraction(labels: &[u8], depth: &[u16]) -> f32 {
     if valid == 0 { 0.0 } else { dynamic as f32 / valid as f32 }
 }
 
-// `CONSISTENT` is part of the classification contract this module reads.
-const _: u8 = CONSISTENT;
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ego::CONSISTENT;
     use crate::segment::Instance;
     use nalgebra::Isometry3;
 
@@ -305,7 +306,7 @@ mod tests {
                 depth_m[y * gw + x] = depth(x, y);
             }
         }
-        EgoResult { previous_from_current: Isometry3::identity(), refined: true, samples: 0, inliers: 0, class, residual_px, depth_m, photometric: vec![], photometric_measured: vec![] }
+        EgoResult { previous_from_current: Isometry3::identity(), refined: true, samples: 0, inliers: 0, class, residual_px, depth_m }
     }
 
     fn person_box(width: usize, height: usize, x0: usize, x1: usize, y0: usize, y1: usize) -> Segmentation {

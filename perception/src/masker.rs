@@ -55,6 +55,7 @@ pub struct MaskTimes {
     pub ego_motion: Duration,
     pub warp: Duration,
     pub fusion: Duration,
+    /// Sum of the stages (tracking between `prepare` and `finish` not included).
     pub total: Duration,
 }
 
@@ -62,8 +63,6 @@ pub struct MaskTimes {
 #[derive(Debug, Clone)]
 pub struct MaskOutput {
     pub fused: Fused,
-    /// Nonzero = keep features out (per the configured prior-dynamic policy).
-    pub tracking_mask: Vec<u8>,
     pub source: MaskSource,
     /// The frame the segmentation in use was computed on.
     pub segmentation_sequence: Option<u64>,
@@ -115,7 +114,6 @@ struct Pending {
     small: SmallGray,
     previous: Option<SmallGray>,
     times: MaskTimes,
-    start: Instant,
 }
 
 impl DynamicMasker {
@@ -158,7 +156,6 @@ impl DynamicMasker {
     /// says so. Track the frame with it, then call [`finish`](Self::finish) with
     /// the tracked camera motion.
     pub fn prepare(&mut self, input: MaskerInput<'_>) -> Result<Vec<u8>, PerceptionError> {
-        let start = Instant::now();
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         if input.rgb.len() != w * h * 3 {
             return Err(PerceptionError::Input(format!("colour has {} bytes, expected {} ({w}x{h}x3)", input.rgb.len(), w * h * 3)));
@@ -239,7 +236,7 @@ impl DynamicMasker {
                 }
             }
         }
-        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), times, start });
+        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), times });
         Ok(mask)
     }
 
@@ -248,7 +245,7 @@ impl DynamicMasker {
     /// when tracking failed: the flow refines identity then), and fusion into this
     /// frame's labels. `depth` is the frame's, as given to `prepare`.
     pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
-        let Some(Pending { sequence, small, previous, mut times, start }) = self.pending.take() else {
+        let Some(Pending { sequence, small, previous, mut times }) = self.pending.take() else {
             return Err(PerceptionError::Input("finish called without prepare".into()));
         };
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
@@ -270,7 +267,6 @@ impl DynamicMasker {
         let t = Instant::now();
         let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
         let fused = fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion);
-        let tracking_mask = fused.tracking_mask(self.config.fusion.prior_dynamic_tracking);
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
         self.labels = Some((sequence, fused.labels.clone()));
         times.fusion = t.elapsed();
@@ -287,10 +283,9 @@ impl DynamicMasker {
             inliers: e.inliers,
         });
         self.last_ego = ego;
-        times.total = start.elapsed();
+        times.total = times.flow + times.warp + times.ego_motion + times.fusion;
         Ok(MaskOutput {
             fused,
-            tracking_mask,
             source,
             segmentation_sequence: self.carried.as_ref().map(|c| c.source_sequence),
             ego: summary,

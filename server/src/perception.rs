@@ -231,7 +231,7 @@ impl SessionPerception {
                 prior_dynamic: i.prior_dynamic,
                 moving: i.moving == Some(true),
                 pixels: i.pixels,
-                bbox: self.masker.segmentation().and_then(|s| s.instance(i.id)).map(|s| s.bbox.to_vec()).unwrap_or_default(),
+                bbox: i.bbox.to_vec(),
             })
             .collect();
         let t = out.times;
@@ -251,7 +251,7 @@ impl SessionPerception {
             result.latency.push(pb::StageLatency { stage: name.into(), micros: micros(d) });
         }
         if let Some(mut e) = total_entry {
-            e.micros = e.micros.saturating_add(micros(t.flow + t.warp + t.ego_motion + t.fusion));
+            e.micros = e.micros.saturating_add(micros(t.total));
             result.latency.push(e);
         }
         Some(label)

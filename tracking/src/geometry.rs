@@ -87,6 +87,53 @@ pub fn linearise(
     Some(Linearised { error, rows, d_pose, d_point })
 }
 
+/// PnP-RANSAC parameters for [`pnp_ransac`].
+#[derive(Debug, Clone, Copy)]
+pub struct PnpRansac {
+    pub iterations: i32,
+    /// Inlier reprojection threshold in pixels.
+    pub threshold_px: f32,
+    pub confidence: f64,
+}
+
+/// OpenCV EPnP inside RANSAC on (point, ideal pixel) pairs: `camera_from_world`
+/// and the indices of the inlier pairs, or `None` when OpenCV finds no solution.
+pub fn pnp_ransac(camera: &Camera, pairs: &[(Point3<f64>, Point2<f64>)], params: PnpRansac) -> Option<(Isometry3<f64>, Vec<usize>)> {
+    use opencv::core::{Mat, Point2f, Point3f, Vector};
+    use opencv::prelude::*;
+    let object: Vector<Point3f> = pairs.iter().map(|(p, _)| Point3f::new(p.x as f32, p.y as f32, p.z as f32)).collect();
+    let image: Vector<Point2f> = pairs.iter().map(|(_, q)| Point2f::new(q.x as f32, q.y as f32)).collect();
+    let c = camera;
+    let k = Mat::from_slice_2d(&[[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]]).ok()?;
+    let (mut rvec, mut tvec, mut inliers) = (Mat::default(), Mat::default(), Mat::default());
+    let ok = opencv::calib3d::solve_pnp_ransac(
+        &object,
+        &image,
+        &k,
+        &opencv::core::no_array(),
+        &mut rvec,
+        &mut tvec,
+        false,
+        params.iterations,
+        params.threshold_px,
+        params.confidence,
+        &mut inliers,
+        opencv::calib3d::SOLVEPNP_EPNP,
+    )
+    .ok()?;
+    if !ok {
+        return None;
+    }
+    let r = Vector3::new(*rvec.at::<f64>(0).ok()?, *rvec.at::<f64>(1).ok()?, *rvec.at::<f64>(2).ok()?);
+    let t = Vector3::new(*tvec.at::<f64>(0).ok()?, *tvec.at::<f64>(1).ok()?, *tvec.at::<f64>(2).ok()?);
+    let pose = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::new(r)));
+    let mut kept = Vec::with_capacity(inliers.rows().max(0) as usize);
+    for i in 0..inliers.rows() {
+        kept.push(usize::try_from(*inliers.at::<i32>(i).ok()?).ok()?);
+    }
+    Some((pose, kept))
+}
+
 /// Applies a left perturbation `δ = (ω, v)` to a pose.
 pub fn perturb(delta: &Vector6<f64>, camera_from_world: &Isometry3<f64>) -> Isometry3<f64> {
     let omega = Vector3::new(delta[0], delta[1], delta[2]);

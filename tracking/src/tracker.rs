@@ -4,16 +4,14 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{Mat, Point2f, Point3f, Vector};
-use opencv::prelude::*;
+use nalgebra::Isometry3;
 
 use crate::TrackingError;
 use crate::ba;
 use crate::camera::Camera;
 use crate::config::TrackerConfig;
 use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales};
-use crate::geometry::Measurement;
+use crate::geometry::{Measurement, PnpRansac, pnp_ransac};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
 use crate::optimize::optimize_pose;
 
@@ -535,54 +533,22 @@ impl Tracker {
 
     /// PnP-RANSAC (OpenCV) on ideal pixels; returns `camera_from_world` and the inlier pairs.
     fn pnp_ransac(&self, feats: &FrameFeatures, pairs: &[(usize, PointId)]) -> Option<PnpSolution> {
-        let mut object = Vector::<Point3f>::new();
-        let mut image = Vector::<Point2f>::new();
+        let mut points = Vec::new();
         let mut used = Vec::new();
         for &(fi, id) in pairs {
             let Some(mp) = self.map.points.get(&id) else { continue };
-            let p = mp.point_in_world;
-            object.push(Point3f::new(p.x as f32, p.y as f32, p.z as f32));
-            let f = &feats.features[fi];
-            image.push(Point2f::new(f.ideal.x as f32, f.ideal.y as f32));
+            points.push((mp.point_in_world, feats.features[fi].ideal));
             used.push((fi, id));
         }
         if used.len() < RELOC_MIN_MATCHES {
             return None;
         }
-        let c = &self.camera;
-        let k = Mat::from_slice_2d(&[[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]]).ok()?;
-        let mut rvec = Mat::default();
-        let mut tvec = Mat::default();
-        let mut inliers = Mat::default();
-        let ok = opencv::calib3d::solve_pnp_ransac(
-            &object,
-            &image,
-            &k,
-            &opencv::core::no_array(),
-            &mut rvec,
-            &mut tvec,
-            false,
-            PNP_ITERATIONS,
-            PNP_REPROJECTION_PX,
-            PNP_CONFIDENCE,
-            &mut inliers,
-            opencv::calib3d::SOLVEPNP_EPNP,
-        )
-        .ok()?;
-        if !ok || inliers.rows() < RELOC_MIN_MATCHES as i32 {
+        let params = PnpRansac { iterations: PNP_ITERATIONS, threshold_px: PNP_REPROJECTION_PX, confidence: PNP_CONFIDENCE };
+        let (pose, inliers) = pnp_ransac(&self.camera, &points, params)?;
+        if inliers.len() < RELOC_MIN_MATCHES {
             return None;
         }
-        let r = Vector3::new(*rvec.at::<f64>(0).ok()?, *rvec.at::<f64>(1).ok()?, *rvec.at::<f64>(2).ok()?);
-        let t = Vector3::new(*tvec.at::<f64>(0).ok()?, *tvec.at::<f64>(1).ok()?, *tvec.at::<f64>(2).ok()?);
-        let pose = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&Rotation3::new(r)));
-        let mut kept = Vec::new();
-        for i in 0..inliers.rows() {
-            let idx = *inliers.at::<i32>(i).ok()?;
-            if let Some(&pair) = used.get(usize::try_from(idx).ok()?) {
-                kept.push(pair);
-            }
-        }
-        Some((pose, kept))
+        Some((pose, inliers.into_iter().filter_map(|i| used.get(i).copied()).collect()))
     }
 
     /// Makes the frame a keyframe: records its matches, creates points from its
