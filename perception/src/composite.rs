@@ -63,6 +63,11 @@ impl TexturedPlane {
         Self { texture, tex_width, tex_height, width_m, height_m }
     }
 
+    /// A plane showing an RGB8 photo (a poster of a person, say).
+    pub fn from_image(texture: Vec<u8>, tex_width: usize, tex_height: usize, width_m: f64, height_m: f64) -> Self {
+        Self { texture, tex_width, tex_height, width_m, height_m }
+    }
+
     fn sample(&self, a: f64, b: f64) -> [u8; 3] {
         // Plane coordinates (metres) → texel, bilinear.
         let u = ((a / self.width_m + 0.5) * self.tex_width as f64 - 0.5).clamp(0.0, (self.tex_width - 1) as f64);

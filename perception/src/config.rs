@@ -156,10 +156,14 @@ pub struct FusionConfig {
     pub max_region_fraction: f64,
     pub prior_dynamic_tracking: PriorDynamicTracking,
     /// Keep flow-only dynamic regions (moving pixels outside any segmented
-    /// instance) out of tracking too. They are always kept out of mapping. Off by
-    /// default: on the static fr1_rpy clip their false positives cost more
-    /// tracking accuracy than they save (README, "Perception").
+    /// instance, e.g. an object no class covers) out of tracking too; they are
+    /// always kept out of mapping. Off: only segmented instances are masked for
+    /// tracking (for cameras whose flow is too poor to trust).
     pub flow_regions_in_tracking_mask: bool,
+    /// The mask tracking uses is dilated by this radius (full-size pixels): the
+    /// mask is one frame old and carried by the flow, and the strongest corners of
+    /// a moving object sit on its outline, where the carried mask is least exact.
+    pub tracking_mask_dilation_px: u32,
 }
 
 impl PerceptionConfig {
@@ -223,6 +227,9 @@ impl PerceptionConfig {
         if !(u.region_depth_ratio >= 0.0 && u.region_depth_ratio < 1.0) {
             return Err("perception.fusion.region_depth_ratio must be in [0, 1)".into());
         }
+        if u.tracking_mask_dilation_px > 64 {
+            return Err(format!("perception.fusion.tracking_mask_dilation_px must be at most 64, got {}", u.tracking_mask_dilation_px));
+        }
         if !(u.max_region_fraction > 0.0 && u.max_region_fraction <= 1.0) {
             return Err("perception.fusion.max_region_fraction must be in (0, 1]".into());
         }
@@ -270,7 +277,7 @@ impl Default for SegmentationConfig {
 
 impl Default for FlowConfig {
     fn default() -> Self {
-        Self { subsample: 2, pyr_scale: 0.5, levels: 3, winsize: 13, iterations: 3, poly_n: 5, poly_sigma: 1.1 }
+        Self { subsample: 3, pyr_scale: 0.5, levels: 3, winsize: 13, iterations: 3, poly_n: 5, poly_sigma: 1.1 }
     }
 }
 
@@ -303,7 +310,8 @@ impl Default for FusionConfig {
             region_depth_ratio: 0.05,
             max_region_fraction: 0.5,
             prior_dynamic_tracking: PriorDynamicTracking::ExcludeWhileMoving,
-            flow_regions_in_tracking_mask: false,
+            flow_regions_in_tracking_mask: true,
+            tracking_mask_dilation_px: 8,
         }
     }
 }

@@ -6,11 +6,17 @@
 //! against a threshold scaled by the uncertainty of the prediction (flow noise and
 //! the depth noise σ_z = a + b·z² carried through the projection).
 //!
-//! The motion comes from the tracker's motion model and is refined on the flow
-//! itself: a grid of flow samples with depth is a dense 3D–2D correspondence set
-//! (a point in the current camera, its pixel in the previous image), solved by the
-//! tracker's robust pose optimisation, so pixels that move in the world fall out
-//! as outliers.
+//! Residual flow is confirmed photometrically (Farneback's flow on textureless
+//! surfaces is unconstrained): the pixel's patch must be explained badly by the
+//! camera motion and clearly better by the measured flow.
+//!
+//! The motion is the tracker's (from static features) and refinements of it on
+//! the flow itself: one textured flow sample with depth per grid cell gives a
+//! dense 3D–2D correspondence set (a point in the current camera, its pixel in the
+//! previous image) for the tracker's robust pose optimisation, started from the
+//! tracked motion and from an EPnP-RANSAC hypothesis. Flow alone cannot tell the
+//! camera's motion from that of a large textured moving object, so of these
+//! candidates the one under which the fewest pixels move wins.
 
 use nalgebra::{Isometry3, Point2, Point3};
 use stillmap_tracking::Camera;
@@ -121,9 +127,10 @@ impl EgoMotion {
         Some(self.camera.distort(&ideal))
     }
 
-    /// Refines `prior` on the flow and classifies every flow pixel. `current` and
-    /// `previous` are the flow's grey images; `exclude` (flow-grid sized, nonzero =
-    /// skip) keeps known dynamic pixels out of the refinement.
+    /// Chooses the camera motion (`prior`, the tracked one, or a refinement on the
+    /// flow) and classifies every flow pixel under it. `current` and `previous`
+    /// are the flow's grey images; `exclude` (flow-grid sized, nonzero = skip) keeps
+    /// known dynamic pixels out of the refinement.
     pub fn compensate(
         &self,
         flow: &FlowField,
@@ -174,42 +181,56 @@ impl EgoMotion {
             }
         }
         let samples = correspondences.len();
-        let (mut previous_from_current, mut refined, mut inliers) = (prior.unwrap_or_else(Isometry3::identity), false, 0);
-        if samples >= self.config.min_samples {
-            // `optimize_pose` estimates camera_from_world: here previous_from_current,
-            // with the current camera frame playing the world. With a prior (the
-            // tracker's motion from static features) it refines that locally: the
-            // flow alone cannot tell the camera's motion from that of a large, well
-            // textured moving object. Without one it starts from identity and from a
-            // PnP-RANSAC hypothesis, and the start that keeps more inliers wins.
-            let ransac = self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS;
-            let starts = match prior {
-                Some(p) => [Some(p), None],
-                None => {
-                    let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
-                    let params = PnpRansac { iterations: RANSAC_ITERATIONS, threshold_px: ransac as f32, confidence: RANSAC_CONFIDENCE };
-                    [Some(Isometry3::identity()), pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose)]
-                }
+
+        // Candidate camera motions: the tracked one (from static features), and
+        // refinements on the flow of it and of an EPnP-RANSAC hypothesis (with no
+        // tracked motion: of identity and the hypothesis). `optimize_pose`
+        // estimates camera_from_world: here previous_from_current, with the current
+        // camera frame playing the world.
+        let mut candidates: Vec<(Isometry3<f64>, bool, usize)> = prior.map(|p| (p, false, 0)).into_iter().collect();
+        if samples >= self.config.min_samples && (prior.is_none() || self.config.refine_tracked_motion) {
+            let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
+            let params = PnpRansac {
+                iterations: RANSAC_ITERATIONS,
+                threshold_px: (self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS) as f32,
+                confidence: RANSAC_CONFIDENCE,
             };
-            let best = starts
-                .into_iter()
-                .flatten()
-                .map(|start| optimize_pose(&self.camera, 1.0, start, &correspondences))
-                .max_by_key(|e| e.inlier_count);
-            if let Some(estimate) = best {
-                inliers = estimate.inlier_count;
-                if inliers >= self.config.min_samples && inliers as f64 >= MIN_INLIER_FRACTION * samples as f64 {
-                    previous_from_current = estimate.camera_from_world;
-                    refined = true;
+            let hypothesis = pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose);
+            for start in [Some(prior.unwrap_or_else(Isometry3::identity)), hypothesis].into_iter().flatten() {
+                let estimate = optimize_pose(&self.camera, 1.0, start, &correspondences);
+                let n = estimate.inlier_count;
+                if n >= self.config.min_samples && n as f64 >= MIN_INLIER_FRACTION * samples as f64 {
+                    candidates.push((estimate.camera_from_world, true, n));
                 }
             }
         }
-        if prior.is_some() && !self.config.refine_tracked_motion {
-            previous_from_current = prior.unwrap_or_else(Isometry3::identity);
-            refined = false;
+        // The camera's motion is the one under which the scene is static: the
+        // flow alone cannot tell it from the motion of a large, well-textured moving
+        // object (that refinement leaves the whole background moving), so the
+        // candidate leaving the fewest pixels moving wins. Known dynamic pixels
+        // (`exclude`) do not vote: a person must not make its own motion the camera's.
+        let (mut previous_from_current, mut refined, mut inliers) = candidates.first().copied().unwrap_or((Isometry3::identity(), false, 0));
+        let (mut class, mut residual_px) = self.classify(flow, current, previous, &depth_m, &previous_from_current);
+        for &(motion, is_refined, n) in candidates.iter().skip(1) {
+            let (c, r) = self.classify(flow, current, previous, &depth_m, &motion);
+            if moving_count(&c, exclude) < moving_count(&class, exclude) {
+                (previous_from_current, refined, inliers, class, residual_px) = (motion, is_refined, n, c, r);
+            }
         }
+        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
+    }
 
-        // Classification of every flow pixel.
+    /// Classifies every flow pixel under `previous_from_current`: its class and
+    /// residual in full-size pixels.
+    fn classify(
+        &self,
+        flow: &FlowField,
+        current: &SmallGray,
+        previous: &SmallGray,
+        depth_m: &[f32],
+        previous_from_current: &Isometry3<f64>,
+    ) -> (Vec<u8>, Vec<f32>) {
+        let s = self.subsample as f64;
         let n = self.width * self.height;
         let mut class = vec![NO_PREDICTION; n];
         let mut residual_px = vec![0f32; n];
@@ -221,8 +242,8 @@ impl EgoMotion {
                 continue;
             }
             let (Some(p), Some(p_far)) = (
-                self.predict(i, z, &previous_from_current),
-                self.predict(i, z + a + b * z * z, &previous_from_current),
+                self.predict(i, z, previous_from_current),
+                self.predict(i, z + a + b * z * z, previous_from_current),
             ) else {
                 continue;
             };
@@ -239,21 +260,29 @@ impl EgoMotion {
                 let d = patch_difference(current, x, y, previous, qx, qy);
                 let measured = patch_difference(current, x, y, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1]));
                 // Moving when the camera motion explains the patch badly, and clearly
-                // worse than the measured flow does; patches leaving the image cannot
-                // be checked and keep the flow's verdict.
+                // worse than the measured flow does. A pixel whose predicted patch
+                // leaves the image cannot be confirmed and is not called moving
+                // (Farneback is least reliable at the border).
                 match (d, measured) {
                     (Some(d), Some(m)) => d > self.config.photometric_threshold && d > self.config.photometric_ratio * m,
                     (Some(d), None) => d > self.config.photometric_threshold,
-                    (None, _) => true,
+                    (None, _) => false,
                 }
             };
             class[i] = if moving { RESIDUAL } else { CONSISTENT };
         }
-        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
+        (class, residual_px)
     }
 
     pub fn grid_size(&self) -> (usize, usize) {
         (self.width, self.height)
+    }
+}
+
+fn moving_count(class: &[u8], exclude: Option<&[u8]>) -> usize {
+    match exclude {
+        Some(m) => class.iter().zip(m).filter(|&(&c, &x)| c == RESIDUAL && x == 0).count(),
+        None => class.iter().filter(|&&c| c == RESIDUAL).count(),
     }
 }
 

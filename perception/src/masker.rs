@@ -113,6 +113,8 @@ struct Pending {
     sequence: u64,
     small: SmallGray,
     previous: Option<SmallGray>,
+    /// Flow-grid cells the ego-motion estimate ignores.
+    exclude: Vec<u8>,
     times: MaskTimes,
 }
 
@@ -236,7 +238,16 @@ impl DynamicMasker {
                 }
             }
         }
-        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), times });
+        let mask = dilate(mask, w, h, self.config.fusion.tracking_mask_dilation_px)?;
+        // What the camera-motion estimate must not listen to: the previous frame's
+        // dynamic pixels carried here (dilated like the tracking mask) and
+        // prior-dynamic instances.
+        let carried_dynamic = match &carried_labels {
+            Some(l) => dilate(l.iter().map(|&v| u8::from(v == PixelLabel::Dynamic as u8)).collect(), w, h, self.config.fusion.tracking_mask_dilation_px)?,
+            None => vec![0u8; w * h],
+        };
+        let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), &carried_dynamic);
+        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, times });
         Ok(mask)
     }
 
@@ -245,7 +256,7 @@ impl DynamicMasker {
     /// when tracking failed: the flow refines identity then), and fusion into this
     /// frame's labels. `depth` is the frame's, as given to `prepare`.
     pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
-        let Some(Pending { sequence, small, previous, mut times }) = self.pending.take() else {
+        let Some(Pending { sequence, small, previous, exclude, mut times }) = self.pending.take() else {
             return Err(PerceptionError::Input("finish called without prepare".into()));
         };
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
@@ -254,10 +265,9 @@ impl DynamicMasker {
         }
         let s = self.config.flow.subsample;
         let t = Instant::now();
-        let exclude = self.carried.as_ref().map(|c| self.prior_dynamic_grid(&c.segmentation));
         let ego = match (self.flows.back(), &previous) {
             (Some(step), Some(prev)) if step.to == sequence => {
-                Some(self.ego.compensate(&step.flow, &small, prev, depth, previous_from_current, exclude.as_deref()))
+                Some(self.ego.compensate(&step.flow, &small, prev, depth, previous_from_current, Some(&exclude)))
             }
             _ => None,
         };
@@ -320,27 +330,44 @@ impl DynamicMasker {
         None
     }
 
-    /// Prior-dynamic instance pixels on the flow grid (kept out of the ego-motion refinement).
-    fn prior_dynamic_grid(&self, seg: &Segmentation) -> Vec<u8> {
+    /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
+    /// instances and the carried dynamic pixels (`dynamic`, full size).
+    fn exclusion_grid(&self, seg: Option<&Segmentation>, dynamic: &[u8]) -> Vec<u8> {
         let s = self.config.flow.subsample as usize;
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let (gw, gh) = self.ego.grid_size();
-        let dynamic_ids: Vec<bool> = {
+        let dynamic_ids: Vec<bool> = seg.map_or_else(Vec::new, |seg| {
             let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
             let mut v = vec![false; max + 1];
             for i in &seg.instances {
                 v[usize::from(i.id)] = self.prior_dynamic.get(usize::from(i.class_id)).copied().unwrap_or(false);
             }
             v
-        };
+        });
         let mut grid = vec![0u8; gw * gh];
         for y in 0..gh {
             for x in 0..gw {
-                let (fx, fy) = ((x * s + s / 2).min(w - 1), (y * s + s / 2).min(h - 1));
-                let id = usize::from(seg.instance_map[fy * w + fx]);
-                grid[y * gw + x] = u8::from(dynamic_ids.get(id).copied().unwrap_or(false));
+                let i = (y * s + s / 2).min(h - 1) * w + (x * s + s / 2).min(w - 1);
+                let prior = seg.is_some_and(|seg| dynamic_ids.get(usize::from(seg.instance_map[i])).copied().unwrap_or(false));
+                grid[y * gw + x] = u8::from(prior || dynamic[i] != 0);
             }
         }
         grid
     }
+}
+
+/// Dilates a 0/1 mask by a disc of `radius` pixels (OpenCV).
+fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
+    use opencv::core::{Mat, Point, Size};
+    use opencv::imgproc;
+    use opencv::prelude::*;
+    if radius == 0 || !mask.contains(&1) {
+        return Ok(mask);
+    }
+    let src = Mat::new_rows_cols_with_data(height as i32, width as i32, &mask)?;
+    let side = 2 * radius as i32 + 1;
+    let kernel = imgproc::get_structuring_element(imgproc::MORPH_ELLIPSE, Size::new(side, side), Point::new(-1, -1))?;
+    let mut out = Mat::default();
+    imgproc::dilate(&src, &mut out, &kernel, Point::new(-1, -1), 1, opencv::core::BORDER_CONSTANT, imgproc::morphology_default_border_value()?)?;
+    Ok(out.data_bytes()?.to_vec())
 }

@@ -29,7 +29,7 @@ fn clip() -> &'static (Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgeb
 fn moving_board_is_found_while_the_camera_rotates() {
     let (frames, composite, gt) = clip();
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
-    let s = composite_run::run(composite, Some(&mut seg), Schedule::EveryFrame, false);
+    let s = composite_run::run(composite, Some(&mut seg), Schedule::EveryFrame, std::env::var_os("STILLMAP_VERBOSE").is_some());
     let plain = composite_run::track_plain(frames);
     let with_object = tum::score(gt, &s.trajectory);
     let without = tum::score(gt, &plain);
@@ -37,17 +37,18 @@ fn moving_board_is_found_while_the_camera_rotates() {
         "scored {} frames: IoU mean {:.3} min {:.3}; false-dynamic {:.4}; features on object {} eliminated {:.4}; ATE with object {:.4} m / without {:.4} m; RPE {:.4} / {:.4} m",
         s.scored_frames, s.mean_iou, s.min_iou, s.false_dynamic, s.object_features, s.eliminated_fraction, with_object.ate_m, without.ate_m, with_object.rpe_m, without.rpe_m
     );
-    // Measured (this machine, deterministic): 107 frames scored, IoU mean 0.53, false-dynamic
-    // 2.8 %, 53 % of the object's features eliminated, ATE 11 cm with the object vs 3.2 cm
-    // without. The targets (IoU ≥ 0.7, ≤ 2 %, ≥ 95 %, ATE within 20 %) are NOT met
-    // yet: on motion-blurred frames the flow on the background is poor and the board's
-    // motion wins (see the closing note). These bounds guard what works.
+    // Measured (this machine): 107 frames scored, IoU mean 0.78, false-dynamic 1.5 %,
+    // 87 % of the board's features eliminated, ATE 8.4 cm with the board vs 3.2 cm
+    // without. The IoU and false-dynamic bounds are the targets; the
+    // elimination (≥ 95 %) and tracking (within 20 %) targets are NOT met yet: the
+    // board is in the first frames, before any flow exists, and some motion-blurred
+    // frames lose it (see the closing note). Those bounds guard what works.
     assert!(s.scored_frames >= 100, "object visible in {} frames", s.scored_frames);
-    assert!(s.mean_iou >= 0.45, "IoU {:.3}", s.mean_iou);
-    assert!(s.false_dynamic <= 0.04, "false-dynamic {:.4}", s.false_dynamic);
-    assert!(s.eliminated_fraction >= 0.45, "eliminated {:.4}", s.eliminated_fraction);
+    assert!(s.mean_iou >= 0.7, "IoU {:.3}", s.mean_iou);
+    assert!(s.false_dynamic <= 0.02, "false-dynamic {:.4}", s.false_dynamic);
+    assert!(s.eliminated_fraction >= 0.8, "eliminated {:.4}", s.eliminated_fraction);
     assert_eq!(s.trajectory.len(), frames.len(), "every composite frame tracked");
-    assert!(with_object.ate_m <= 0.15, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
+    assert!(with_object.ate_m <= 0.10, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
 }
 
 /// Segmentation that arrives late (every third frame, two frames after its own) is
@@ -64,4 +65,27 @@ fn late_segmentation_is_warped_forward() {
     // Frames 2.. carry a segmentation 1 or 2 frames old except where one arrives fresh (never: delay 2).
     assert_eq!(late.warped_frames, 58);
     assert!((late.mean_iou - none.mean_iou).abs() < 0.1, "{:.3} vs {:.3}", late.mean_iou, none.mean_iou);
+}
+
+/// A moving photo of a person (astronaut.png on a 30 × 30 cm board, same motion):
+/// the segmenter finds a person, fusion marks the instance moving, and its pixels
+/// are dynamic — the paper's "prior-dynamic with flow" case, with the camera moving.
+#[test]
+fn a_moving_person_is_a_moving_prior_dynamic_instance() {
+    let (frames, _, gt) = clip();
+    let (photo, w, h) = support::photo("astronaut.png");
+    let plane = stillmap_perception::composite::TexturedPlane::from_image(photo, w as usize, h as usize, 0.30, 0.30);
+    let composite = composite_run::composite_with(&frames[..60], gt, &plane);
+    let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
+    let s = composite_run::run(&composite, Some(&mut seg), Schedule::EveryFrame, std::env::var_os("STILLMAP_VERBOSE").is_some());
+    eprintln!(
+        "person board: {} frames scored, IoU {:.3}, person instance moving on {} of {} frames seen",
+        s.scored_frames, s.mean_iou, s.moving_person_frames, s.person_frames
+    );
+    // Measured: a person on 33 of 39 scored frames, judged moving on 23 of them,
+    // IoU 0.62. The misses are motion-blurred frames where the sharp, large photo's
+    // motion wins the camera-motion estimate, and frames where the board re-enters.
+    assert!(s.person_frames * 4 >= s.scored_frames * 3, "person found on {} of {} frames", s.person_frames, s.scored_frames);
+    assert!(s.moving_person_frames * 5 >= s.person_frames * 3, "moving on {} of {}", s.moving_person_frames, s.person_frames);
+    assert!(s.mean_iou >= 0.55, "IoU {:.3}", s.mean_iou);
 }

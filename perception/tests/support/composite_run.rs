@@ -23,10 +23,9 @@ pub struct CompositeFrame {
 /// The moving object: a 24 × 20 cm textured board 0.8 m in front of the clip's
 /// mean camera position (nearer than the desk and monitors behind it), along its
 /// mean viewing direction (so it stays in view while the camera rolls, pitches
-/// and yaws), circling in world coordinates (radius 12 cm, one turn per 2 s:
-/// 0.38 m/s, a walking pace or a pushed chair).
-pub fn object_motion(world_from_cameras: &[Isometry3<f64>]) -> (TexturedPlane, CircularMotion) {
-    let plane = TexturedPlane::noise(3, 256, 256, 0.24, 0.20);
+/// and yaws), circling in world coordinates (radius 12 cm, one turn per 1.5 s:
+/// 0.5 m/s, a walking pace or a pushed chair).
+pub fn object_motion(world_from_cameras: &[Isometry3<f64>]) -> CircularMotion {
     let n = world_from_cameras.len() as f64;
     let mean_position = world_from_cameras.iter().map(|p| p.translation.vector).sum::<Vector3<f64>>() / n;
     let axis = world_from_cameras.iter().map(|p| p.rotation * Vector3::z()).sum::<Vector3<f64>>().normalize();
@@ -34,20 +33,25 @@ pub fn object_motion(world_from_cameras: &[Isometry3<f64>]) -> (TexturedPlane, C
     // The board's +z faces the camera.
     let rotation = UnitQuaternion::face_towards(&-axis, &up);
     let centre = mean_position + axis * 0.8;
-    let motion = CircularMotion {
-        world_from_centre: Isometry3::from_parts(Translation3::from(centre), rotation),
-        radius_m: 0.12,
-        period_s: 1.5,
-    };
-    (plane, motion)
+    CircularMotion { world_from_centre: Isometry3::from_parts(Translation3::from(centre), rotation), radius_m: 0.12, period_s: 1.5 }
 }
 
-/// The real clip with the object pasted consistently with the ground-truth poses.
+/// The textured board (multi-scale noise: no COCO class, only flow can find it).
+pub fn board() -> TexturedPlane {
+    TexturedPlane::noise(3, 256, 256, 0.24, 0.20)
+}
+
+/// The real clip with the board pasted consistently with the ground-truth poses.
 pub fn composite(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<CompositeFrame> {
+    composite_with(frames, gt, &board())
+}
+
+/// The real clip with `plane` moving as [`object_motion`] says.
+pub fn composite_with(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)], plane: &TexturedPlane) -> Vec<CompositeFrame> {
     let camera = tum::fr1_camera();
     let t0 = frames[0].timestamp_ns;
     let poses: Vec<Isometry3<f64>> = frames.iter().map(|f| interpolate_pose(gt, f.timestamp_ns).expect("ground truth")).collect();
-    let (plane, motion) = object_motion(&poses);
+    let motion = object_motion(&poses);
     frames
         .iter()
         .zip(&poses)
@@ -55,7 +59,7 @@ pub fn composite(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<
             let t = (f.timestamp_ns - t0) as f64 * 1e-9;
             let camera_from_plane = world_from_camera.inverse() * motion.world_from_plane(t);
             let (mut rgb, mut depth) = (f.rgb.clone(), f.depth.clone());
-            let object_mask = paste(&camera, &plane, &camera_from_plane, &mut rgb, &mut depth);
+            let object_mask = paste(&camera, plane, &camera_from_plane, &mut rgb, &mut depth);
             CompositeFrame { timestamp_ns: f.timestamp_ns, rgb, depth, object_mask }
         })
         .collect()
@@ -84,6 +88,9 @@ pub struct Scores {
     pub object_features: usize,
     pub eliminated_fraction: f64,
     pub warped_frames: usize,
+    /// Scored frames with a person instance overlapping the object, and those where it was judged moving.
+    pub person_frames: usize,
+    pub moving_person_frames: usize,
     pub trajectory: Vec<(u64, Isometry3<f64>)>,
 }
 
@@ -91,9 +98,7 @@ pub struct Scores {
 pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, schedule: Schedule, verbose: bool) -> Scores {
     let camera = tum::fr1_camera();
     let (w, h) = (camera.width as usize, camera.height as usize);
-    // The board is no COCO object: only flow finds it, so flow regions must reach tracking.
-    let mut config = PerceptionConfig::default();
-    config.fusion.flow_regions_in_tracking_mask = true;
+    let config = PerceptionConfig::default();
     let names: Vec<String> = segmenter.as_ref().map(|s| s.class_names().to_vec()).unwrap_or_default();
     let mut masker = DynamicMasker::new(camera.clone(), config, &names).expect("masker");
     let mut tracker = Tracker::new(camera.clone(), TrackerConfig::default()).expect("tracker");
@@ -151,6 +156,14 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
             fd += usize::from(dynamic && !object);
         }
         let iou = inter as f64 / union.max(1) as f64;
+        if let Some(seg) = masker.segmentation() {
+            let on_object = |id: u16| (0..w * h).filter(|&i| seg.instance_map[i] == id && f.object_mask[i] != 0).count();
+            if let Some(person) = out.fused.instances.iter().find(|i| i.class_name == "person" && on_object(i.id) * 2 > i.pixels as usize) {
+                s.person_frames += 1;
+                s.moving_person_frames += usize::from(person.moving == Some(true));
+                if verbose { eprintln!("frame {k}: person {:?} fraction {:.2} pixels {} on board {}", person.moving, person.moving_fraction, person.pixels, on_object(person.id)); }
+            }
+        }
         let feats = extractor.extract(&camera, &to_gray(&f.rgb), &f.depth, None).expect("extract");
         let mut on_object = 0;
         for ft in &feats.features {
