@@ -2,7 +2,9 @@
 //! flow + mask per stage, and dynamic feature elimination. Prints a table beside
 //! the paper's Table 9, then runs criterion.
 //!
-//! `cargo bench -p stillmap-perception` (needs ORT_DYLIB_PATH or .deps/ort).
+//! `cargo bench -p stillmap-perception` (needs ORT_DYLIB_PATH or .deps/ort). The
+//! flow + mask rows run without a tracker (no tracked motion: the flow-only
+//! candidates), the server's case after a tracking loss.
 
 #[path = "../../tracking/benches/support/tum.rs"]
 mod tum;
@@ -34,7 +36,10 @@ fn table() {
     println!("| stage | mean | median | p95 | paper (Table 9, GPU) |");
     println!("|---|---|---|---|---|");
     for (model, paper) in [("yolov8n-seg_fp32_640.onnx", "336.1 (Mask R-CNN)"), ("yolov8n-seg_fp32_320.onnx", "")] {
-        let mut seg = YoloSegmenter::new(&support::segmentation_config(model)).expect("model");
+        let mut config = support::segmentation_config(model);
+        // STILLMAP_BENCH_ORT_THREADS: ONNX Runtime intra-op threads (default: its own choice).
+        config.intra_threads = std::env::var("STILLMAP_BENCH_ORT_THREADS").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
+        let mut seg = YoloSegmenter::new(&config).expect("model");
         let _ = seg.segment(&frames[0].rgb, 640, 480);
         let times: Vec<Duration> = frames
             .iter()
@@ -47,7 +52,9 @@ fn table() {
         let (mean, median, p95) = stats(times);
         println!("| segmentation {} ({}) | {mean:.1} | {median:.1} | {p95:.1} | {paper} |", seg.input_size(), seg.device());
     }
-    let mut masker = DynamicMasker::new(camera.clone(), PerceptionConfig::default(), &[]).expect("masker");
+    let config = PerceptionConfig::default();
+    let flow_label = format!("flow (Farneback {}x{})", 640 / config.flow.subsample, 480 / config.flow.subsample);
+    let mut masker = DynamicMasker::new(camera.clone(), config, &[]).expect("masker");
     let (mut flow, mut ego, mut warp, mut fusion, mut total) = (vec![], vec![], vec![], vec![], vec![]);
     let mut masks = Vec::new();
     for (k, f) in frames.iter().enumerate() {
@@ -65,7 +72,7 @@ fn table() {
         masks.push(out.fused.tracking_mask(PriorDynamicTracking::ExcludeWhileMoving));
     }
     for (name, v, paper) in [
-        ("flow (Farneback 320x240)", flow, ""),
+        (flow_label.as_str(), flow, ""),
         ("ego-motion compensation", ego, ""),
         ("warp", warp, ""),
         ("fusion", fusion, ""),

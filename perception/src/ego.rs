@@ -65,6 +65,10 @@ pub struct EgoMotion {
 
 /// Fewer refinement inliers than this fraction of the samples: the refinement is not trusted.
 const MIN_INLIER_FRACTION: f64 = 0.3;
+/// Candidate motions are compared on every `VOTE_STRIDE`-th flow cell in each direction.
+const VOTE_STRIDE: usize = 2;
+/// Two candidate motions closer than this (metres and radians) are the same.
+const SAME_MOTION: f64 = 1e-6;
 /// PnP-RANSAC hypothesis: iterations, inlier threshold in flow σ, and confidence.
 const RANSAC_ITERATIONS: i32 = 100;
 const RANSAC_THRESHOLD_SIGMAS: f64 = 3.0;
@@ -209,19 +213,32 @@ impl EgoMotion {
         // object (that refinement leaves the whole background moving), so the
         // candidate leaving the fewest pixels moving wins. Known dynamic pixels
         // (`exclude`) do not vote: a person must not make its own motion the camera's.
+        // Candidates are compared on every other cell in each direction; the winner
+        // is then classified in full.
         let (mut previous_from_current, mut refined, mut inliers) = candidates.first().copied().unwrap_or((Isometry3::identity(), false, 0));
-        let (mut class, mut residual_px) = self.classify(flow, current, previous, &depth_m, &previous_from_current);
-        for &(motion, is_refined, n) in candidates.iter().skip(1) {
-            let (c, r) = self.classify(flow, current, previous, &depth_m, &motion);
-            if moving_count(&c, exclude) < moving_count(&class, exclude) {
-                (previous_from_current, refined, inliers, class, residual_px) = (motion, is_refined, n, c, r);
+        if candidates.len() > 1 {
+            let mut best = usize::MAX;
+            let mut seen: Vec<Isometry3<f64>> = Vec::new();
+            for &(motion, is_refined, n) in &candidates {
+                // Refinements from different starts often converge to the same motion.
+                if seen.iter().any(|m| (m.inverse() * motion).translation.vector.norm() < SAME_MOTION && (m.inverse() * motion).rotation.angle() < SAME_MOTION) {
+                    continue;
+                }
+                seen.push(motion);
+                let moving = moving_count(&self.classify(flow, current, previous, &depth_m, &motion, VOTE_STRIDE).0, exclude);
+                if moving < best {
+                    (best, previous_from_current, refined, inliers) = (moving, motion, is_refined, n);
+                }
             }
         }
+        let (class, residual_px) = self.classify(flow, current, previous, &depth_m, &previous_from_current, 1);
         EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
     }
 
     /// Classifies every flow pixel under `previous_from_current`: its class and
     /// residual in full-size pixels.
+    /// Only every `stride`-th cell in each direction is classified (the others stay
+    /// [`NO_PREDICTION`]).
     fn classify(
         &self,
         flow: &FlowField,
@@ -229,6 +246,7 @@ impl EgoMotion {
         previous: &SmallGray,
         depth_m: &[f32],
         previous_from_current: &Isometry3<f64>,
+        stride: usize,
     ) -> (Vec<u8>, Vec<f32>) {
         let s = self.subsample as f64;
         let n = self.width * self.height;
@@ -238,7 +256,7 @@ impl EgoMotion {
         let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
         for i in 0..n {
             let z = f64::from(depth_m[i]);
-            if z == 0.0 {
+            if z == 0.0 || (stride > 1 && ((i % self.width) % stride != 0 || (i / self.width) % stride != 0)) {
                 continue;
             }
             let (Some(p), Some(p_far)) = (

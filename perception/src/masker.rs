@@ -20,7 +20,7 @@ use crate::ego::{EgoMotion, EgoResult};
 use crate::flow::{FlowField, SmallGray, farneback};
 use crate::fusion::{Fused, PixelLabel, dynamic_fraction, fuse};
 use crate::segment::Segmentation;
-use crate::warp::{warp_labels, warp_segmentation};
+use crate::warp::{warp_grid, warp_segmentation};
 
 /// Where the frame's segmentation came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -103,8 +103,8 @@ pub struct DynamicMasker {
     flows: VecDeque<FlowStep>,
     carried: Option<Carried>,
     last_ego: Option<EgoResult>,
-    /// The last finished frame's labels.
-    labels: Option<(u64, Vec<u8>)>,
+    /// The last finished frame's dynamic flow-grid cells (1 = dynamic).
+    dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
     pending: Option<Pending>,
 }
@@ -129,7 +129,7 @@ impl DynamicMasker {
         }
         let prior_dynamic = class_names.iter().map(|n| config.segmentation.prior_dynamic_classes.iter().any(|p| p == n)).collect();
         let ego = EgoMotion::new(camera.clone(), config.ego_motion.clone(), config.flow.subsample);
-        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, labels: None, pending: None })
+        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, dynamic_grid: None, pending: None })
     }
 
     /// The segmentation in the current frame's coordinates, if any.
@@ -189,9 +189,13 @@ impl DynamicMasker {
 
         let t = Instant::now();
         let max_age = u64::from(self.config.segmentation.max_mask_age_frames);
-        // The previous frame's final labels, carried into this frame.
-        let carried_labels = match (&flow, self.labels.take()) {
-            (Some(step), Some((at, labels))) if at == step.from => Some(warp_labels(&labels, w, h, &step.flow)),
+        // The previous frame's dynamic cells, carried into this frame by the flow
+        // and dilated (the tracking mask is a frame old, and an object's strongest
+        // corners sit on its outline, where the carried mask is least exact).
+        let (gw, gh) = self.ego.grid_size();
+        let radius_cells = self.config.fusion.tracking_mask_dilation_px.div_ceil(s);
+        let carried_dynamic = match (&flow, self.dynamic_grid.take()) {
+            (Some(step), Some((at, grid))) if at == step.from => Some(dilate(warp_grid(&grid, &step.flow), gw, gh, radius_cells)?),
             _ => None,
         };
         match &flow {
@@ -224,29 +228,31 @@ impl DynamicMasker {
         // The mask for tracking this frame.
         let policy = self.config.fusion.prior_dynamic_tracking;
         let flow_regions = self.config.fusion.flow_regions_in_tracking_mask;
-        let mut mask = match (&carried_labels, &self.carried) {
-            (Some(l), _) if flow_regions => l.iter().map(|&v| u8::from(v == PixelLabel::Dynamic as u8)).collect(),
-            // Only dynamic pixels of segmented instances.
-            (Some(l), Some(c)) => l.iter().zip(&c.segmentation.instance_map).map(|(&v, &id)| u8::from(v == PixelLabel::Dynamic as u8 && id != 0)).collect(),
-            _ => vec![0u8; w * h],
-        };
+        let instance_map = self.carried.as_ref().map(|c| &c.segmentation.instance_map);
+        let mut mask = vec![0u8; w * h];
+        if let Some(grid) = &carried_dynamic {
+            let su = s as usize;
+            for y in 0..h {
+                let row = (y / su).min(gh - 1) * gw;
+                for x in 0..w {
+                    let i = y * w + x;
+                    // Without flow regions, only dynamic pixels of segmented instances.
+                    let allowed = flow_regions || instance_map.is_some_and(|m| m[i] != 0);
+                    mask[i] = u8::from(allowed && grid[row + (x / su).min(gw - 1)] != 0);
+                }
+            }
+        }
         if let Some(c) = &self.carried {
-            let exclude_still = policy == PriorDynamicTracking::AlwaysExclude || carried_labels.is_none();
+            let exclude_still = policy == PriorDynamicTracking::AlwaysExclude || carried_dynamic.is_none();
             for (m, &id) in mask.iter_mut().zip(&c.segmentation.instance_map) {
                 if id != 0 && exclude_still && self.is_prior_dynamic(&c.segmentation, id) {
                     *m = 1;
                 }
             }
         }
-        let mask = dilate(mask, w, h, self.config.fusion.tracking_mask_dilation_px)?;
-        // What the camera-motion estimate must not listen to: the previous frame's
-        // dynamic pixels carried here (dilated like the tracking mask) and
-        // prior-dynamic instances.
-        let carried_dynamic = match &carried_labels {
-            Some(l) => dilate(l.iter().map(|&v| u8::from(v == PixelLabel::Dynamic as u8)).collect(), w, h, self.config.fusion.tracking_mask_dilation_px)?,
-            None => vec![0u8; w * h],
-        };
-        let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), &carried_dynamic);
+        // What the camera-motion estimate must not listen to: the carried dynamic
+        // cells and prior-dynamic instances.
+        let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
         self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, times });
         Ok(mask)
     }
@@ -278,7 +284,7 @@ impl DynamicMasker {
         let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
         let fused = fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion);
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
-        self.labels = Some((sequence, fused.labels.clone()));
+        self.dynamic_grid = Some((sequence, self.dynamic_cells(&fused.labels)));
         times.fusion = t.elapsed();
 
         let source = match &self.carried {
@@ -330,12 +336,22 @@ impl DynamicMasker {
         None
     }
 
-    /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
-    /// instances and the carried dynamic pixels (`dynamic`, full size).
-    fn exclusion_grid(&self, seg: Option<&Segmentation>, dynamic: &[u8]) -> Vec<u8> {
+    /// Full-size labels → 1 where the flow-grid cell's centre pixel is dynamic.
+    fn dynamic_cells(&self, labels: &[u8]) -> Vec<u8> {
+        self.cell_centres().map(|i| u8::from(labels[i] == PixelLabel::Dynamic as u8)).collect()
+    }
+
+    /// The full-size pixel index at the centre of each flow-grid cell, row by row.
+    fn cell_centres(&self) -> impl Iterator<Item = usize> + '_ {
         let s = self.config.flow.subsample as usize;
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let (gw, gh) = self.ego.grid_size();
+        (0..gh).flat_map(move |y| (0..gw).map(move |x| (y * s + s / 2).min(h - 1) * w + (x * s + s / 2).min(w - 1)))
+    }
+
+    /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
+    /// instances and the carried dynamic cells.
+    fn exclusion_grid(&self, seg: Option<&Segmentation>, dynamic: Option<&[u8]>) -> Vec<u8> {
         let dynamic_ids: Vec<bool> = seg.map_or_else(Vec::new, |seg| {
             let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
             let mut v = vec![false; max + 1];
@@ -344,15 +360,13 @@ impl DynamicMasker {
             }
             v
         });
-        let mut grid = vec![0u8; gw * gh];
-        for y in 0..gh {
-            for x in 0..gw {
-                let i = (y * s + s / 2).min(h - 1) * w + (x * s + s / 2).min(w - 1);
+        self.cell_centres()
+            .enumerate()
+            .map(|(g, i)| {
                 let prior = seg.is_some_and(|seg| dynamic_ids.get(usize::from(seg.instance_map[i])).copied().unwrap_or(false));
-                grid[y * gw + x] = u8::from(prior || dynamic[i] != 0);
-            }
-        }
-        grid
+                u8::from(prior || dynamic.is_some_and(|d| d[g] != 0))
+            })
+            .collect()
     }
 }
 

@@ -40,10 +40,18 @@ pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentat
     Segmentation { width: previous.width, height: previous.height, instance_map: map, instances }
 }
 
-/// Warps a per-pixel label image of the previous frame into the current one
-/// (nearest label at the position the flow points to; 0 outside the image).
-pub fn warp_labels(previous: &[u8], width: usize, height: usize, flow: &FlowField) -> Vec<u8> {
-    warp_map(previous, width, height, flow, 0)
+/// Warps a map that lives on the flow grid itself (one value per flow pixel) into
+/// the current frame: each cell takes the value where its own flow points.
+pub fn warp_grid(previous: &[u8], flow: &FlowField) -> Vec<u8> {
+    let (w, h) = (flow.width, flow.height);
+    let mut out = vec![0u8; w * h];
+    for (i, f) in flow.data.iter().enumerate() {
+        let (sx, sy) = (((i % w) as f32 + f[0]).round(), ((i / w) as f32 + f[1]).round());
+        if sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h {
+            out[i] = previous[sy as usize * w + sx as usize];
+        }
+    }
+    out
 }
 
 /// Backward warping of a per-pixel map by the flow (nearest; `outside` where the
