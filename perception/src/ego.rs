@@ -14,9 +14,10 @@
 //! the flow itself: one textured flow sample with depth per grid cell gives a
 //! dense 3D–2D correspondence set (a point in the current camera, its pixel in the
 //! previous image) for the tracker's robust pose optimisation, started from the
-//! tracked motion and from an EPnP-RANSAC hypothesis. Flow alone cannot tell the
-//! camera's motion from that of a large textured moving object, so of these
-//! candidates the one under which the fewest pixels move wins.
+//! tracked motion (without one: from identity and an EPnP-RANSAC hypothesis).
+//! Flow alone cannot tell the camera's motion from that of a large textured
+//! moving object, so of these candidates the one under which the fewest pixels
+//! move wins, with known dynamic pixels left out of the samples and the vote.
 
 use nalgebra::{Isometry3, Point2, Point3};
 use stillmap_tracking::Camera;
@@ -122,7 +123,9 @@ impl EgoMotion {
         out
     }
 
-    /// Where the scene point at flow pixel `i` and depth `z` was in the previous raw image.
+    /// Where the scene point at flow pixel `i` and depth `z` was in the previous raw
+    /// image (what `classify` computes inline; the tests build exact flow with it).
+    #[cfg(test)]
     fn predict(&self, i: usize, z: f64, previous_from_current: &Isometry3<f64>) -> Option<Point2<f64>> {
         let r = self.ray[i];
         let point_in_current = Point3::new(r.x * z, r.y * z, z);
@@ -186,20 +189,26 @@ impl EgoMotion {
         }
         let samples = correspondences.len();
 
-        // Candidate camera motions: the tracked one (from static features), and
-        // refinements on the flow of it and of an EPnP-RANSAC hypothesis (with no
-        // tracked motion: of identity and the hypothesis). `optimize_pose`
+        // Candidate camera motions: the tracked one (from static features) and its
+        // refinement on the flow; with no tracked motion, refinements of identity
+        // and of an EPnP-RANSAC hypothesis. `optimize_pose`
         // estimates camera_from_world: here previous_from_current, with the current
         // camera frame playing the world.
         let mut candidates: Vec<(Isometry3<f64>, bool, usize)> = prior.map(|p| (p, false, 0)).into_iter().collect();
         if samples >= self.config.min_samples && (prior.is_none() || self.config.refine_tracked_motion) {
-            let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
-            let params = PnpRansac {
-                iterations: RANSAC_ITERATIONS,
-                threshold_px: (self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS) as f32,
-                confidence: RANSAC_CONFIDENCE,
+            // Without a tracked motion, an EPnP-RANSAC hypothesis competes with
+            // identity (with one, it never won on the composite and costs ~1.5 ms).
+            let hypothesis = if prior.is_some() {
+                None
+            } else {
+                let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
+                let params = PnpRansac {
+                    iterations: RANSAC_ITERATIONS,
+                    threshold_px: (self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS) as f32,
+                    confidence: RANSAC_CONFIDENCE,
+                };
+                pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose)
             };
-            let hypothesis = pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose);
             for start in [Some(prior.unwrap_or_else(Isometry3::identity)), hypothesis].into_iter().flatten() {
                 let estimate = optimize_pose(&self.camera, 1.0, start, &correspondences);
                 let n = estimate.inlier_count;
@@ -254,21 +263,29 @@ impl EgoMotion {
         let mut residual_px = vec![0f32; n];
         let (a, b) = (self.config.depth_sigma_a_m, self.config.depth_sigma_b_per_m);
         let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
+        let rotation = previous_from_current.rotation.to_rotation_matrix();
+        let translation = previous_from_current.translation.vector;
         for i in 0..n {
             let z = f64::from(depth_m[i]);
             if z == 0.0 || (stride > 1 && ((i % self.width) % stride != 0 || (i / self.width) % stride != 0)) {
                 continue;
             }
-            let (Some(p), Some(p_far)) = (
-                self.predict(i, z, previous_from_current),
-                self.predict(i, z + a + b * z * z, previous_from_current),
+            // point_in_previous = z · (R · ray) + t, at the depth and one σ_z farther.
+            let r = self.ray[i];
+            let q = rotation * nalgebra::Vector3::new(r.x, r.y, 1.0);
+            let (Some(ideal), Some(ideal_far)) = (
+                self.camera.project(&Point3::from(q * z + translation)),
+                self.camera.project(&Point3::from(q * (z + a + b * z * z) + translation)),
             ) else {
                 continue;
             };
+            let p = self.camera.distort(&ideal);
             let f = flow.data[i];
             let measured = Point2::new(self.raw[i].x + f64::from(f[0]) * s, self.raw[i].y + f64::from(f[1]) * s);
             let residual = (measured - p).norm();
-            let depth_var = (p_far - p).norm_squared();
+            // The depth's effect on the prediction, through the pinhole (the lens
+            // scales it by a few per cent at most).
+            let depth_var = (ideal_far - ideal).norm_squared();
             let threshold = (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px);
             residual_px[i] = residual as f32;
             let moving = residual > threshold && {
