@@ -18,6 +18,7 @@ use stillmap_perception::{DynamicMasker, MaskSource, MaskerInput, PerceptionConf
 use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb;
 
+use crate::pipeline::append_stages;
 use crate::tracking::camera_of;
 
 /// Stage names of perception, as they appear in results and `/metrics`.
@@ -147,10 +148,6 @@ impl SegmentationClient {
     }
 }
 
-fn micros(d: Duration) -> u32 {
-    u32::try_from(d.as_micros()).unwrap_or(u32::MAX)
-}
-
 /// One session's perception state.
 pub struct SessionPerception {
     masker: DynamicMasker,
@@ -244,16 +241,7 @@ impl SessionPerception {
         if let Some(d) = self.segmentation_time.take() {
             stages.push((perception_stage::SEGMENTATION, d));
         }
-        // Keep `total` last.
-        let total = result.latency.iter().position(|l| l.stage == crate::pipeline::stage::TOTAL);
-        let total_entry = total.map(|i| result.latency.remove(i));
-        for (name, d) in stages {
-            result.latency.push(pb::StageLatency { stage: name.into(), micros: micros(d) });
-        }
-        if let Some(mut e) = total_entry {
-            e.micros = e.micros.saturating_add(micros(t.total));
-            result.latency.push(e);
-        }
+        append_stages(result, &stages, t.total);
         Some(label)
     }
 }

@@ -54,8 +54,21 @@ pub struct FramePipeline {
     last_capture_time_ns: Option<u64>,
 }
 
-fn micros(d: Duration) -> u32 {
+pub(crate) fn micros(d: Duration) -> u32 {
     u32::try_from(d.as_micros()).unwrap_or(u32::MAX)
+}
+
+/// Appends a later stage's times to a result, keeping `total` last and adding
+/// `spent` (that stage's own time) to it.
+pub(crate) fn append_stages(result: &mut pb::FrameResult, stages: &[(&str, Duration)], spent: Duration) {
+    let total = result.latency.iter().position(|l| l.stage == stage::TOTAL).map(|i| result.latency.remove(i));
+    for (name, d) in stages {
+        result.latency.push(pb::StageLatency { stage: (*name).into(), micros: micros(*d) });
+    }
+    if let Some(mut e) = total {
+        e.micros = e.micros.saturating_add(micros(spent));
+        result.latency.push(e);
+    }
 }
 
 impl FramePipeline {

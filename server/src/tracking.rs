@@ -1,14 +1,13 @@
 //! The tracking stage of a session's pipeline: adapts decoded frames to
 //! [`stillmap_tracking::Tracker`] and its output to the frame result.
 
-use std::time::Duration;
 
 use nalgebra::Isometry3;
 use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb::{self, TrackingState};
 use stillmap_tracking::{Camera, FrameInput, Tracker, TrackerConfig, TrackingError};
 
-use crate::pipeline::stage;
+use crate::pipeline::append_stages;
 
 /// Stage names of tracking, as they appear in results and `/metrics`.
 pub mod tracking_stage {
@@ -53,9 +52,6 @@ fn state_of(s: stillmap_tracking::TrackingState) -> TrackingState {
     }
 }
 
-fn micros(d: Duration) -> u32 {
-    u32::try_from(d.as_micros()).unwrap_or(u32::MAX)
-}
 
 /// One session's tracker.
 pub struct SessionTracker {
@@ -107,16 +103,7 @@ impl SessionTracker {
             (tracking_stage::LOCAL_BA, t.local_ba),
             (tracking_stage::TRACK, t.total),
         ];
-        // Keep `total` last and make it include tracking.
-        let total = result.latency.iter().position(|l| l.stage == stage::TOTAL);
-        let total_entry = total.map(|i| result.latency.remove(i));
-        for (name, d) in stages {
-            result.latency.push(pb::StageLatency { stage: name.into(), micros: micros(d) });
-        }
-        if let Some(mut e) = total_entry {
-            e.micros = e.micros.saturating_add(micros(t.total));
-            result.latency.push(e);
-        }
+        append_stages(result, &stages, t.total);
         pose
     }
 }
