@@ -51,7 +51,9 @@ pub struct SegmentationConfig {
     pub mask_threshold: f32,
     /// Most instances kept per frame (highest scores first).
     pub max_instances: usize,
-    /// ONNX Runtime intra-op threads (0: ONNX Runtime's default, one per core).
+    /// ONNX Runtime intra-op threads per worker (0: ONNX Runtime's default, one per
+    /// core). 1 by default so that on a small CPU segmentation leaves the other
+    /// cores to the session pipelines (tracking must never wait for it).
     pub intra_threads: usize,
     pub execution_provider: ExecutionProvider,
     /// Class names that are dynamic a priori (they may move by themselves).
@@ -266,7 +268,7 @@ impl Default for SegmentationConfig {
             nms_iou_threshold: 0.45,
             mask_threshold: 0.5,
             max_instances: 100,
-            intra_threads: 0,
+            intra_threads: 1,
             execution_provider: ExecutionProvider::Cpu,
             prior_dynamic_classes: DEFAULT_PRIOR_DYNAMIC.iter().map(|s| (*s).to_string()).collect(),
             workers: 1,
