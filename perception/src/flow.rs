@@ -50,6 +50,27 @@ pub struct FlowField {
 }
 
 impl FlowField {
+    /// Chains this flow (current → previous) with `earlier` (previous → the frame
+    /// before): the flow from the current frame two steps back.
+    pub fn then(&self, earlier: &FlowField) -> FlowField {
+        let w = self.width;
+        let data = self
+            .data
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let (x, y) = ((i % w) as f32 + f[0], (i / w) as f32 + f[1]);
+                let g = earlier.sample(x, y);
+                [f[0] + g[0], f[1] + g[1]]
+            })
+            .collect();
+        FlowField { data, ..self.clone_shape() }
+    }
+
+    fn clone_shape(&self) -> FlowField {
+        FlowField { width: self.width, height: self.height, subsample: self.subsample, data: Vec::new() }
+    }
+
     /// Bilinear flow at a (sub)pixel position, clamped to the image.
     pub fn sample(&self, x: f32, y: f32) -> [f32; 2] {
         let x = x.clamp(0.0, (self.width - 1) as f32);
@@ -87,4 +108,23 @@ pub fn farneback(current: &SmallGray, previous: &SmallGray, config: &FlowConfig,
     )?;
     let data = flow.data_typed::<opencv::core::Vec2f>()?.iter().map(|v| v.0).collect();
     Ok(FlowField { width: w, height: h, subsample, data })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chained_flows_add_up_along_the_path() {
+        // Current → previous moves 2 right; previous → before moves right by 1 + x/10
+        // (so the second flow is read where the first one points).
+        let (w, h) = (20, 10);
+        let later = FlowField { width: w, height: h, subsample: 2, data: vec![[2.0, 0.0]; w * h] };
+        let earlier = FlowField { width: w, height: h, subsample: 2, data: (0..w * h).map(|i| [1.0 + (i % w) as f32 / 10.0, 0.5]).collect() };
+        let both = later.then(&earlier);
+        assert_eq!(both.subsample, 2);
+        // Cell (5, 3): 2 → x = 7, where the earlier flow is 1.7 → total 3.7.
+        let f = both.data[3 * w + 5];
+        assert!((f[0] - 3.7).abs() < 1e-5 && (f[1] - 0.5).abs() < 1e-6, "{f:?}");
+    }
 }

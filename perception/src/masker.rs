@@ -320,17 +320,22 @@ impl DynamicMasker {
         if k == to {
             return Some(seg);
         }
+        // Compose the flows from `to` back to `k` on the flow grid, then warp the
+        // full-size map once (not once per frame of delay).
         let first = self.flows.iter().position(|f| f.from == k)?;
-        let mut seg = seg;
+        let mut chain: Vec<&FlowField> = Vec::new();
         let mut at = k;
         for step in self.flows.iter().skip(first) {
             if step.from != at {
                 return None;
             }
-            seg = warp_segmentation(&seg, &step.flow);
+            chain.push(&step.flow);
             at = step.to;
             if at == to {
-                return Some(seg);
+                let mut steps = chain.into_iter().rev();
+                let latest = steps.next()?.clone();
+                let composed = steps.fold(latest, |later, earlier| later.then(earlier));
+                return Some(warp_segmentation(&seg, &composed));
             }
         }
         None

@@ -9,7 +9,19 @@ use crate::segment::{NO_INSTANCE, Segmentation};
 /// to. Instances that leave the image are dropped; counts and boxes are recomputed.
 pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentation {
     let (w, h) = (previous.width as usize, previous.height as usize);
-    let map = warp_map(&previous.instance_map, w, h, flow, NO_INSTANCE);
+    // A current pixel can only land in an instance if it lies within that
+    // instance's box widened by the largest displacement: warp only there.
+    let s = flow.subsample.max(1) as f32;
+    let reach = flow.data.iter().fold(0f32, |m, f| m.max(f[0].abs()).max(f[1].abs())) * s + 2.0;
+    let regions: Vec<[usize; 4]> = previous
+        .instances
+        .iter()
+        .map(|i| {
+            let clamp = |v: f32, hi: usize| (v.max(0.0) as usize).min(hi);
+            [clamp((i.bbox[0] - reach).floor(), w), clamp((i.bbox[1] - reach).floor(), h), clamp((i.bbox[2] + reach).ceil(), w), clamp((i.bbox[3] + reach).ceil(), h)]
+        })
+        .collect();
+    let map = warp_map_in(&previous.instance_map, w, h, flow, NO_INSTANCE, &regions);
     let max_id = previous.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
     let mut pixels = vec![0u32; max_id + 1];
     let mut boxes = vec![[f32::MAX, f32::MAX, f32::MIN, f32::MIN]; max_id + 1];
@@ -54,20 +66,24 @@ pub fn warp_grid(previous: &[u8], flow: &FlowField) -> Vec<u8> {
     out
 }
 
-/// Backward warping of a per-pixel map by the flow (nearest; `outside` where the
-/// flow leaves the image).
-fn warp_map<T: Copy>(previous: &[T], width: usize, height: usize, flow: &FlowField, outside: T) -> Vec<T> {
-    let s = flow.subsample.max(1) as f32;
+/// Backward warping of a per-pixel map by the flow (nearest), inside `regions`
+/// (x0, y0, x1, y1, exclusive ends); `outside` elsewhere and where the flow leaves
+/// the image.
+fn warp_map_in<T: Copy>(previous: &[T], width: usize, height: usize, flow: &FlowField, outside: T, regions: &[[usize; 4]]) -> Vec<T> {
+    // Each pixel moves with its flow cell (nearest): a cell is a few pixels wide
+    // and the flow is smooth across it.
+    let s = flow.subsample.max(1) as usize;
+    let (gw, gh) = (flow.width, flow.height);
     let mut out = vec![outside; width * height];
-    for y in 0..height {
-        // Full-size pixel → flow-grid coordinates (pixel centres aligned).
-        let gy = (y as f32 + 0.5) / s - 0.5;
-        for x in 0..width {
-            let gx = (x as f32 + 0.5) / s - 0.5;
-            let f = flow.sample(gx, gy);
-            let (sx, sy) = ((x as f32 + f[0] * s).round(), (y as f32 + f[1] * s).round());
-            if sx >= 0.0 && sy >= 0.0 && (sx as usize) < width && (sy as usize) < height {
-                out[y * width + x] = previous[sy as usize * width + sx as usize];
+    for &[x0, y0, x1, y1] in regions {
+        for y in y0..y1.min(height) {
+            let row = (y / s).min(gh - 1) * gw;
+            for x in x0..x1.min(width) {
+                let f = flow.data[row + (x / s).min(gw - 1)];
+                let (sx, sy) = ((x as f32 + f[0] * s as f32).round(), (y as f32 + f[1] * s as f32).round());
+                if sx >= 0.0 && sy >= 0.0 && (sx as usize) < width && (sy as usize) < height {
+                    out[y * width + x] = previous[sy as usize * width + sx as usize];
+                }
             }
         }
     }
