@@ -1,0 +1,171 @@
+//! One session's map: fuses keyframes, keeps it following the trajectory, and
+//! knows which way is up.
+//!
+//! **Following the trajectory.** Local bundle adjustment keeps moving the last few
+//! keyframes after they are fused, and relocalization can place a new keyframe
+//! far from the old ones. The builder keeps the fusion input of the last
+//! `refuse_window` keyframes and the pose each was fused at; after every frame
+//! the server hands it the tracker's current keyframe poses, and a keyframe that
+//! moved more than `refuse_translation_m` / `refuse_rotation_deg` has its hits
+//! taken out at the old pose and is fused again at the new one. Older keyframes
+//! are outside the BA window and no longer move (the tracker has no loop closure
+//! yet); their contribution stays where it was fused.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
+use stillmap_tracking::Camera;
+
+use crate::MappingError;
+use crate::config::MappingConfig;
+use crate::gravity::{Gravity, UpSource, map_from_world};
+use crate::map::{CameraRays, DepthView, FuseStats, FusionInput, VoxelMap};
+use crate::voxel::{Block, BlockKey};
+
+struct Fused {
+    id: u64,
+    world_from_camera: Isometry3<f64>,
+    input: FusionInput,
+}
+
+/// What one keyframe cost and did.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct KeyframeReport {
+    pub stats: FuseStats,
+    pub fuse_time: Duration,
+    /// Blocks moved out of memory to stay within the budget.
+    pub evicted: usize,
+}
+
+pub struct MapBuilder {
+    rays: CameraRays,
+    map: VoxelMap,
+    gravity: Gravity,
+    window: VecDeque<Fused>,
+    keyframes: u64,
+    refused: u64,
+    evicted: Vec<(BlockKey, Block)>,
+}
+
+impl MapBuilder {
+    pub fn new(camera: &Camera, config: MappingConfig) -> Result<Self, MappingError> {
+        if camera.width < 2 || camera.height < 2 {
+            return Err(MappingError::Input(format!("camera of {}x{} pixels", camera.width, camera.height)));
+        }
+        let gravity = Gravity::new(config.fallback_up_in_camera);
+        Ok(Self { rays: CameraRays::new(camera), map: VoxelMap::new(config)?, gravity, window: VecDeque::new(), keyframes: 0, refused: 0, evicted: Vec::new() })
+    }
+
+    pub fn map(&self) -> &VoxelMap {
+        &self.map
+    }
+
+    pub fn config(&self) -> &MappingConfig {
+        self.map.config()
+    }
+
+    /// An accelerometer sample of a tracked frame (used until the first keyframe).
+    pub fn observe_accel(&mut self, world_from_camera: &Isometry3<f64>, accel_in_camera: &Vector3<f64>) -> bool {
+        self.gravity.observe(world_from_camera, accel_in_camera)
+    }
+
+    /// The gravity-aligned map frame (fixed at the first keyframe), and where up came from.
+    pub fn map_from_world(&self) -> Option<(UnitQuaternion<f64>, UpSource)> {
+        self.gravity.frozen().map(|(up, source)| (map_from_world(&up), source))
+    }
+
+    pub fn up_in_world(&self) -> Option<(Unit<Vector3<f64>>, UpSource)> {
+        self.gravity.frozen()
+    }
+
+    /// Restores a stored map frame.
+    pub fn freeze_up(&mut self, up: Unit<Vector3<f64>>, source: UpSource) {
+        self.gravity.freeze(up, source);
+    }
+
+    pub fn keyframes(&self) -> u64 {
+        self.keyframes
+    }
+
+    /// Keyframes fused again after their pose was corrected.
+    pub fn refused(&self) -> u64 {
+        self.refused
+    }
+
+    /// Fuses a new keyframe.
+    pub fn add_keyframe(&mut self, id: u64, world_from_camera: &Isometry3<f64>, view: &DepthView<'_>) -> Result<KeyframeReport, MappingError> {
+        let start = Instant::now();
+        self.gravity.up();
+        let input = self.map.prepare(&self.rays, view)?;
+        let stats = self.map.integrate(&self.rays, &input, world_from_camera);
+        self.keyframes += 1;
+        self.window.push_back(Fused { id, world_from_camera: *world_from_camera, input });
+        while self.window.len() > self.map.config().refuse_window {
+            self.window.pop_front();
+        }
+        let camera_in_world = Point3::from(world_from_camera.translation.vector);
+        let evicted = self.map.evict(&camera_in_world);
+        let n = evicted.len();
+        self.evicted.extend(evicted);
+        Ok(KeyframeReport { stats, fuse_time: start.elapsed(), evicted: n })
+    }
+
+    /// Blocks evicted since the last call (the caller stores them).
+    pub fn take_evicted(&mut self) -> Vec<(BlockKey, Block)> {
+        std::mem::take(&mut self.evicted)
+    }
+
+    /// Puts a stored block back into memory.
+    pub fn restore_block(&mut self, key: BlockKey, block: Block) {
+        self.map.restore(key, block);
+    }
+
+    /// Re-fuses the recent keyframes whose pose `current_pose` reports moved.
+    /// Returns how many were re-fused. Keyframes it does not know are kept as fused.
+    pub fn follow(&mut self, mut current_pose: impl FnMut(u64) -> Option<Isometry3<f64>>) -> usize {
+        let cfg = self.map.config().clone();
+        let mut moved = Vec::new();
+        for (k, f) in self.window.iter().enumerate() {
+            let Some(now) = current_pose(f.id) else { continue };
+            let delta = f.world_from_camera.inverse() * now;
+            if delta.translation.vector.norm() > cfg.refuse_translation_m || delta.rotation.angle().to_degrees() > cfg.refuse_rotation_deg {
+                moved.push((k, now));
+            }
+        }
+        for &(k, now) in &moved {
+            let f = &self.window[k];
+            self.map.deintegrate(&f.input, &f.world_from_camera);
+            self.map.integrate(&self.rays, &f.input, &now);
+            self.window[k].world_from_camera = now;
+        }
+        self.refused += moved.len() as u64;
+        moved.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Translation3;
+
+    #[test]
+    fn a_corrected_keyframe_moves_its_surface() {
+        let cam = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0);
+        let mut b = MapBuilder::new(&cam, MappingConfig::default()).unwrap();
+        let depth = vec![2000u16; 160 * 120];
+        let rgb = vec![100u8; 160 * 120 * 3];
+        let view = DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None };
+        b.add_keyframe(7, &Isometry3::identity(), &view).unwrap();
+        assert_eq!(b.map_from_world().unwrap().1, UpSource::Config);
+        let z_of = |b: &MapBuilder| b.map().occupied().map(|(_, c, _)| c.z).sum::<f64>() / b.map().stats().occupied_voxels as f64;
+        assert!((z_of(&b) - 2.0).abs() < 0.02);
+        // A 5 mm correction is ignored; 30 cm along z re-fuses the wall there.
+        assert_eq!(b.follow(|id| (id == 7).then(|| Isometry3::translation(0.0, 0.0, 0.005))), 0);
+        let moved = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.3), UnitQuaternion::identity());
+        assert_eq!(b.follow(|id| (id == 7).then_some(moved)), 1);
+        assert!((z_of(&b) - 2.3).abs() < 0.02, "{}", z_of(&b));
+        assert_eq!(b.refused(), 1);
+        assert_eq!(b.follow(|_| Some(moved)), 0, "already at its pose");
+    }
+}
