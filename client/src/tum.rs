@@ -136,7 +136,7 @@ impl TumSource {
                 .min_by_key(|&k| accel_ts[k].abs_diff(ts))
                 .and_then(|k| {
                     let v: Vec<f64> = accel[k].1.iter().filter_map(|x| x.parse().ok()).collect();
-                    (v.len() == 3).then(|| [v[0], v[1], v[2]])
+                    (v.len() == 3).then(|| kinect_accel_to_camera([v[0], v[1], v[2]]))
                 });
             frames.push((ts, file(&rgb, i, "rgb")?, file(&depth, j, "depth")?, accel_sample));
         }
@@ -187,9 +187,50 @@ impl FrameSource for TumSource {
     }
 }
 
+/// TUM's `accelerometer.txt` is the Kinect's own accelerometer, whose x and y axes
+/// point opposite to the optical frame's (x right, y down, z forward). At rest it
+/// reads the specific force, which points up. Checked against the ground truth's
+/// up direction below.
+fn kinect_accel_to_camera([x, y, z]: [f64; 3]) -> [f64; 3] {
+    [-x, -y, z]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// On the real fr1_rpy files, the converted accelerometer agrees with the up
+    /// direction of the motion-capture ground truth (world z up) in the camera frame.
+    #[test]
+    fn kinect_accelerometer_axes_match_the_ground_truth() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy");
+        let read = |name: &str| -> Vec<Vec<f64>> {
+            std::fs::read_to_string(dir.join(name))
+                .expect("TUM file")
+                .lines()
+                .filter(|l| !l.starts_with('#'))
+                .map(|l| l.split_whitespace().filter_map(|v| v.parse().ok()).collect())
+                .collect()
+        };
+        let (gt, accel) = (read("groundtruth.txt"), read("accelerometer.txt"));
+        let mut checked = 0;
+        for g in gt.iter().step_by(50) {
+            let a = accel.iter().min_by(|a, b| (a[0] - g[0]).abs().total_cmp(&(b[0] - g[0]).abs())).expect("samples");
+            if (a[0] - g[0]).abs() > 0.01 {
+                continue;
+            }
+            let [x, y, z, w] = [g[4], g[5], g[6], g[7]];
+            // Third row of the rotation world_from_camera: world z in camera coordinates.
+            let up = [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)];
+            let c = kinect_accel_to_camera([a[1], a[2], a[3]]);
+            let n = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+            let cos = (c[0] * up[0] + c[1] * up[1] + c[2] * up[2]) / n;
+            // Hand-held motion adds its own acceleration: within 25°, not exact.
+            assert!(cos > 25f64.to_radians().cos(), "at {}: accel {c:?} vs up {up:?}", g[0]);
+            checked += 1;
+        }
+        assert!(checked >= 10, "{checked} samples checked");
+    }
 
     #[test]
     fn timestamps_parse_exactly() {

@@ -45,6 +45,8 @@ pub struct MapBuilder {
     window: VecDeque<Fused>,
     keyframes: u64,
     refused: u64,
+    /// Evict beyond the block budget (only when something stores what is evicted).
+    eviction: bool,
     evicted: Vec<(BlockKey, Block)>,
 }
 
@@ -54,7 +56,7 @@ impl MapBuilder {
             return Err(MappingError::Input(format!("camera of {}x{} pixels", camera.width, camera.height)));
         }
         let gravity = Gravity::new(config.fallback_up_in_camera);
-        Ok(Self { rays: CameraRays::new(camera), map: VoxelMap::new(config)?, gravity, window: VecDeque::new(), keyframes: 0, refused: 0, evicted: Vec::new() })
+        Ok(Self { rays: CameraRays::new(camera), map: VoxelMap::new(config)?, gravity, window: VecDeque::new(), keyframes: 0, refused: 0, eviction: false, evicted: Vec::new() })
     }
 
     pub fn map(&self) -> &VoxelMap {
@@ -105,10 +107,16 @@ impl MapBuilder {
             self.window.pop_front();
         }
         let camera_in_world = Point3::from(world_from_camera.translation.vector);
-        let evicted = self.map.evict(&camera_in_world);
+        let evicted = if self.eviction { self.map.evict(&camera_in_world) } else { Vec::new() };
         let n = evicted.len();
         self.evicted.extend(evicted);
         Ok(KeyframeReport { stats, fuse_time: start.elapsed(), evicted: n })
+    }
+
+    /// Turns eviction beyond `max_resident_blocks` on: the caller then stores what
+    /// [`take_evicted`](Self::take_evicted) returns. Off by default (nothing is dropped).
+    pub fn enable_eviction(&mut self) {
+        self.eviction = true;
     }
 
     /// Blocks evicted since the last call (the caller stores them).

@@ -77,9 +77,9 @@ impl Default for MappingConfig {
             log_odds_max: 2.5,
             occupied_log_odds: 0.5,
             // Nguyen et al. 2012 (Kinect v1): σ_z ≈ 0.0012 + 0.0019·(z − 0.4)²; a + b·z²
-            // bounds it from above over 0.3–4 m.
-            depth_noise_a: 0.0015,
-            depth_noise_b: 0.0025,
+            // bounds it from above over 0.3–4 m (the same model perception uses).
+            depth_noise_a: 0.002,
+            depth_noise_b: 0.003,
             carve_sigmas: 3.0,
             refuse_translation_m: 0.01,
             refuse_rotation_deg: 0.5,

@@ -21,6 +21,8 @@ pub struct ServerConfig {
     /// Segmentation, flow and the dynamic mask (defaults documented in
     /// `stillmap_perception::PerceptionConfig`).
     pub perception: stillmap_perception::PerceptionConfig,
+    /// The static semantic map (defaults documented in `stillmap_mapping::MappingConfig`).
+    pub mapping: stillmap_mapping::MappingConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -145,6 +147,7 @@ impl ServerConfig {
         }
         self.tracking.validate().map_err(ServerError::Config)?;
         self.perception.validate().map_err(ServerError::Config)?;
+        self.mapping.validate().map_err(|e| ServerError::Config(e.to_string()))?;
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }

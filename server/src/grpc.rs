@@ -140,11 +140,16 @@ impl QueryService {
     fn session(&self, id: &str) -> Result<Arc<Session>, Status> {
         self.registry.get(id).ok_or_else(|| Status::not_found(format!("unknown session {id:?}")))
     }
+
+    fn map(&self, id: &str) -> Result<crate::mapping::SharedMap, Status> {
+        self.session(id)?.map().cloned().ok_or_else(|| Status::not_found(format!("session {id:?} has no map (mapping is disabled)")))
+    }
 }
 
 #[tonic::async_trait]
 impl Query for QueryService {
     type SubscribePosesStream = BoxStream<pb::PoseStamped>;
+    type GetMapCloudStream = BoxStream<pb::MapCloudChunk>;
 
     async fn list_sessions(&self, _: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
         let sessions = self.registry.list().iter().map(|s| summary(s)).collect();
@@ -180,4 +185,51 @@ impl Query for QueryService {
         let stream = BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
         Ok(Response::new(Box::pin(stream)))
     }
+
+    async fn get_map_tile(&self, request: Request<pb::MapTileRequest>) -> Result<Response<pb::MapTile>, Status> {
+        let r = request.into_inner();
+        let map = self.map(&r.session_id)?;
+        let zoom = u8::try_from(r.zoom).map_err(|_| Status::invalid_argument(format!("zoom {} is out of range 0..={}", r.zoom, stillmap_mapping::tiles::MAX_ZOOM)))?;
+        let tile = tokio::task::spawn_blocking(move || crate::mapping::tile(&map, zoom, r.x, r.y))
+            .await
+            .map_err(|e| Status::internal(format!("map query failed: {e}")))?
+            .map_err(|e| Status::invalid_argument(e.0))?;
+        Ok(Response::new(pb::MapTile { png: tile.png, etag: tile.etag }))
+    }
+
+    async fn get_map_cloud(&self, request: Request<pb::MapCloudRequest>) -> Result<Response<Self::GetMapCloudStream>, Status> {
+        let r = request.into_inner();
+        let map = self.map(&r.session_id)?;
+        let bbox = match r.bbox {
+            None => None,
+            Some(b) => {
+                let (lo, hi) = (b.min.unwrap_or_default(), b.max.unwrap_or_default());
+                let text = format!("{},{},{},{},{},{}", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
+                Some(crate::mapping::parse_bbox(&text).map_err(|e| Status::invalid_argument(e.0))?)
+            }
+        };
+        let (points, names) = tokio::task::spawn_blocking(move || crate::mapping::points(&map, bbox.as_ref()))
+            .await
+            .map_err(|e| Status::internal(format!("map query failed: {e}")))?;
+        let mut chunks: Vec<Result<pb::MapCloudChunk, Status>> = points
+            .chunks(CLOUD_CHUNK_POINTS)
+            .map(|c| {
+                Ok(pb::MapCloudChunk {
+                    xyz: c.iter().flat_map(|p| p.point_in_map).collect(),
+                    rgb: c.iter().flat_map(|p| p.rgb).collect(),
+                    class_id: c.iter().map(|p| u32::from(p.class)).collect(),
+                    confidence: c.iter().map(|p| p.confidence).collect(),
+                    class_names: vec![],
+                })
+            })
+            .collect();
+        match chunks.first_mut() {
+            Some(Ok(first)) => first.class_names = names,
+            _ => chunks.push(Ok(pb::MapCloudChunk { class_names: names, ..Default::default() })),
+        }
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
 }
+
+/// Points per `MapCloudChunk` (≈ 1.4 MB: well under the default message limit).
+const CLOUD_CHUNK_POINTS: usize = 65536;

@@ -1,15 +1,16 @@
-//! HTTP shell (axum): health, sessions, metrics. Errors are JSON `{"error": "..."}`.
+//! HTTP shell (axum): health, sessions, maps, metrics. Errors are JSON `{"error": "..."}`.
 
 use std::sync::Arc;
 
 use axum::extract::{Path, Query, State};
-use axum::http::{StatusCode, header};
+use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use serde_json::{Value, json};
 use stillmap_proto::pb;
 
+use crate::mapping::{self, BadQuery, SharedMap};
 use crate::session::{Registry, Session, summary};
 
 pub fn router(registry: Arc<Registry>) -> Router {
@@ -19,6 +20,13 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/api/v1/sessions/{id}", get(get_session))
         .route("/api/v1/sessions/{id}/pose", get(get_pose))
         .route("/api/v1/sessions/{id}/trajectory", get(get_trajectory))
+        .route("/api/v1/maps/{id}", get(map_info))
+        .route("/api/v1/maps/{id}/tiles/{z}/{x}/{y}", get(map_tile))
+        .route("/api/v1/maps/{id}/legend", get(map_legend))
+        .route("/api/v1/maps/{id}/occupancy.pgm", get(map_occupancy_pgm))
+        .route("/api/v1/maps/{id}/occupancy.yaml", get(map_occupancy_yaml))
+        .route("/api/v1/maps/{id}/cloud.ply", get(map_cloud))
+        .route("/api/v1/maps/{id}/objects", get(map_objects))
         .route("/metrics", get(metrics))
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
         .with_state(registry)
@@ -163,4 +171,187 @@ async fn metrics(State(registry): State<Arc<Registry>>) -> Response {
         registry.metrics().render(),
     )
         .into_response()
+}
+
+/// The session's map, or the 404 to answer.
+fn session_map(registry: &Registry, id: &str) -> Result<SharedMap, Response> {
+    let Some(s) = registry.get(id) else {
+        return Err(error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")));
+    };
+    s.map().cloned().ok_or_else(|| error(StatusCode::NOT_FOUND, format!("session {id:?} has no map (mapping is disabled)")))
+}
+
+/// Runs a map query off the async runtime (fusion may hold the map for a few ms).
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T, Response> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| error(StatusCode::INTERNAL_SERVER_ERROR, format!("map query failed: {e}")))
+}
+
+const MAP_FRAME: &str = "map = world rotated so that +z is up (gravity); origin at the first camera's centre; metres";
+
+async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    let map = match session_map(&registry, &id) {
+        Ok(m) => m,
+        Err(r) => return r,
+    };
+    let info = match blocking(move || mapping::lock_info(&map)).await {
+        Ok(i) => i,
+        Err(r) => return r,
+    };
+    let (rotation, up_source) = match info.up {
+        Some((r, source)) => (Some([r.coords.x, r.coords.y, r.coords.z, r.coords.w]), Some(source.label())),
+        None => (None, None),
+    };
+    let zooms: Vec<Value> = (0..=stillmap_mapping::tiles::MAX_ZOOM)
+        .map(|z| json!({ "zoom": z, "metres_per_pixel": info.voxel_size_m * f64::from(1u32 << (stillmap_mapping::tiles::MAX_ZOOM - z)) }))
+        .collect();
+    Json(json!({
+        "session_id": id,
+        "frame": MAP_FRAME,
+        "map_from_world_xyzw": rotation,
+        "up_source": up_source,
+        "voxel_size_m": info.voxel_size_m,
+        "keyframes": info.keyframes,
+        "refused_keyframes": info.refused_keyframes,
+        "blocks": info.blocks,
+        "occupied_voxels": info.occupied_voxels,
+        "memory_bytes": info.bytes,
+        "version": info.version,
+        "bounds_xy": info.bounds,
+        "tiles": {
+            "url": format!("/api/v1/maps/{id}/tiles/{{z}}/{{x}}/{{y}}.png"),
+            "tile_px": stillmap_mapping::tiles::TILE_PX,
+            "min_zoom": 0,
+            "max_zoom": stillmap_mapping::tiles::MAX_ZOOM,
+            "zooms": zooms,
+            "scheme": "tile (x, y) at zoom z covers map x in [x*T, (x+1)*T) and map y in (-(y+1)*T, -y*T], T = 256 * metres_per_pixel(z); x east, y south; indices may be negative",
+        },
+    }))
+    .into_response()
+}
+
+/// Parses a tile path: zoom, x and `y.png`.
+fn tile_coordinates(z: &str, x: &str, y: &str) -> Result<(u8, i64, i64), BadQuery> {
+    let y = y.strip_suffix(".png").ok_or_else(|| BadQuery(format!("tile {y:?} must end in .png")))?;
+    let z: u8 = z.parse().map_err(|_| BadQuery(format!("zoom {z:?} is not an integer 0..={}", stillmap_mapping::tiles::MAX_ZOOM)))?;
+    let x: i64 = x.parse().map_err(|_| BadQuery(format!("tile x {x:?} is not an integer")))?;
+    let y: i64 = y.parse().map_err(|_| BadQuery(format!("tile y {y:?} is not an integer")))?;
+    Ok((z, x, y))
+}
+
+async fn map_tile(State(registry): State<Arc<Registry>>, Path((id, z, x, y)): Path<(String, String, String, String)>, headers: HeaderMap) -> Response {
+    let map = match session_map(&registry, &id) {
+        Ok(m) => m,
+        Err(r) => return r,
+    };
+    let (z, x, y) = match tile_coordinates(&z, &x, &y) {
+        Ok(c) => c,
+        Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
+    };
+    let etag = mapping::tile_etag(&map, z, x, y);
+    if headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| v.split(',').any(|t| t.trim() == etag)) {
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response();
+    }
+    match blocking(move || mapping::tile(&map, z, x, y)).await {
+        Ok(Ok(tile)) => (
+            [(header::CONTENT_TYPE, "image/png".to_string()), (header::ETAG, tile.etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())],
+            tile.png,
+        )
+            .into_response(),
+        Ok(Err(e)) => error(StatusCode::BAD_REQUEST, e.0),
+        Err(r) => r,
+    }
+}
+
+/// Tiles change as the map grows: caches may keep them but must revalidate (ETag).
+const TILE_CACHE_CONTROL: &str = "no-cache";
+
+async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    let map = match session_map(&registry, &id) {
+        Ok(m) => m,
+        Err(r) => return r,
+    };
+    match blocking(move || mapping::legend(&map)).await {
+        Ok(entries) => Json(json!({
+            "session_id": id,
+            "classes": entries.iter().map(|e| json!({
+                "class_id": if e.class == stillmap_mapping::NO_CLASS { Value::Null } else { json!(e.class) },
+                "name": e.name,
+                "color": format!("#{:02x}{:02x}{:02x}", e.color[0], e.color[1], e.color[2]),
+                "cells": e.cells,
+            })).collect::<Vec<_>>(),
+        }))
+        .into_response(),
+        Err(r) => r,
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct OccupancyQuery {
+    min_height: Option<f64>,
+    max_height: Option<f64>,
+    resolution: Option<f64>,
+}
+
+async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
+    let map = session_map(&registry, &id)?;
+    blocking(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution)).await?.map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
+}
+
+async fn map_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+    match occupancy(registry, id, q).await {
+        Ok(grid) => ([(header::CONTENT_TYPE, "image/x-portable-graymap")], grid.to_pgm()).into_response(),
+        Err(r) => r,
+    }
+}
+
+async fn map_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+    match occupancy(registry, id, q).await {
+        Ok(grid) => ([(header::CONTENT_TYPE, "application/yaml")], grid.to_yaml("occupancy.pgm")).into_response(),
+        Err(r) => r,
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct CloudQuery {
+    bbox: Option<String>,
+}
+
+async fn map_cloud(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<CloudQuery>) -> Response {
+    let map = match session_map(&registry, &id) {
+        Ok(m) => m,
+        Err(r) => return r,
+    };
+    let bbox = match q.bbox.as_deref().map(mapping::parse_bbox).transpose() {
+        Ok(b) => b,
+        Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
+    };
+    let session = id.clone();
+    match blocking(move || mapping::ply(&map, &session, bbox.as_ref())).await {
+        Ok(ply) => ([(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.ply\""))], ply).into_response(),
+        Err(r) => r,
+    }
+}
+
+async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    let map = match session_map(&registry, &id) {
+        Ok(m) => m,
+        Err(r) => return r,
+    };
+    match blocking(move || mapping::map_objects(&map)).await {
+        Ok((objects, names)) => Json(json!({
+            "session_id": id,
+            "frame": MAP_FRAME,
+            "objects": objects.iter().map(|o| json!({
+                "class_id": o.class,
+                "class_name": names.get(usize::from(o.class)).cloned().unwrap_or_else(|| format!("class {}", o.class)),
+                "centroid": o.centroid,
+                "bbox_min": o.bbox.min,
+                "bbox_max": o.bbox.max,
+                "voxels": o.voxels,
+                "confidence": o.confidence,
+            })).collect::<Vec<_>>(),
+        }))
+        .into_response(),
+        Err(r) => r,
+    }
 }

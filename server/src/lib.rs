@@ -7,6 +7,7 @@
 pub mod config;
 pub mod grpc;
 pub mod http;
+pub mod mapping;
 pub mod metrics;
 pub mod perception;
 pub mod pipeline;
@@ -83,7 +84,7 @@ fn perception_service(
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
     let perception = perception_service(&config)?;
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, Arc::default()));
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), Arc::default()));
 
     let grpc_listener = bind(&config.grpc.listen).await?;
     let http_listener = bind(&config.http.listen).await?;

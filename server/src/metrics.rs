@@ -29,6 +29,7 @@ pub struct Metrics {
     stage_latency: Family<Labels, Histogram, fn() -> Histogram>,
     features_eliminated: Counter,
     masks: Family<Labels, Counter>,
+    keyframes_fused: Counter,
     sessions_connected: Gauge,
     sessions_total: Counter,
 }
@@ -58,6 +59,8 @@ impl Default for Metrics {
         registry.register("features_eliminated", "Keypoints dropped before tracking by the dynamic mask", features_eliminated.clone());
         let masks = Family::<Labels, Counter>::default();
         registry.register("masks", "Dynamic masks computed, by segmentation source (fresh, warped, none)", masks.clone());
+        let keyframes_fused = Counter::default();
+        registry.register("keyframes_fused", "Keyframes fused into the static semantic maps", keyframes_fused.clone());
         registry.register("sessions_connected", "Sessions with a connected robot", sessions_connected.clone());
         registry.register("sessions", "Sessions opened", sessions_total.clone());
         Self {
@@ -70,6 +73,7 @@ impl Default for Metrics {
             stage_latency,
             features_eliminated,
             masks,
+            keyframes_fused,
             sessions_connected,
             sessions_total,
         }
@@ -100,6 +104,10 @@ impl Metrics {
     pub fn perception(&self, mask_source: &str, features_eliminated: u32) {
         self.masks.get_or_create(&one("source", mask_source)).inc();
         self.features_eliminated.inc_by(u64::from(features_eliminated));
+    }
+
+    pub fn keyframe_fused(&self) {
+        self.keyframes_fused.inc();
     }
 
     pub fn session_opened(&self) {

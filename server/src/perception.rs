@@ -154,17 +154,20 @@ pub struct SessionPerception {
     segmentation: Option<SegmentationClient>,
     policy_mask: Option<Vec<u8>>,
     segmentation_time: Option<Duration>,
+    /// The last finished frame's labels ([`stillmap_perception::PixelLabel`] per pixel).
+    labels: Option<Vec<u8>>,
 }
 
 impl SessionPerception {
     pub fn new(camera: &pb::CameraInfo, config: &PerceptionConfig, service: Option<&Arc<SegmentationService>>) -> Result<Self, PerceptionError> {
         let names = service.map(|s| s.class_names().to_vec()).unwrap_or_default();
         let masker = DynamicMasker::new(camera_of(camera), config.clone(), &names)?;
-        Ok(Self { masker, segmentation: service.map(|s| s.client()), policy_mask: None, segmentation_time: None })
+        Ok(Self { masker, segmentation: service.map(|s| s.client()), policy_mask: None, segmentation_time: None, labels: None })
     }
 
     /// First phase: returns the mask tracking must use for this frame.
     pub fn prepare(&mut self, sequence: u64, color: &ColorImage, depth: &DepthImage) -> Option<&[u8]> {
+        self.labels = None;
         let finished = self.segmentation.as_ref().and_then(SegmentationClient::take);
         self.segmentation_time = finished.as_ref().map(|f| f.2);
         if let Some(client) = &self.segmentation {
@@ -242,6 +245,20 @@ impl SessionPerception {
             stages.push((perception_stage::SEGMENTATION, d));
         }
         append_stages(result, &stages, t.total);
+        self.labels = Some(out.fused.labels);
         Some(label)
+    }
+
+    /// Pixels of the last finished frame that must stay out of the map (nonzero):
+    /// dynamic and prior-dynamic. `None` when perception failed on it.
+    pub fn map_exclusion(&self) -> Option<Vec<u8>> {
+        let labels = self.labels.as_ref()?;
+        Some(labels.iter().map(|&l| u8::from(l != stillmap_perception::PixelLabel::Static as u8)).collect())
+    }
+
+    /// The segmentation class per pixel in the current frame (fresh or warped), if any.
+    pub fn class_map(&self) -> Option<Vec<u16>> {
+        self.labels.as_ref()?;
+        self.masker.segmentation().map(|s| s.class_map())
     }
 }

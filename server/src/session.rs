@@ -16,8 +16,10 @@ use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
 use crate::config::SessionConfig;
+use crate::mapping::{MapFrame, SessionMap, SharedMap};
 use crate::perception::{SegmentationService, SessionPerception};
 use crate::tracking::SessionTracker;
+use stillmap_mapping::MappingConfig;
 use stillmap_perception::PerceptionConfig;
 use stillmap_tracking::TrackerConfig;
 use crate::metrics::Metrics;
@@ -83,6 +85,8 @@ pub struct Session {
     metrics: Arc<Metrics>,
     tracker_config: TrackerConfig,
     perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
+    /// The static semantic map (`None`: mapping off, or it could not start).
+    map: Option<SharedMap>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -119,6 +123,10 @@ impl Session {
 
     pub fn tracking(&self) -> MutexGuard<'_, TrackState> {
         lock(&self.track)
+    }
+
+    pub fn map(&self) -> Option<&SharedMap> {
+        self.map.as_ref()
     }
 
     pub fn subscribe_poses(&self) -> broadcast::Receiver<pb::PoseStamped> {
@@ -219,6 +227,21 @@ impl Session {
                                 self.metrics.perception(source, eliminated);
                             }
                         }
+                        if let Some(map) = &self.map {
+                            let exclude = perception.as_ref().and_then(SessionPerception::map_exclusion);
+                            let classes = perception.as_ref().and_then(SessionPerception::class_map);
+                            let frame = MapFrame {
+                                color,
+                                depth,
+                                exclude: exclude.as_deref(),
+                                classes: classes.as_deref(),
+                                accel_in_camera: queued.frame.accel_in_camera.map(|a| nalgebra::Vector3::new(a.x, a.y, a.z)),
+                            };
+                            let fused = crate::mapping::update(map, &mut out.result, &frame, tracker.last_pose().as_ref(), tracker.new_keyframe(), |id| tracker.keyframe_pose(id));
+                            if fused.is_some() {
+                                self.metrics.keyframe_fused();
+                            }
+                        }
                         self.record_pose(&out.result, pose);
                     }
                     if let Some(reason) = out.rejected {
@@ -269,6 +292,7 @@ pub struct Registry {
     tracking: TrackerConfig,
     /// Perception settings and the shared segmentation service (`None`: perception off).
     perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
+    mapping: MappingConfig,
     metrics: Arc<Metrics>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
     next_id: AtomicU64,
@@ -287,10 +311,11 @@ impl Registry {
         config: SessionConfig,
         tracking: TrackerConfig,
         perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
+        mapping: MappingConfig,
         metrics: Arc<Metrics>,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+        Self { config, tracking, perception, mapping, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -327,6 +352,17 @@ impl Registry {
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
         let started_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        let map = if self.mapping.enabled {
+            let names = match &self.perception {
+                Some((_, Some(service))) => service.class_names().to_vec(),
+                _ => Vec::new(),
+            };
+            SessionMap::new(&camera, self.mapping.clone(), names)
+                .map_err(|e| tracing::error!(session = %id, "mapping unavailable for this session: {e}"))
+                .ok()
+        } else {
+            None
+        };
         let session = Arc::new(Session {
             id: id.clone(),
             robot_id: hello.robot_id.clone(),
@@ -348,6 +384,7 @@ impl Registry {
             metrics: self.metrics.clone(),
             tracker_config: self.tracking.clone(),
             perception: self.perception.clone(),
+            map,
         });
         session.attach(sink);
         let worker = session.clone();

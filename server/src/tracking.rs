@@ -60,11 +60,13 @@ pub struct SessionTracker {
     last_pose: Option<Isometry3<f64>>,
     previous_pose: Option<Isometry3<f64>>,
     masked_features: usize,
+    /// The keyframe the last frame became, if it did.
+    new_keyframe: Option<u64>,
 }
 
 impl SessionTracker {
     pub fn new(camera: &pb::CameraInfo, config: &TrackerConfig) -> Result<Self, TrackingError> {
-        Ok(Self { tracker: Tracker::new(camera_of(camera), config.clone())?, last_pose: None, previous_pose: None, masked_features: 0 })
+        Ok(Self { tracker: Tracker::new(camera_of(camera), config.clone())?, last_pose: None, previous_pose: None, masked_features: 0, new_keyframe: None })
     }
 
     /// Tracks a decoded frame and writes state, pose, counts and stage times into
@@ -80,6 +82,7 @@ impl SessionTracker {
         let input = FrameInput { timestamp_ns: result.capture_time_ns, rgb: &color.data, depth: &depth.data, dynamic_mask };
         self.previous_pose = self.last_pose.take();
         self.masked_features = 0;
+        self.new_keyframe = None;
         let out = match self.tracker.track(&input) {
             Ok(out) => out,
             Err(e) => {
@@ -90,6 +93,10 @@ impl SessionTracker {
         };
         self.last_pose = out.world_from_camera;
         self.masked_features = out.masked_features;
+        if out.keyframe {
+            // Keyframe ids only grow: the newest is the one just made.
+            self.new_keyframe = self.tracker.map().keyframes.keys().next_back().copied();
+        }
         result.tracking_state = state_of(out.state) as i32;
         let pose = out.world_from_camera.as_ref().map(pose_of);
         result.world_from_camera = pose;
@@ -112,6 +119,21 @@ impl SessionTracker {
     /// `previous_from_current` between the last two frames, when both were tracked.
     pub fn last_motion(&self) -> Option<Isometry3<f64>> {
         Some(self.previous_pose?.inverse() * self.last_pose?)
+    }
+
+    /// The last frame's pose, when it was tracked.
+    pub fn last_pose(&self) -> Option<Isometry3<f64>> {
+        self.last_pose
+    }
+
+    /// The keyframe the last frame became, if it did.
+    pub fn new_keyframe(&self) -> Option<u64> {
+        self.new_keyframe
+    }
+
+    /// A keyframe's current (bundle-adjusted) pose.
+    pub fn keyframe_pose(&self, id: u64) -> Option<Isometry3<f64>> {
+        self.tracker.map().keyframes.get(&id).map(|k| k.world_from_camera)
     }
 
     /// Keypoints the dynamic mask removed on the last frame.

@@ -1,0 +1,260 @@
+//! The mapping stage of a session's pipeline: fuses each new keyframe into the
+//! session's [`MapBuilder`], keeps the map following the tracker's keyframe
+//! poses, and answers the map queries (tiles, legend, occupancy, PLY, objects).
+//!
+//! The map sits behind a mutex shared by the session worker (which fuses) and
+//! the query shells (which read); queries copy what they need (the top-down
+//! index is built once per map version and shared) and render outside the lock.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
+use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, TopDown, class_color, encode_png_rgba};
+use stillmap_mapping::{DepthView, MapBuilder, MappingConfig, MappingError, NO_CLASS, UpSource};
+use stillmap_proto::codec::{ColorImage, DepthImage};
+use stillmap_proto::pb;
+
+use crate::pipeline::append_stages;
+use crate::tracking::camera_of;
+
+/// Stage name of map fusion, as it appears in results and `/metrics` (keyframes only).
+pub const MAP_FUSE_STAGE: &str = "map_fuse";
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+pub struct SessionMap {
+    builder: MapBuilder,
+    class_names: Vec<String>,
+    top: Option<Arc<TopDown>>,
+}
+
+/// A session's map, shared by its worker and the queries.
+pub type SharedMap = Arc<Mutex<SessionMap>>;
+
+/// What a frame gives the map.
+pub struct MapFrame<'a> {
+    pub color: &'a ColorImage,
+    pub depth: &'a DepthImage,
+    /// Nonzero where perception keeps the pixel out of the map.
+    pub exclude: Option<&'a [u8]>,
+    pub classes: Option<&'a [u16]>,
+    pub accel_in_camera: Option<Vector3<f64>>,
+}
+
+/// One map's description (the info endpoint and the dashboard).
+#[derive(Debug, Clone)]
+pub struct MapInfo {
+    pub voxel_size_m: f64,
+    pub keyframes: u64,
+    pub refused_keyframes: u64,
+    pub blocks: usize,
+    pub occupied_voxels: usize,
+    pub bytes: usize,
+    pub version: u64,
+    pub up: Option<(UnitQuaternion<f64>, UpSource)>,
+    /// Map-frame bounds (min x, min y, max x, max y) of what the tiles draw.
+    pub bounds: Option<[f64; 4]>,
+}
+
+impl SessionMap {
+    pub fn new(camera: &pb::CameraInfo, config: MappingConfig, class_names: Vec<String>) -> Result<SharedMap, MappingError> {
+        let builder = MapBuilder::new(&camera_of(camera), config)?;
+        Ok(Arc::new(Mutex::new(Self { builder, class_names, top: None })))
+    }
+
+    pub fn class_names(&self) -> &[String] {
+        &self.class_names
+    }
+
+    pub fn builder(&self) -> &MapBuilder {
+        &self.builder
+    }
+
+    pub fn builder_mut(&mut self) -> &mut MapBuilder {
+        &mut self.builder
+    }
+
+    fn map_from_world(&self) -> UnitQuaternion<f64> {
+        self.builder.map_from_world().map_or_else(UnitQuaternion::identity, |(r, _)| r)
+    }
+
+    fn top_down(&mut self) -> Arc<TopDown> {
+        let version = self.builder.map().version();
+        match &self.top {
+            Some(t) if t.map_version == version => t.clone(),
+            _ => {
+                let t = Arc::new(TopDown::build(self.builder.map(), &self.map_from_world()));
+                self.top = Some(t.clone());
+                t
+            }
+        }
+    }
+
+    pub fn info(&mut self) -> MapInfo {
+        let stats = self.builder.map().stats();
+        let bounds = self.top_down().bounds();
+        MapInfo {
+            voxel_size_m: self.builder.map().voxel_size(),
+            keyframes: self.builder.keyframes(),
+            refused_keyframes: self.builder.refused(),
+            blocks: stats.blocks,
+            occupied_voxels: stats.occupied_voxels,
+            bytes: stats.bytes,
+            version: self.builder.map().version(),
+            up: self.builder.map_from_world(),
+            bounds,
+        }
+    }
+}
+
+pub fn lock_info(map: &SharedMap) -> MapInfo {
+    lock(map).info()
+}
+
+/// Fuses the frame when the tracker just made it a keyframe, and re-fuses recent
+/// keyframes the tracker moved. Writes the `map_fuse` stage time into `result`.
+pub fn update(
+    map: &SharedMap,
+    result: &mut pb::FrameResult,
+    frame: &MapFrame<'_>,
+    world_from_camera: Option<&Isometry3<f64>>,
+    new_keyframe: Option<u64>,
+    keyframe_pose: impl FnMut(u64) -> Option<Isometry3<f64>>,
+) -> Option<Duration> {
+    let world_from_camera = world_from_camera?;
+    let mut m = lock(map);
+    if let Some(accel) = &frame.accel_in_camera {
+        m.builder.observe_accel(world_from_camera, accel);
+    }
+    m.builder.follow(keyframe_pose);
+    let id = new_keyframe?;
+    let view = DepthView { depth: &frame.depth.data, rgb: &frame.color.data, exclude: frame.exclude, classes: frame.classes };
+    match m.builder.add_keyframe(id, world_from_camera, &view) {
+        Ok(report) => {
+            drop(m);
+            append_stages(result, &[(MAP_FUSE_STAGE, report.fuse_time)], report.fuse_time);
+            Some(report.fuse_time)
+        }
+        Err(e) => {
+            tracing::warn!(sequence = result.sequence, "map fusion failed: {e}");
+            None
+        }
+    }
+}
+
+/// Bad query parameters (HTTP 400 / INVALID_ARGUMENT).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct BadQuery(pub String);
+
+impl From<MappingError> for BadQuery {
+    fn from(e: MappingError) -> Self {
+        Self(match e {
+            MappingError::Input(m) => m,
+            other => other.to_string(),
+        })
+    }
+}
+
+/// A rendered tile and its entity tag (changes whenever the map does).
+pub struct Tile {
+    pub png: Vec<u8>,
+    pub etag: String,
+}
+
+/// The ETag a tile of the current map version has (cheap: no rendering).
+pub fn tile_etag(map: &SharedMap, z: u8, x: i64, y: i64) -> String {
+    format!("\"m{}-{z}-{x}-{y}\"", lock(map).builder.map().version())
+}
+
+pub fn tile(map: &SharedMap, z: u8, x: i64, y: i64) -> Result<Tile, BadQuery> {
+    let (top, version) = {
+        let mut m = lock(map);
+        (m.top_down(), m.builder.map().version())
+    };
+    let rgba = top.render(z, x, y)?;
+    let png = encode_png_rgba(&rgba, TILE_PX as u32, TILE_PX as u32).map_err(|e| BadQuery(e.to_string()))?;
+    Ok(Tile { png, etag: format!("\"m{version}-{z}-{x}-{y}\"") })
+}
+
+/// One legend entry: a class drawn on the tiles.
+pub struct LegendEntry {
+    pub class: u16,
+    pub name: String,
+    pub color: [u8; 3],
+    pub cells: usize,
+}
+
+/// The classes the tiles draw now (most cells first), plus "unlabelled".
+pub fn legend(map: &SharedMap) -> Vec<LegendEntry> {
+    let mut m = lock(map);
+    let top = m.top_down();
+    top.class_counts
+        .iter()
+        .map(|&(class, cells)| LegendEntry {
+            class,
+            name: if class == NO_CLASS {
+                "unlabelled".into()
+            } else {
+                m.class_names.get(usize::from(class)).cloned().unwrap_or_else(|| format!("class {class}"))
+            },
+            // Unlabelled surfaces are grey, shaded by height; the legend shows the middle grey.
+            color: if class == NO_CLASS { [145, 145, 145] } else { class_color(class) },
+            cells,
+        })
+        .collect()
+}
+
+pub fn occupancy(map: &SharedMap, min_height: Option<f64>, max_height: Option<f64>, resolution: Option<f64>) -> Result<OccupancyGrid, BadQuery> {
+    let m = lock(map);
+    let cfg = m.builder.config();
+    let grid = OccupancyGrid::build(
+        m.builder.map(),
+        &m.map_from_world(),
+        min_height.unwrap_or(cfg.occupancy_min_height_m),
+        max_height.unwrap_or(cfg.occupancy_max_height_m),
+        resolution.unwrap_or(cfg.occupancy_resolution_m),
+    )?;
+    Ok(grid)
+}
+
+/// Parses `min_x,min_y,min_z,max_x,max_y,max_z` (metres, map frame).
+pub fn parse_bbox(text: &str) -> Result<Aabb, BadQuery> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|s| s.trim().parse::<f64>().map_err(|_| BadQuery(format!("bbox value {s:?} is not a number"))))
+        .collect::<Result<_, _>>()?;
+    if v.len() != 6 || v.iter().any(|x| !x.is_finite()) {
+        return Err(BadQuery(format!("bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got {}", v.len())));
+    }
+    if v[0] > v[3] || v[1] > v[4] || v[2] > v[5] {
+        return Err(BadQuery("bbox minimum exceeds its maximum".into()));
+    }
+    Ok(Aabb { min: [v[0], v[1], v[2]], max: [v[3], v[4], v[5]] })
+}
+
+pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
+    let m = lock(map);
+    let up = m.map_from_world();
+    let points = cloud(m.builder.map(), &up, bbox);
+    let q = up.coords;
+    let comment = format!(
+        "stillmap static semantic map, session {session_id}\nmap frame: z up (gravity), origin at the first camera; map_from_world rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
+        q.x, q.y, q.z, q.w
+    );
+    to_ply(&points, &m.class_names, &comment)
+}
+
+pub fn points(map: &SharedMap, bbox: Option<&Aabb>) -> (Vec<stillmap_mapping::export::CloudPoint>, Vec<String>) {
+    let m = lock(map);
+    (cloud(m.builder.map(), &m.map_from_world(), bbox), m.class_names.clone())
+}
+
+pub fn map_objects(map: &SharedMap) -> (Vec<MapObject>, Vec<String>) {
+    let m = lock(map);
+    (objects(m.builder.map(), &m.map_from_world()), m.class_names.clone())
+}
