@@ -124,9 +124,20 @@ impl MapBuilder {
         std::mem::take(&mut self.evicted)
     }
 
+    /// A restored map: its keyframe count and block stamps continue from the store.
+    pub fn note_restored(&mut self, keyframes: u64, stamp: u64) {
+        self.keyframes = self.keyframes.max(keyframes);
+        self.map.set_change_stamp(stamp);
+    }
+
     /// Puts a stored block back into memory.
     pub fn restore_block(&mut self, key: BlockKey, block: Block) {
         self.map.restore(key, block);
+    }
+
+    /// Evicts beyond the budget now (a restored map), nearest to `camera_in_world` kept.
+    pub fn evict_now(&mut self, camera_in_world: &Point3<f64>) -> Vec<(BlockKey, Block)> {
+        self.map.evict(camera_in_world)
     }
 
     /// Re-fuses the recent keyframes whose pose `current_pose` reports moved.

@@ -110,11 +110,13 @@ const MIN_CARVE_MARGIN_VOXELS: f64 = 2.0;
 /// reading too near to measure) is no evidence of free space.
 const MIN_CARVE_READINGS: usize = 5;
 
+#[derive(Clone)]
 pub struct VoxelMap {
     config: MappingConfig,
     blocks: FxHashMap<BlockKey, Block>,
     /// Bumped on every change (tile caches and ETags key on it).
     version: u64,
+    /// Change stamp: one per fusion or de-fusion (blocks carry the stamp of their last change).
     keyframes_fused: u64,
 }
 
@@ -229,6 +231,8 @@ impl VoxelMap {
     /// Takes a keyframe's hits back out (its pose is about to be corrected). Misses
     /// it carved stay: carving is only ever evidence of free space.
     pub fn deintegrate(&mut self, input: &FusionInput, world_from_camera: &Isometry3<f64>) {
+        // A change stamp of its own, so that the blocks it touches count as changed.
+        self.keyframes_fused += 1;
         self.apply_hits(input, world_from_camera, -1);
         self.version += 1;
     }
@@ -456,6 +460,31 @@ impl VoxelMap {
             self.version += 1;
         }
         out
+    }
+
+    /// Blocks changed since change stamp `stamp` (see [`change_stamp`](Self::change_stamp)).
+    pub fn changed_since(&self, stamp: u64) -> impl Iterator<Item = (&BlockKey, &Block)> {
+        self.blocks.iter().filter(move |(_, b)| b.touched > stamp)
+    }
+
+    /// Grows with every fusion and de-fusion; a block carries the stamp of its last change.
+    pub fn change_stamp(&self) -> u64 {
+        self.keyframes_fused
+    }
+
+    /// A map of the same configuration holding copies of these blocks (a query
+    /// over resident and stored blocks together).
+    pub fn with_blocks(&self, blocks: impl IntoIterator<Item = (BlockKey, Block)>) -> Self {
+        let mut all = self.blocks.clone();
+        for (k, b) in blocks {
+            all.entry(k).or_insert(b);
+        }
+        Self { config: self.config.clone(), blocks: all, version: self.version, keyframes_fused: self.keyframes_fused }
+    }
+
+    /// Continues the change stamps of a restored map.
+    pub fn set_change_stamp(&mut self, stamp: u64) {
+        self.keyframes_fused = self.keyframes_fused.max(stamp);
     }
 
     /// Puts a block back (from the store). A resident block is kept as it is.

@@ -23,6 +23,23 @@ pub struct ServerConfig {
     pub perception: stillmap_perception::PerceptionConfig,
     /// The static semantic map (defaults documented in `stillmap_mapping::MappingConfig`).
     pub mapping: stillmap_mapping::MappingConfig,
+    pub store: StoreConfig,
+}
+
+/// The embedded store (redb): sessions, trajectories, keyframes and map blocks
+/// survive a restart, and a crash loses at most the frames after the last keyframe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StoreConfig {
+    pub enabled: bool,
+    /// The store file (its folder is created).
+    pub path: String,
+}
+
+impl Default for StoreConfig {
+    fn default() -> Self {
+        Self { enabled: true, path: "stillmap-data/stillmap.redb".into() }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -148,6 +165,9 @@ impl ServerConfig {
         self.tracking.validate().map_err(ServerError::Config)?;
         self.perception.validate().map_err(ServerError::Config)?;
         self.mapping.validate().map_err(|e| ServerError::Config(e.to_string()))?;
+        if self.store.enabled && self.store.path.is_empty() {
+            return bad("store.path must name a file when store.enabled is true".into());
+        }
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }

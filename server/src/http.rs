@@ -60,6 +60,7 @@ fn session_json(s: &Session, detail: bool) -> Value {
         "robot_id": sum.robot_id,
         "transport": sum.transport,
         "connected": sum.connected,
+        "archived": s.is_archived(),
         "tracking_state": enum_name(sum.tracking_state, |t: pb::TrackingState| t.as_str_name()),
         "started_unix_ns": sum.started_unix_ns,
         "counters": {
@@ -216,6 +217,7 @@ async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>)
         "occupied_voxels": info.occupied_voxels,
         "memory_bytes": info.bytes,
         "version": info.version,
+        "committed_keyframes": info.committed_keyframes,
         "bounds_xy": info.bounds,
         "tiles": {
             "url": format!("/api/v1/maps/{id}/tiles/{{z}}/{{x}}/{{y}}.png"),

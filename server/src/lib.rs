@@ -13,6 +13,7 @@ pub mod perception;
 pub mod pipeline;
 pub mod queue;
 pub mod session;
+pub mod store;
 pub mod tracking;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_ingest;
@@ -44,6 +45,8 @@ pub enum ServerError {
     Zenoh(String),
     #[error("perception: {0}")]
     Perception(#[from] stillmap_perception::PerceptionError),
+    #[error("{0}")]
+    Store(#[from] store::StoreError),
 }
 
 /// Where the server ended up listening (ports resolved when 0 was asked for).
@@ -84,7 +87,16 @@ fn perception_service(
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
     let perception = perception_service(&config)?;
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), Arc::default()));
+    let store = if config.store.enabled { Some(Arc::new(store::Store::open(std::path::Path::new(&config.store.path))?)) } else { None };
+    let stored = match &store {
+        Some(s) => s.load_all()?,
+        None => Vec::new(),
+    };
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, Arc::default()));
+    if !stored.is_empty() {
+        tracing::info!(sessions = stored.len(), "restoring sessions from the store");
+        registry.restore(stored);
+    }
 
     let grpc_listener = bind(&config.grpc.listen).await?;
     let http_listener = bind(&config.http.listen).await?;

@@ -43,6 +43,12 @@ struct Args {
     /// Turn perception (segmentation, flow, dynamic mask) off: tracking sees every pixel as static.
     #[arg(long, env = "STILLMAP_NO_PERCEPTION")]
     no_perception: bool,
+    /// The embedded store file (sessions, trajectories, keyframes, maps) [default: stillmap-data/stillmap.redb].
+    #[arg(long, env = "STILLMAP_STORE")]
+    store: Option<String>,
+    /// Keep nothing on disk: a restart forgets every session.
+    #[arg(long, env = "STILLMAP_NO_STORE")]
+    no_store: bool,
     /// Print the effective configuration as TOML and exit.
     #[arg(long)]
     print_config: bool,
@@ -93,6 +99,12 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     }
     if args.no_perception {
         c.perception.enabled = false;
+    }
+    if let Some(v) = &args.store {
+        c.store.path = v.clone();
+    }
+    if args.no_store {
+        c.store.enabled = false;
     }
     c.validate()?;
     Ok(c)

@@ -6,8 +6,13 @@
 //! the query shells (which read); queries copy what they need (the top-down
 //! index is built once per map version and shared) and render outside the lock.
 
+use std::borrow::Cow;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
+
+use rustc_hash::FxHashSet;
+use stillmap_mapping::VoxelMap;
+use stillmap_mapping::voxel::{BLOCK_EDGE, Block, BlockKey};
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
@@ -17,6 +22,7 @@ use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb;
 
 use crate::pipeline::append_stages;
+use crate::store::{Commit, KeyframeRecord, SessionMeta, Store, StoreError};
 use crate::tracking::camera_of;
 
 /// Stage name of map fusion, as it appears in results and `/metrics` (keyframes only).
@@ -30,6 +36,20 @@ pub struct SessionMap {
     builder: MapBuilder,
     class_names: Vec<String>,
     top: Option<Arc<TopDown>>,
+    persistence: Option<Persistence>,
+}
+
+/// Where the map is committed, and what the last commit covered.
+struct Persistence {
+    store: Arc<Store>,
+    session_id: String,
+    meta: SessionMeta,
+    /// Poses of the trajectory already committed.
+    committed_poses: usize,
+    /// The map's change stamp at the last commit.
+    committed_stamp: u64,
+    /// Blocks evicted to the store (not in memory).
+    cold: FxHashSet<BlockKey>,
 }
 
 /// A session's map, shared by its worker and the queries.
@@ -55,6 +75,8 @@ pub struct MapInfo {
     pub occupied_voxels: usize,
     pub bytes: usize,
     pub version: u64,
+    /// Keyframes in the store (`None`: no store).
+    pub committed_keyframes: Option<u64>,
     pub up: Option<(UnitQuaternion<f64>, UpSource)>,
     /// Map-frame bounds (min x, min y, max x, max y) of what the tiles draw.
     pub bounds: Option<[f64; 4]>,
@@ -63,7 +85,128 @@ pub struct MapInfo {
 impl SessionMap {
     pub fn new(camera: &pb::CameraInfo, config: MappingConfig, class_names: Vec<String>) -> Result<SharedMap, MappingError> {
         let builder = MapBuilder::new(&camera_of(camera), config)?;
-        Ok(Arc::new(Mutex::new(Self { builder, class_names, top: None })))
+        Ok(Arc::new(Mutex::new(Self { builder, class_names, top: None, persistence: None })))
+    }
+
+    /// Commits this map to `store` from now on (blocks beyond the memory budget
+    /// go there too). `meta` describes the session.
+    pub fn attach_store(&mut self, store: Arc<Store>, session_id: &str, meta: SessionMeta) {
+        self.builder.enable_eviction();
+        self.persistence = Some(Persistence { store, session_id: session_id.to_string(), meta, committed_poses: 0, committed_stamp: 0, cold: FxHashSet::default() });
+    }
+
+    /// A map restored from the store: its blocks, keyframe count and map frame.
+    pub fn restore(&mut self, blocks: Vec<(BlockKey, Block)>, meta: &SessionMeta, poses: usize, last_camera: Option<nalgebra::Point3<f64>>) {
+        for (k, b) in blocks {
+            self.builder.restore_block(k, b);
+        }
+        self.builder.note_restored(meta.keyframes, meta.map_stamp);
+        if let (Some(up), Some(source)) = (meta.up_in_world, meta.up_source.as_deref()) {
+            if let Some(up) = nalgebra::Unit::try_new(Vector3::from(up), 1e-9) {
+                let source = if source == UpSource::Accelerometer.label() { UpSource::Accelerometer } else { UpSource::Config };
+                self.builder.freeze_up(up, source);
+            }
+        }
+        let evicted = self.builder.evict_now(&last_camera.unwrap_or_else(nalgebra::Point3::origin));
+        if let Some(p) = &mut self.persistence {
+            // Already in the store: just forget them here.
+            p.cold.extend(evicted.into_iter().map(|(k, _)| k));
+            p.committed_poses = poses;
+            p.committed_stamp = meta.map_stamp;
+            p.meta = meta.clone();
+        }
+    }
+
+    /// Keyframes covered by the last commit (what a crash keeps).
+    pub fn committed_keyframes(&self) -> Option<u64> {
+        self.persistence.as_ref().map(|p| p.meta.keyframes)
+    }
+
+    /// Commits the poses since the last commit, the keyframe, changed and evicted
+    /// blocks. On failure the evicted blocks come back into memory (nothing is lost).
+    pub fn persist(&mut self, poses: &[pb::PoseStamped], keyframe: Option<KeyframeRecord>) -> Result<(), StoreError> {
+        let Some(p) = &mut self.persistence else { return Ok(()) };
+        let evicted = self.builder.take_evicted();
+        p.meta.keyframes = self.builder.keyframes();
+        p.meta.map_stamp = self.builder.map().change_stamp();
+        if let Some((up, source)) = self.builder.up_in_world() {
+            p.meta.up_in_world = Some([up.x, up.y, up.z]);
+            p.meta.up_source = Some(source.label().to_string());
+        }
+        let since = p.committed_stamp;
+        let commit = Commit {
+            session_id: &p.session_id,
+            meta: &p.meta,
+            poses: poses.get(p.committed_poses..).unwrap_or_default(),
+            keyframe,
+            blocks: self.builder.map().changed_since(since).map(|(k, b)| (*k, b)).collect(),
+            evicted: &evicted,
+        };
+        match p.store.commit(&commit) {
+            Ok(()) => {
+                p.committed_poses = poses.len();
+                p.committed_stamp = p.meta.map_stamp;
+                p.cold.extend(evicted.into_iter().map(|(k, _)| k));
+                Ok(())
+            }
+            Err(e) => {
+                for (k, b) in evicted {
+                    self.builder.restore_block(k, b);
+                }
+                Err(e)
+            }
+        }
+    }
+
+    /// Brings evicted blocks within sensor range of the camera back into memory.
+    fn restore_near(&mut self, camera_in_world: &nalgebra::Point3<f64>) {
+        let Some(p) = &mut self.persistence else { return };
+        if p.cold.is_empty() {
+            return;
+        }
+        let block_m = self.builder.config().voxel_size_m * f64::from(BLOCK_EDGE);
+        let reach = self.builder.config().max_depth_m + block_m * 3f64.sqrt();
+        let near: Vec<BlockKey> = p
+            .cold
+            .iter()
+            .filter(|k| {
+                let c = Vector3::new(f64::from(k[0]) + 0.5, f64::from(k[1]) + 0.5, f64::from(k[2]) + 0.5) * block_m;
+                (c - camera_in_world.coords).norm() <= reach
+            })
+            .copied()
+            .collect();
+        for key in near {
+            match p.store.block(&p.session_id, key) {
+                Ok(Some(block)) => {
+                    p.cold.remove(&key);
+                    self.builder.restore_block(key, block);
+                }
+                Ok(None) => {
+                    tracing::error!(session = %p.session_id, ?key, "evicted map block missing from the store");
+                    p.cold.remove(&key);
+                }
+                Err(e) => tracing::error!(session = %p.session_id, "cannot read an evicted map block back: {e}"),
+            }
+        }
+    }
+
+    /// The whole map, stored blocks included (a copy when some are evicted).
+    fn full_map(&self) -> Cow<'_, VoxelMap> {
+        let Some(p) = self.persistence.as_ref().filter(|p| !p.cold.is_empty()) else {
+            return Cow::Borrowed(self.builder.map());
+        };
+        let loaded: Vec<(BlockKey, Block)> = p
+            .cold
+            .iter()
+            .filter_map(|k| match p.store.block(&p.session_id, *k) {
+                Ok(b) => b.map(|b| (*k, b)),
+                Err(e) => {
+                    tracing::error!(session = %p.session_id, "cannot read a map block: {e}");
+                    None
+                }
+            })
+            .collect();
+        Cow::Owned(self.builder.map().with_blocks(loaded))
     }
 
     pub fn class_names(&self) -> &[String] {
@@ -87,7 +230,7 @@ impl SessionMap {
         match &self.top {
             Some(t) if t.map_version == version => t.clone(),
             _ => {
-                let t = Arc::new(TopDown::build(self.builder.map(), &self.map_from_world()));
+                let t = Arc::new(TopDown::build(&self.full_map(), &self.map_from_world()));
                 self.top = Some(t.clone());
                 t
             }
@@ -105,6 +248,7 @@ impl SessionMap {
             occupied_voxels: stats.occupied_voxels,
             bytes: stats.bytes,
             version: self.builder.map().version(),
+            committed_keyframes: self.committed_keyframes(),
             up: self.builder.map_from_world(),
             bounds,
         }
@@ -132,6 +276,7 @@ pub fn update(
     }
     m.builder.follow(keyframe_pose);
     let id = new_keyframe?;
+    m.restore_near(&nalgebra::Point3::from(world_from_camera.translation.vector));
     let view = DepthView { depth: &frame.depth.data, rgb: &frame.color.data, exclude: frame.exclude, classes: frame.classes };
     match m.builder.add_keyframe(id, world_from_camera, &view) {
         Ok(report) => {
@@ -213,7 +358,7 @@ pub fn occupancy(map: &SharedMap, min_height: Option<f64>, max_height: Option<f6
     let m = lock(map);
     let cfg = m.builder.config();
     let grid = OccupancyGrid::build(
-        m.builder.map(),
+        &m.full_map(),
         &m.map_from_world(),
         min_height.unwrap_or(cfg.occupancy_min_height_m),
         max_height.unwrap_or(cfg.occupancy_max_height_m),
@@ -240,7 +385,7 @@ pub fn parse_bbox(text: &str) -> Result<Aabb, BadQuery> {
 pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
     let m = lock(map);
     let up = m.map_from_world();
-    let points = cloud(m.builder.map(), &up, bbox);
+    let points = cloud(&m.full_map(), &up, bbox);
     let q = up.coords;
     let comment = format!(
         "stillmap static semantic map, session {session_id}\nmap frame: z up (gravity), origin at the first camera; map_from_world rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
@@ -251,10 +396,10 @@ pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
 
 pub fn points(map: &SharedMap, bbox: Option<&Aabb>) -> (Vec<stillmap_mapping::export::CloudPoint>, Vec<String>) {
     let m = lock(map);
-    (cloud(m.builder.map(), &m.map_from_world(), bbox), m.class_names.clone())
+    (cloud(&m.full_map(), &m.map_from_world(), bbox), m.class_names.clone())
 }
 
 pub fn map_objects(map: &SharedMap) -> (Vec<MapObject>, Vec<String>) {
     let m = lock(map);
-    (objects(m.builder.map(), &m.map_from_world()), m.class_names.clone())
+    (objects(&m.full_map(), &m.map_from_world()), m.class_names.clone())
 }

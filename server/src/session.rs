@@ -25,6 +25,7 @@ use stillmap_tracking::TrackerConfig;
 use crate::metrics::Metrics;
 use crate::pipeline::{FramePipeline, validate_camera};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
+use crate::store::{SessionMeta, Store, StoredSession};
 
 /// Where a connection's results go: the gRPC response stream, or the Zenoh
 /// publisher task (which turns an `Err` into a `ServerMessage.error`).
@@ -87,6 +88,8 @@ pub struct Session {
     perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
     /// The static semantic map (`None`: mapping off, or it could not start).
     map: Option<SharedMap>,
+    /// Restored from the store after a restart: queries only, no worker.
+    archived: bool,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -238,11 +241,15 @@ impl Session {
                                 accel_in_camera: queued.frame.accel_in_camera.map(|a| nalgebra::Vector3::new(a.x, a.y, a.z)),
                             };
                             let fused = crate::mapping::update(map, &mut out.result, &frame, tracker.last_pose().as_ref(), tracker.new_keyframe(), |id| tracker.keyframe_pose(id));
+                            self.record_pose(&out.result, pose);
                             if fused.is_some() {
                                 self.metrics.keyframe_fused();
+                                let record = tracker.new_keyframe().and_then(|id| tracker.keyframe_record(id));
+                                self.persist(map, record);
                             }
+                        } else {
+                            self.record_pose(&out.result, pose);
                         }
-                        self.record_pose(&out.result, pose);
                     }
                     if let Some(reason) = out.rejected {
                         self.counters.rejected.fetch_add(1, Ordering::Relaxed);
@@ -259,7 +266,23 @@ impl Session {
             };
             self.deliver(result);
         }
+        // Shutdown: commit the poses after the last keyframe too.
+        if let Some(map) = &self.map {
+            self.persist(map, None);
+        }
         tracing::debug!(session = %self.id, "worker stopped");
+    }
+
+    fn persist(&self, map: &SharedMap, keyframe: Option<crate::store::KeyframeRecord>) {
+        let poses = self.tracking().trajectory.clone();
+        if let Err(e) = lock(map).persist(&poses, keyframe) {
+            tracing::error!(session = %self.id, "cannot commit to the store (the map stays in memory): {e}");
+        }
+    }
+
+    /// Whether the session was restored from the store (no worker; read-only).
+    pub fn is_archived(&self) -> bool {
+        self.archived
     }
 }
 
@@ -293,6 +316,7 @@ pub struct Registry {
     /// Perception settings and the shared segmentation service (`None`: perception off).
     perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
     mapping: MappingConfig,
+    store: Option<Arc<Store>>,
     metrics: Arc<Metrics>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
     next_id: AtomicU64,
@@ -312,10 +336,11 @@ impl Registry {
         tracking: TrackerConfig,
         perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
         mapping: MappingConfig,
+        store: Option<Arc<Store>>,
         metrics: Arc<Metrics>,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, mapping, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+        Self { config, tracking, perception, mapping, store, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -337,7 +362,7 @@ impl Registry {
     pub fn open(&self, hello: &pb::Hello, transport: Transport, sink: ResultSink) -> Result<Opened, BadHello> {
         stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello)?;
         if !hello.resume_session_id.is_empty()
-            && let Some(session) = self.get(&hello.resume_session_id)
+            && let Some(session) = self.get(&hello.resume_session_id).filter(|s| !s.archived)
         {
             if session.robot_id != hello.robot_id {
                 return Err(BadHello(format!(
@@ -357,9 +382,26 @@ impl Registry {
                 Some((_, Some(service))) => service.class_names().to_vec(),
                 _ => Vec::new(),
             };
-            SessionMap::new(&camera, self.mapping.clone(), names)
+            let meta = SessionMeta {
+                robot_id: hello.robot_id.clone(),
+                transport: transport.label().to_string(),
+                started_unix_ns,
+                class_names: names.clone(),
+                up_in_world: None,
+                up_source: None,
+                keyframes: 0,
+                map_stamp: 0,
+            };
+            let map = SessionMap::new(&camera, self.mapping.clone(), names)
                 .map_err(|e| tracing::error!(session = %id, "mapping unavailable for this session: {e}"))
-                .ok()
+                .ok();
+            if let (Some(map), Some(store)) = (&map, &self.store) {
+                match store.put_session(&id, &meta, &camera) {
+                    Ok(()) => lock(map).attach_store(store.clone(), &id, meta),
+                    Err(e) => tracing::error!(session = %id, "session not persisted (the store failed): {e}"),
+                }
+            }
+            map
         } else {
             None
         };
@@ -385,6 +427,7 @@ impl Registry {
             tracker_config: self.tracking.clone(),
             perception: self.perception.clone(),
             map,
+            archived: false,
         });
         session.attach(sink);
         let worker = session.clone();
@@ -396,6 +439,64 @@ impl Registry {
         self.metrics.session_opened();
         tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
         Ok(Opened { session, resumed: false })
+    }
+
+    /// Brings back every session in the store (read-only: queries answer, robots
+    /// resuming one get a new session).
+    pub fn restore(&self, stored: Vec<StoredSession>) {
+        for s in stored {
+            let id = s.id.clone();
+            let map = if self.mapping.enabled {
+                match SessionMap::new(&s.camera, self.mapping.clone(), s.meta.class_names.clone()) {
+                    Ok(map) => {
+                        {
+                            let mut m = lock(&map);
+                            if let Some(store) = &self.store {
+                                m.attach_store(store.clone(), &id, s.meta.clone());
+                            }
+                            let last_camera = s.keyframes.last().map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
+                            m.restore(s.blocks, &s.meta, s.poses.len(), last_camera);
+                        }
+                        Some(map)
+                    }
+                    Err(e) => {
+                        tracing::error!(session = %id, "stored map cannot be restored: {e}");
+                        None
+                    }
+                }
+            } else {
+                None
+            };
+            let transport = if s.meta.transport == "zenoh" { Transport::Zenoh } else { Transport::Grpc };
+            let counters = Counters::default();
+            counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
+            let latest = s.poses.last().copied();
+            let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
+            let queue = FrameQueue::new(1, 1, self.config.overload_policy);
+            queue.close();
+            let session = Arc::new(Session {
+                id: id.clone(),
+                robot_id: s.meta.robot_id.clone(),
+                transport,
+                camera: s.camera,
+                started_unix_ns: s.meta.started_unix_ns,
+                counters,
+                connected: AtomicBool::new(false),
+                queue,
+                sink: Mutex::new(None),
+                last_received_sequence: Mutex::new(latest.map(|p| p.sequence)),
+                track: Mutex::new(TrackState { state, latest, trajectory: s.poses }),
+                poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
+                answered_tx: watch::channel(0).0,
+                metrics: self.metrics.clone(),
+                tracker_config: self.tracking.clone(),
+                perception: None,
+                map,
+                archived: true,
+            });
+            tracing::info!(session = %id, keyframes = s.meta.keyframes, "session restored from the store");
+            self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session);
+        }
     }
 
     /// Stops every worker once its queue is drained (server shutdown).

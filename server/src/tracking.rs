@@ -136,6 +136,20 @@ impl SessionTracker {
         self.tracker.map().keyframes.get(&id).map(|k| k.world_from_camera)
     }
 
+    /// A keyframe as the store keeps it: pose, keypoints, descriptors.
+    pub fn keyframe_record(&self, id: u64) -> Option<crate::store::KeyframeRecord> {
+        let k = self.tracker.map().keyframes.get(&id)?;
+        let (t, q) = (k.world_from_camera.translation.vector, k.world_from_camera.rotation.coords);
+        let features = k
+            .features
+            .features
+            .iter()
+            .zip(&k.features.descriptors)
+            .map(|(f, d)| ([f.raw.x, f.raw.y], f.octave, f.depth.map_or(f32::NAN, |z| z as f32), *d))
+            .collect();
+        Some(crate::store::KeyframeRecord { id, timestamp_ns: k.timestamp_ns, world_from_camera: [t.x, t.y, t.z, q.x, q.y, q.z, q.w], features })
+    }
+
     /// Keypoints the dynamic mask removed on the last frame.
     pub fn masked_features(&self) -> usize {
         self.masked_features

@@ -43,6 +43,8 @@ pub fn free_port() -> u16 {
 /// A running server, killed on drop.
 pub struct Server {
     child: Child,
+    /// The store this server made for itself (removed on drop).
+    own_store: Option<PathBuf>,
     pub grpc: String,
     pub http: String,
     pub zenoh: String,
@@ -62,6 +64,12 @@ impl Server {
         if !extra.contains(&"--model") && !extra.contains(&"--no-perception") {
             command.args(["--model", model.to_str().expect("utf-8 path")]);
         }
+        // A store of its own, unless the test brings one.
+        let store = tempfile_path("store.redb");
+        let own_store = (!extra.contains(&"--store") && !extra.contains(&"--no-store")).then_some(store);
+        if let Some(store) = &own_store {
+            command.args(["--store", store.to_str().expect("utf-8 path")]);
+        }
         let mut child = command
             .args(extra)
             .env("STILLMAP_LOG", "warn")
@@ -80,7 +88,13 @@ impl Server {
         });
         let line = rx.recv_timeout(SERVER_START_TIMEOUT).expect("server printed no ready line");
         assert!(line.contains(&grpc), "{line}");
-        Self { child, grpc, http, zenoh }
+        Self { child, own_store, grpc, http, zenoh }
+    }
+
+    /// `kill -9`: no shutdown, no flush.
+    pub fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
     }
 
     pub fn grpc_url(&self) -> String {
@@ -103,6 +117,9 @@ impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        if let Some(store) = &self.own_store {
+            let _ = std::fs::remove_file(store);
+        }
     }
 }
 

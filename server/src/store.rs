@@ -1,0 +1,299 @@
+//! The embedded store (redb): sessions, their trajectories, keyframes and map
+//! blocks, so that a restart keeps everything.
+//!
+//! **Why redb:** pure Rust (no C library to build), ACID transactions on
+//! copy-on-write B-trees, and a commit that survives `kill -9` or power loss
+//! once it returns (fsync'd, `Durability::Immediate`). SQLite would serve equally
+//! but brings a C build and an SQL layer this key-value data does not need.
+//!
+//! **What is committed when.** A session's description and camera when it opens;
+//! then, in one transaction per keyframe: the poses since the previous keyframe,
+//! the keyframe (pose, keypoints, descriptors), every map block changed since the
+//! previous commit and every block evicted from memory. A crash therefore loses
+//! at most the frames after the last keyframe. Commits run on the session's
+//! worker: they happen once per keyframe and a block read back later (the
+//! camera returning) always sees its latest version.
+
+use std::path::{Path, PathBuf};
+
+use prost::Message;
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use serde::{Deserialize, Serialize};
+use stillmap_mapping::voxel::{Block, BlockKey};
+use stillmap_proto::pb;
+
+const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
+const CAMERAS: TableDefinition<&str, &[u8]> = TableDefinition::new("cameras");
+const POSES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("poses");
+const KEYFRAMES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("keyframes");
+const BLOCKS: TableDefinition<(&str, i32, i32, i32), &[u8]> = TableDefinition::new("map_blocks");
+
+/// zstd level for map blocks: most voxels are empty, level 1 already gives ~10×.
+const BLOCK_ZSTD_LEVEL: i32 = 1;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("store {path}: {message}")]
+    Db { path: String, message: String },
+    #[error("store holds corrupt data: {0}")]
+    Corrupt(String),
+}
+
+/// What the store knows about a session beyond its camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionMeta {
+    pub robot_id: String,
+    pub transport: String,
+    pub started_unix_ns: u64,
+    pub class_names: Vec<String>,
+    /// The map's frozen up direction (world frame) and where it came from.
+    pub up_in_world: Option<[f64; 3]>,
+    pub up_source: Option<String>,
+    pub keyframes: u64,
+    /// The map's keyframe stamp at the last commit.
+    pub map_stamp: u64,
+}
+
+/// A keyframe as stored: pose, keypoints and descriptors (for relocalization
+/// against an archived map).
+#[derive(Debug, Clone, PartialEq)]
+pub struct KeyframeRecord {
+    pub id: u64,
+    pub timestamp_ns: u64,
+    /// tx, ty, tz, qx, qy, qz, qw of `world_from_camera`.
+    pub world_from_camera: [f64; 7],
+    /// Raw pixel x, y, octave, depth in metres (NaN: none), descriptor.
+    pub features: Vec<([f32; 2], u8, f32, [u64; 4])>,
+}
+
+impl KeyframeRecord {
+    fn to_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(8 * 9 + 4 + self.features.len() * 45);
+        out.extend_from_slice(&self.id.to_le_bytes());
+        out.extend_from_slice(&self.timestamp_ns.to_le_bytes());
+        for v in self.world_from_camera {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&(self.features.len() as u32).to_le_bytes());
+        for (xy, octave, depth, d) in &self.features {
+            out.extend_from_slice(&xy[0].to_le_bytes());
+            out.extend_from_slice(&xy[1].to_le_bytes());
+            out.push(*octave);
+            out.extend_from_slice(&depth.to_le_bytes());
+            for w in d {
+                out.extend_from_slice(&w.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    fn from_bytes(b: &[u8]) -> Result<Self, StoreError> {
+        let bad = || StoreError::Corrupt(format!("keyframe record of {} bytes", b.len()));
+        let u64_at = |o: usize| b.get(o..o + 8).map(|s| u64::from_le_bytes(s.try_into().expect("8 bytes")));
+        let f32_at = |o: usize| b.get(o..o + 4).map(|s| f32::from_le_bytes(s.try_into().expect("4 bytes")));
+        let id = u64_at(0).ok_or_else(bad)?;
+        let timestamp_ns = u64_at(8).ok_or_else(bad)?;
+        let mut pose = [0.0; 7];
+        for (i, p) in pose.iter_mut().enumerate() {
+            *p = f64::from_bits(u64_at(16 + 8 * i).ok_or_else(bad)?);
+        }
+        let n = b.get(72..76).map(|s| u32::from_le_bytes(s.try_into().expect("4 bytes"))).ok_or_else(bad)? as usize;
+        if b.len() != 76 + n * 45 {
+            return Err(bad());
+        }
+        let features = (0..n)
+            .map(|k| {
+                let o = 76 + k * 45;
+                let d = [u64_at(o + 13).unwrap_or(0), u64_at(o + 21).unwrap_or(0), u64_at(o + 29).unwrap_or(0), u64_at(o + 37).unwrap_or(0)];
+                ([f32_at(o).unwrap_or(0.0), f32_at(o + 4).unwrap_or(0.0)], b[o + 8], f32_at(o + 9).unwrap_or(f32::NAN), d)
+            })
+            .collect();
+        Ok(Self { id, timestamp_ns, world_from_camera: pose, features })
+    }
+}
+
+/// One keyframe's transaction.
+pub struct Commit<'a> {
+    pub session_id: &'a str,
+    pub meta: &'a SessionMeta,
+    pub poses: &'a [pb::PoseStamped],
+    pub keyframe: Option<KeyframeRecord>,
+    pub blocks: Vec<(BlockKey, &'a Block)>,
+    pub evicted: &'a [(BlockKey, Block)],
+}
+
+/// Everything stored about one session.
+pub struct StoredSession {
+    pub id: String,
+    pub meta: SessionMeta,
+    pub camera: pb::CameraInfo,
+    pub poses: Vec<pb::PoseStamped>,
+    pub keyframes: Vec<KeyframeRecord>,
+    pub blocks: Vec<(BlockKey, Block)>,
+}
+
+pub struct Store {
+    db: Database,
+    path: PathBuf,
+}
+
+impl Store {
+    /// Opens (or creates) the store file, creating its folder.
+    pub fn open(path: &Path) -> Result<Self, StoreError> {
+        let err = |e: &dyn std::fmt::Display| StoreError::Db { path: path.display().to_string(), message: e.to_string() };
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| err(&e))?;
+        }
+        let db = Database::create(path).map_err(|e| err(&e))?;
+        // Create the tables so that reads of an empty store find them.
+        let tx = db.begin_write().map_err(|e| err(&e))?;
+        {
+            tx.open_table(SESSIONS).map_err(|e| err(&e))?;
+            tx.open_table(CAMERAS).map_err(|e| err(&e))?;
+            tx.open_table(POSES).map_err(|e| err(&e))?;
+            tx.open_table(KEYFRAMES).map_err(|e| err(&e))?;
+            tx.open_table(BLOCKS).map_err(|e| err(&e))?;
+        }
+        tx.commit().map_err(|e| err(&e))?;
+        Ok(Self { db, path: path.to_path_buf() })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn err(&self, e: impl std::fmt::Display) -> StoreError {
+        StoreError::Db { path: self.path.display().to_string(), message: e.to_string() }
+    }
+
+    /// Records a new session (before any frame).
+    pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo) -> Result<(), StoreError> {
+        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        {
+            let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
+            tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
+            tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+        }
+        tx.commit().map_err(|e| self.err(e))
+    }
+
+    /// One keyframe's worth of state, atomically.
+    pub fn commit(&self, c: &Commit<'_>) -> Result<(), StoreError> {
+        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        {
+            let json = serde_json::to_vec(c.meta).map_err(|e| self.err(e))?;
+            tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json.as_slice()).map_err(|e| self.err(e))?;
+            let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
+            for p in c.poses {
+                poses.insert((c.session_id, p.sequence), p.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+            }
+            if let Some(k) = &c.keyframe {
+                tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?.insert((c.session_id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+            }
+            let mut blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
+            for (key, block) in c.blocks.iter().map(|(k, b)| (k, *b)).chain(c.evicted.iter().map(|(k, b)| (k, b))) {
+                let bytes = zstd::bulk::compress(&block.to_bytes(), BLOCK_ZSTD_LEVEL).map_err(|e| self.err(e))?;
+                blocks.insert((c.session_id, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
+            }
+        }
+        tx.commit().map_err(|e| self.err(e))
+    }
+
+    /// One stored block (an evicted block coming back).
+    pub fn block(&self, session_id: &str, key: BlockKey) -> Result<Option<Block>, StoreError> {
+        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let table = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
+        let Some(v) = table.get((session_id, key[0], key[1], key[2])).map_err(|e| self.err(e))? else {
+            return Ok(None);
+        };
+        decode_block(v.value()).map(Some)
+    }
+
+    /// Every stored session, with its trajectory, keyframes and map blocks.
+    pub fn load_all(&self) -> Result<Vec<StoredSession>, StoreError> {
+        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
+        let cameras = tx.open_table(CAMERAS).map_err(|e| self.err(e))?;
+        let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
+        let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+        let blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
+        let mut out = Vec::new();
+        for entry in sessions.iter().map_err(|e| self.err(e))? {
+            let (id, meta) = entry.map_err(|e| self.err(e))?;
+            let id = id.value().to_string();
+            let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
+            let camera = cameras.get(id.as_str()).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
+            let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
+            let s = id.as_str();
+            let mut trajectory = Vec::new();
+            for p in poses.range((s, 0)..=(s, u64::MAX)).map_err(|e| self.err(e))? {
+                let (_, v) = p.map_err(|e| self.err(e))?;
+                trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
+            }
+            let mut kfs = Vec::new();
+            for k in keyframes.range((s, 0)..=(s, u64::MAX)).map_err(|e| self.err(e))? {
+                kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
+            }
+            let mut bl = Vec::new();
+            for b in blocks.range((s, i32::MIN, i32::MIN, i32::MIN)..=(s, i32::MAX, i32::MAX, i32::MAX)).map_err(|e| self.err(e))? {
+                let (k, v) = b.map_err(|e| self.err(e))?;
+                let (_, x, y, z) = k.value();
+                bl.push(([x, y, z], decode_block(v.value())?));
+            }
+            out.push(StoredSession { id, meta, camera, poses: trajectory, keyframes: kfs, blocks: bl });
+        }
+        Ok(out)
+    }
+}
+
+fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
+    let raw = zstd::bulk::decompress(bytes, stillmap_mapping::voxel::BLOCK_BYTES).map_err(|e| StoreError::Corrupt(format!("map block: {e}")))?;
+    Block::from_bytes(&raw).map_err(|e| StoreError::Corrupt(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn everything_committed_comes_back() {
+        let path = std::env::temp_dir().join(format!("stillmap-store-test-{}.redb", std::process::id()));
+        let _ = std::fs::remove_file(&path);
+        let meta = SessionMeta {
+            robot_id: "r1".into(),
+            transport: "grpc".into(),
+            started_unix_ns: 5,
+            class_names: vec!["person".into()],
+            up_in_world: Some([0.0, -1.0, 0.0]),
+            up_source: Some("config".into()),
+            keyframes: 1,
+            map_stamp: 1,
+        };
+        let camera = pb::CameraInfo { width: 640, height: 480, fx: 500.0, ..Default::default() };
+        let pose = pb::PoseStamped { sequence: 3, capture_time_ns: 9, ..Default::default() };
+        let mut block = Block::default();
+        block.voxels[7].log_odds = 1.5;
+        block.voxels[7].hits = 2;
+        let kf = KeyframeRecord { id: 0, timestamp_ns: 9, world_from_camera: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0], features: vec![([1.5, 2.5], 1, f32::NAN, [1, 2, 3, 4]), ([3.0, 4.0], 0, 1.25, [5, 6, 7, 8])] };
+        {
+            let store = Store::open(&path).unwrap();
+            store.put_session("s1", &meta, &camera).unwrap();
+            store
+                .commit(&Commit { session_id: "s1", meta: &meta, poses: &[pose], keyframe: Some(kf.clone()), blocks: vec![([1, -2, 3], &block)], evicted: &[([9, 9, 9], block.clone())] })
+                .unwrap();
+        }
+        let store = Store::open(&path).unwrap();
+        let all = store.load_all().unwrap();
+        assert_eq!(all.len(), 1);
+        let s = &all[0];
+        assert_eq!((s.id.as_str(), &s.meta, &s.camera, s.poses.as_slice()), ("s1", &meta, &camera, &[pose][..]));
+        assert_eq!(s.keyframes[0].features[1], kf.features[1]);
+        assert!(s.keyframes[0].features[0].2.is_nan());
+        assert_eq!(s.blocks.len(), 2);
+        assert_eq!(s.blocks[0], ([1, -2, 3], block.clone()));
+        assert_eq!(store.block("s1", [9, 9, 9]).unwrap(), Some(block));
+        assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
+        drop(store);
+        let _ = std::fs::remove_file(&path);
+    }
+}

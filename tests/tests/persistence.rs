@@ -1,0 +1,68 @@
+//! Crash safety of the embedded store with real processes: the server is killed
+//! with SIGKILL while the real client streams the real TUM clip, restarted on the
+//! same store, and must still serve the session's trajectory and map up to the
+//! last committed keyframe.
+
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use stillmap_e2e::{Server, bin, eventually, tempfile_path, tum_dir};
+
+#[tokio::test(flavor = "multi_thread")]
+async fn kill_9_while_streaming_keeps_trajectory_and_map_up_to_the_last_keyframe() {
+    let store = tempfile_path("crash.redb");
+    let store_arg = store.to_str().expect("utf-8 path").to_string();
+    let mut server = Server::start(&["--no-zenoh", "--store", &store_arg]);
+    // Real time (30 Hz): the clip takes 5 s, long enough to kill the server mid-stream.
+    let mut client = Command::new(bin("stillmap-client"))
+        .args(["stream", "--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--quiet"])
+        .env("STILLMAP_LOG", "error")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn client");
+
+    let mut id = String::new();
+    eventually(Duration::from_secs(60), "ten keyframes committed", async || {
+        let (_, list) = server.get_json("/api/v1/sessions").await;
+        let Some(s) = list["sessions"].as_array().and_then(|a| a.first()) else { return false };
+        id = s["session_id"].as_str().unwrap_or_default().to_string();
+        let (_, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+        map["committed_keyframes"].as_u64().unwrap_or(0) >= 10
+    })
+    .await;
+    let (_, before) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    let (_, map_before) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    let committed = map_before["committed_keyframes"].as_u64().expect("committed");
+    server.kill9();
+    let _ = client.kill();
+    let _ = client.wait();
+    let seen_before = before["poses"].as_array().expect("poses").clone();
+    assert!(seen_before.len() < 150, "the server was killed mid-stream ({} poses)", seen_before.len());
+
+    let server = Server::start(&["--no-zenoh", "--store", &store_arg]);
+    let (status, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!(status, 200, "{session}");
+    assert_eq!(session["archived"], true);
+    assert_eq!(session["connected"], false);
+    let (_, after) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    let restored = after["poses"].as_array().expect("poses");
+    // Every pose up to the last committed keyframe, exactly as served before the crash.
+    assert!(!restored.is_empty());
+    assert!(restored.len() <= seen_before.len() + 10, "{} restored, {} seen", restored.len(), seen_before.len());
+    let common = restored.len().min(seen_before.len());
+    assert_eq!(&restored[..common], &seen_before[..common]);
+    let (_, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    let keyframes = map["keyframes"].as_u64().expect("keyframes");
+    assert!(keyframes >= committed, "{keyframes} keyframes restored, {committed} committed before the kill");
+    assert_eq!(map["committed_keyframes"].as_u64(), Some(keyframes));
+    assert!(map["occupied_voxels"].as_u64().expect("voxels") > 10_000, "{map}");
+    assert_eq!(map["up_source"], "accelerometer");
+    // The restored map serves tiles and PLY.
+    let ply = reqwest::get(format!("http://{}/api/v1/maps/{id}/cloud.ply", server.http)).await.expect("GET").bytes().await.expect("body");
+    assert!(ply.starts_with(b"ply\n"));
+    let tile = reqwest::get(format!("http://{}/api/v1/maps/{id}/tiles/0/0/0.png", server.http)).await.expect("GET");
+    assert_eq!(tile.status(), 200);
+    drop(server);
+    let _ = std::fs::remove_file(&store);
+}
