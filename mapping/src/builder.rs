@@ -19,7 +19,7 @@ use stillmap_tracking::Camera;
 
 use crate::MappingError;
 use crate::config::MappingConfig;
-use crate::gravity::{Gravity, UpSource, map_from_world};
+use crate::gravity::{Gravity, UpSource, floor_up, map_from_world};
 use crate::map::{CameraRays, DepthView, FuseStats, FusionInput, VoxelMap};
 use crate::voxel::{Block, BlockKey};
 
@@ -98,8 +98,18 @@ impl MapBuilder {
     /// Fuses a new keyframe.
     pub fn add_keyframe(&mut self, id: u64, world_from_camera: &Isometry3<f64>, view: &DepthView<'_>) -> Result<KeyframeReport, MappingError> {
         let start = Instant::now();
-        self.gravity.up();
         let input = self.map.prepare(&self.rays, view)?;
+        if self.gravity.frozen().is_none() {
+            let prior_in_camera = world_from_camera.rotation.inverse() * self.gravity.fallback();
+            let points: Vec<[f32; 3]> = input.samples.iter().map(|s| s.point_in_camera).collect();
+            let has_samples = self.gravity.has_samples();
+            self.gravity.up_with(|| {
+                if has_samples {
+                    return None;
+                }
+                floor_up(&points, &prior_in_camera).map(|up| Unit::new_unchecked(world_from_camera.rotation * up.into_inner()))
+            });
+        }
         let stats = self.map.integrate(&self.rays, &input, world_from_camera);
         self.keyframes += 1;
         self.window.push_back(Fused { id, world_from_camera: *world_from_camera, input });
@@ -176,6 +186,7 @@ mod tests {
         let rgb = vec![100u8; 160 * 120 * 3];
         let view = DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None };
         b.add_keyframe(7, &Isometry3::identity(), &view).unwrap();
+        // A wall and no accelerometer: up from the configuration.
         assert_eq!(b.map_from_world().unwrap().1, UpSource::Config);
         let z_of = |b: &MapBuilder| b.map().occupied().map(|(_, c, _)| c.z).sum::<f64>() / b.map().stats().occupied_voxels as f64;
         assert!((z_of(&b) - 2.0).abs() < 0.02);

@@ -103,7 +103,7 @@ impl SessionMap {
         self.builder.note_restored(meta.keyframes, meta.map_stamp);
         if let (Some(up), Some(source)) = (meta.up_in_world, meta.up_source.as_deref()) {
             if let Some(up) = nalgebra::Unit::try_new(Vector3::from(up), 1e-9) {
-                let source = if source == UpSource::Accelerometer.label() { UpSource::Accelerometer } else { UpSource::Config };
+                let source = UpSource::from_label(source).unwrap_or(UpSource::Config);
                 self.builder.freeze_up(up, source);
             }
         }
