@@ -86,6 +86,11 @@ impl MapBuilder {
         self.gravity.freeze(up, source);
     }
 
+    /// How far from the camera centre a keyframe can fuse or carve (metres).
+    pub fn reach_m(&self) -> f64 {
+        self.map.config().max_depth_m * self.rays.max_ray_norm()
+    }
+
     pub fn keyframes(&self) -> u64 {
         self.keyframes
     }
@@ -150,26 +155,40 @@ impl MapBuilder {
         self.map.evict(camera_in_world)
     }
 
-    /// Re-fuses the recent keyframes whose pose `current_pose` reports moved.
-    /// Returns how many were re-fused. Keyframes it does not know are kept as fused.
-    pub fn follow(&mut self, mut current_pose: impl FnMut(u64) -> Option<Isometry3<f64>>) -> usize {
-        let cfg = self.map.config().clone();
-        let mut moved = Vec::new();
-        for (k, f) in self.window.iter().enumerate() {
-            let Some(now) = current_pose(f.id) else { continue };
-            let delta = f.world_from_camera.inverse() * now;
-            if delta.translation.vector.norm() > cfg.refuse_translation_m || delta.rotation.angle().to_degrees() > cfg.refuse_rotation_deg {
-                moved.push((k, now));
-            }
-        }
-        for &(k, now) in &moved {
+    /// The recent keyframes whose pose `current_pose` reports moved beyond the
+    /// re-fusion thresholds, with their new poses. Keyframes it does not know are kept.
+    pub fn moved_keyframes(&self, mut current_pose: impl FnMut(u64) -> Option<Isometry3<f64>>) -> Vec<(u64, Isometry3<f64>)> {
+        let cfg = self.map.config();
+        self.window
+            .iter()
+            .filter_map(|f| {
+                let now = current_pose(f.id)?;
+                let delta = f.world_from_camera.inverse() * now;
+                (delta.translation.vector.norm() > cfg.refuse_translation_m || delta.rotation.angle().to_degrees() > cfg.refuse_rotation_deg).then_some((f.id, now))
+            })
+            .collect()
+    }
+
+    /// Re-fuses keyframes at corrected poses (from [`moved_keyframes`](Self::moved_keyframes)):
+    /// hits out at the old pose, fused again at the new one.
+    pub fn refuse(&mut self, moved: &[(u64, Isometry3<f64>)]) -> usize {
+        let mut n = 0;
+        for (id, now) in moved {
+            let Some(k) = self.window.iter().position(|f| f.id == *id) else { continue };
             let f = &self.window[k];
             self.map.deintegrate(&f.input, &f.world_from_camera);
-            self.map.integrate(&self.rays, &f.input, &now);
-            self.window[k].world_from_camera = now;
+            self.map.integrate(&self.rays, &f.input, now);
+            self.window[k].world_from_camera = *now;
+            n += 1;
         }
-        self.refused += moved.len() as u64;
-        moved.len()
+        self.refused += n as u64;
+        n
+    }
+
+    /// [`moved_keyframes`](Self::moved_keyframes) then [`refuse`](Self::refuse).
+    pub fn follow(&mut self, current_pose: impl FnMut(u64) -> Option<Isometry3<f64>>) -> usize {
+        let moved = self.moved_keyframes(current_pose);
+        self.refuse(&moved)
     }
 }
 

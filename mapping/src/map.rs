@@ -34,6 +34,11 @@ pub struct CameraRays {
 }
 
 impl CameraRays {
+    /// The longest viewing ray per metre of depth (an image corner's).
+    pub fn max_ray_norm(&self) -> f64 {
+        self.rays.iter().map(|[x, y]| f64::from(x * x + y * y + 1.0).sqrt()).fold(1.0, f64::max)
+    }
+
     pub fn new(camera: &Camera) -> Self {
         let (w, h) = (camera.width as usize, camera.height as usize);
         let mut rays = Vec::with_capacity(w * h);
@@ -329,7 +334,7 @@ impl VoxelMap {
                 (f64::from(bkey[2]) + 0.5) * block_m,
             );
             let c = camera_from_world * centre;
-            if c.z + block_radius < cfg.min_depth_m {
+            if c.z + block_radius < cfg.min_depth_m || c.z - block_radius > cfg.max_depth_m {
                 continue;
             }
             if c.z > block_radius {
@@ -351,7 +356,9 @@ impl VoxelMap {
                     continue;
                 }
                 let p = camera_from_world * voxel_centre(voxel_of(*bkey, index), res);
-                if p.z < cfg.min_depth_m {
+                // The range filter holds for carving too: a voxel this view could not
+                // fuse is not carved by it either.
+                if p.z < cfg.min_depth_m || p.z > cfg.max_depth_m {
                     continue;
                 }
                 let Some(ideal) = cam.project(&p) else { continue };
@@ -487,9 +494,15 @@ impl VoxelMap {
         self.keyframes_fused = self.keyframes_fused.max(stamp);
     }
 
-    /// Puts a block back (from the store). A resident block is kept as it is.
+    /// Puts a block back (from the store). When a block was started at its place
+    /// since it left, the stored one is merged into it (nothing is lost).
     pub fn restore(&mut self, key: BlockKey, block: Block) {
-        self.blocks.entry(key).or_insert(block);
+        match self.blocks.get_mut(&key) {
+            None => {
+                self.blocks.insert(key, block);
+            }
+            Some(newer) => newer.merge_older(&block, self.config.log_odds_min, self.config.log_odds_max),
+        }
         self.version += 1;
     }
 }
@@ -647,9 +660,18 @@ mod tests {
         let kept_max = map.blocks().map(|(k, _)| (k[0] as f64 + 0.5).hypot(k[1] as f64 + 0.5)).fold(0.0, f64::max);
         let evicted_min = out.iter().map(|(k, _)| (k[0] as f64 + 0.5).hypot(k[1] as f64 + 0.5)).fold(f64::INFINITY, f64::min);
         assert!(kept_max <= evicted_min + 1e-9);
+        let occupied = map.stats().occupied_voxels;
+        let (first_key, first) = (out[0].0, out[0].1.clone());
         for (k, b) in out {
             map.restore(k, b);
         }
         assert_eq!(map.block_count(), total);
+        // A block restored over a newer one at its place merges into it.
+        map.restore(first_key, first.clone());
+        let merged = map.blocks().find(|(k, _)| **k == first_key).map(|(_, b)| b.clone()).unwrap();
+        for (m, o) in merged.voxels.iter().zip(first.voxels.iter()) {
+            assert_eq!(m.hits, o.hits.saturating_mul(2));
+        }
+        assert!(map.stats().occupied_voxels >= occupied);
     }
 }

@@ -79,6 +79,28 @@ impl Voxel {
         self.votes_total = self.votes_total.saturating_sub(1);
     }
 
+    /// Folds an older copy of this voxel into it (a stored block coming back to
+    /// memory after a new block was started at its place): log-odds, hits and class
+    /// votes add, colours average by hits.
+    pub(crate) fn merge_older(&mut self, older: &Voxel, min: f32, max: f32) {
+        if older.hits == 0 && older.log_odds == 0.0 {
+            return;
+        }
+        let (a, b) = (u32::from(older.hits), u32::from(self.hits));
+        if a + b > 0 {
+            for c in 0..3 {
+                self.color[c] = ((u32::from(older.color[c]) * a + u32::from(self.color[c]) * b) / (a + b)) as u8;
+            }
+        }
+        self.log_odds = (self.log_odds + older.log_odds).clamp(min, max);
+        self.hits = self.hits.saturating_add(older.hits);
+        for c in older.classes.iter().filter(|c| c.votes > 0) {
+            for _ in 0..c.votes {
+                self.vote(c.class);
+            }
+        }
+    }
+
     pub(crate) fn blend_color(&mut self, rgb: [u8; 3]) {
         let w = u32::from(self.hits.min(u8::MAX - 1));
         for (c, &n) in self.color.iter_mut().zip(&rgb) {
@@ -93,6 +115,16 @@ pub struct Block {
     pub voxels: Box<[Voxel; VOXELS_PER_BLOCK]>,
     /// The keyframe counter when the block last changed (eviction picks old, far blocks).
     pub touched: u64,
+}
+
+impl Block {
+    /// Folds an older copy of this block (from the store) into it, voxel by voxel.
+    pub fn merge_older(&mut self, older: &Block, log_odds_min: f32, log_odds_max: f32) {
+        for (n, o) in self.voxels.iter_mut().zip(older.voxels.iter()) {
+            n.merge_older(o, log_odds_min, log_odds_max);
+        }
+        self.touched = self.touched.max(older.touched);
+    }
 }
 
 impl Default for Block {

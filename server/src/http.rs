@@ -5,7 +5,8 @@ use std::sync::Arc;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
+use axum::extract::DefaultBodyLimit;
+use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::{Value, json};
 use stillmap_proto::pb;
@@ -27,6 +28,8 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/api/v1/maps/{id}/occupancy.yaml", get(map_occupancy_yaml))
         .route("/api/v1/maps/{id}/cloud.ply", get(map_cloud))
         .route("/api/v1/maps/{id}/objects", get(map_objects))
+        .route("/api/v1/maps/{id}/export", get(map_export))
+        .route("/api/v1/maps/import", post(map_import).layer(DefaultBodyLimit::max(MAX_IMPORT_BYTES)))
         .route("/metrics", get(metrics))
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
         .with_state(registry)
@@ -214,6 +217,7 @@ async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>)
         "keyframes": info.keyframes,
         "refused_keyframes": info.refused_keyframes,
         "blocks": info.blocks,
+        "evicted_blocks": info.evicted_blocks,
         "occupied_voxels": info.occupied_voxels,
         "memory_bytes": info.bytes,
         "version": info.version,
@@ -354,6 +358,51 @@ async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
             })).collect::<Vec<_>>(),
         }))
         .into_response(),
+        Err(r) => r,
+    }
+}
+
+/// Largest map file `POST /api/v1/maps/import` accepts.
+const MAX_IMPORT_BYTES: usize = 1 << 30;
+
+/// The session as one file (everything committed to the store: up to its last keyframe).
+async fn map_export(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    if registry.get(&id).is_none() {
+        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    }
+    let Some(store) = registry.store().cloned() else {
+        return error(StatusCode::CONFLICT, "exporting maps needs the store (store.enabled)".into());
+    };
+    let key = id.clone();
+    let file = blocking(move || store.load(&key).and_then(|s| s.map(|s| crate::store::export(&s)).transpose())).await;
+    match file {
+        Ok(Ok(Some(bytes))) => (
+            [(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.stillmap\""))],
+            bytes,
+        )
+            .into_response(),
+        Ok(Ok(None)) => error(StatusCode::NOT_FOUND, format!("session {id:?} has nothing in the store")),
+        Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
+        Err(r) => r,
+    }
+}
+
+/// Adds a map file as a new (read-only) session: 201 with its id.
+async fn map_import(State(registry): State<Arc<Registry>>, body: axum::body::Bytes) -> Response {
+    let parsed = match blocking(move || crate::store::import_file(&body)).await {
+        Ok(p) => p,
+        Err(r) => return r,
+    };
+    let stored = match parsed {
+        Ok(s) => s,
+        Err(e) => return error(StatusCode::BAD_REQUEST, e.to_string()),
+    };
+    let r = registry.clone();
+    match blocking(move || r.import(stored)).await {
+        Ok(Ok(id)) => (StatusCode::CREATED, Json(json!({ "session_id": id }))).into_response(),
+        Ok(Err(e @ crate::session::ImportError::Exists(_))) => error(StatusCode::CONFLICT, e.to_string()),
+        Ok(Err(e @ crate::session::ImportError::NoStore)) => error(StatusCode::CONFLICT, e.to_string()),
+        Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
         Err(r) => r,
     }
 }

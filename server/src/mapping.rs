@@ -77,6 +77,8 @@ pub struct MapInfo {
     pub version: u64,
     /// Keyframes in the store (`None`: no store).
     pub committed_keyframes: Option<u64>,
+    /// Blocks evicted to the store (not in memory).
+    pub evicted_blocks: usize,
     pub up: Option<(UnitQuaternion<f64>, UpSource)>,
     /// Map-frame bounds (min x, min y, max x, max y) of what the tiles draw.
     pub bounds: Option<[f64; 4]>,
@@ -126,7 +128,26 @@ impl SessionMap {
     /// blocks. On failure the evicted blocks come back into memory (nothing is lost).
     pub fn persist(&mut self, poses: &[pb::PoseStamped], keyframe: Option<KeyframeRecord>) -> Result<(), StoreError> {
         let Some(p) = &mut self.persistence else { return Ok(()) };
-        let evicted = self.builder.take_evicted();
+        // A block started where an evicted one was (fusion out of the camera's
+        // reach): merge the stored one in before this commit overwrites it.
+        let reborn: Vec<BlockKey> = self.builder.map().changed_since(p.committed_stamp).map(|(k, _)| *k).filter(|k| p.cold.contains(k)).collect();
+        for key in reborn {
+            if let Some(block) = p.store.block(&p.session_id, key)? {
+                self.builder.restore_block(key, block);
+            }
+            p.cold.remove(&key);
+        }
+        let mut evicted = self.builder.take_evicted();
+        let (min, max) = (self.builder.config().log_odds_min, self.builder.config().log_odds_max);
+        for (key, block) in &mut evicted {
+            // Started where an evicted block was and evicted again at once: merge
+            // the stored one in before this commit overwrites it.
+            if p.cold.contains(key)
+                && let Some(stored) = p.store.block(&p.session_id, *key)?
+            {
+                block.merge_older(&stored, min, max);
+            }
+        }
         p.meta.keyframes = self.builder.keyframes();
         p.meta.map_stamp = self.builder.map().change_stamp();
         if let Some((up, source)) = self.builder.up_in_world() {
@@ -165,7 +186,7 @@ impl SessionMap {
             return;
         }
         let block_m = self.builder.config().voxel_size_m * f64::from(BLOCK_EDGE);
-        let reach = self.builder.config().max_depth_m + block_m * 3f64.sqrt();
+        let reach = self.builder.reach_m() + block_m * 3f64.sqrt();
         let near: Vec<BlockKey> = p
             .cold
             .iter()
@@ -249,6 +270,7 @@ impl SessionMap {
             bytes: stats.bytes,
             version: self.builder.map().version(),
             committed_keyframes: self.committed_keyframes(),
+            evicted_blocks: self.persistence.as_ref().map_or(0, |p| p.cold.len()),
             up: self.builder.map_from_world(),
             bounds,
         }
@@ -274,9 +296,13 @@ pub fn update(
     if let Some(accel) = &frame.accel_in_camera {
         m.builder.observe_accel(world_from_camera, accel);
     }
-    m.builder.follow(keyframe_pose);
+    let moved = m.builder.moved_keyframes(keyframe_pose);
+    if !moved.is_empty() || new_keyframe.is_some() {
+        // Evicted blocks near the camera come back before anything is fused there.
+        m.restore_near(&nalgebra::Point3::from(world_from_camera.translation.vector));
+    }
+    m.builder.refuse(&moved);
     let id = new_keyframe?;
-    m.restore_near(&nalgebra::Point3::from(world_from_camera.translation.vector));
     let view = DepthView { depth: &frame.depth.data, rgb: &frame.color.data, exclude: frame.exclude, classes: frame.classes };
     match m.builder.add_keyframe(id, world_from_camera, &view) {
         Ok(report) => {

@@ -304,6 +304,17 @@ pub fn summary(s: &Session) -> pb::SessionSummary {
     }
 }
 
+/// Why a map file could not be imported.
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    #[error("importing maps needs the store (store.enabled)")]
+    NoStore,
+    #[error("session {0:?} exists already")]
+    Exists(String),
+    #[error("{0}")]
+    Store(crate::store::StoreError),
+}
+
 /// A hello the server cannot open a session for.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
@@ -497,6 +508,23 @@ impl Registry {
             tracing::info!(session = %id, keyframes = s.meta.keyframes, "session restored from the store");
             self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session);
         }
+    }
+
+    pub fn store(&self) -> Option<&Arc<Store>> {
+        self.store.as_ref()
+    }
+
+    /// Adds a session from a map file (see [`crate::store::export`]) to the store
+    /// and to the registry, read-only.
+    pub fn import(&self, stored: StoredSession) -> Result<String, ImportError> {
+        let store = self.store.as_ref().ok_or(ImportError::NoStore)?;
+        if self.get(&stored.id).is_some() || store.contains(&stored.id).map_err(ImportError::Store)? {
+            return Err(ImportError::Exists(stored.id));
+        }
+        store.import(&stored).map_err(ImportError::Store)?;
+        let id = stored.id.clone();
+        self.restore(vec![stored]);
+        Ok(id)
     }
 
     /// Stops every worker once its queue is drained (server shutdown).

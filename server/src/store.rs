@@ -37,6 +37,9 @@ pub enum StoreError {
     Db { path: String, message: String },
     #[error("store holds corrupt data: {0}")]
     Corrupt(String),
+    /// A map file given to import.
+    #[error("bad map file: {0}")]
+    File(String),
 }
 
 /// What the store knows about a session beyond its camera.
@@ -123,6 +126,7 @@ pub struct Commit<'a> {
 }
 
 /// Everything stored about one session.
+#[derive(Debug, Clone, PartialEq)]
 pub struct StoredSession {
     pub id: String,
     pub meta: SessionMeta,
@@ -180,23 +184,26 @@ impl Store {
     /// One keyframe's worth of state, atomically.
     pub fn commit(&self, c: &Commit<'_>) -> Result<(), StoreError> {
         let tx = self.db.begin_write().map_err(|e| self.err(e))?;
-        {
-            let json = serde_json::to_vec(c.meta).map_err(|e| self.err(e))?;
-            tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json.as_slice()).map_err(|e| self.err(e))?;
-            let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
-            for p in c.poses {
-                poses.insert((c.session_id, p.sequence), p.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
-            }
-            if let Some(k) = &c.keyframe {
-                tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?.insert((c.session_id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
-            }
-            let mut blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
-            for (key, block) in c.blocks.iter().map(|(k, b)| (k, *b)).chain(c.evicted.iter().map(|(k, b)| (k, b))) {
-                let bytes = zstd::bulk::compress(&block.to_bytes(), BLOCK_ZSTD_LEVEL).map_err(|e| self.err(e))?;
-                blocks.insert((c.session_id, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
-            }
-        }
+        self.write(&tx, c)?;
         tx.commit().map_err(|e| self.err(e))
+    }
+
+    fn write(&self, tx: &redb::WriteTransaction, c: &Commit<'_>) -> Result<(), StoreError> {
+        let json = serde_json::to_vec(c.meta).map_err(|e| self.err(e))?;
+        tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json.as_slice()).map_err(|e| self.err(e))?;
+        let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
+        for p in c.poses {
+            poses.insert((c.session_id, p.sequence), p.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+        }
+        if let Some(k) = &c.keyframe {
+            tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?.insert((c.session_id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+        }
+        let mut blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
+        for (key, block) in c.blocks.iter().map(|(k, b)| (k, *b)).chain(c.evicted.iter().map(|(k, b)| (k, b))) {
+            let bytes = zstd::bulk::compress(&block.to_bytes(), BLOCK_ZSTD_LEVEL).map_err(|e| self.err(e))?;
+            blocks.insert((c.session_id, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
+        }
+        Ok(())
     }
 
     /// One stored block (an evicted block coming back).
@@ -211,39 +218,162 @@ impl Store {
 
     /// Every stored session, with its trajectory, keyframes and map blocks.
     pub fn load_all(&self) -> Result<Vec<StoredSession>, StoreError> {
+        let ids: Vec<String> = {
+            let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+            let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
+            let mut ids = Vec::new();
+            for entry in sessions.iter().map_err(|e| self.err(e))? {
+                ids.push(entry.map_err(|e| self.err(e))?.0.value().to_string());
+            }
+            ids
+        };
+        ids.iter().filter_map(|id| self.load(id).transpose()).collect()
+    }
+
+    /// One stored session, everything committed about it.
+    pub fn load(&self, id: &str) -> Result<Option<StoredSession>, StoreError> {
         let tx = self.db.begin_read().map_err(|e| self.err(e))?;
         let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
+        let Some(meta) = sessions.get(id).map_err(|e| self.err(e))? else { return Ok(None) };
+        let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
         let cameras = tx.open_table(CAMERAS).map_err(|e| self.err(e))?;
         let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
         let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
         let blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
-        let mut out = Vec::new();
-        for entry in sessions.iter().map_err(|e| self.err(e))? {
-            let (id, meta) = entry.map_err(|e| self.err(e))?;
-            let id = id.value().to_string();
-            let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
-            let camera = cameras.get(id.as_str()).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
-            let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
-            let s = id.as_str();
-            let mut trajectory = Vec::new();
-            for p in poses.range((s, 0)..=(s, u64::MAX)).map_err(|e| self.err(e))? {
-                let (_, v) = p.map_err(|e| self.err(e))?;
-                trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
-            }
-            let mut kfs = Vec::new();
-            for k in keyframes.range((s, 0)..=(s, u64::MAX)).map_err(|e| self.err(e))? {
-                kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
-            }
-            let mut bl = Vec::new();
-            for b in blocks.range((s, i32::MIN, i32::MIN, i32::MIN)..=(s, i32::MAX, i32::MAX, i32::MAX)).map_err(|e| self.err(e))? {
-                let (k, v) = b.map_err(|e| self.err(e))?;
-                let (_, x, y, z) = k.value();
-                bl.push(([x, y, z], decode_block(v.value())?));
-            }
-            out.push(StoredSession { id, meta, camera, poses: trajectory, keyframes: kfs, blocks: bl });
+        let camera = cameras.get(id).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
+        let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
+        let mut trajectory = Vec::new();
+        for p in poses.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
+            let (_, v) = p.map_err(|e| self.err(e))?;
+            trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
         }
-        Ok(out)
+        let mut kfs = Vec::new();
+        for k in keyframes.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
+            kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
+        }
+        let mut bl = Vec::new();
+        for b in blocks.range((id, i32::MIN, i32::MIN, i32::MIN)..=(id, i32::MAX, i32::MAX, i32::MAX)).map_err(|e| self.err(e))? {
+            let (k, v) = b.map_err(|e| self.err(e))?;
+            let (_, x, y, z) = k.value();
+            bl.push(([x, y, z], decode_block(v.value())?));
+        }
+        Ok(Some(StoredSession { id: id.to_string(), meta, camera, poses: trajectory, keyframes: kfs, blocks: bl }))
     }
+
+    pub fn contains(&self, id: &str) -> Result<bool, StoreError> {
+        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        Ok(tx.open_table(SESSIONS).map_err(|e| self.err(e))?.get(id).map_err(|e| self.err(e))?.is_some())
+    }
+
+    /// Writes a whole session (an imported map file) in one transaction.
+    pub fn import(&self, s: &StoredSession) -> Result<(), StoreError> {
+        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(s.id.as_str(), s.camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+        {
+            let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+            for k in &s.keyframes {
+                table.insert((s.id.as_str(), k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+            }
+        }
+        let commit = Commit { session_id: &s.id, meta: &s.meta, poses: &s.poses, keyframe: None, blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(), evicted: &[] };
+        self.write(&tx, &commit)?;
+        tx.commit().map_err(|e| self.err(e))
+    }
+}
+
+/// The one-file map format: magic, then zstd of length-prefixed sections.
+const EXPORT_MAGIC: &[u8] = b"STILLMAP-MAP\0\x01";
+/// zstd level of exports (written once, read rarely).
+const EXPORT_ZSTD_LEVEL: i32 = 3;
+/// Largest section an import accepts (a corrupt length must not allocate wildly).
+const MAX_SECTION_BYTES: usize = 1 << 30;
+
+/// A whole session as one file: description, camera, trajectory, keyframes, blocks.
+pub fn export(s: &StoredSession) -> Result<Vec<u8>, StoreError> {
+    let mut body = Vec::new();
+    let section = |bytes: &[u8], body: &mut Vec<u8>| {
+        body.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+        body.extend_from_slice(bytes);
+    };
+    let header = serde_json::to_vec(&serde_json::json!({ "session_id": s.id, "meta": s.meta })).map_err(|e| StoreError::Corrupt(e.to_string()))?;
+    section(&header, &mut body);
+    section(&s.camera.encode_to_vec(), &mut body);
+    body.extend_from_slice(&(s.poses.len() as u32).to_le_bytes());
+    for p in &s.poses {
+        section(&p.encode_to_vec(), &mut body);
+    }
+    body.extend_from_slice(&(s.keyframes.len() as u32).to_le_bytes());
+    for k in &s.keyframes {
+        section(&k.to_bytes(), &mut body);
+    }
+    body.extend_from_slice(&(s.blocks.len() as u32).to_le_bytes());
+    for (key, b) in &s.blocks {
+        for v in key {
+            body.extend_from_slice(&v.to_le_bytes());
+        }
+        section(&b.to_bytes(), &mut body);
+    }
+    let mut out = EXPORT_MAGIC.to_vec();
+    out.extend(zstd::bulk::compress(&body, EXPORT_ZSTD_LEVEL).map_err(|e| StoreError::Corrupt(e.to_string()))?);
+    Ok(out)
+}
+
+/// A cursor over an export body; every read is bounds-checked.
+struct Reader<'a> {
+    body: &'a [u8],
+    at: usize,
+}
+
+fn file_error(m: impl std::fmt::Display) -> StoreError {
+    StoreError::File(m.to_string())
+}
+
+impl<'a> Reader<'a> {
+    fn u32(&mut self) -> Result<u32, StoreError> {
+        let v = self.body.get(self.at..self.at + 4).ok_or_else(|| file_error("truncated"))?;
+        self.at += 4;
+        Ok(u32::from_le_bytes(v.try_into().expect("4 bytes")))
+    }
+
+    fn section(&mut self) -> Result<&'a [u8], StoreError> {
+        let n = self.u32()? as usize;
+        if n > MAX_SECTION_BYTES {
+            return Err(file_error(format!("section of {n} bytes")));
+        }
+        let v = self.body.get(self.at..self.at + n).ok_or_else(|| file_error("truncated"))?;
+        self.at += n;
+        Ok(v)
+    }
+}
+
+/// Reads a file [`export`] wrote; every problem is named.
+pub fn import_file(bytes: &[u8]) -> Result<StoredSession, StoreError> {
+    let body = bytes.strip_prefix(EXPORT_MAGIC).ok_or_else(|| file_error("not a stillmap map file (bad magic)"))?;
+    let body = zstd::stream::decode_all(body).map_err(|e| file_error(format!("compressed body: {e}")))?;
+    let mut r = Reader { body: &body, at: 0 };
+    let header: serde_json::Value = serde_json::from_slice(r.section()?).map_err(|e| file_error(format!("header: {e}")))?;
+    let id = header["session_id"].as_str().ok_or_else(|| file_error("header has no session_id"))?.to_string();
+    stillmap_proto::validate_robot_id(&id).map_err(|e| file_error(format!("session id: {e}")))?;
+    let meta: SessionMeta = serde_json::from_value(header["meta"].clone()).map_err(|e| file_error(format!("header: {e}")))?;
+    let camera = pb::CameraInfo::decode(r.section()?).map_err(|e| file_error(format!("camera: {e}")))?;
+    crate::pipeline::validate_camera(Some(&camera)).map_err(|e| file_error(format!("camera: {e}")))?;
+    let mut poses = Vec::new();
+    for _ in 0..r.u32()? {
+        poses.push(pb::PoseStamped::decode(r.section()?).map_err(|e| file_error(format!("pose: {e}")))?);
+    }
+    let mut keyframes = Vec::new();
+    for _ in 0..r.u32()? {
+        keyframes.push(KeyframeRecord::from_bytes(r.section()?).map_err(|e| file_error(e.to_string().trim_start_matches("store holds corrupt data: ")))?);
+    }
+    let mut blocks = Vec::new();
+    for _ in 0..r.u32()? {
+        let key = [r.u32()? as i32, r.u32()? as i32, r.u32()? as i32];
+        blocks.push((key, Block::from_bytes(r.section()?).map_err(file_error)?));
+    }
+    if r.at != body.len() {
+        return Err(file_error(format!("{} bytes after the last block", body.len() - r.at)));
+    }
+    Ok(StoredSession { id, meta, camera, poses, keyframes, blocks })
 }
 
 fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
@@ -269,7 +399,18 @@ mod tests {
             keyframes: 1,
             map_stamp: 1,
         };
-        let camera = pb::CameraInfo { width: 640, height: 480, fx: 500.0, ..Default::default() };
+        let camera = pb::CameraInfo {
+            width: 640,
+            height: 480,
+            fx: 500.0,
+            fy: 500.0,
+            cx: 319.5,
+            cy: 239.5,
+            depth_units_per_metre: 1000.0,
+            color_encoding: pb::ColorEncoding::Jpeg as i32,
+            depth_encoding: pb::DepthEncoding::Zstd as i32,
+            ..Default::default()
+        };
         let pose = pb::PoseStamped { sequence: 3, capture_time_ns: 9, ..Default::default() };
         let mut block = Block::default();
         block.voxels[7].log_odds = 1.5;
@@ -293,6 +434,16 @@ mod tests {
         assert_eq!(s.blocks[0], ([1, -2, 3], block.clone()));
         assert_eq!(store.block("s1", [9, 9, 9]).unwrap(), Some(block));
         assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
+        // The one-file export round-trips exactly, and bad files are named.
+        let file = export(s).unwrap();
+        let back = import_file(&file).unwrap();
+        // (A NaN depth makes `==` on keyframes false: compare the re-export's bytes.)
+        assert!(back.blocks == s.blocks && back.poses == s.poses && back.meta == s.meta && back.camera == s.camera, "import differs");
+        assert!(export(&back).unwrap() == file, "re-export differs");
+        assert_eq!(import_file(b"PK\x03\x04").unwrap_err().to_string(), "bad map file: not a stillmap map file (bad magic)");
+        let mut cut = file.clone();
+        cut.truncate(cut.len() - 5);
+        assert!(import_file(&cut).unwrap_err().to_string().starts_with("bad map file: "));
         drop(store);
         let _ = std::fs::remove_file(&path);
     }

@@ -162,3 +162,38 @@ async fn the_streamed_clip_is_mapped_and_served() {
     let err = q.get_map_cloud(pb::MapCloudRequest { session_id: "nobody".into(), bbox: None }).await.unwrap_err();
     assert_eq!((err.code(), err.message()), (tonic::Code::NotFound, "unknown session \"nobody\""));
 }
+
+/// Memory stays within `mapping.max_resident_blocks`: the farthest blocks go to the
+/// store, come back when the camera needs them, and every query still sees them.
+/// Perception off, so both runs see exactly the same frames and poses.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_map_over_its_memory_budget_evicts_to_the_store_and_loses_nothing() {
+    let config = stillmap_e2e::tempfile_path("budget.toml");
+    std::fs::write(&config, "[mapping]\nmax_resident_blocks = 300\n").expect("write config");
+    let mut vertices = Vec::new();
+    for extra in [vec![], vec!["--config", config.to_str().expect("utf-8 path")]] {
+        let mut args = vec!["--no-zenoh", "--no-perception"];
+        args.extend(extra.iter().copied());
+        let server = Server::start(&args);
+        let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
+        assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+        let summary = summary.expect("summary");
+        assert_eq!(summary["frames_dropped"], 0);
+        let id = summary["session_id"].as_str().expect("session id").to_string();
+        let (_, info) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+        let ply = get(&server, &format!("/api/v1/maps/{id}/cloud.ply"), None).await.bytes().await.expect("body");
+        let header = String::from_utf8_lossy(&ply[..ply.windows(11).position(|w| w == b"end_header\n").expect("header")]).to_string();
+        let n: usize = header.lines().find_map(|l| l.strip_prefix("element vertex ")).expect("count").parse().expect("number");
+        eprintln!("{extra:?}: {} resident blocks, {} evicted, {n} points", info["blocks"], info["evicted_blocks"]);
+        vertices.push((n, info));
+    }
+    let _ = std::fs::remove_file(&config);
+    let (unbounded, bounded) = (&vertices[0], &vertices[1]);
+    assert_eq!(unbounded.1["evicted_blocks"], 0);
+    let resident = bounded.1["blocks"].as_u64().expect("blocks");
+    let evicted = bounded.1["evicted_blocks"].as_u64().expect("evicted");
+    assert!(resident <= 300, "{resident} blocks resident over a budget of 300");
+    assert!(evicted > 0);
+    assert_eq!(resident + evicted, unbounded.1["blocks"].as_u64().expect("blocks"), "every block is resident or stored");
+    assert_eq!(bounded.0, unbounded.0, "the PLY holds every occupied voxel either way");
+}

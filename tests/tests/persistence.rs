@@ -63,6 +63,35 @@ async fn kill_9_while_streaming_keeps_trajectory_and_map_up_to_the_last_keyframe
     assert!(ply.starts_with(b"ply\n"));
     let tile = reqwest::get(format!("http://{}/api/v1/maps/{id}/tiles/0/0/0.png", server.http)).await.expect("GET");
     assert_eq!(tile.status(), 200);
+
+    // Export the whole map as one file, import it into another server.
+    let r = reqwest::get(format!("http://{}/api/v1/maps/{id}/export", server.http)).await.expect("GET");
+    assert_eq!(r.status(), 200);
+    let file = r.bytes().await.expect("body");
+    let other = Server::start(&["--no-zenoh"]);
+    let http = reqwest::Client::new();
+    let import = |body: Vec<u8>| http.post(format!("http://{}/api/v1/maps/import", other.http)).body(body).send();
+    let r = import(file.to_vec()).await.expect("POST");
+    assert_eq!(r.status(), 201);
+    let created: serde_json::Value = r.json().await.expect("json");
+    assert_eq!(created["session_id"], id.as_str());
+    let (_, imported_map) = other.get_json(&format!("/api/v1/maps/{id}")).await;
+    for key in ["keyframes", "occupied_voxels", "blocks", "map_from_world_xyzw", "up_source"] {
+        assert_eq!(imported_map[key], map[key], "{key}");
+    }
+    let (_, imported_trajectory) = other.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    assert_eq!(imported_trajectory["poses"], after["poses"]);
+    // Twice is a conflict; a file that is not a map is named.
+    let r = import(file.to_vec()).await.expect("POST");
+    assert_eq!(r.status(), 409);
+    let body: serde_json::Value = r.json().await.expect("json");
+    assert_eq!(body["error"], format!("session {id:?} exists already"));
+    let r = import(b"GIF89a".to_vec()).await.expect("POST");
+    assert_eq!(r.status(), 400);
+    let body: serde_json::Value = r.json().await.expect("json");
+    assert_eq!(body["error"], "bad map file: not a stillmap map file (bad magic)");
+    let (status, body) = other.get_json("/api/v1/maps/nobody/export").await;
+    assert_eq!((status, body["error"].as_str()), (404, Some("unknown session \"nobody\"")));
     drop(server);
     let _ = std::fs::remove_file(&store);
 }
