@@ -10,10 +10,14 @@ export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps build demo test bench bench-codecs bench-transport clean
+.PHONY: deps dashboard build demo test bench bench-codecs bench-transport clean
 
 deps:
 	@deploy/install-deps.sh
+
+# The dashboard is plain ES modules (dashboard/src) plus three.js from npm; `deps`
+# installs the npm packages, the server serves them (no bundling step).
+dashboard: deps
 
 build: deps
 	$(CARGO) build --workspace --bins

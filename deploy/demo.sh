@@ -12,8 +12,10 @@ ZENOH=${STILLMAP_DEMO_ZENOH:-tcp/127.0.0.1:7447}
 RATE=${STILLMAP_DEMO_RATE:-realtime}
 
 [ -d "$TUM" ] || { echo "demo: TUM clip not found at $TUM (set TUM=...)" >&2; exit 1; }
-log=$(mktemp -d)/server.log
-"$BIN/stillmap-server" --model "${MODEL:-$SHARED/models/yolov8n-seg_fp32_640.onnx}" --grpc-listen "$GRPC" --http-listen "$HTTP" --zenoh-listen "$ZENOH" >"$log.out" 2>"$log" &
+work=$(mktemp -d)
+log=$work/server.log
+# A store of its own, so every demo starts from an empty server.
+"$BIN/stillmap-server" --store "$work/stillmap.redb" --model "${MODEL:-$SHARED/models/yolov8n-seg_fp32_640.onnx}" --grpc-listen "$GRPC" --http-listen "$HTTP" --zenoh-listen "$ZENOH" >"$log.out" 2>"$log" &
 server=$!
 trap 'kill $server 2>/dev/null; wait $server 2>/dev/null || true' EXIT
 for _ in $(seq 100); do
@@ -33,3 +35,15 @@ echo; echo "== server: GET /api/v1/sessions"
 curl -fsS "http://$HTTP/api/v1/sessions"; echo
 echo; echo "== server: frame counters from /metrics"
 curl -fsS "http://$HTTP/metrics" | grep -E '^stillmap_(frames|bytes)_' || true
+echo; echo "== server: the static semantic map of the gRPC session"
+id=$(curl -fsS "http://$HTTP/api/v1/sessions" | python3 -c 'import json,sys; print([s["session_id"] for s in json.load(sys.stdin)["sessions"] if s["robot_id"]=="demo-grpc"][0])')
+curl -fsS "http://$HTTP/api/v1/maps/$id" | python3 -c 'import json,sys; m=json.load(sys.stdin); print({k: m[k] for k in ["keyframes","occupied_voxels","blocks","memory_bytes","up_source","committed_keyframes"]})'
+curl -fsS "http://$HTTP/api/v1/maps/$id/objects" | python3 -c 'import json,sys; o=json.load(sys.stdin)["objects"]; print("objects:", ", ".join("%s (%d voxels)" % (x["class_name"], x["voxels"]) for x in o[:8]))'
+curl -fsS -o "$work/map.ply" "http://$HTTP/api/v1/maps/$id/cloud.ply"
+curl -fsS -o "$work/occupancy.pgm" "http://$HTTP/api/v1/maps/$id/occupancy.pgm"
+echo "saved $work/map.ply ($(stat -c %s "$work/map.ply") bytes) and $work/occupancy.pgm"
+echo "dashboard: http://$HTTP/ (while the server runs; STILLMAP_DEMO_KEEP=1 keeps it running)"
+if [ -n "${STILLMAP_DEMO_KEEP:-}" ]; then
+  echo "press Ctrl-C to stop the server"
+  wait $server
+fi

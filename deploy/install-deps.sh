@@ -1,12 +1,16 @@
 #!/usr/bin/env bash
 # Installs what the build and the tests need, skipping what is already there:
-# Debian packages (OpenCV, clang for its bindings, OpenNI2, protoc), the ONNX
+# Debian packages (OpenCV, clang for its bindings, OpenNI2, protoc, chromium and
+# Node.js for the dashboard and its browser test), the dashboard's npm packages
+# (dashboard/package-lock.json), the ONNX
 # Runtime shared library from PyPI's onnxruntime wheel (Debian has none), and evo
 # (PyPI, in a virtual environment) for the trajectory-evaluation parity test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core)
+APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core chromium)
+# Node.js for the dashboard's npm packages (three.js; playwright-core for its browser test).
+command -v node >/dev/null && command -v npm >/dev/null || APT_PACKAGES+=(nodejs npm)
 ORT_VERSION=1.31.1
 
 missing=()
@@ -55,4 +59,12 @@ if [ ! -x .deps/evo/bin/evo_ape ]; then
   python3 -m venv .deps/evo
   .deps/evo/bin/pip install -q --disable-pip-version-check "evo==${EVO_VERSION}"
   test -x .deps/evo/bin/evo_ape
+fi
+
+# The dashboard's npm packages, exactly as locked: three.js (served to browsers by the
+# server) and playwright-core (drives chromium in tests/tests/dashboard.rs).
+if [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwright-core ] || [ dashboard/package-lock.json -nt dashboard/node_modules ]; then
+  echo "install-deps: npm ci in dashboard/"
+  (cd dashboard && npm ci --no-audit --no-fund --loglevel=error)
+  touch dashboard/node_modules
 fi

@@ -153,39 +153,64 @@ pub fn voxel_centre(key: VoxelKey, voxel_size: f64) -> Point3<f64> {
     Point3::new((f64::from(key[0]) + 0.5) * voxel_size, (f64::from(key[1]) + 0.5) * voxel_size, (f64::from(key[2]) + 0.5) * voxel_size)
 }
 
-/// Bytes per serialised block: the key is stored beside it.
-pub const BLOCK_BYTES: usize = 8 + VOXELS_PER_BLOCK * 24;
+/// Largest serialised block (every voxel observed); the key is stored beside it.
+pub const BLOCK_BYTES: usize = 8 + VOXELS_PER_BLOCK / 8 + VOXELS_PER_BLOCK * 24;
+
+/// Bytes of one voxel record in the block encoding.
+const VOXEL_RECORD: usize = 24;
+/// The presence bitmap: one bit per voxel.
+const BITMAP_BYTES: usize = VOXELS_PER_BLOCK / 8;
 
 impl Block {
-    /// A compact little-endian encoding for the store.
+    /// A compact little-endian encoding for the store: the change stamp, a bitmap
+    /// of the voxels ever observed, then 24 bytes per observed voxel (most of a
+    /// block is unknown space, so this is a fraction of the 12 KiB in memory).
     pub fn to_bytes(&self) -> Vec<u8> {
-        let mut out = Vec::with_capacity(BLOCK_BYTES);
-        out.extend_from_slice(&self.touched.to_le_bytes());
-        for v in self.voxels.iter() {
-            out.extend_from_slice(&v.log_odds.to_le_bytes());
-            out.extend_from_slice(&v.color);
-            out.push(v.hits);
-            for c in &v.classes {
-                out.extend_from_slice(&c.class.to_le_bytes());
-                out.extend_from_slice(&c.votes.to_le_bytes());
+        let mut bitmap = [0u8; BITMAP_BYTES];
+        let mut records = Vec::with_capacity(VOXELS_PER_BLOCK / 4 * VOXEL_RECORD);
+        for (i, v) in self.voxels.iter().enumerate() {
+            if *v == Voxel::default() {
+                continue;
             }
-            out.extend_from_slice(&v.votes_total.to_le_bytes());
-            out.extend_from_slice(&[0, 0]);
+            bitmap[i / 8] |= 1 << (i % 8);
+            records.extend_from_slice(&v.log_odds.to_le_bytes());
+            records.extend_from_slice(&v.color);
+            records.push(v.hits);
+            for c in &v.classes {
+                records.extend_from_slice(&c.class.to_le_bytes());
+                records.extend_from_slice(&c.votes.to_le_bytes());
+            }
+            records.extend_from_slice(&v.votes_total.to_le_bytes());
+            records.extend_from_slice(&[0, 0]);
         }
+        let mut out = Vec::with_capacity(8 + BITMAP_BYTES + records.len());
+        out.extend_from_slice(&self.touched.to_le_bytes());
+        out.extend_from_slice(&bitmap);
+        out.extend_from_slice(&records);
         out
     }
 
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, crate::MappingError> {
-        if bytes.len() != BLOCK_BYTES {
-            return Err(crate::MappingError::Corrupt(format!("voxel block of {} bytes, expected {BLOCK_BYTES}", bytes.len())));
+        let corrupt = |m: String| crate::MappingError::Corrupt(m);
+        if bytes.len() < 8 + BITMAP_BYTES {
+            return Err(corrupt(format!("voxel block of {} bytes, shorter than its header", bytes.len())));
+        }
+        let bitmap = &bytes[8..8 + BITMAP_BYTES];
+        let present = bitmap.iter().map(|b| b.count_ones() as usize).sum::<usize>();
+        let expected = 8 + BITMAP_BYTES + present * VOXEL_RECORD;
+        if bytes.len() != expected {
+            return Err(corrupt(format!("voxel block of {} bytes, expected {expected} for {present} voxels", bytes.len())));
         }
         let u16_at = |o: usize| u16::from_le_bytes([bytes[o], bytes[o + 1]]);
         let mut block = Block { touched: u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")), ..Block::default() };
+        let mut o = 8 + BITMAP_BYTES;
         for (i, v) in block.voxels.iter_mut().enumerate() {
-            let o = 8 + i * 24;
+            if bitmap[i / 8] & (1 << (i % 8)) == 0 {
+                continue;
+            }
             v.log_odds = f32::from_le_bytes(bytes[o..o + 4].try_into().expect("4 bytes"));
             if !v.log_odds.is_finite() {
-                return Err(crate::MappingError::Corrupt("voxel block with a non-finite log-odds".into()));
+                return Err(corrupt("voxel block with a non-finite log-odds".into()));
             }
             v.color = [bytes[o + 4], bytes[o + 5], bytes[o + 6]];
             v.hits = bytes[o + 7];
@@ -193,6 +218,7 @@ impl Block {
                 *c = ClassVote { class: u16_at(o + 8 + 4 * k), votes: u16_at(o + 10 + 4 * k) };
             }
             v.votes_total = u16_at(o + 20);
+            o += VOXEL_RECORD;
         }
         Ok(block)
     }
@@ -233,9 +259,13 @@ mod tests {
         let mut b = Block { touched: 42, ..Block::default() };
         b.voxels[5] = Voxel { log_odds: 1.25, color: [1, 2, 3], hits: 4, classes: [ClassVote { class: 62, votes: 9 }, ClassVote::default(), ClassVote { class: NO_CLASS, votes: 2 }], votes_total: 11 };
         let bytes = b.to_bytes();
-        assert_eq!(bytes.len(), BLOCK_BYTES);
+        // Header, bitmap and the one observed voxel.
+        assert_eq!(bytes.len(), 8 + 64 + 24);
         assert_eq!(Block::from_bytes(&bytes).unwrap(), b);
-        let err = Block::from_bytes(&bytes[..100]).unwrap_err().to_string();
-        assert_eq!(err, format!("corrupt map data: voxel block of 100 bytes, expected {BLOCK_BYTES}"));
+        let err = Block::from_bytes(&bytes[..90]).unwrap_err().to_string();
+        assert_eq!(err, "corrupt map data: voxel block of 90 bytes, expected 96 for 1 voxels");
+        let full = Block { voxels: Box::new([b.voxels[5]; VOXELS_PER_BLOCK]), touched: 1 };
+        assert_eq!(full.to_bytes().len(), BLOCK_BYTES);
+        assert_eq!(Block::from_bytes(&full.to_bytes()).unwrap(), full);
     }
 }

@@ -64,6 +64,14 @@ pub struct SegmentationConfig {
     /// A segmentation is carried forward through the flow for at most this many
     /// frames; older, it is dropped and flow alone decides until a new one arrives.
     pub max_mask_age_frames: u32,
+    /// Server: 0 (default) runs segmentation beside the pipeline, its results used
+    /// whenever they are ready — the real-time mode, whose masks (and so poses)
+    /// depend on thread timing. n > 0 makes a session reproducible: every n-th
+    /// frame is segmented while the pipeline waits, and the result is handed to
+    /// the masker `deterministic_delay_frames` frames later, as if it had taken
+    /// that long. For evaluations and tests, not for robots.
+    pub deterministic_every_frames: u32,
+    pub deterministic_delay_frames: u32,
 }
 
 /// Dense optical flow (OpenCV Farneback) on a subsampled grey image.
@@ -187,6 +195,9 @@ impl PerceptionConfig {
         if s.max_mask_age_frames == 0 {
             return Err("perception.segmentation.max_mask_age_frames must be at least 1".into());
         }
+        if s.deterministic_every_frames > 0 && s.deterministic_delay_frames >= s.max_mask_age_frames {
+            return Err("perception.segmentation.deterministic_delay_frames must be below max_mask_age_frames".into());
+        }
         if s.workers == 0 {
             return Err("perception.segmentation.workers must be at least 1".into());
         }
@@ -273,6 +284,8 @@ impl Default for SegmentationConfig {
             prior_dynamic_classes: DEFAULT_PRIOR_DYNAMIC.iter().map(|s| (*s).to_string()).collect(),
             workers: 1,
             max_mask_age_frames: 15,
+            deterministic_every_frames: 0,
+            deterministic_delay_frames: 0,
         }
     }
 }

@@ -58,8 +58,12 @@ pub struct GrpcConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct HttpConfig {
-    /// Address of the HTTP API (`/healthz`, `/api/v1/...`, `/metrics`).
+    /// Address of the HTTP API (`/healthz`, `/api/v1/...`, `/metrics`) and the dashboard (`/`).
     pub listen: String,
+    /// Folder of the web dashboard (`dashboard/` of the repository, with its
+    /// `node_modules` from `make dashboard`). Empty: `dashboard/` beside the
+    /// working directory, else two levels above the server binary (`target/<profile>/`).
+    pub dashboard_dir: String,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -115,7 +119,7 @@ impl Default for GrpcConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into() }
+        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new() }
     }
 }
 

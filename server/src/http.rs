@@ -14,7 +14,13 @@ use stillmap_proto::pb;
 use crate::mapping::{self, BadQuery, SharedMap};
 use crate::session::{Registry, Session, summary};
 
-pub fn router(registry: Arc<Registry>) -> Router {
+pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>) -> Router {
+    let dashboard = crate::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir };
+    let ui = Router::new()
+        .route("/", get(crate::dashboard::index))
+        .route("/assets/{*path}", get(crate::dashboard::asset))
+        .route("/api/v1/events", get(crate::dashboard::events))
+        .with_state(dashboard);
     Router::new()
         .route("/healthz", get(|| async { Json(json!({ "status": "ok" })) }))
         .route("/api/v1/sessions", get(list_sessions))
@@ -31,8 +37,9 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/api/v1/maps/{id}/export", get(map_export))
         .route("/api/v1/maps/import", post(map_import).layer(DefaultBodyLimit::max(MAX_IMPORT_BYTES)))
         .route("/metrics", get(metrics))
-        .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
         .with_state(registry)
+        .merge(ui)
+        .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
 }
 
 fn error(code: StatusCode, message: String) -> Response {

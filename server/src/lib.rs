@@ -5,6 +5,7 @@
 //! shells ([`grpc`], [`zenoh_ingest`], [`http`]) only translate.
 
 pub mod config;
+pub mod dashboard;
 pub mod grpc;
 pub mod http;
 pub mod mapping;
@@ -139,7 +140,12 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(ingest)
         .add_service(query)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
-    let http = axum::serve(http_listener, http::router(registry.clone())).with_graceful_shutdown(wait_for(shutdown.clone()));
+    let dashboard_dir = dashboard::locate(&config.http.dashboard_dir);
+    match &dashboard_dir {
+        Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
+        None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
+    }
+    let http = axum::serve(http_listener, http::router(registry.clone(), dashboard_dir)).with_graceful_shutdown(wait_for(shutdown.clone()));
 
     let bound = Bound {
         grpc: bound_grpc,
@@ -170,6 +176,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     match tokio::time::timeout(SHUTDOWN_GRACE, finish).await {
         Ok(r) => r?,
         Err(_) => tracing::warn!("open streams outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway"),
+    }
+    // The workers finish their queues and commit what came after their last keyframe.
+    let workers = registry.clone();
+    if tokio::time::timeout(SHUTDOWN_GRACE, tokio::task::spawn_blocking(move || workers.join_workers())).await.is_err() {
+        tracing::warn!("pipeline workers outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway");
     }
     #[cfg(feature = "zenoh")]
     if let Some((z, task)) = zenoh_task {

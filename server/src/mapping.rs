@@ -27,6 +27,8 @@ use crate::tracking::camera_of;
 
 /// Stage name of map fusion, as it appears in results and `/metrics` (keyframes only).
 pub const MAP_FUSE_STAGE: &str = "map_fuse";
+/// Stage name of the keyframe's store commit.
+pub const STORE_COMMIT_STAGE: &str = "store_commit";
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -126,8 +128,9 @@ impl SessionMap {
 
     /// Commits the poses since the last commit, the keyframe, changed and evicted
     /// blocks. On failure the evicted blocks come back into memory (nothing is lost).
-    pub fn persist(&mut self, poses: &[pb::PoseStamped], keyframe: Option<KeyframeRecord>) -> Result<(), StoreError> {
-        let Some(p) = &mut self.persistence else { return Ok(()) };
+    /// Returns whether there is a store (and so a commit happened).
+    pub fn persist(&mut self, poses: &[pb::PoseStamped], keyframe: Option<KeyframeRecord>) -> Result<bool, StoreError> {
+        let Some(p) = &mut self.persistence else { return Ok(false) };
         // A block started where an evicted one was (fusion out of the camera's
         // reach): merge the stored one in before this commit overwrites it.
         let reborn: Vec<BlockKey> = self.builder.map().changed_since(p.committed_stamp).map(|(k, _)| *k).filter(|k| p.cold.contains(k)).collect();
@@ -168,7 +171,7 @@ impl SessionMap {
                 p.committed_poses = poses.len();
                 p.committed_stamp = p.meta.map_stamp;
                 p.cold.extend(evicted.into_iter().map(|(k, _)| k));
-                Ok(())
+                Ok(true)
             }
             Err(e) => {
                 for (k, b) in evicted {

@@ -146,7 +146,20 @@ impl SegmentationClient {
     fn take(&self) -> Option<Finished> {
         lock(&self.slot.done).take()
     }
+
+    /// Segments a frame and waits for the result (deterministic mode).
+    fn segment_now(&self, sequence: u64, color: &ColorImage) -> Option<Finished> {
+        // Nothing is in flight in this mode: every job is waited for.
+        self.submit(sequence, color);
+        while self.slot.busy.load(Ordering::Acquire) {
+            std::thread::sleep(DETERMINISTIC_POLL);
+        }
+        self.take()
+    }
 }
+
+/// How often a deterministic session checks for its segmentation.
+const DETERMINISTIC_POLL: Duration = Duration::from_millis(1);
 
 /// One session's perception state.
 pub struct SessionPerception {
@@ -156,23 +169,56 @@ pub struct SessionPerception {
     segmentation_time: Option<Duration>,
     /// The last finished frame's labels ([`stillmap_perception::PixelLabel`] per pixel).
     labels: Option<Vec<u8>>,
+    /// Deterministic mode: (every, delay), the frames seen, and results held back
+    /// until their release frame.
+    deterministic: Option<(u32, u32)>,
+    frames: u64,
+    held: VecDeque<(u64, Finished)>,
 }
 
 impl SessionPerception {
     pub fn new(camera: &pb::CameraInfo, config: &PerceptionConfig, service: Option<&Arc<SegmentationService>>) -> Result<Self, PerceptionError> {
         let names = service.map(|s| s.class_names().to_vec()).unwrap_or_default();
         let masker = DynamicMasker::new(camera_of(camera), config.clone(), &names)?;
-        Ok(Self { masker, segmentation: service.map(|s| s.client()), policy_mask: None, segmentation_time: None, labels: None })
+        let seg = &config.segmentation;
+        let deterministic = (seg.deterministic_every_frames > 0).then_some((seg.deterministic_every_frames, seg.deterministic_delay_frames));
+        Ok(Self {
+            masker,
+            segmentation: service.map(|s| s.client()),
+            policy_mask: None,
+            segmentation_time: None,
+            labels: None,
+            deterministic,
+            frames: 0,
+            held: VecDeque::new(),
+        })
     }
 
     /// First phase: returns the mask tracking must use for this frame.
     pub fn prepare(&mut self, sequence: u64, color: &ColorImage, depth: &DepthImage) -> Option<&[u8]> {
         self.labels = None;
-        let finished = self.segmentation.as_ref().and_then(SegmentationClient::take);
+        let index = self.frames;
+        self.frames += 1;
+        let finished = match (&self.segmentation, self.deterministic) {
+            (Some(client), Some((every, delay))) => {
+                if index % u64::from(every) == 0
+                    && let Some(f) = client.segment_now(sequence, color)
+                {
+                    self.held.push_back((index + u64::from(delay), f));
+                }
+                match self.held.front() {
+                    Some((release, _)) if *release <= index => self.held.pop_front().map(|(_, f)| f),
+                    _ => None,
+                }
+            }
+            (Some(client), None) => {
+                let finished = client.take();
+                client.submit(sequence, color);
+                finished
+            }
+            (None, _) => None,
+        };
         self.segmentation_time = finished.as_ref().map(|f| f.2);
-        if let Some(client) = &self.segmentation {
-            client.submit(sequence, color);
-        }
         let input = MaskerInput {
             sequence,
             rgb: &color.data,

@@ -33,6 +33,11 @@ pub type ResultSink = mpsc::Sender<Result<pb::ServerMessage, Status>>;
 
 /// Poses a slow `SubscribePoses` client may lag behind before it skips some.
 const POSE_SUBSCRIBER_BUFFER: usize = 256;
+/// Poses of all sessions a slow dashboard may lag behind before it skips some.
+const FLEET_POSE_BUFFER: usize = 1024;
+
+/// A pose of some session, for the fleet-wide event stream (the dashboard).
+pub type FleetPose = (Arc<str>, pb::PoseStamped);
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Transport {
@@ -82,6 +87,9 @@ pub struct Session {
     last_received_sequence: Mutex<Option<u64>>,
     track: Mutex<TrackState>,
     poses: broadcast::Sender<pb::PoseStamped>,
+    fleet: broadcast::Sender<FleetPose>,
+    /// The last processed frame's stage latencies (the dashboard's sparklines).
+    last_latency: Mutex<Vec<pb::StageLatency>>,
     answered_tx: watch::Sender<u64>,
     metrics: Arc<Metrics>,
     tracker_config: TrackerConfig,
@@ -191,7 +199,13 @@ impl Session {
             drop(track);
             // No subscriber is fine.
             let _ = self.poses.send(s);
+            let _ = self.fleet.send((Arc::from(self.id.as_str()), s));
         }
+    }
+
+    /// The last processed frame's stage latencies.
+    pub fn last_latency(&self) -> Vec<pb::StageLatency> {
+        lock(&self.last_latency).clone()
     }
 
     /// The worker loop: one thread per session, until the queue closes.
@@ -245,7 +259,7 @@ impl Session {
                             if fused.is_some() {
                                 self.metrics.keyframe_fused();
                                 let record = tracker.new_keyframe().and_then(|id| tracker.keyframe_record(id));
-                                self.persist(map, record);
+                                self.persist(map, record, Some(&mut out.result));
                             }
                         } else {
                             self.record_pose(&out.result, pose);
@@ -260,6 +274,7 @@ impl Session {
                         for l in &out.result.latency {
                             self.metrics.stage(&l.stage, l.micros);
                         }
+                        *lock(&self.last_latency) = out.result.latency.clone();
                     }
                     out.result
                 }
@@ -268,15 +283,27 @@ impl Session {
         }
         // Shutdown: commit the poses after the last keyframe too.
         if let Some(map) = &self.map {
-            self.persist(map, None);
+            self.persist(map, None, None);
         }
         tracing::debug!(session = %self.id, "worker stopped");
     }
 
-    fn persist(&self, map: &SharedMap, keyframe: Option<crate::store::KeyframeRecord>) {
-        let poses = self.tracking().trajectory.clone();
-        if let Err(e) = lock(map).persist(&poses, keyframe) {
-            tracing::error!(session = %self.id, "cannot commit to the store (the map stays in memory): {e}");
+    /// Commits to the store; the time goes into `result` as the `store_commit` stage.
+    fn persist(&self, map: &SharedMap, keyframe: Option<crate::store::KeyframeRecord>, result: Option<&mut pb::FrameResult>) {
+        let start = Instant::now();
+        // Lock order: tracking, then map (nothing takes them the other way round).
+        let track = self.tracking();
+        let outcome = lock(map).persist(&track.trajectory, keyframe);
+        drop(track);
+        match outcome {
+            Ok(true) => {
+                if let Some(r) = result {
+                    let spent = start.elapsed();
+                    crate::pipeline::append_stages(r, &[(crate::mapping::STORE_COMMIT_STAGE, spent)], spent);
+                }
+            }
+            Ok(false) => {}
+            Err(e) => tracing::error!(session = %self.id, "cannot commit to the store (the map stays in memory): {e}"),
         }
     }
 
@@ -329,7 +356,10 @@ pub struct Registry {
     mapping: MappingConfig,
     store: Option<Arc<Store>>,
     metrics: Arc<Metrics>,
+    fleet: broadcast::Sender<FleetPose>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
+    /// Worker threads, joined at shutdown (their last commit must land).
+    workers: Mutex<Vec<std::thread::JoinHandle<()>>>,
     next_id: AtomicU64,
     /// Distinguishes session ids of different server runs.
     epoch: u64,
@@ -351,11 +381,16 @@ impl Registry {
         metrics: Arc<Metrics>,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, mapping, store, metrics, sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, workers: Mutex::new(Vec::new()), sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
         &self.metrics
+    }
+
+    /// Every session's poses as they are estimated.
+    pub fn subscribe_fleet(&self) -> broadcast::Receiver<FleetPose> {
+        self.fleet.subscribe()
     }
 
     pub fn get(&self, id: &str) -> Option<Arc<Session>> {
@@ -433,6 +468,8 @@ impl Registry {
             last_received_sequence: Mutex::new(None),
             track: Mutex::new(TrackState { state: TrackingState::Initializing, ..Default::default() }),
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
+            fleet: self.fleet.clone(),
+            last_latency: Mutex::new(Vec::new()),
             answered_tx: watch::channel(0).0,
             metrics: self.metrics.clone(),
             tracker_config: self.tracking.clone(),
@@ -442,10 +479,11 @@ impl Registry {
         });
         session.attach(sink);
         let worker = session.clone();
-        std::thread::Builder::new()
+        let handle = std::thread::Builder::new()
             .name(format!("pipeline-{n}"))
             .spawn(move || worker.run_worker())
             .map_err(|e| BadHello(format!("cannot start a pipeline worker: {e}")))?;
+        lock(&self.workers).push(handle);
         self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session.clone());
         self.metrics.session_opened();
         tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
@@ -498,6 +536,8 @@ impl Registry {
                 last_received_sequence: Mutex::new(latest.map(|p| p.sequence)),
                 track: Mutex::new(TrackState { state, latest, trajectory: s.poses }),
                 poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
+                fleet: self.fleet.clone(),
+                last_latency: Mutex::new(Vec::new()),
                 answered_tx: watch::channel(0).0,
                 metrics: self.metrics.clone(),
                 tracker_config: self.tracking.clone(),
@@ -525,6 +565,14 @@ impl Registry {
         let id = stored.id.clone();
         self.restore(vec![stored]);
         Ok(id)
+    }
+
+    /// Waits for every worker to finish its queue and its last commit.
+    pub fn join_workers(&self) {
+        let workers = std::mem::take(&mut *lock(&self.workers));
+        for w in workers {
+            let _ = w.join();
+        }
     }
 
     /// Stops every worker once its queue is drained (server shutdown).

@@ -91,6 +91,12 @@ impl Server {
         Self { child, own_store, grpc, http, zenoh }
     }
 
+    /// SIGTERM, then waits for the graceful shutdown to finish.
+    pub fn terminate(&mut self) {
+        let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
+        let _ = self.child.wait();
+    }
+
     /// `kill -9`: no shutdown, no flush.
     pub fn kill9(&mut self) {
         let _ = self.child.kill();

@@ -95,3 +95,29 @@ async fn kill_9_while_streaming_keeps_trajectory_and_map_up_to_the_last_keyframe
     drop(server);
     let _ = std::fs::remove_file(&store);
 }
+
+/// A graceful restart keeps everything, the frames after the last keyframe too.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_graceful_restart_keeps_every_pose_and_the_map() {
+    let store = tempfile_path("restart.redb");
+    let store_arg = store.to_str().expect("utf-8 path").to_string();
+    let mut server = Server::start(&["--no-zenoh", "--store", &store_arg]);
+    let (out, summary) = stillmap_e2e::run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
+    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
+    let (_, before) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    let (_, map_before) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    server.terminate();
+    let server = Server::start(&["--no-zenoh", "--store", &store_arg]);
+    let (_, after) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    assert_eq!(after["poses"].as_array().map(Vec::len), Some(150));
+    assert_eq!(after["poses"], before["poses"]);
+    let (_, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    for key in ["keyframes", "occupied_voxels", "blocks", "map_from_world_xyzw"] {
+        assert_eq!(map[key], map_before[key], "{key}");
+    }
+    let ply_size = reqwest::get(format!("http://{}/api/v1/maps/{id}/export", server.http)).await.expect("GET").bytes().await.expect("body").len();
+    eprintln!("store file {} bytes; the session exported as one file: {ply_size} bytes", std::fs::metadata(&store).map(|m| m.len()).unwrap_or(0));
+    drop(server);
+    let _ = std::fs::remove_file(&store);
+}

@@ -33,7 +33,14 @@ fn rmse(result: &serde_json::Value, relation: &str) -> f64 {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
-    let server = Server::start(&["--no-zenoh"]);
+    // Reproducible: every frame segmented before it is masked (the paper's
+    // synchronous pipeline). The asynchronous default makes masks, and so poses,
+    // depend on thread timing: over 14 runs ATE moved between 4.8 and 7.0 cm, the
+    // spread coming from false-dynamic flow regions on the motion-blurred frames
+    // 105-116 (see the closing note of the map issue).
+    let config = tempfile_path("deterministic.toml");
+    std::fs::write(&config, "[perception.segmentation]\ndeterministic_every_frames = 1\ndeterministic_delay_frames = 0\n").expect("config");
+    let server = Server::start(&["--no-zenoh", "--config", config.to_str().expect("utf-8 path")]);
     let client_trajectory = tempfile_path("client.tum");
     let (out, summary) = run_client(&[
         "--source",
@@ -89,8 +96,9 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     assert_eq!(missing["error"], "unknown session \"nobody-1\"");
 
     // Accuracy against the ground truth, evo semantics (20 ms association).
-    // Measured on this machine: ATE 4.72 cm, origin-aligned rotation 2.34 deg,
-    // RPE 14.0 mm / 0.78 deg per frame (README, "Tracking accuracy"). The bounds
+    // Measured on this machine (every frame segmented): ATE 5.09 cm, origin-aligned
+    // rotation 2.19 deg, RPE 14.5 mm / 0.84 deg per frame; without perception 4.72 cm,
+    // 2.34 deg, 14.0 mm, 0.78 deg (README, "Tracking accuracy"). The bounds
     // leave a margin; the issue's targets (2.0 cm, 2.0 deg, 6 mm, 0.5 deg) are not met yet.
     let ate = eval(&["ape", "--align", "--relation", "trans"], &server_trajectory);
     let ate_rot = eval(&["ape", "--align-origin", "--relation", "rot"], &server_trajectory);
@@ -101,7 +109,7 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     assert!(r <= 3.0, "ATE rotation {r} deg");
     assert!(rt <= 0.018, "RPE translation {rt} m");
     assert!(rr <= 1.0, "RPE rotation {rr} deg");
-    for p in [client_trajectory, server_trajectory] {
+    for p in [client_trajectory, server_trajectory, config] {
         let _ = std::fs::remove_file(p);
     }
 }

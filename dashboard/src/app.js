@@ -1,0 +1,239 @@
+// stillmap dashboard: sessions table, 2D semantic map, 3D point cloud.
+// Live data comes from the server's event stream (/api/v1/events, Server-Sent
+// Events): a sessions snapshot twice a second and every new pose. Map tiles and
+// the cloud are fetched again only when a session's map version changes.
+
+import { Map2D, rotate } from "./map2d.js";
+
+const SPARK_FRAMES = 60; // latency history per stage
+const SPARK_STAGES = ["total", "track", "perception_flow", "map_fuse"];
+const CLOUD_REFRESH_MS = 5000; // the 3D cloud is re-fetched at most this often
+
+const state = {
+  sessions: new Map(), // id -> snapshot
+  history: new Map(), // id -> { stage -> [ms] }
+  trajectories: new Map(), // id -> [[x, y, z] world]
+  loadedTrajectory: new Set(),
+  selected: null,
+  mapInfo: new Map(), // id -> /api/v1/maps/{id}
+  mapVersion: new Map(),
+  legend: [],
+};
+
+// Exposed for the browser test and for debugging.
+window.__stillmap = { tilesDrawn: 0, trajectoryPoints: 0, cloudPoints: 0, events: 0 };
+
+const $ = (sel) => document.querySelector(sel);
+const map2d = new Map2D($("#map2d"));
+let view3d = null;
+let view3dFailed = null;
+import("./view3d.js")
+  .then((m) => { view3d = new m.View3D($("#map3d"), $("#map3d-status")); refreshCloud(true); })
+  .catch((e) => { view3dFailed = e; $("#map3d-status").textContent = `3D view unavailable (${e.message}): run make dashboard`; });
+
+document.querySelectorAll(".host").forEach((el) => { el.textContent = location.hostname || "localhost"; });
+
+function fmt(v, digits = 1) { return Number.isFinite(v) ? v.toFixed(digits) : "–"; }
+
+function sparkline(values) {
+  const w = 60, h = 16;
+  if (!values.length) return `<svg width="${w}" height="${h}"></svg>`;
+  const max = Math.max(...values, 1e-3);
+  const pts = values.map((v, i) => `${(i / (SPARK_FRAMES - 1)) * w},${h - 1 - (v / max) * (h - 2)}`).join(" ");
+  return `<svg width="${w}" height="${h}"><polyline points="${pts}" fill="none" stroke="#5aa9e6" stroke-width="1"/></svg>`;
+}
+
+function linkBadge(s) {
+  if (s.archived) return `<span class="badge">stored</span>`;
+  return s.connected ? `<span class="badge ok">connected</span>` : `<span class="badge bad">disconnected</span>`;
+}
+
+function trackingBadge(t) {
+  const name = t.replace("TRACKING_STATE_", "").toLowerCase();
+  const kind = name === "tracking" || name === "relocalized" ? "ok" : name === "lost" ? "bad" : "warn";
+  return `<span class="badge ${kind}">${name}</span>`;
+}
+
+function renderTable() {
+  const sessions = [...state.sessions.values()];
+  $("#empty").hidden = sessions.length > 0;
+  $("#session-table").hidden = sessions.length === 0;
+  const body = $("#session-table tbody");
+  const rows = sessions.map((s) => {
+    const hist = state.history.get(s.session_id) || {};
+    const sparks = SPARK_STAGES.filter((st) => hist[st]?.length)
+      .map((st) => `<span class="spark">${st} ${fmt(hist[st].at(-1))}${sparkline(hist[st])}</span>`)
+      .join("");
+    const t = s.pose?.translation;
+    const pose = t ? `${fmt(t[0], 2)}, ${fmt(t[1], 2)}, ${fmt(t[2], 2)}` : "–";
+    const map = s.map ? `${s.map.keyframes} kf · ${s.map.occupied_voxels.toLocaleString()} voxels` : "–";
+    const sel = s.session_id === state.selected ? "selected" : "";
+    return `<tr data-session="${s.session_id}" class="${sel}">
+      <td>${s.robot_id}</td><td class="muted">${s.session_id}</td><td class="link">${linkBadge(s)}</td>
+      <td>${trackingBadge(s.tracking_state)}</td><td class="frames">${s.frames_processed}</td>
+      <td class="fps">${fmt(s.fps)}</td><td class="dropped">${s.frames_dropped}</td><td>${sparks}</td>
+      <td>${pose}</td><td class="map">${map}</td></tr>`;
+  });
+  body.innerHTML = rows.join("");
+}
+
+$("#session-table tbody").addEventListener("click", (e) => {
+  const row = e.target.closest("tr[data-session]");
+  if (row) select(row.dataset.session);
+});
+
+async function getJson(url) {
+  const r = await fetch(url, { cache: "no-cache" });
+  if (!r.ok) throw new Error(`${url}: ${r.status}`);
+  return r.json();
+}
+
+async function select(id) {
+  if (state.selected === id) return;
+  state.selected = id;
+  $("#map-title").textContent = id;
+  renderTable();
+  await loadTrajectory(id);
+  await refreshMap(id, true);
+  refreshCloud(true);
+}
+
+async function loadTrajectory(id) {
+  if (state.loadedTrajectory.has(id)) return;
+  try {
+    const t = await getJson(`/api/v1/sessions/${encodeURIComponent(id)}/trajectory`);
+    const live = state.trajectories.get(id) || [];
+    const first = live.length ? live[0].sequence : Infinity;
+    const stored = t.poses.filter((p) => p.sequence < first).map((p) => ({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw }));
+    state.trajectories.set(id, stored.concat(live));
+    state.loadedTrajectory.add(id);
+  } catch (e) {
+    console.warn(e);
+  }
+}
+
+async function refreshMap(id, fit) {
+  try {
+    const info = await getJson(`/api/v1/maps/${encodeURIComponent(id)}`);
+    state.mapInfo.set(id, info);
+    const legend = await getJson(`/api/v1/maps/${encodeURIComponent(id)}/legend`);
+    if (id !== state.selected) return;
+    state.legend = legend.classes;
+    renderLegend();
+    map2d.setMap(id, info, state.legend, fit);
+    drawMap();
+  } catch (e) {
+    // A session without a map (mapping disabled) just shows its trajectory.
+    console.warn(e);
+  }
+}
+
+function renderLegend() {
+  const hidden = map2d.hidden;
+  $("#legend").innerHTML = state.legend
+    .map((c) => `<label><input type="checkbox" data-color="${c.color}" ${hidden.has(c.color) ? "" : "checked"}>
+      <span class="swatch" style="background:${c.color}"></span>${c.name} <span class="muted">${c.cells}</span></label>`)
+    .join("");
+}
+
+$("#legend").addEventListener("change", (e) => {
+  const color = e.target.dataset.color;
+  if (!color) return;
+  if (e.target.checked) map2d.hidden.delete(color); else map2d.hidden.add(color);
+  map2d.invalidateFilters();
+  drawMap();
+  if (view3d) view3d.setHidden(map2d.hidden);
+});
+
+$("#rgb").addEventListener("change", (e) => { if (view3d) view3d.setColourByRgb(e.target.checked); });
+
+function drawMap() {
+  const id = state.selected;
+  const traj = state.trajectories.get(id) || [];
+  const info = state.mapInfo.get(id);
+  const q = info?.map_from_world_xyzw;
+  const points = traj.map((p) => (q ? rotate(q, p.t) : p.t));
+  const last = traj.at(-1);
+  map2d.draw(points, last ? { t: q ? rotate(q, last.t) : last.t, forward: q ? rotate(q, rotateCamZ(last.q)) : rotateCamZ(last.q) } : null);
+  window.__stillmap.trajectoryPoints = points.length;
+  window.__stillmap.tilesDrawn = map2d.tilesDrawn;
+}
+
+// The camera's viewing direction (its +z) in the world, from world_from_camera's rotation.
+function rotateCamZ(q) { return rotate(q, [0, 0, 1]); }
+
+let lastCloud = 0;
+let cloudTimer = null;
+async function refreshCloud(now) {
+  const id = state.selected;
+  if (!view3d || !id) return;
+  const wait = now ? 0 : Math.max(0, lastCloud + CLOUD_REFRESH_MS - Date.now());
+  clearTimeout(cloudTimer);
+  cloudTimer = setTimeout(async () => {
+    lastCloud = Date.now();
+    const info = state.mapInfo.get(id);
+    const n = await view3d.load(`/api/v1/maps/${encodeURIComponent(id)}/cloud.ply`, state.legend, info?.map_from_world_xyzw);
+    window.__stillmap.cloudPoints = n;
+    update3dTrajectory();
+  }, wait);
+}
+
+function update3dTrajectory() {
+  if (!view3d) return;
+  const id = state.selected;
+  const q = state.mapInfo.get(id)?.map_from_world_xyzw;
+  view3d.setTrajectory((state.trajectories.get(id) || []).map((p) => (q ? rotate(q, p.t) : p.t)));
+}
+
+let drawPending = false;
+function scheduleDraw() {
+  if (drawPending) return;
+  drawPending = true;
+  requestAnimationFrame(() => { drawPending = false; drawMap(); update3dTrajectory(); });
+}
+
+map2d.onChange = scheduleDraw;
+
+// ---------------------------------------------------------------- the event stream
+function connect() {
+  const events = new EventSource("/api/v1/events");
+  events.onopen = () => { $("#link").textContent = "live"; $("#link").className = "badge ok"; };
+  events.onerror = () => { $("#link").textContent = "server unreachable, retrying…"; $("#link").className = "badge bad"; };
+  events.addEventListener("sessions", (e) => {
+    window.__stillmap.events++;
+    const { sessions } = JSON.parse(e.data);
+    const seen = new Set();
+    for (const s of sessions) {
+      seen.add(s.session_id);
+      const prev = state.sessions.get(s.session_id);
+      state.sessions.set(s.session_id, s);
+      const hist = state.history.get(s.session_id) || {};
+      if (!prev || prev.frames_processed !== s.frames_processed) {
+        const lat = { ...s.latency_ms };
+        for (const [stage, ms] of Object.entries(lat)) {
+          (hist[stage] ||= []).push(ms);
+          if (hist[stage].length > SPARK_FRAMES) hist[stage].shift();
+        }
+      }
+      state.history.set(s.session_id, hist);
+      const version = s.map?.version;
+      if (version !== undefined && state.mapVersion.get(s.session_id) !== version) {
+        state.mapVersion.set(s.session_id, version);
+        if (s.session_id === state.selected) { refreshMap(s.session_id, false); refreshCloud(false); }
+      }
+    }
+    for (const id of [...state.sessions.keys()]) if (!seen.has(id)) state.sessions.delete(id);
+    if (!state.selected && sessions.length) select(sessions[0].session_id);
+    renderTable();
+  });
+  events.addEventListener("pose", (e) => {
+    const p = JSON.parse(e.data);
+    const list = state.trajectories.get(p.session_id) || [];
+    list.push({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw });
+    state.trajectories.set(p.session_id, list);
+    if (p.session_id === state.selected) scheduleDraw();
+  });
+}
+
+connect();
+renderTable();

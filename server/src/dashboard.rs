@@ -1,0 +1,168 @@
+//! The web dashboard's shell: its files (plain ES modules from the repository's
+//! `dashboard/`, three.js from its `node_modules`) and the fleet-wide event stream
+//! (Server-Sent Events) it draws live from.
+
+use std::collections::HashMap;
+use std::convert::Infallible;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::extract::{Path as UrlPath, State};
+use axum::http::{StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{Html, IntoResponse, Response};
+use futures_util::Stream;
+use serde_json::{Value, json};
+use stillmap_proto::pb;
+use tokio_stream::StreamExt;
+use tokio_stream::wrappers::{BroadcastStream, IntervalStream};
+
+use crate::session::Registry;
+
+/// How often the event stream sends the sessions snapshot.
+const SNAPSHOT_INTERVAL: Duration = Duration::from_millis(500);
+/// Largest dashboard file served (three.js is ~1.3 MB).
+const MAX_ASSET_BYTES: u64 = 8 << 20;
+
+/// Finds the dashboard folder: the configured one, else `dashboard/` in the working
+/// directory, else two levels above the executable (`target/<profile>/../../dashboard`).
+pub fn locate(configured: &str) -> Option<PathBuf> {
+    if !configured.is_empty() {
+        return Some(PathBuf::from(configured));
+    }
+    let mut candidates = vec![PathBuf::from("dashboard")];
+    if let Ok(exe) = std::env::current_exe()
+        && let Some(dir) = exe.parent()
+    {
+        candidates.push(dir.join("../../dashboard"));
+    }
+    candidates.into_iter().find(|d| d.join("index.html").is_file())
+}
+
+#[derive(Clone)]
+pub struct DashboardState {
+    pub registry: Arc<Registry>,
+    pub dir: Option<PathBuf>,
+}
+
+pub async fn index(State(state): State<DashboardState>) -> Response {
+    let Some(dir) = &state.dir else {
+        return (StatusCode::NOT_FOUND, Html(NOT_BUILT.to_string())).into_response();
+    };
+    match tokio::fs::read_to_string(dir.join("index.html")).await {
+        Ok(html) => ([(header::CACHE_CONTROL, "no-cache")], Html(html)).into_response(),
+        Err(e) => (StatusCode::NOT_FOUND, Html(format!("{NOT_BUILT}<p>{e}</p>"))).into_response(),
+    }
+}
+
+const NOT_BUILT: &str = "<!doctype html><title>stillmap</title><h1>stillmap</h1><p>The dashboard files were not found: run <code>make dashboard</code> in the repository, or set <code>http.dashboard_dir</code>.</p>";
+
+/// `/assets/<path>`: `src/` of the dashboard, and `vendor/three/...` from its node_modules.
+pub async fn asset(State(state): State<DashboardState>, UrlPath(path): UrlPath<String>) -> Response {
+    let Some(dir) = &state.dir else {
+        return not_found(&path);
+    };
+    // Only plain names: no "..", no absolute paths, no hidden files.
+    let ok = !path.is_empty()
+        && path.split('/').all(|c| !c.is_empty() && !c.starts_with('.') && c.chars().all(|ch| ch.is_ascii_alphanumeric() || "._-".contains(ch)));
+    if !ok {
+        return (StatusCode::BAD_REQUEST, axum::Json(json!({ "error": format!("bad asset path {path:?}") }))).into_response();
+    }
+    let file = match path.strip_prefix("vendor/three/") {
+        Some(rest) => dir.join("node_modules/three").join(rest),
+        None => dir.join("src").join(&path),
+    };
+    serve_file(&file, &path).await
+}
+
+async fn serve_file(file: &Path, name: &str) -> Response {
+    let Ok(meta) = tokio::fs::metadata(file).await else { return not_found(name) };
+    if !meta.is_file() || meta.len() > MAX_ASSET_BYTES {
+        return not_found(name);
+    }
+    let Ok(bytes) = tokio::fs::read(file).await else { return not_found(name) };
+    let kind = match file.extension().and_then(|e| e.to_str()) {
+        Some("js") => "text/javascript; charset=utf-8",
+        Some("css") => "text/css; charset=utf-8",
+        Some("html") => "text/html; charset=utf-8",
+        Some("svg") => "image/svg+xml",
+        Some("png") => "image/png",
+        _ => "application/octet-stream",
+    };
+    ([(header::CONTENT_TYPE, kind), (header::CACHE_CONTROL, "no-cache")], bytes).into_response()
+}
+
+fn not_found(name: &str) -> Response {
+    (StatusCode::NOT_FOUND, axum::Json(json!({ "error": format!("no dashboard asset {name:?} (run make dashboard)") }))).into_response()
+}
+
+/// What one session looks like on the dashboard.
+fn session_json(s: &crate::session::Session, fps: f64) -> Value {
+    let summary = crate::session::summary(s);
+    let latest = s.tracking().latest;
+    let map = s.map().map(crate::mapping::lock_info);
+    json!({
+        "session_id": summary.session_id,
+        "robot_id": summary.robot_id,
+        "transport": summary.transport,
+        "connected": summary.connected,
+        "archived": s.is_archived(),
+        "tracking_state": pb::TrackingState::try_from(summary.tracking_state).map(|t| t.as_str_name()).unwrap_or("UNKNOWN"),
+        "frames_received": summary.frames_received,
+        "frames_processed": summary.frames_processed,
+        "frames_dropped": summary.frames_dropped,
+        "frames_rejected": summary.frames_rejected,
+        "fps": fps,
+        "latency_ms": s.last_latency().iter().map(|l| (l.stage.clone(), f64::from(l.micros) / 1000.0)).collect::<HashMap<_, _>>(),
+        "pose": latest.and_then(|p| p.world_from_camera).map(|p| {
+            let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
+            json!({ "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
+        }),
+        "map": map.map(|m| json!({ "version": m.version, "keyframes": m.keyframes, "occupied_voxels": m.occupied_voxels })),
+    })
+}
+
+enum Tick {
+    Snapshot,
+    Pose(crate::session::FleetPose),
+}
+
+/// `GET /api/v1/events`: `sessions` every 500 ms (the table, frames/s, latencies,
+/// map versions) and `pose` for every new pose of any session.
+pub async fn events(State(state): State<DashboardState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+    let registry = state.registry.clone();
+    let ticks = IntervalStream::new(tokio::time::interval(SNAPSHOT_INTERVAL)).map(|_| Tick::Snapshot);
+    // A dashboard that falls behind skips poses (it redraws from the next ones).
+    let poses = BroadcastStream::new(registry.subscribe_fleet()).filter_map(|p| p.ok().map(Tick::Pose));
+    let mut previous: HashMap<String, (u64, Instant)> = HashMap::new();
+    let stream = ticks.merge(poses).map(move |tick| {
+        let event = match tick {
+            Tick::Snapshot => {
+                let now = Instant::now();
+                let sessions: Vec<Value> = registry
+                    .list()
+                    .iter()
+                    .map(|s| {
+                        let processed = s.counters.processed.load(std::sync::atomic::Ordering::Relaxed);
+                        let fps = match previous.insert(s.id.clone(), (processed, now)) {
+                            Some((p, t)) if now > t => (processed.saturating_sub(p)) as f64 / (now - t).as_secs_f64(),
+                            _ => 0.0,
+                        };
+                        session_json(s, fps)
+                    })
+                    .collect();
+                Event::default().event("sessions").data(json!({ "sessions": sessions }).to_string())
+            }
+            Tick::Pose((id, p)) => {
+                let pose = p.world_from_camera.unwrap_or_default();
+                let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
+                Event::default().event("pose").data(
+                    json!({ "session_id": &*id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] }).to_string(),
+                )
+            }
+        };
+        Ok(event)
+    });
+    Sse::new(stream).keep_alive(KeepAlive::default())
+}
