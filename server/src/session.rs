@@ -365,6 +365,22 @@ pub struct Registry {
     epoch: u64,
 }
 
+/// What differs between a live session and one restored from the store.
+struct SessionParts {
+    id: String,
+    robot_id: String,
+    transport: Transport,
+    camera: pb::CameraInfo,
+    started_unix_ns: u64,
+    counters: Counters,
+    queue: FrameQueue,
+    last_received_sequence: Option<u64>,
+    track: TrackState,
+    perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
+    map: Option<SharedMap>,
+    archived: bool,
+}
+
 /// The result of a hello.
 pub struct Opened {
     pub session: Arc<Session>,
@@ -451,32 +467,20 @@ impl Registry {
         } else {
             None
         };
-        let session = Arc::new(Session {
+        let session = Arc::new(self.session(SessionParts {
             id: id.clone(),
             robot_id: hello.robot_id.clone(),
             transport,
             camera,
             started_unix_ns,
             counters: Counters::default(),
-            connected: AtomicBool::new(false),
-            queue: FrameQueue::new(
-                self.config.queue_capacity,
-                self.config.max_pending_drop_notices,
-                self.config.overload_policy,
-            ),
-            sink: Mutex::new(None),
-            last_received_sequence: Mutex::new(None),
-            track: Mutex::new(TrackState { state: TrackingState::Initializing, ..Default::default() }),
-            poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
-            fleet: self.fleet.clone(),
-            last_latency: Mutex::new(Vec::new()),
-            answered_tx: watch::channel(0).0,
-            metrics: self.metrics.clone(),
-            tracker_config: self.tracking.clone(),
+            queue: FrameQueue::new(self.config.queue_capacity, self.config.max_pending_drop_notices, self.config.overload_policy),
+            last_received_sequence: None,
+            track: TrackState { state: TrackingState::Initializing, ..Default::default() },
             perception: self.perception.clone(),
             map,
             archived: false,
-        });
+        }));
         session.attach(sink);
         let worker = session.clone();
         let handle = std::thread::Builder::new()
@@ -523,28 +527,20 @@ impl Registry {
             let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
             let queue = FrameQueue::new(1, 1, self.config.overload_policy);
             queue.close();
-            let session = Arc::new(Session {
+            let session = Arc::new(self.session(SessionParts {
                 id: id.clone(),
                 robot_id: s.meta.robot_id.clone(),
                 transport,
                 camera: s.camera,
                 started_unix_ns: s.meta.started_unix_ns,
                 counters,
-                connected: AtomicBool::new(false),
                 queue,
-                sink: Mutex::new(None),
-                last_received_sequence: Mutex::new(latest.map(|p| p.sequence)),
-                track: Mutex::new(TrackState { state, latest, trajectory: s.poses }),
-                poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
-                fleet: self.fleet.clone(),
-                last_latency: Mutex::new(Vec::new()),
-                answered_tx: watch::channel(0).0,
-                metrics: self.metrics.clone(),
-                tracker_config: self.tracking.clone(),
+                last_received_sequence: latest.map(|p| p.sequence),
+                track: TrackState { state, latest, trajectory: s.poses },
                 perception: None,
                 map,
                 archived: true,
-            });
+            }));
             tracing::info!(session = %id, keyframes = s.meta.keyframes, "session restored from the store");
             self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session);
         }
@@ -565,6 +561,32 @@ impl Registry {
         let id = stored.id.clone();
         self.restore(vec![stored]);
         Ok(id)
+    }
+
+    /// A session from what differs between a live and a restored one.
+    fn session(&self, p: SessionParts) -> Session {
+        Session {
+            id: p.id,
+            robot_id: p.robot_id,
+            transport: p.transport,
+            camera: p.camera,
+            started_unix_ns: p.started_unix_ns,
+            counters: p.counters,
+            connected: AtomicBool::new(false),
+            queue: p.queue,
+            sink: Mutex::new(None),
+            last_received_sequence: Mutex::new(p.last_received_sequence),
+            track: Mutex::new(p.track),
+            poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
+            fleet: self.fleet.clone(),
+            last_latency: Mutex::new(Vec::new()),
+            answered_tx: watch::channel(0).0,
+            metrics: self.metrics.clone(),
+            tracker_config: self.tracking.clone(),
+            perception: p.perception,
+            map: p.map,
+            archived: p.archived,
+        }
     }
 
     /// Waits for every worker to finish its queue and its last commit.
