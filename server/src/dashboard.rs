@@ -101,7 +101,7 @@ fn not_found(name: &str) -> Response {
 fn session_json(s: &crate::session::Session, fps: f64) -> Value {
     let summary = crate::session::summary(s);
     let latest = s.tracking().latest;
-    let map = s.map().map(crate::mapping::lock_info);
+    let map = s.map().map(crate::mapping::summary);
     json!({
         "session_id": summary.session_id,
         "robot_id": summary.robot_id,
@@ -119,7 +119,7 @@ fn session_json(s: &crate::session::Session, fps: f64) -> Value {
             let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
             json!({ "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
         }),
-        "map": map.map(|m| json!({ "version": m.version, "keyframes": m.keyframes, "occupied_voxels": m.occupied_voxels })),
+        "map": map.map(|(version, keyframes, occupied)| json!({ "version": version, "keyframes": keyframes, "occupied_voxels": occupied })),
     })
 }
 

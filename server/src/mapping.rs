@@ -284,6 +284,13 @@ pub fn lock_info(map: &SharedMap) -> MapInfo {
     lock(map).info()
 }
 
+/// What the dashboard's snapshot needs, without building the top-down index:
+/// (version, keyframes, occupied voxels in memory).
+pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
+    let m = lock(map);
+    (m.builder.map().version(), m.builder.keyframes(), m.builder.map().stats().occupied_voxels)
+}
+
 /// Fuses the frame when the tracker just made it a keyframe, and re-fuses recent
 /// keyframes the tracker moved. Writes the `map_fuse` stage time into `result`.
 pub fn update(
