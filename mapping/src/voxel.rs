@@ -54,20 +54,36 @@ impl Voxel {
     }
 
     pub(crate) fn vote(&mut self, class: u16) {
-        if self.votes_total == u16::MAX {
+        self.vote_n(class, 1);
+    }
+
+    /// `n` votes for `class` at once (weighted Misra–Gries: when every slot is
+    /// taken by other classes, all lose as many votes as the weakest can give, and
+    /// what is left of `n` takes the slot that emptied).
+    fn vote_n(&mut self, class: u16, n: u16) {
+        if n == 0 {
+            return;
+        }
+        while u32::from(self.votes_total) + u32::from(n) > u32::from(u16::MAX) {
             for c in &mut self.classes {
                 c.votes /= 2;
             }
             self.votes_total /= 2;
         }
-        self.votes_total += 1;
+        self.votes_total += n;
         if let Some(slot) = self.classes.iter_mut().find(|c| c.votes > 0 && c.class == class) {
-            slot.votes += 1;
+            slot.votes = slot.votes.saturating_add(n);
         } else if let Some(slot) = self.classes.iter_mut().find(|c| c.votes == 0) {
-            *slot = ClassVote { class, votes: 1 };
+            *slot = ClassVote { class, votes: n };
         } else {
+            let d = self.classes.iter().map(|c| c.votes).min().unwrap_or(0).min(n);
             for c in &mut self.classes {
-                c.votes -= 1;
+                c.votes -= d;
+            }
+            if n > d
+                && let Some(slot) = self.classes.iter_mut().find(|c| c.votes == 0)
+            {
+                *slot = ClassVote { class, votes: n - d };
             }
         }
     }
@@ -95,9 +111,7 @@ impl Voxel {
         self.log_odds = (self.log_odds + older.log_odds).clamp(min, max);
         self.hits = self.hits.saturating_add(older.hits);
         for c in older.classes.iter().filter(|c| c.votes > 0) {
-            for _ in 0..c.votes {
-                self.vote(c.class);
-            }
+            self.vote_n(c.class, c.votes);
         }
     }
 

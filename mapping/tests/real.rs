@@ -19,8 +19,7 @@ use stillmap_mapping::export::{cloud, objects, to_ply};
 use stillmap_mapping::tiles::{OccupancyGrid, TopDown};
 use stillmap_mapping::{DepthView, MapBuilder, MappingConfig, NO_CLASS};
 use stillmap_perception::composite::{TexturedPlane, interpolate_pose, paste};
-use stillmap_perception::{DynamicMasker, MaskerInput, PerceptionConfig, Segmenter, YoloSegmenter};
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
+use stillmap_perception::{Segmenter, YoloSegmenter};
 
 struct Clip {
     frames: Vec<tum::TumFrame>,
@@ -66,10 +65,8 @@ struct Fused {
 fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmenter: Option<(&mut YoloSegmenter, usize)>, snapshot_at: &[usize]) -> Fused {
     let camera = tum::fr1_camera();
     let names: Vec<String> = segmenter.as_ref().map(|(s, _)| s.class_names().to_vec()).unwrap_or_default();
-    let mut masker = DynamicMasker::new(camera.clone(), PerceptionConfig::default(), &names).expect("masker");
-    let mut tracker = Tracker::new(camera.clone(), TrackerConfig::default()).expect("tracker");
+    let mut pipeline = composite_run::MaskedTracking::new(&names);
     let mut builder = MapBuilder::new(&camera, MappingConfig::default()).expect("builder");
-    let mut last_pose: Option<Isometry3<f64>> = None;
     let (mut keyframes, mut snapshots) = (Vec::new(), Vec::new());
     for (k, (f, gt_pose)) in frames.iter().zip(poses).enumerate() {
         // Gravity from the ground truth's up (+z), as an accelerometer at rest reports it.
@@ -78,21 +75,10 @@ fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmen
             Some((s, every)) if k % *every == 0 => Some((k as u64, s.segment(&f.rgb, 640, 480).expect("segment"))),
             _ => None,
         };
-        let tracking_mask = masker
-            .prepare(MaskerInput { sequence: k as u64, rgb: &f.rgb, depth: &f.depth, segmentation, motion_prior: None })
-            .expect("prepare");
-        let track = tracker
-            .track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: Some(&tracking_mask) })
-            .expect("track");
-        let motion = match (last_pose, track.world_from_camera) {
-            (Some(prev), Some(cur)) => Some(prev.inverse() * cur),
-            _ => None,
-        };
-        last_pose = track.world_from_camera;
-        let mask = masker.finish(&f.depth, motion).expect("finish");
+        let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation);
         if track.keyframe {
             let exclude = mask.fused.mapping_mask();
-            let classes = masker.segmentation().map(|s| s.class_map());
+            let classes = pipeline.masker.segmentation().map(|s| s.class_map());
             let view = DepthView {
                 depth: &f.depth,
                 rgb: &f.rgb,

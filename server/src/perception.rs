@@ -14,7 +14,7 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use nalgebra::Isometry3;
-use stillmap_perception::{DynamicMasker, MaskSource, MaskerInput, PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};
+use stillmap_perception::{DynamicMasker, Fused, MaskSource, MaskerInput, PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};
 use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb;
 
@@ -167,8 +167,8 @@ pub struct SessionPerception {
     segmentation: Option<SegmentationClient>,
     policy_mask: Option<Vec<u8>>,
     segmentation_time: Option<Duration>,
-    /// The last finished frame's labels ([`stillmap_perception::PixelLabel`] per pixel).
-    labels: Option<Vec<u8>>,
+    /// The last finished frame's fused mask.
+    fused: Option<Fused>,
     /// Deterministic mode: (every, delay), the frames seen, and results held back
     /// until their release frame.
     deterministic: Option<(u32, u32)>,
@@ -187,7 +187,7 @@ impl SessionPerception {
             segmentation: service.map(|s| s.client()),
             policy_mask: None,
             segmentation_time: None,
-            labels: None,
+            fused: None,
             deterministic,
             frames: 0,
             held: VecDeque::new(),
@@ -196,7 +196,7 @@ impl SessionPerception {
 
     /// First phase: returns the mask tracking must use for this frame.
     pub fn prepare(&mut self, sequence: u64, color: &ColorImage, depth: &DepthImage) -> Option<&[u8]> {
-        self.labels = None;
+        self.fused = None;
         let index = self.frames;
         self.frames += 1;
         let finished = match (&self.segmentation, self.deterministic) {
@@ -291,20 +291,19 @@ impl SessionPerception {
             stages.push((perception_stage::SEGMENTATION, d));
         }
         append_stages(result, &stages, t.total);
-        self.labels = Some(out.fused.labels);
+        self.fused = Some(out.fused);
         Some(label)
     }
 
     /// Pixels of the last finished frame that must stay out of the map (nonzero):
     /// dynamic and prior-dynamic. `None` when perception failed on it.
     pub fn map_exclusion(&self) -> Option<Vec<u8>> {
-        let labels = self.labels.as_ref()?;
-        Some(labels.iter().map(|&l| u8::from(l != stillmap_perception::PixelLabel::Static as u8)).collect())
+        self.fused.as_ref().map(Fused::mapping_mask)
     }
 
     /// The segmentation class per pixel in the current frame (fresh or warped), if any.
     pub fn class_map(&self) -> Option<Vec<u16>> {
-        self.labels.as_ref()?;
+        self.fused.as_ref()?;
         self.masker.segmentation().map(|s| s.class_map())
     }
 }

@@ -245,8 +245,10 @@ impl Session {
                             }
                         }
                         if let Some(map) = &self.map {
-                            let exclude = perception.as_ref().and_then(SessionPerception::map_exclusion);
-                            let classes = perception.as_ref().and_then(SessionPerception::class_map);
+                            // Only a new keyframe is fused: the full-size masks are built for it alone.
+                            let keyframe = tracker.new_keyframe().is_some();
+                            let exclude = perception.as_ref().filter(|_| keyframe).and_then(SessionPerception::map_exclusion);
+                            let classes = perception.as_ref().filter(|_| keyframe).and_then(SessionPerception::class_map);
                             let frame = MapFrame {
                                 color,
                                 depth,

@@ -5,10 +5,10 @@
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use stillmap_perception::composite::{CircularMotion, TexturedPlane, interpolate_pose, paste};
-use stillmap_perception::{DynamicMasker, MaskSource, MaskerInput, PerceptionConfig, PixelLabel, Segmentation, Segmenter};
+use stillmap_perception::{DynamicMasker, MaskOutput, MaskSource, MaskerInput, PerceptionConfig, PixelLabel, Segmentation, Segmenter};
 use stillmap_tracking::features::Extractor;
 use stillmap_tracking::tracker::to_gray;
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
+use stillmap_tracking::{FrameInput, TrackOutput, Tracker, TrackerConfig};
 
 use crate::tum;
 
@@ -94,18 +94,47 @@ pub struct Scores {
     pub trajectory: Vec<(u64, Isometry3<f64>)>,
 }
 
+/// The server's per-frame order: the mask for tracking, tracking with it, then the
+/// fused mask with the tracked motion. Shared by these runs and the map's tests.
+pub struct MaskedTracking {
+    pub masker: DynamicMasker,
+    pub tracker: Tracker,
+    last_pose: Option<Isometry3<f64>>,
+}
+
+impl MaskedTracking {
+    pub fn new(class_names: &[String]) -> Self {
+        let camera = tum::fr1_camera();
+        Self {
+            masker: DynamicMasker::new(camera.clone(), PerceptionConfig::default(), class_names).expect("masker"),
+            tracker: Tracker::new(camera, TrackerConfig::default()).expect("tracker"),
+            last_pose: None,
+        }
+    }
+
+    /// One frame: (the tracking mask, tracking's output, the fused mask).
+    pub fn step(&mut self, sequence: u64, timestamp_ns: u64, rgb: &[u8], depth: &[u16], segmentation: Option<(u64, Segmentation)>) -> (Vec<u8>, TrackOutput, MaskOutput) {
+        let tracking_mask = self.masker.prepare(MaskerInput { sequence, rgb, depth, segmentation, motion_prior: None }).expect("prepare");
+        let track = self.tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: Some(&tracking_mask) }).expect("track");
+        let motion = match (self.last_pose, track.world_from_camera) {
+            (Some(prev), Some(cur)) => Some(prev.inverse() * cur),
+            _ => None,
+        };
+        self.last_pose = track.world_from_camera;
+        let out = self.masker.finish(depth, motion).expect("finish");
+        (tracking_mask, track, out)
+    }
+}
+
 /// Runs the masker (with `segmenter` on `schedule`) and the tracker with its mask.
 pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, schedule: Schedule, verbose: bool) -> Scores {
     let camera = tum::fr1_camera();
     let (w, h) = (camera.width as usize, camera.height as usize);
-    let config = PerceptionConfig::default();
     let names: Vec<String> = segmenter.as_ref().map(|s| s.class_names().to_vec()).unwrap_or_default();
-    let mut masker = DynamicMasker::new(camera.clone(), config, &names).expect("masker");
-    let mut tracker = Tracker::new(camera.clone(), TrackerConfig::default()).expect("tracker");
+    let mut pipeline = MaskedTracking::new(&names);
     let mut extractor = Extractor::new(&TrackerConfig::default()).expect("extractor");
     let mut segmenter = segmenter;
     let mut pending: Vec<(usize, u64, Segmentation)> = Vec::new();
-    let mut last_pose: Option<Isometry3<f64>> = None;
     let mut s = Scores { min_iou: 1.0, ..Scores::default() };
     let (mut iou_sum, mut bg_dynamic, mut bg_total, mut eliminated) = (0.0, 0usize, 0usize, 0usize);
     for (k, f) in frames.iter().enumerate() {
@@ -125,18 +154,7 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
                 }
             }
         }
-        let tracking_mask = masker
-            .prepare(MaskerInput { sequence, rgb: &f.rgb, depth: &f.depth, segmentation: arrived, motion_prior: None })
-            .expect("prepare");
-        let track = tracker
-            .track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: Some(&tracking_mask) })
-            .expect("track");
-        let motion = match (last_pose, track.world_from_camera) {
-            (Some(prev), Some(cur)) => Some(prev.inverse() * cur),
-            _ => None,
-        };
-        last_pose = track.world_from_camera;
-        let out = masker.finish(&f.depth, motion).expect("finish");
+        let (tracking_mask, track, out) = pipeline.step(sequence, f.timestamp_ns, &f.rgb, &f.depth, arrived);
         if let Some(p) = track.world_from_camera {
             s.trajectory.push((f.timestamp_ns, p));
         }
@@ -156,7 +174,7 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
             fd += usize::from(dynamic && !object);
         }
         let iou = inter as f64 / union.max(1) as f64;
-        if let Some(seg) = masker.segmentation() {
+        if let Some(seg) = pipeline.masker.segmentation() {
             let on_object = |id: u16| (0..w * h).filter(|&i| seg.instance_map[i] == id && f.object_mask[i] != 0).count();
             if let Some(person) = out.fused.instances.iter().find(|i| i.class_name == "person" && on_object(i.id) * 2 > i.pixels as usize) {
                 s.person_frames += 1;
