@@ -2,7 +2,8 @@
 //! flow + mask per stage, and dynamic feature elimination. Prints a table beside
 //! the paper's Table 9, then runs criterion.
 //!
-//! `cargo bench -p stillmap-perception` (needs ORT_DYLIB_PATH or .deps/ort). The
+//! `cargo bench -p stillmap-perception` (needs ORT_DYLIB_PATH or .deps/ort;
+//! `STILLMAP_BENCH_NO_SEGMENTATION=1` skips the segmentation rows). The
 //! table's flow + mask rows run the two-phase masker around the real tracker, as
 //! the server does (tracking time not included); the criterion bench runs the
 //! one-phase `process` without a tracked motion (the path after a tracking loss).
@@ -35,7 +36,13 @@ fn table() {
     println!("\nperception on {FRAMES} real fr1_rpy frames (640x480, this CPU); ms per frame");
     println!("| stage | mean | median | p95 | paper (Table 9, GPU) |");
     println!("|---|---|---|---|---|");
-    for (model, paper) in [("yolov8n-seg_fp32_640.onnx", "336.1 (Mask R-CNN)"), ("yolov8n-seg_fp32_320.onnx", "")] {
+    // STILLMAP_BENCH_NO_SEGMENTATION=1: the flow + mask rows only.
+    let models: &[(&str, &str)] = if std::env::var_os("STILLMAP_BENCH_NO_SEGMENTATION").is_some() {
+        &[]
+    } else {
+        &[("yolov8n-seg_fp32_640.onnx", "336.1 (Mask R-CNN)"), ("yolov8n-seg_fp32_320.onnx", "")]
+    };
+    for &(model, paper) in models {
         let mut config = support::segmentation_config(model);
         // STILLMAP_BENCH_ORT_THREADS: ONNX Runtime intra-op threads (default: its own choice).
         config.intra_threads = std::env::var("STILLMAP_BENCH_ORT_THREADS").ok().and_then(|v| v.parse().ok()).unwrap_or(0);

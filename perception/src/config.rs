@@ -128,8 +128,16 @@ pub struct EgoMotionConfig {
     /// zero-mean difference (grey levels). Textureless surfaces, where Farneback's
     /// flow is unconstrained, pass this test and stay static.
     pub photometric_threshold: f64,
-    /// Refine the tracker's camera motion on the flow (off: use it as it is).
+    /// Refine the prior camera motion on the flow (off: use it as it is).
     pub refine_tracked_motion: bool,
+    /// Compensate before tracking, with the previous frame's camera motion as the
+    /// prediction (refined on the flow), so that the tracking mask holds this
+    /// frame's own dynamic pixels (objects entering the view, the first frames,
+    /// sudden starts) besides the previous frame's; the tracked motion then only
+    /// re-decides the labels when it disagrees and leaves fewer pixels moving.
+    /// Off: compensation waits for the tracked motion, and tracking uses the
+    /// previous frame's mask alone.
+    pub before_tracking: bool,
     /// … and by more than this factor times the difference under the measured flow
     /// (the flow must explain the pixel better than the camera motion does).
     pub photometric_ratio: f64,
@@ -170,9 +178,10 @@ pub struct FusionConfig {
     /// always kept out of mapping. Off: only segmented instances are masked for
     /// tracking (for cameras whose flow is too poor to trust).
     pub flow_regions_in_tracking_mask: bool,
-    /// The mask tracking uses is dilated by this radius (full-size pixels): the
-    /// mask is one frame old and carried by the flow, and the strongest corners of
-    /// a moving object sit on its outline, where the carried mask is least exact.
+    /// The dynamic cells tracking avoids are dilated by this radius (full-size
+    /// pixels): the previous frame's are carried by the flow, this frame's come from
+    /// a flow grid at 1/subsample, and the strongest corners of a moving object sit
+    /// on its outline, where either is least exact.
     pub tracking_mask_dilation_px: u32,
 }
 
@@ -312,6 +321,7 @@ impl Default for EgoMotionConfig {
             photometric_threshold: 4.0,
             photometric_ratio: 2.0,
             refine_tracked_motion: true,
+            before_tracking: true,
         }
     }
 }

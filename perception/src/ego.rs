@@ -70,6 +70,11 @@ const MIN_INLIER_FRACTION: f64 = 0.3;
 const VOTE_STRIDE: usize = 2;
 /// Two candidate motions closer than this (metres and radians) are the same.
 const SAME_MOTION: f64 = 1e-6;
+/// [`EgoMotion::reconsider`]: a candidate motion this close to the chosen one
+/// (metres, radians; about half a pixel at 1 m for a 525 px lens) classifies
+/// the same pixels.
+pub const RECONSIDER_TOLERANCE_M: f64 = 0.001;
+pub const RECONSIDER_TOLERANCE_RAD: f64 = 0.001;
 /// PnP-RANSAC hypothesis: iterations, inlier threshold in flow σ, and confidence.
 const RANSAC_ITERATIONS: i32 = 100;
 const RANSAC_THRESHOLD_SIGMAS: f64 = 3.0;
@@ -225,6 +230,7 @@ impl EgoMotion {
         // Candidates are compared on every other cell in each direction; the winner
         // is then classified in full.
         let (mut previous_from_current, mut refined, mut inliers) = candidates.first().copied().unwrap_or((Isometry3::identity(), false, 0));
+        let mut classified = None;
         if candidates.len() > 1 {
             let mut best = usize::MAX;
             let mut seen: Vec<Isometry3<f64>> = Vec::new();
@@ -234,20 +240,26 @@ impl EgoMotion {
                     continue;
                 }
                 seen.push(motion);
-                let moving = moving_count(&self.classify(flow, current, previous, &depth_m, &motion, VOTE_STRIDE).0, exclude);
+                let vote = self.classify(flow, current, previous, &depth_m, &motion, Cells::VoteGrid, None);
+                let moving = moving_count(&vote.0, exclude);
                 if moving < best {
-                    (best, previous_from_current, refined, inliers) = (moving, motion, is_refined, n);
+                    (best, previous_from_current, refined, inliers, classified) = (moving, motion, is_refined, n, Some(vote));
                 }
             }
         }
-        let (class, residual_px) = self.classify(flow, current, previous, &depth_m, &previous_from_current, 1);
+        // The winner's vote cells are classified already.
+        let (class, residual_px) = match classified {
+            Some(vote) => self.classify(flow, current, previous, &depth_m, &previous_from_current, Cells::OffVoteGrid, Some(vote)),
+            None => self.classify(flow, current, previous, &depth_m, &previous_from_current, Cells::All, None),
+        };
         EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
     }
 
-    /// Classifies every flow pixel under `previous_from_current`: its class and
-    /// residual in full-size pixels.
-    /// Only every `stride`-th cell in each direction is classified (the others stay
-    /// [`NO_PREDICTION`]).
+    /// Classifies flow pixels under `previous_from_current`: their class and
+    /// residual in full-size pixels. Only the `cells` asked for are classified, into
+    /// `into` when given (the others keep their values; [`NO_PREDICTION`] and 0 in
+    /// a new result).
+    #[allow(clippy::too_many_arguments)]
     fn classify(
         &self,
         flow: &FlowField,
@@ -255,19 +267,24 @@ impl EgoMotion {
         previous: &SmallGray,
         depth_m: &[f32],
         previous_from_current: &Isometry3<f64>,
-        stride: usize,
+        cells: Cells,
+        into: Option<(Vec<u8>, Vec<f32>)>,
     ) -> (Vec<u8>, Vec<f32>) {
         let s = self.subsample as f64;
         let n = self.width * self.height;
-        let mut class = vec![NO_PREDICTION; n];
-        let mut residual_px = vec![0f32; n];
+        let (mut class, mut residual_px) = into.unwrap_or_else(|| (vec![NO_PREDICTION; n], vec![0f32; n]));
         let (a, b) = (self.config.depth_sigma_a_m, self.config.depth_sigma_b_per_m);
         let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
         let rotation = previous_from_current.rotation.to_rotation_matrix();
         let translation = previous_from_current.translation.vector;
         for i in 0..n {
             let z = f64::from(depth_m[i]);
-            if z == 0.0 || (stride > 1 && ((i % self.width) % stride != 0 || (i / self.width) % stride != 0)) {
+            let wanted = match cells {
+                Cells::All => true,
+                Cells::VoteGrid => self.on_vote_grid(i),
+                Cells::OffVoteGrid => !self.on_vote_grid(i),
+            };
+            if z == 0.0 || !wanted {
                 continue;
             }
             // point_in_previous = z · (R · ray) + t, at the depth and one σ_z farther.
@@ -309,9 +326,69 @@ impl EgoMotion {
         (class, residual_px)
     }
 
+    /// Re-decides `earlier` (a result of [`compensate`](Self::compensate) on the
+    /// same flow) against another candidate motion, the tracker's: the two are
+    /// compared on every other cell like the candidates in `compensate`, and the
+    /// full classification under `candidate` is returned only when it leaves
+    /// fewer pixels moving. Motions within [`RECONSIDER_TOLERANCE_M`] /
+    /// [`RECONSIDER_TOLERANCE_RAD`] of the earlier one are not worth a vote.
+    pub fn reconsider(
+        &self,
+        flow: &FlowField,
+        current: &SmallGray,
+        previous: &SmallGray,
+        earlier: &EgoResult,
+        candidate: &Isometry3<f64>,
+        exclude: Option<&[u8]>,
+    ) -> Option<EgoResult> {
+        let delta = earlier.previous_from_current.inverse() * candidate;
+        if delta.translation.vector.norm() < RECONSIDER_TOLERANCE_M && delta.rotation.angle() < RECONSIDER_TOLERANCE_RAD {
+            return None;
+        }
+        let earlier_moving = earlier
+            .class
+            .iter()
+            .enumerate()
+            .filter(|&(i, &c)| c == RESIDUAL && self.on_vote_grid(i) && exclude.is_none_or(|m| m[i] == 0))
+            .count();
+        if earlier_moving == 0 {
+            return None; // nothing moves: no motion can leave fewer pixels moving
+        }
+        let vote = self.classify(flow, current, previous, &earlier.depth_m, candidate, Cells::VoteGrid, None);
+        let moving = moving_count(&vote.0, exclude);
+        if moving >= earlier_moving {
+            return None;
+        }
+        let (class, residual_px) = self.classify(flow, current, previous, &earlier.depth_m, candidate, Cells::OffVoteGrid, Some(vote));
+        Some(EgoResult {
+            previous_from_current: *candidate,
+            refined: false,
+            samples: earlier.samples,
+            inliers: 0,
+            class,
+            residual_px,
+            depth_m: earlier.depth_m.clone(),
+        })
+    }
+
+    /// Whether flow cell `i` is one of those candidate motions are compared on.
+    fn on_vote_grid(&self, i: usize) -> bool {
+        (i % self.width).is_multiple_of(VOTE_STRIDE) && (i / self.width).is_multiple_of(VOTE_STRIDE)
+    }
+
     pub fn grid_size(&self) -> (usize, usize) {
         (self.width, self.height)
     }
+}
+
+/// Which flow cells [`EgoMotion::classify`] works on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Cells {
+    All,
+    /// Every [`VOTE_STRIDE`]-th cell in each direction (candidate motions are compared there).
+    VoteGrid,
+    /// The rest.
+    OffVoteGrid,
 }
 
 fn moving_count(class: &[u8], exclude: Option<&[u8]>) -> usize {
@@ -326,31 +403,27 @@ fn moving_count(class: &[u8], exclude: Option<&[u8]>) -> usize {
 pub fn min_eigen_texture(image: &SmallGray) -> Vec<f32> {
     let (w, h) = (image.width, image.height);
     let px = |x: usize, y: usize| f32::from(image.data[y * w + x]);
-    let mut gxx = vec![0f32; w * h];
-    let mut gxy = vec![0f32; w * h];
-    let mut gyy = vec![0f32; w * h];
+    // Gradient products (gx², gx·gy, gy²) per pixel, then their 3-wide sums along x.
+    let mut products = vec![[0f32; 3]; w * h];
     for y in 1..h - 1 {
         for x in 1..w - 1 {
             let gx = (px(x + 1, y) - px(x - 1, y)) * 0.5;
             let gy = (px(x, y + 1) - px(x, y - 1)) * 0.5;
-            let i = y * w + x;
-            gxx[i] = gx * gx;
-            gxy[i] = gx * gy;
-            gyy[i] = gy * gy;
+            products[y * w + x] = [gx * gx, gx * gy, gy * gy];
+        }
+    }
+    let mut row_sums = vec![[0f32; 3]; w * h];
+    for y in 1..h - 1 {
+        for x in 2..w.saturating_sub(2) {
+            let (l, c, r) = (products[y * w + x - 1], products[y * w + x], products[y * w + x + 1]);
+            row_sums[y * w + x] = [l[0] + c[0] + r[0], l[1] + c[1] + r[1], l[2] + c[2] + r[2]];
         }
     }
     let mut out = vec![0f32; w * h];
     for y in 2..h.saturating_sub(2) {
         for x in 2..w.saturating_sub(2) {
-            let (mut a, mut b, mut c) = (0f32, 0f32, 0f32);
-            for dy in 0..3 {
-                for dx in 0..3 {
-                    let j = (y + dy - 1) * w + x + dx - 1;
-                    a += gxx[j];
-                    b += gxy[j];
-                    c += gyy[j];
-                }
-            }
+            let (u, m, d) = (row_sums[(y - 1) * w + x], row_sums[y * w + x], row_sums[(y + 1) * w + x]);
+            let (a, b, c) = (u[0] + m[0] + d[0], u[1] + m[1] + d[1], u[2] + m[2] + d[2]);
             let (mean, diff) = ((a + c) * 0.5, ((a - c) * 0.5).hypot(b));
             out[y * w + x] = (mean - diff).max(0.0) / 9.0;
         }
@@ -392,14 +465,9 @@ mod tests {
     use super::*;
     use nalgebra::Vector3;
 
-    /// A textured fronto-parallel wall at 2 m seen by a moving camera, with a patch
-    /// that moves on its own; the flow is exact.
-    #[test]
-    fn refines_the_motion_and_flags_only_the_independent_patch() {
-        let camera = Camera::pinhole(320, 240, 260.0, 260.0, 160.0, 120.0, 1000.0);
-        let config = EgoMotionConfig { min_samples: 20, ..EgoMotionConfig::default() };
-        let ego = EgoMotion::new(camera.clone(), config, 2);
-        let truth = Isometry3::new(Vector3::new(0.03, -0.01, 0.02), Vector3::new(0.01, -0.02, 0.005));
+    /// A textured fronto-parallel wall at 2 m seen by a camera moving by `truth`,
+    /// with a patch that moves on its own; the flow is exact.
+    fn wall_with_patch(ego: &EgoMotion, truth: &Isometry3<f64>) -> (FlowField, SmallGray, SmallGray, Vec<u16>) {
         let depth = vec![2000u16; 320 * 240];
         let (w, h) = ego.grid_size();
         let texture = |x: f64, y: f64| 128.0 + 60.0 * (0.7 * x).sin() * (0.5 * y).cos() + 40.0 * (0.31 * x + 0.17 * y).sin();
@@ -408,11 +476,10 @@ mod tests {
             height: h,
             data: (0..w * h).map(|i| texture((i % w) as f64, (i / w) as f64).round() as u8).collect(),
         };
-        let inside = |x: usize, y: usize| (60..90).contains(&x) && (40..70).contains(&y);
         let (mut data, mut current) = (Vec::with_capacity(w * h), Vec::with_capacity(w * h));
         for i in 0..w * h {
             let (x, y) = (i % w, i / w);
-            let p = ego.predict(i, 2.0, &truth).unwrap();
+            let p = ego.predict(i, 2.0, truth).unwrap();
             // Previous-image position in flow-grid coordinates; the patch moved 4 more.
             let (mut qx, qy) = ((p.x + 0.5) / 2.0 - 0.5, (p.y + 0.5) / 2.0 - 0.5);
             if inside(x, y) {
@@ -423,6 +490,24 @@ mod tests {
         }
         let current = SmallGray { width: w, height: h, data: current };
         let flow = FlowField { width: w, height: h, subsample: 2, data };
+        (flow, current, previous, depth)
+    }
+
+    fn inside(x: usize, y: usize) -> bool {
+        (60..90).contains(&x) && (40..70).contains(&y)
+    }
+
+    fn wall_camera() -> Camera {
+        Camera::pinhole(320, 240, 260.0, 260.0, 160.0, 120.0, 1000.0)
+    }
+
+    #[test]
+    fn refines_the_motion_and_flags_only_the_independent_patch() {
+        let config = EgoMotionConfig { min_samples: 20, ..EgoMotionConfig::default() };
+        let ego = EgoMotion::new(wall_camera(), config, 2);
+        let truth = Isometry3::new(Vector3::new(0.03, -0.01, 0.02), Vector3::new(0.01, -0.02, 0.005));
+        let (flow, current, previous, depth) = wall_with_patch(&ego, &truth);
+        let (w, h) = ego.grid_size();
         let out = ego.compensate(&flow, &current, &previous, &depth, None, None);
         assert!(out.refined);
         let err = out.previous_from_current.inverse() * truth;
@@ -437,6 +522,32 @@ mod tests {
             }
             assert_eq!(out.class[i], if inside(x, y) { RESIDUAL } else { CONSISTENT }, "pixel {x},{y}");
         }
+    }
+
+    /// Labels made under a wrong (predicted) motion are re-decided by the tracked
+    /// one only when it differs and leaves fewer pixels moving.
+    #[test]
+    fn reconsider_takes_the_tracked_motion_only_when_it_explains_more() {
+        // Priors used as they are, so each result is the classification under its prior.
+        let config = EgoMotionConfig { min_samples: 20, refine_tracked_motion: false, ..EgoMotionConfig::default() };
+        let ego = EgoMotion::new(wall_camera(), config, 2);
+        let truth = Isometry3::new(Vector3::new(0.03, -0.01, 0.02), Vector3::new(0.01, -0.02, 0.005));
+        let wrong = Isometry3::new(Vector3::new(0.0, 0.0, 0.0), Vector3::new(0.0, -0.01, 0.0));
+        let (flow, current, previous, depth) = wall_with_patch(&ego, &truth);
+        let moving = |r: &EgoResult| r.class.iter().filter(|&&c| c == RESIDUAL).count();
+        let under_wrong = ego.compensate(&flow, &current, &previous, &depth, Some(wrong), None);
+        let under_truth = ego.compensate(&flow, &current, &previous, &depth, Some(truth), None);
+        assert!(moving(&under_wrong) > 4 * moving(&under_truth), "{} vs {}", moving(&under_wrong), moving(&under_truth));
+
+        let better = ego.reconsider(&flow, &current, &previous, &under_wrong, &truth, None).expect("the tracked motion explains more");
+        assert_eq!(better.previous_from_current, truth);
+        assert_eq!(better.class, under_truth.class);
+        assert_eq!(better.residual_px, under_truth.residual_px);
+        // Worse, or within the tolerance of the chosen motion: the labels stand.
+        assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &wrong, None).is_none());
+        let nudged = truth * Isometry3::new(Vector3::new(RECONSIDER_TOLERANCE_M * 0.5, 0.0, 0.0), Vector3::zeros());
+        assert!(ego.reconsider(&flow, &current, &previous, &under_wrong, &nudged, None).is_some());
+        assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &nudged, None).is_none());
     }
 
     #[test]

@@ -1,7 +1,6 @@
 //! Dense optical flow: OpenCV's Farneback on a subsampled grey image.
 
-use opencv::core::{Mat, Size};
-use opencv::imgproc;
+use opencv::core::Mat;
 use opencv::prelude::*;
 use opencv::video;
 
@@ -17,23 +16,36 @@ pub struct SmallGray {
 }
 
 impl SmallGray {
-    /// Subsamples a full-size grey image by `factor` (INTER_AREA).
-    pub fn from_gray(gray: &[u8], width: usize, height: usize, factor: u32) -> Result<Self, PerceptionError> {
-        if gray.len() != width * height {
-            return Err(PerceptionError::Input(format!("grey image has {} pixels, expected {}", gray.len(), width * height)));
+    /// Grey (ITU-R BT.601 luma, as [`to_gray`](stillmap_tracking::tracker::to_gray))
+    /// averaged over exact `factor`×`factor` blocks of an RGB8 image, in one pass:
+    /// flow pixel `(x, y)` covers full-size pixels `factor·x .. factor·x + factor`,
+    /// the geometry ego-motion compensation assumes (a remainder of fewer than
+    /// `factor` columns or rows at the right and bottom is dropped).
+    pub fn from_rgb(rgb: &[u8], width: usize, height: usize, factor: u32) -> Result<Self, PerceptionError> {
+        if rgb.len() != width * height * 3 {
+            return Err(PerceptionError::Input(format!("colour has {} bytes, expected {}", rgb.len(), width * height * 3)));
         }
         let f = factor.max(1) as usize;
         let (sw, sh) = (width / f, height / f);
         if sw < 8 || sh < 8 {
             return Err(PerceptionError::Input(format!("image {width}x{height} is too small for flow at 1/{f}")));
         }
-        let src = Mat::new_rows_cols_with_data(height as i32, width as i32, gray)?;
-        if f == 1 {
-            return Ok(Self { width, height, data: gray.to_vec() });
+        // Sums of 8-bit fixed-point luma (×256) over each block; rounded once at the end.
+        let mut sums = vec![0u32; sw];
+        let mut data = Vec::with_capacity(sw * sh);
+        let divisor = (f * f * 256) as u32;
+        for y in 0..sh {
+            sums.iter_mut().for_each(|v| *v = 0);
+            for row in rgb[y * f * width * 3..(y * f + f) * width * 3].chunks_exact(width * 3) {
+                for (sum, block) in sums.iter_mut().zip(row.chunks_exact(f * 3)) {
+                    for p in block.chunks_exact(3) {
+                        *sum += u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29;
+                    }
+                }
+            }
+            data.extend(sums.iter().map(|&v| ((v + divisor / 2) / divisor) as u8));
         }
-        let mut dst = Mat::default();
-        imgproc::resize(&src, &mut dst, Size::new(sw as i32, sh as i32), 0.0, 0.0, imgproc::INTER_AREA)?;
-        Ok(Self { width: sw, height: sh, data: dst.data_bytes()?.to_vec() })
+        Ok(Self { width: sw, height: sh, data })
     }
 }
 
@@ -113,6 +125,28 @@ pub fn farneback(current: &SmallGray, previous: &SmallGray, config: &FlowConfig,
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn grey_blocks_from_rgb_match_the_luma_average() {
+        // 7×5 image at 1/2: a 3×2 grid, the last column and row dropped.
+        let (w, h) = (7, 5);
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 37 % 251) as u8).collect();
+        let small = SmallGray::from_rgb(&rgb, w, h, 2);
+        assert!(small.is_err(), "7x5 at 1/2 is under 8x8");
+        let (w, h) = (50, 37);
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 37 % 251) as u8).collect();
+        let small = SmallGray::from_rgb(&rgb, w, h, 3).unwrap();
+        assert_eq!((small.width, small.height), (16, 12));
+        let luma = |x: usize, y: usize| {
+            let p = &rgb[(y * w + x) * 3..(y * w + x) * 3 + 3];
+            f64::from(p[0]) * 77.0 / 256.0 + f64::from(p[1]) * 150.0 / 256.0 + f64::from(p[2]) * 29.0 / 256.0
+        };
+        for (y, x) in [(0, 0), (5, 7), (11, 15)] {
+            let mean = (0..3).flat_map(|dy| (0..3).map(move |dx| (dx, dy))).map(|(dx, dy)| luma(3 * x + dx, 3 * y + dy)).sum::<f64>() / 9.0;
+            assert!((f64::from(small.data[y * 16 + x]) - mean).abs() <= 0.5 + 1e-9, "({x},{y}): {} vs {mean}", small.data[y * 16 + x]);
+        }
+        assert!(SmallGray::from_rgb(&rgb[1..], w, h, 3).is_err());
+    }
 
     #[test]
     fn chained_flows_add_up_along_the_path() {

@@ -12,7 +12,6 @@ use std::time::{Duration, Instant};
 
 use nalgebra::Isometry3;
 use stillmap_tracking::Camera;
-use stillmap_tracking::tracker::to_gray;
 
 use crate::PerceptionError;
 use crate::config::{PerceptionConfig, PriorDynamicTracking};
@@ -115,6 +114,8 @@ struct Pending {
     previous: Option<SmallGray>,
     /// Flow-grid cells the ego-motion estimate ignores.
     exclude: Vec<u8>,
+    /// Compensation and labels computed before tracking (`ego_motion.before_tracking`).
+    early: Option<(EgoResult, Fused)>,
     times: MaskTimes,
 }
 
@@ -152,11 +153,13 @@ impl DynamicMasker {
     }
 
     /// First phase of a frame (frames in increasing sequence order): flow to the
-    /// previous frame, the segmentation carried to this frame, and the mask
-    /// tracking should use now: the previous frame's dynamic pixels carried by the
-    /// flow, plus prior-dynamic instances where the policy (or not knowing yet)
-    /// says so. Track the frame with it, then call [`finish`](Self::finish) with
-    /// the tracked camera motion.
+    /// previous frame, the segmentation carried to this frame, with
+    /// `ego_motion.before_tracking` this frame's own labels under the predicted
+    /// motion refined on the flow, and the mask tracking should use now: this
+    /// frame's dynamic pixels (when the flow confirmed the motion) and the previous
+    /// frame's carried by the flow, plus prior-dynamic instances where the policy
+    /// (or not knowing yet) says so. Track the frame with it, then call
+    /// [`finish`](Self::finish) with the tracked camera motion.
     pub fn prepare(&mut self, input: MaskerInput<'_>) -> Result<Vec<u8>, PerceptionError> {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         if input.rgb.len() != w * h * 3 {
@@ -177,7 +180,7 @@ impl DynamicMasker {
         let s = self.config.flow.subsample;
 
         let t = Instant::now();
-        let small = SmallGray::from_gray(&to_gray(input.rgb), w, h, s)?;
+        let small = SmallGray::from_rgb(input.rgb, w, h, s)?;
         let previous = self.previous.take().filter(|(prev_seq, _)| *prev_seq < input.sequence);
         let flow = match &previous {
             Some((prev_seq, prev)) => {
@@ -225,12 +228,46 @@ impl DynamicMasker {
         self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
         times.warp = t.elapsed();
 
+        // What the camera-motion estimate must not listen to: the carried dynamic
+        // cells and prior-dynamic instances.
+        let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
+
+        // This frame's own labels, before tracking: compensation with the previous
+        // frame's motion as the prediction (constant velocity), refined on the flow.
+        let early = if self.config.ego_motion.before_tracking {
+            let t = Instant::now();
+            let predicted = self.last_ego.as_ref().map(|e| e.previous_from_current);
+            let ego = self.compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), input.depth, predicted, &exclude);
+            times.ego_motion += t.elapsed();
+            ego.map(|ego| {
+                let t = Instant::now();
+                let fused = fuse(w, h, s as usize, Some(&ego), self.carried.as_ref().map(|c| &c.segmentation), &self.prior_dynamic, &self.config.fusion);
+                times.fusion += t.elapsed();
+                (ego, fused)
+            })
+        } else {
+            None
+        };
+        // Only a motion the flow confirmed (refined, with enough inliers) labels
+        // pixels for tracking: an unconfirmed prediction (a sudden acceleration,
+        // motion blur) can call most of the scene moving and starve the tracker.
+        let tracking_dynamic = match (&early, carried_dynamic) {
+            (Some((ego, fused)), carried) if ego.refined => {
+                let own = dilate(self.dynamic_cells(&fused.labels), gw, gh, radius_cells)?;
+                Some(match carried {
+                    Some(c) => own.iter().zip(&c).map(|(&a, &b)| a | b).collect(),
+                    None => own,
+                })
+            }
+            (_, carried) => carried,
+        };
+
         // The mask for tracking this frame.
         let policy = self.config.fusion.prior_dynamic_tracking;
         let flow_regions = self.config.fusion.flow_regions_in_tracking_mask;
         let instance_map = self.carried.as_ref().map(|c| &c.segmentation.instance_map);
         let mut mask = vec![0u8; w * h];
-        if let Some(grid) = &carried_dynamic {
+        if let Some(grid) = &tracking_dynamic {
             let su = s as usize;
             for y in 0..h {
                 let row = (y / su).min(gh - 1) * gw;
@@ -243,26 +280,26 @@ impl DynamicMasker {
             }
         }
         if let Some(c) = &self.carried {
-            let exclude_still = policy == PriorDynamicTracking::AlwaysExclude || carried_dynamic.is_none();
+            // Still prior-dynamic instances are excluded by policy, or while their motion is unknown.
+            let exclude_still = policy == PriorDynamicTracking::AlwaysExclude || tracking_dynamic.is_none();
             for (m, &id) in mask.iter_mut().zip(&c.segmentation.instance_map) {
                 if id != 0 && exclude_still && self.is_prior_dynamic(&c.segmentation, id) {
                     *m = 1;
                 }
             }
         }
-        // What the camera-motion estimate must not listen to: the carried dynamic
-        // cells and prior-dynamic instances.
-        let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
-        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, times });
+        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, early, times });
         Ok(mask)
     }
 
-    /// Second phase: ego-motion compensation with the camera motion
+    /// Second phase (labels already made in `prepare`: re-decided only when the
+    /// tracked motion disagrees and leaves fewer pixels moving; otherwise):
+    /// ego-motion compensation with the camera motion
     /// `previous_from_current` (the tracker's, from the static features; `None`
     /// when tracking failed: the flow refines identity then), and fusion into this
     /// frame's labels. `depth` is the frame's, as given to `prepare`.
     pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
-        let Some(Pending { sequence, small, previous, exclude, mut times }) = self.pending.take() else {
+        let Some(Pending { sequence, small, previous, exclude, early, mut times }) = self.pending.take() else {
             return Err(PerceptionError::Input("finish called without prepare".into()));
         };
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
@@ -271,21 +308,40 @@ impl DynamicMasker {
         }
         let s = self.config.flow.subsample;
         let t = Instant::now();
-        let ego = match (self.flows.back(), &previous) {
-            (Some(step), Some(prev)) if step.to == sequence => {
-                Some(self.ego.compensate(&step.flow, &small, prev, depth, previous_from_current, Some(&exclude)))
+        let (ego, fused) = match early {
+            // Labelled before tracking: the tracked motion re-decides only when it
+            // disagrees and leaves fewer pixels moving.
+            Some((early_ego, early_fused)) => {
+                let step = self.flows.back().filter(|step| step.to == sequence);
+                let better = match (step, &previous, previous_from_current) {
+                    (Some(step), Some(prev), Some(tracked)) => self.ego.reconsider(&step.flow, &small, prev, &early_ego, &tracked, Some(&exclude)),
+                    _ => None,
+                };
+                times.ego_motion += t.elapsed();
+                match better {
+                    Some(ego) => (Some(ego), None),
+                    None => (Some(early_ego), Some(early_fused)),
+                }
             }
-            _ => None,
+            None => {
+                let ego = self.compensate(sequence, &small, previous.as_ref(), depth, previous_from_current, &exclude);
+                times.ego_motion += t.elapsed();
+                (ego, None)
+            }
         };
         self.previous = Some((sequence, small));
-        times.ego_motion = t.elapsed();
 
         let t = Instant::now();
-        let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
-        let fused = fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion);
+        let fused = match fused {
+            Some(fused) => fused,
+            None => {
+                let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
+                fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion)
+            }
+        };
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
         self.dynamic_grid = Some((sequence, self.dynamic_cells(&fused.labels)));
-        times.fusion = t.elapsed();
+        times.fusion += t.elapsed();
 
         let source = match &self.carried {
             None => MaskSource::None,
@@ -308,6 +364,23 @@ impl DynamicMasker {
             dynamic_fraction,
             times,
         })
+    }
+
+    /// Ego-motion compensation of frame `sequence` against the previous grey image,
+    /// when the latest flow step ends at this frame.
+    fn compensate(
+        &self,
+        sequence: u64,
+        small: &SmallGray,
+        previous: Option<&SmallGray>,
+        depth: &[u16],
+        prior: Option<Isometry3<f64>>,
+        exclude: &[u8],
+    ) -> Option<EgoResult> {
+        match (self.flows.back(), previous) {
+            (Some(step), Some(prev)) if step.to == sequence => Some(self.ego.compensate(&step.flow, small, prev, depth, prior, Some(exclude))),
+            _ => None,
+        }
     }
 
     fn is_prior_dynamic(&self, seg: &Segmentation, id: u16) -> bool {

@@ -31,24 +31,38 @@ fn moving_board_is_found_while_the_camera_rotates() {
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     let s = composite_run::run(composite, Some(&mut seg), Schedule::EveryFrame, std::env::var_os("STILLMAP_VERBOSE").is_some());
     let plain = composite_run::track_plain(frames);
+    if std::env::var_os("STILLMAP_VERBOSE").is_some() {
+        for ((t, a), (_, b)) in s.trajectory.iter().zip(&plain) {
+            let g0 = gt.iter().min_by_key(|(g, _)| g.abs_diff(s.trajectory[0].0)).expect("gt").1;
+            let g = gt.iter().min_by_key(|(g, _)| g.abs_diff(*t)).expect("gt").1;
+            let truth = g0.inverse() * g;
+            eprintln!("pose {t}: with {:.4} plain {:.4} (to truth from the first frame)", (a.translation.vector - truth.translation.vector).norm(), (b.translation.vector - truth.translation.vector).norm());
+        }
+    }
     let with_object = tum::score(gt, &s.trajectory);
     let without = tum::score(gt, &plain);
     eprintln!(
         "scored {} frames: IoU mean {:.3} min {:.3}; false-dynamic {:.4}; features on object {} eliminated {:.4}; ATE with object {:.4} m / without {:.4} m; RPE {:.4} / {:.4} m",
         s.scored_frames, s.mean_iou, s.min_iou, s.false_dynamic, s.object_features, s.eliminated_fraction, with_object.ate_m, without.ate_m, with_object.rpe_m, without.rpe_m
     );
-    // Measured (this machine): 107 frames scored, IoU mean 0.78, false-dynamic 1.5 %,
-    // 87 % of the board's features eliminated, ATE 8.4 cm with the board vs 3.2 cm
-    // without. The IoU and false-dynamic bounds are the targets; the
-    // elimination (≥ 95 %) and tracking (within 20 %) targets are NOT met yet: the
-    // board is in the first frames, before any flow exists, and some motion-blurred
-    // frames lose it (see the closing note). Those bounds guard what works.
+    // Measured (this machine): 107 frames scored, IoU mean 0.79, false-dynamic 1.4 %,
+    // 93.3 % of the board's features eliminated, ATE 4.7 cm with the board vs 3.2 cm
+    // without (with the mask computed after tracking only: 87 % and 8.1 cm). The IoU
+    // and false-dynamic bounds are the targets; the elimination (≥ 95 %) and
+    // tracking (within 20 %) targets are NOT met yet: frame 0 has no flow, the board
+    // re-entering the view has no previous position to compare with, and on
+    // motion-blurred frames the flow misses part of it (see the closing note).
+    // Those bounds guard what works.
     assert!(s.scored_frames >= 100, "object visible in {} frames", s.scored_frames);
     assert!(s.mean_iou >= 0.7, "IoU {:.3}", s.mean_iou);
     assert!(s.false_dynamic <= 0.02, "false-dynamic {:.4}", s.false_dynamic);
-    assert!(s.eliminated_fraction >= 0.8, "eliminated {:.4}", s.eliminated_fraction);
+    assert!(s.eliminated_fraction >= 0.9, "eliminated {:.4}", s.eliminated_fraction);
+    // Labelled before tracking, the board is masked on the first frame with flow
+    // (measured: 137 of its 195 features; with the previous frame's labels alone, none).
+    let (on_board, removed) = s.first_flow_frame_features;
+    assert!(on_board > 100 && removed * 2 >= on_board, "frame 1: {removed} of {on_board} board features removed");
     assert_eq!(s.trajectory.len(), frames.len(), "every composite frame tracked");
-    assert!(with_object.ate_m <= 0.10, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
+    assert!(with_object.ate_m <= 0.07, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
 }
 
 /// Segmentation that arrives late (every third frame, two frames after its own) is

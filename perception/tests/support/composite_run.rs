@@ -88,6 +88,9 @@ pub struct Scores {
     pub object_features: usize,
     pub eliminated_fraction: f64,
     pub warped_frames: usize,
+    /// Frame 1, the first with flow (no earlier labels to carry): the object's
+    /// features, and those the tracking mask removed.
+    pub first_flow_frame_features: (usize, usize),
     /// Scored frames with a person instance overlapping the object, and those where it was judged moving.
     pub person_frames: usize,
     pub moving_person_frames: usize,
@@ -158,6 +161,20 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
         if let Some(p) = track.world_from_camera {
             s.trajectory.push((f.timestamp_ns, p));
         }
+        if verbose {
+            eprintln!(
+                "track {k:3}: {:?} tracked {} masked {} keyframe {}; dynamic px {} (object {}), regions {} rejected {}, ego {:?}",
+                track.state,
+                track.tracked_points,
+                track.masked_features,
+                track.keyframe,
+                out.fused.count(PixelLabel::Dynamic),
+                f.object_mask.iter().filter(|&&m| m != 0).count(),
+                out.fused.flow_regions,
+                out.fused.rejected_regions,
+                out.ego.map(|e| (e.refined, e.inliers, e.samples, e.previous_from_current.translation.vector.norm(), e.previous_from_current.rotation.angle().to_degrees()))
+            );
+        }
         if matches!(out.source, MaskSource::Warped { .. }) {
             s.warped_frames += 1;
         }
@@ -183,7 +200,7 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
             }
         }
         let feats = extractor.extract(&camera, &to_gray(&f.rgb), &f.depth, None).expect("extract");
-        let mut on_object = 0;
+        let (mut on_object, eliminated_before) = (0, eliminated);
         for ft in &feats.features {
             let i = (ft.raw.y.round() as usize).min(h - 1) * w + (ft.raw.x.round() as usize).min(w - 1);
             if f.object_mask[i] != 0 {
@@ -192,9 +209,13 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
             }
         }
         s.object_features += on_object;
+        if k == 1 {
+            s.first_flow_frame_features = (on_object, eliminated - eliminated_before);
+        }
         if verbose {
             eprintln!(
-                "frame {k:3}: object {object_px:6} px, IoU {iou:.3}, false-dynamic {:.4}, regions {} (rejected {}), ego {:?}, source {:?}",
+                "frame {k:3}: object {object_px:6} px, IoU {iou:.3}, features {on_object} eliminated {}, false-dynamic {:.4}, regions {} (rejected {}), ego {:?}, source {:?}",
+                eliminated - eliminated_before,
                 fd as f64 / (w * h - object_px) as f64,
                 out.fused.flow_regions,
                 out.fused.rejected_regions,
