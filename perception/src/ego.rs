@@ -309,8 +309,10 @@ impl EgoMotion {
                 // Where the camera motion alone puts this pixel in the previous flow image.
                 let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
                 let (x, y) = (i % self.width, i / self.width);
-                let d = patch_difference(current, x, y, previous, qx, qy);
-                let measured = patch_difference(current, x, y, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1]));
+                // The pixel's own patch, compared where the camera motion and where the flow put it.
+                let here = patch(current, x, y);
+                let d = here.as_ref().and_then(|p| difference_to(p, previous, qx, qy));
+                let measured = here.as_ref().and_then(|p| difference_to(p, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1])));
                 // Moving when the camera motion explains the patch badly, and clearly
                 // worse than the measured flow does. A pixel whose predicted patch
                 // leaves the image cannot be confirmed and is not called moving
@@ -435,29 +437,46 @@ pub fn min_eigen_texture(image: &SmallGray) -> Vec<f32> {
 /// `(x, y)` and the 3×3 patch of `b` around the subpixel `(qx, qy)` (bilinear);
 /// `None` when either patch leaves its image.
 pub fn patch_difference(a: &SmallGray, x: usize, y: usize, b: &SmallGray, qx: f64, qy: f64) -> Option<f64> {
-    if x < 1 || y < 1 || x + 1 >= a.width || y + 1 >= a.height {
+    difference_to(&patch(a, x, y)?, b, qx, qy)
+}
+
+/// The 3×3 patch of `image` around pixel `(x, y)`, zero-mean; `None` at the border.
+fn patch(image: &SmallGray, x: usize, y: usize) -> Option<[f32; 9]> {
+    if x < 1 || y < 1 || x + 1 >= image.width || y + 1 >= image.height {
         return None;
     }
+    let mut p = [0f32; 9];
+    for dy in 0..3 {
+        let row = &image.data[(y + dy - 1) * image.width + x - 1..][..3];
+        for dx in 0..3 {
+            p[dy * 3 + dx] = f32::from(row[dx]);
+        }
+    }
+    let mean = p.iter().sum::<f32>() / 9.0;
+    p.iter_mut().for_each(|v| *v -= mean);
+    Some(p)
+}
+
+/// [`patch_difference`] for a patch already taken (zero-mean) by [`patch`].
+fn difference_to(pa: &[f32; 9], b: &SmallGray, qx: f64, qy: f64) -> Option<f64> {
     if qx < 1.0 || qy < 1.0 || qx >= (b.width - 2) as f64 || qy >= (b.height - 2) as f64 {
         return None;
     }
     let (x0, y0) = (qx.floor() as usize, qy.floor() as usize);
     let (tx, ty) = ((qx - x0 as f64) as f32, (qy - y0 as f64) as f32);
-    let bw = b.width;
-    let sample = |x: usize, y: usize| {
-        let at = |x: usize, y: usize| f32::from(b.data[y * bw + x]);
-        (at(x, y) * (1.0 - tx) + at(x + 1, y) * tx) * (1.0 - ty) + (at(x, y + 1) * (1.0 - tx) + at(x + 1, y + 1) * tx) * ty
-    };
-    let mut pa = [0f32; 9];
+    let (w00, w10, w01, w11) = ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty);
     let mut pb = [0f32; 9];
     for dy in 0..3 {
+        // Rows y0+dy−1 and y0+dy, columns x0−1 ..= x0+2.
+        let r0 = &b.data[(y0 + dy - 1) * b.width + x0 - 1..][..4];
+        let r1 = &b.data[(y0 + dy) * b.width + x0 - 1..][..4];
         for dx in 0..3 {
-            pa[dy * 3 + dx] = f32::from(a.data[(y + dy - 1) * a.width + x + dx - 1]);
-            pb[dy * 3 + dx] = sample(x0 + dx - 1, y0 + dy - 1);
+            let at = |r: &[u8], i: usize| f32::from(r[i]);
+            pb[dy * 3 + dx] = w00 * at(r0, dx) + w10 * at(r0, dx + 1) + w01 * at(r1, dx) + w11 * at(r1, dx + 1);
         }
     }
-    let (ma, mb) = (pa.iter().sum::<f32>() / 9.0, pb.iter().sum::<f32>() / 9.0);
-    Some(f64::from(pa.iter().zip(&pb).map(|(u, v)| ((u - ma) - (v - mb)).abs()).sum::<f32>() / 9.0))
+    let mb = pb.iter().sum::<f32>() / 9.0;
+    Some(f64::from(pa.iter().zip(&pb).map(|(u, v)| (u - (v - mb)).abs()).sum::<f32>() / 9.0))
 }
 
 #[cfg(test)]

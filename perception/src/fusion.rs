@@ -226,20 +226,32 @@ pub fn fuse(
     // Full-resolution labels: instance decisions at their exact outline, flow
     // decisions at flow-grid resolution.
     let mut labels = vec![PixelLabel::Static as u8; width * height];
-    for y in 0..height {
-        let gy = (y / s).min(gh - 1);
-        for x in 0..width {
-            let i = y * width + x;
-            let id = segmentation.map_or(0, |seg| usize::from(seg.instance_map[i]));
-            if id != 0
-                && let Some(Some(label)) = whole.get(id)
-            {
-                labels[i] = *label as u8;
-                continue;
+    let cell_of_column: Vec<usize> = (0..width).map(|x| (x / s).min(gw - 1)).collect();
+    for (y, row) in labels.chunks_exact_mut(width).enumerate() {
+        let grid_row = (y / s).min(gh - 1) * gw;
+        match segmentation {
+            None => {
+                for (label, &cx) in row.iter_mut().zip(&cell_of_column) {
+                    if grid_dynamic[grid_row + cx] {
+                        *label = PixelLabel::Dynamic as u8;
+                    }
+                }
             }
-            let g = gy * gw + (x / s).min(gw - 1);
-            if grid_dynamic[g] || (id != 0 && flow[g]) {
-                labels[i] = PixelLabel::Dynamic as u8;
+            Some(seg) => {
+                let ids = &seg.instance_map[y * width..(y + 1) * width];
+                for ((label, &cx), &id) in row.iter_mut().zip(&cell_of_column).zip(ids) {
+                    let id = usize::from(id);
+                    if id != 0
+                        && let Some(Some(whole_label)) = whole.get(id)
+                    {
+                        *label = *whole_label as u8;
+                        continue;
+                    }
+                    let g = grid_row + cx;
+                    if grid_dynamic[g] || (id != 0 && flow[g]) {
+                        *label = PixelLabel::Dynamic as u8;
+                    }
+                }
             }
         }
     }

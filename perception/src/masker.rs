@@ -269,13 +269,13 @@ impl DynamicMasker {
         let mut mask = vec![0u8; w * h];
         if let Some(grid) = &tracking_dynamic {
             let su = s as usize;
-            for y in 0..h {
-                let row = (y / su).min(gh - 1) * gw;
-                for x in 0..w {
-                    let i = y * w + x;
+            let cell_of_column: Vec<usize> = (0..w).map(|x| (x / su).min(gw - 1)).collect();
+            for (y, row) in mask.chunks_exact_mut(w).enumerate() {
+                let grid_row = &grid[(y / su).min(gh - 1) * gw..][..gw];
+                for (x, (m, &cx)) in row.iter_mut().zip(&cell_of_column).enumerate() {
                     // Without flow regions, only dynamic pixels of segmented instances.
-                    let allowed = flow_regions || instance_map.is_some_and(|m| m[i] != 0);
-                    mask[i] = u8::from(allowed && grid[row + (x / su).min(gw - 1)] != 0);
+                    let allowed = flow_regions || instance_map.is_some_and(|map| map[y * w + x] != 0);
+                    *m = u8::from(allowed && grid_row[cx] != 0);
                 }
             }
         }
