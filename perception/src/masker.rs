@@ -102,6 +102,8 @@ pub struct DynamicMasker {
     flows: VecDeque<FlowStep>,
     carried: Option<Carried>,
     last_ego: Option<EgoResult>,
+    /// Frames (sequence numbers) the last result's motion spans: more than one after drops.
+    last_ego_frames: u64,
     /// The last finished frame's dynamic flow-grid cells (1 = dynamic).
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
@@ -130,7 +132,7 @@ impl DynamicMasker {
         }
         let prior_dynamic = class_names.iter().map(|n| config.segmentation.prior_dynamic_classes.iter().any(|p| p == n)).collect();
         let ego = EgoMotion::new(camera.clone(), config.ego_motion.clone(), config.flow.subsample);
-        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, dynamic_grid: None, pending: None })
+        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, last_ego_frames: 1, dynamic_grid: None, pending: None })
     }
 
     /// The segmentation in the current frame's coordinates, if any.
@@ -236,7 +238,10 @@ impl DynamicMasker {
         // frame's motion as the prediction (constant velocity), refined on the flow.
         let early = if self.config.ego_motion.before_tracking {
             let t = Instant::now();
-            let predicted = self.last_ego.as_ref().map(|e| e.previous_from_current);
+            // Constant velocity over the frames this step spans (more than one after drops).
+            let step_frames = self.flows.back().filter(|f| f.to == input.sequence).map_or(1, |f| f.to - f.from);
+            let factor = step_frames as f64 / self.last_ego_frames.max(1) as f64;
+            let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
             let ego = self.compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), input.depth, predicted, &exclude);
             times.ego_motion += t.elapsed();
             ego.map(|ego| {
@@ -354,6 +359,9 @@ impl DynamicMasker {
             samples: e.samples,
             inliers: e.inliers,
         });
+        if ego.is_some() {
+            self.last_ego_frames = self.flows.back().filter(|f| f.to == sequence).map_or(1, |f| f.to - f.from);
+        }
         self.last_ego = ego;
         times.total = times.flow + times.warp + times.ego_motion + times.fusion;
         Ok(MaskOutput {
@@ -448,6 +456,15 @@ impl DynamicMasker {
     }
 }
 
+/// A motion scaled along its screw, approximately: the rotation's angle and the
+/// translation both times `factor` (constant velocity over `factor` frame intervals).
+fn scaled(motion: &Isometry3<f64>, factor: f64) -> Isometry3<f64> {
+    if factor == 1.0 {
+        return *motion;
+    }
+    Isometry3::from_parts((motion.translation.vector * factor).into(), motion.rotation.powf(factor))
+}
+
 /// Dilates a 0/1 mask by a disc of `radius` pixels (OpenCV).
 fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
     use opencv::core::{Mat, Point, Size};
@@ -462,4 +479,21 @@ fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec
     let mut out = Mat::default();
     imgproc::dilate(&src, &mut out, &kernel, Point::new(-1, -1), 1, opencv::core::BORDER_CONSTANT, imgproc::morphology_default_border_value()?)?;
     Ok(out.data_bytes()?.to_vec())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    #[test]
+    fn a_motion_scales_with_the_frames_it_spans() {
+        let m = Isometry3::new(Vector3::new(0.01, -0.02, 0.005), Vector3::new(0.0, 0.03, 0.0));
+        let twice = scaled(&m, 2.0);
+        assert!((twice.rotation.angle() - 0.06).abs() < 1e-12);
+        assert!((twice.translation.vector - Vector3::new(0.02, -0.04, 0.01)).norm() < 1e-12);
+        assert_eq!(scaled(&m, 1.0), m);
+        let half = scaled(&m, 0.5);
+        assert!((half.rotation.angle() - 0.015).abs() < 1e-12);
+    }
 }
