@@ -128,6 +128,9 @@ pub struct EgoMotionConfig {
     /// zero-mean difference (grey levels). Textureless surfaces, where Farneback's
     /// flow is unconstrained, pass this test and stay static.
     pub photometric_threshold: f64,
+    /// … and by more than this factor times the difference under the measured flow
+    /// (the flow must explain the pixel better than the camera motion does).
+    pub photometric_ratio: f64,
     /// Refine the prior camera motion on the flow (off: use it as it is).
     pub refine_tracked_motion: bool,
     /// Compensate before tracking, with the previous frame's camera motion as the
@@ -138,9 +141,6 @@ pub struct EgoMotionConfig {
     /// Off: compensation waits for the tracked motion, and tracking uses the
     /// previous frame's mask alone.
     pub before_tracking: bool,
-    /// … and by more than this factor times the difference under the measured flow
-    /// (the flow must explain the pixel better than the camera motion does).
-    pub photometric_ratio: f64,
 }
 
 /// How a prior-dynamic instance (a person, say) that does not move is treated by tracking.
