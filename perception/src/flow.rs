@@ -4,6 +4,8 @@ use opencv::core::Mat;
 use opencv::prelude::*;
 use opencv::video;
 
+use stillmap_tracking::tracker::luma_x256;
+
 use crate::PerceptionError;
 use crate::config::FlowConfig;
 
@@ -39,7 +41,7 @@ impl SmallGray {
             for row in rgb[y * f * width * 3..(y * f + f) * width * 3].chunks_exact(width * 3) {
                 for (sum, block) in sums.iter_mut().zip(row.chunks_exact(f * 3)) {
                     for p in block.chunks_exact(3) {
-                        *sum += u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29;
+                        *sum += luma_x256(p);
                     }
                 }
             }

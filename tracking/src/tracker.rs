@@ -115,11 +115,15 @@ pub struct Tracker {
     frames_since_keyframe: u32,
 }
 
+/// The grey image of an RGB8 image: BT.601 luma, rounded to 8 bits.
 pub fn to_gray(rgb: &[u8]) -> Vec<u8> {
-    // ITU-R BT.601 luma in 8-bit fixed point, as OpenCV's RGB2GRAY.
-    rgb.chunks_exact(3)
-        .map(|p| ((u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29 + 128) >> 8) as u8)
-        .collect()
+    rgb.chunks_exact(3).map(|p| ((luma_x256(p) + 128) >> 8) as u8).collect()
+}
+
+/// ITU-R BT.601 luma of one RGB8 pixel in 8-bit fixed point (×256), as OpenCV's RGB2GRAY.
+#[inline]
+pub fn luma_x256(rgb: &[u8]) -> u32 {
+    u32::from(rgb[0]) * 77 + u32::from(rgb[1]) * 150 + u32::from(rgb[2]) * 29
 }
 
 fn thumbnail(gray: &[u8], w: usize, h: usize) -> Vec<f32> {
