@@ -277,53 +277,60 @@ impl EgoMotion {
         let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
         let rotation = previous_from_current.rotation.to_rotation_matrix();
         let translation = previous_from_current.translation.vector;
-        for i in 0..n {
-            let z = f64::from(depth_m[i]);
-            let wanted = match cells {
-                Cells::All => true,
-                Cells::VoteGrid => self.on_vote_grid(i),
-                Cells::OffVoteGrid => !self.on_vote_grid(i),
-            };
-            if z == 0.0 || !wanted {
-                continue;
-            }
-            // point_in_previous = z · (R · ray) + t, at the depth and one σ_z farther.
-            let r = self.ray[i];
-            let q = rotation * nalgebra::Vector3::new(r.x, r.y, 1.0);
-            let (Some(ideal), Some(ideal_far)) = (
-                self.camera.project(&Point3::from(q * z + translation)),
-                self.camera.project(&Point3::from(q * (z + a + b * z * z) + translation)),
-            ) else {
-                continue;
-            };
-            let p = self.camera.distort(&ideal);
-            let f = flow.data[i];
-            let measured = Point2::new(self.raw[i].x + f64::from(f[0]) * s, self.raw[i].y + f64::from(f[1]) * s);
-            let residual = (measured - p).norm();
-            // The depth's effect on the prediction, through the pinhole (the lens
-            // scales it by a few per cent at most).
-            let depth_var = (ideal_far - ideal).norm_squared();
-            let threshold = (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px);
-            residual_px[i] = residual as f32;
-            let moving = residual > threshold && {
-                // Where the camera motion alone puts this pixel in the previous flow image.
-                let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
-                let (x, y) = (i % self.width, i / self.width);
-                // The pixel's own patch, compared where the camera motion and where the flow put it.
-                let here = patch(current, x, y);
-                let d = here.as_ref().and_then(|p| difference_to(p, previous, qx, qy));
-                let measured = here.as_ref().and_then(|p| difference_to(p, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1])));
-                // Moving when the camera motion explains the patch badly, and clearly
-                // worse than the measured flow does. A pixel whose predicted patch
-                // leaves the image cannot be confirmed and is not called moving
-                // (Farneback is least reliable at the border).
-                match (d, measured) {
-                    (Some(d), Some(m)) => d > self.config.photometric_threshold && d > self.config.photometric_ratio * m,
-                    (Some(d), None) => d > self.config.photometric_threshold,
-                    (None, _) => false,
+        let w = self.width;
+        // Vote-grid cells are those with both coordinates multiples of VOTE_STRIDE.
+        let (row_step, col_step) = match cells {
+            Cells::VoteGrid => (VOTE_STRIDE, VOTE_STRIDE),
+            Cells::All | Cells::OffVoteGrid => (1, 1),
+        };
+        for y in (0..self.height).step_by(row_step) {
+            let vote_row = y.is_multiple_of(VOTE_STRIDE);
+            for x in (0..w).step_by(col_step) {
+                if cells == Cells::OffVoteGrid && vote_row && x.is_multiple_of(VOTE_STRIDE) {
+                    continue;
                 }
-            };
-            class[i] = if moving { RESIDUAL } else { CONSISTENT };
+                let i = y * w + x;
+                let z = f64::from(depth_m[i]);
+                if z == 0.0 {
+                    continue;
+                }
+                // point_in_previous = z · (R · ray) + t, at the depth and one σ_z farther.
+                let r = self.ray[i];
+                let q = rotation * nalgebra::Vector3::new(r.x, r.y, 1.0);
+                let (Some(ideal), Some(ideal_far)) = (
+                    self.camera.project(&Point3::from(q * z + translation)),
+                    self.camera.project(&Point3::from(q * (z + a + b * z * z) + translation)),
+                ) else {
+                    continue;
+                };
+                let p = self.camera.distort(&ideal);
+                let f = flow.data[i];
+                let measured = Point2::new(self.raw[i].x + f64::from(f[0]) * s, self.raw[i].y + f64::from(f[1]) * s);
+                let residual = (measured - p).norm();
+                // The depth's effect on the prediction, through the pinhole (the lens
+                // scales it by a few per cent at most).
+                let depth_var = (ideal_far - ideal).norm_squared();
+                let threshold = (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px);
+                residual_px[i] = residual as f32;
+                let moving = residual > threshold && {
+                    // Where the camera motion alone puts this pixel in the previous flow image.
+                    let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
+                    // The pixel's own patch, compared where the camera motion and where the flow put it.
+                    let here = patch(current, x, y);
+                    let d = here.as_ref().and_then(|p| difference_to(p, previous, qx, qy));
+                    let measured = here.as_ref().and_then(|p| difference_to(p, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1])));
+                    // Moving when the camera motion explains the patch badly, and clearly
+                    // worse than the measured flow does. A pixel whose predicted patch
+                    // leaves the image cannot be confirmed and is not called moving
+                    // (Farneback is least reliable at the border).
+                    match (d, measured) {
+                        (Some(d), Some(m)) => d > self.config.photometric_threshold && d > self.config.photometric_ratio * m,
+                        (Some(d), None) => d > self.config.photometric_threshold,
+                        (None, _) => false,
+                    }
+                };
+                class[i] = if moving { RESIDUAL } else { CONSISTENT };
+            }
         }
         (class, residual_px)
     }
@@ -347,12 +354,7 @@ impl EgoMotion {
         if delta.translation.vector.norm() < RECONSIDER_TOLERANCE_M && delta.rotation.angle() < RECONSIDER_TOLERANCE_RAD {
             return None;
         }
-        let earlier_moving = earlier
-            .class
-            .iter()
-            .enumerate()
-            .filter(|&(i, &c)| c == RESIDUAL && self.on_vote_grid(i) && exclude.is_none_or(|m| m[i] == 0))
-            .count();
+        let earlier_moving = self.vote_cells().filter(|&i| earlier.class[i] == RESIDUAL && exclude.is_none_or(|m| m[i] == 0)).count();
         if earlier_moving == 0 {
             return None; // nothing moves: no motion can leave fewer pixels moving
         }
@@ -373,9 +375,9 @@ impl EgoMotion {
         })
     }
 
-    /// Whether flow cell `i` is one of those candidate motions are compared on.
-    fn on_vote_grid(&self, i: usize) -> bool {
-        (i % self.width).is_multiple_of(VOTE_STRIDE) && (i / self.width).is_multiple_of(VOTE_STRIDE)
+    /// The flow cells candidate motions are compared on, row by row.
+    fn vote_cells(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..self.height).step_by(VOTE_STRIDE).flat_map(move |y| (0..self.width).step_by(VOTE_STRIDE).map(move |x| y * self.width + x))
     }
 
     pub fn grid_size(&self) -> (usize, usize) {

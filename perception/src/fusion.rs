@@ -100,24 +100,31 @@ pub fn fuse(
 ) -> Fused {
     let s = subsample.max(1);
     let (gw, gh) = (width / s, height / s);
-    let grid_instance = |x: usize, y: usize| -> u16 {
-        segmentation.map_or(NO_INSTANCE, |seg| {
-            let (fx, fy) = ((x * s + s / 2).min(width - 1), (y * s + s / 2).min(height - 1));
-            seg.instance_map[fy * width + fx]
-        })
-    };
+    // The instance at each flow cell's centre pixel.
+    let grid_ids: Option<Vec<u16>> = segmentation.map(|seg| {
+        (0..gh)
+            .flat_map(|y| (0..gw).map(move |x| ((y * s + s / 2).min(height - 1), (x * s + s / 2).min(width - 1))))
+            .map(|(fy, fx)| seg.instance_map[fy * width + fx])
+            .collect()
+    });
+    let grid_instance = |i: usize| -> u16 { grid_ids.as_ref().map_or(NO_INSTANCE, |ids| ids[i]) };
 
-    // 3×3 neighbourhood test on the flow grid.
+    // 3×3 neighbourhood test on the flow grid: residual cells counted over each
+    // cell's 3×3 neighbourhood (clipped at the border), as column sums then row sums.
     let mut flow = vec![false; gw * gh];
     if let Some(e) = ego {
+        let residual: Vec<u32> = e.class.iter().map(|&c| u32::from(c == RESIDUAL)).collect();
+        let mut columns = vec![0u32; gw * gh];
         for y in 0..gh {
+            let (y0, y1) = (y.saturating_sub(1), (y + 1).min(gh - 1));
             for x in 0..gw {
-                let mut votes = 0;
-                for dy in y.saturating_sub(1)..=(y + 1).min(gh - 1) {
-                    for dx in x.saturating_sub(1)..=(x + 1).min(gw - 1) {
-                        votes += u32::from(e.class[dy * gw + dx] == RESIDUAL);
-                    }
-                }
+                columns[y * gw + x] = (y0..=y1).map(|dy| residual[dy * gw + x]).sum();
+            }
+        }
+        for y in 0..gh {
+            let row = &columns[y * gw..][..gw];
+            for x in 0..gw {
+                let votes: u32 = row[x.saturating_sub(1)..=(x + 1).min(gw - 1)].iter().sum();
                 flow[y * gw + x] = votes >= config.neighbourhood_votes;
             }
         }
@@ -129,13 +136,11 @@ pub fn fuse(
         let max_id = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
         let (mut judged, mut moving_px) = (vec![0usize; max_id + 1], vec![0usize; max_id + 1]);
         if let Some(e) = ego {
-            for y in 0..gh {
-                for x in 0..gw {
-                    let id = usize::from(grid_instance(x, y));
-                    if id != 0 && id <= max_id && e.class[y * gw + x] != NO_PREDICTION {
-                        judged[id] += 1;
-                        moving_px[id] += usize::from(flow[y * gw + x]);
-                    }
+            for (i, (&class, &has_flow)) in e.class.iter().zip(&flow).enumerate() {
+                let id = usize::from(grid_instance(i));
+                if id != 0 && id <= max_id && class != NO_PREDICTION {
+                    judged[id] += 1;
+                    moving_px[id] += usize::from(has_flow);
                 }
             }
         }
@@ -173,8 +178,10 @@ pub fn fuse(
     let (mut flow_regions, mut rejected_regions) = (0, 0);
     if let Some(e) = ego {
         let free = |i: usize| {
-            let id = usize::from(grid_instance(i % gw, i / gw));
-            flow[i] && (id == 0 || id > max_id || whole[id].is_none())
+            flow[i] && {
+                let id = usize::from(grid_instance(i));
+                id == 0 || id > max_id || whole[id].is_none()
+            }
         };
         let min_cells = (config.min_region_px as usize).div_ceil(s * s).max(1);
         let max_cells = (config.max_region_fraction * (gw * gh) as f64) as usize;
@@ -213,7 +220,7 @@ pub fn fuse(
                 continue;
             }
             let kept = grow_along_depth(kept, e, gw, gh, config.region_depth_ratio, |i| {
-                let id = usize::from(grid_instance(i % gw, i / gw));
+                let id = usize::from(grid_instance(i));
                 id != 0 && id <= max_id && whole[id].is_some()
             });
             flow_regions += 1;

@@ -54,7 +54,8 @@ pub struct MaskTimes {
     pub ego_motion: Duration,
     pub warp: Duration,
     pub fusion: Duration,
-    /// Sum of the stages (tracking between `prepare` and `finish` not included).
+    /// Wall time of `prepare` and `finish` together (tracking between them not
+    /// included): the stages plus the little between them.
     pub total: Duration,
 }
 
@@ -178,6 +179,7 @@ impl DynamicMasker {
                 return Err(PerceptionError::Input(format!("segmentation is {}x{}, expected {w}x{h}", seg.width, seg.height)));
             }
         }
+        let started = Instant::now();
         let mut times = MaskTimes::default();
         let s = self.config.flow.subsample;
 
@@ -228,11 +230,11 @@ impl DynamicMasker {
             }
         }
         self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
-        times.warp = t.elapsed();
 
         // What the camera-motion estimate must not listen to: the carried dynamic
         // cells and prior-dynamic instances.
         let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
+        times.warp = t.elapsed();
 
         // This frame's own labels, before tracking: compensation with the previous
         // frame's motion as the prediction (constant velocity), refined on the flow.
@@ -253,6 +255,8 @@ impl DynamicMasker {
         } else {
             None
         };
+        // The tracking mask counts as fusion.
+        let t = Instant::now();
         // Only a motion the flow confirmed (refined, with enough inliers) labels
         // pixels for tracking: an unconfirmed prediction (a sudden acceleration,
         // motion blur) can call most of the scene moving and starve the tracker.
@@ -272,15 +276,20 @@ impl DynamicMasker {
         let flow_regions = self.config.fusion.flow_regions_in_tracking_mask;
         let instance_map = self.carried.as_ref().map(|c| &c.segmentation.instance_map);
         let mut mask = vec![0u8; w * h];
-        if let Some(grid) = &tracking_dynamic {
+        if let Some(grid) = tracking_dynamic.as_ref().filter(|g| g.iter().any(|&v| v != 0)) {
             let su = s as usize;
             let cell_of_column: Vec<usize> = (0..w).map(|x| (x / su).min(gw - 1)).collect();
             for (y, row) in mask.chunks_exact_mut(w).enumerate() {
                 let grid_row = &grid[(y / su).min(gh - 1) * gw..][..gw];
-                for (x, (m, &cx)) in row.iter_mut().zip(&cell_of_column).enumerate() {
+                match (flow_regions, instance_map) {
+                    (true, _) => row.iter_mut().zip(&cell_of_column).for_each(|(m, &cx)| *m = u8::from(grid_row[cx] != 0)),
                     // Without flow regions, only dynamic pixels of segmented instances.
-                    let allowed = flow_regions || instance_map.is_some_and(|map| map[y * w + x] != 0);
-                    *m = u8::from(allowed && grid_row[cx] != 0);
+                    (false, Some(map)) => {
+                        for ((m, &cx), &id) in row.iter_mut().zip(&cell_of_column).zip(&map[y * w..(y + 1) * w]) {
+                            *m = u8::from(id != 0 && grid_row[cx] != 0);
+                        }
+                    }
+                    (false, None) => {}
                 }
             }
         }
@@ -293,6 +302,8 @@ impl DynamicMasker {
                 }
             }
         }
+        times.fusion += t.elapsed();
+        times.total = started.elapsed();
         self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, early, times });
         Ok(mask)
     }
@@ -312,6 +323,7 @@ impl DynamicMasker {
             return Err(PerceptionError::Input(format!("depth has {} pixels, expected {} ({w}x{h})", depth.len(), w * h)));
         }
         let s = self.config.flow.subsample;
+        let started = Instant::now();
         let t = Instant::now();
         let (ego, fused) = match early {
             // Labelled before tracking: the tracked motion re-decides only when it
@@ -363,7 +375,7 @@ impl DynamicMasker {
             self.last_ego_frames = self.flows.back().filter(|f| f.to == sequence).map_or(1, |f| f.to - f.from);
         }
         self.last_ego = ego;
-        times.total = times.flow + times.warp + times.ego_motion + times.fusion;
+        times.total += started.elapsed();
         Ok(MaskOutput {
             fused,
             source,

@@ -12,7 +12,7 @@ use std::collections::HashMap;
 use nalgebra::{DMatrix, DVector, Isometry3, Matrix3, Matrix6x3, Point3, Vector3, Vector6};
 
 use crate::camera::Camera;
-use crate::geometry::{Measurement, huber_weight, linearise, perturb, robust_cost};
+use crate::geometry::{Measurement, huber_weight, linearise, perturb, residual, robust_cost};
 
 /// Initial LM damping, relative to the mean diagonal of the system.
 const INITIAL_LAMBDA: f64 = 1e-4;
@@ -43,8 +43,8 @@ pub struct Report {
 fn total_cost(camera: &Camera, bf: f64, p: &Problem) -> f64 {
     p.observations
         .iter()
-        .map(|(ci, pi, m)| match linearise(camera, bf, &p.poses[*ci], &p.points[*pi], m) {
-            Some(lin) => robust_cost(lin.chi2(m.information), m.chi2_threshold()),
+        .map(|(ci, pi, m)| match residual(camera, bf, &p.poses[*ci], &p.points[*pi], m) {
+            Some(r) => robust_cost(r.chi2(m.information), m.chi2_threshold()),
             None => 2.0 * m.chi2_threshold(),
         })
         .sum()
@@ -195,8 +195,8 @@ pub fn outliers(camera: &Camera, bf: f64, problem: &Problem) -> Vec<usize> {
         .iter()
         .enumerate()
         .filter(|(_, (ci, pi, m))| {
-            linearise(camera, bf, &problem.poses[*ci], &problem.points[*pi], m)
-                .is_none_or(|lin| lin.chi2(m.information) > m.chi2_threshold())
+            residual(camera, bf, &problem.poses[*ci], &problem.points[*pi], m)
+                .is_none_or(|r| r.chi2(m.information) > m.chi2_threshold())
         })
         .map(|(k, _)| k)
         .collect()

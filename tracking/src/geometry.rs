@@ -30,6 +30,26 @@ impl Measurement {
     }
 }
 
+/// Mahalanobis squared error of the first `rows` rows of `error`.
+fn chi2(error: &Vector3<f64>, rows: usize, information: f64) -> f64 {
+    error.rows(0, rows).norm_squared() * information
+}
+
+/// A residual `e = measured − predicted` of one measurement.
+#[derive(Debug, Clone, Copy)]
+pub struct Residual {
+    pub error: Vector3<f64>,
+    /// Rows used: 2 without disparity, 3 with.
+    pub rows: usize,
+}
+
+impl Residual {
+    /// Mahalanobis squared error.
+    pub fn chi2(&self, information: f64) -> f64 {
+        chi2(&self.error, self.rows, information)
+    }
+}
+
 /// A linearised residual: `e = measured − predicted`, and the Jacobians of the
 /// prediction with respect to the pose perturbation and the point in the world.
 pub struct Linearised {
@@ -43,21 +63,37 @@ pub struct Linearised {
 impl Linearised {
     /// Mahalanobis squared error.
     pub fn chi2(&self, information: f64) -> f64 {
-        self.error.rows(0, self.rows).norm_squared() * information
+        chi2(&self.error, self.rows, information)
     }
 }
 
-/// Linearises a measurement of `point_in_world` seen from `camera_from_world`.
-/// `None` when the point is behind or too close to the camera.
-pub fn linearise(
+/// A residual with its Jacobian with respect to the pose perturbation only (what
+/// motion-only optimisation needs).
+pub struct PoseLinearised {
+    pub error: Vector3<f64>,
+    pub rows: usize,
+    pub d_pose: Matrix3x6<f64>,
+}
+
+impl PoseLinearised {
+    /// Mahalanobis squared error.
+    pub fn chi2(&self, information: f64) -> f64 {
+        chi2(&self.error, self.rows, information)
+    }
+}
+
+/// Points nearer than this (metres, in the camera) give no residual.
+const MIN_Z: f64 = 1e-3;
+
+/// The residual of a point in the camera, and the projection's Jacobian with
+/// respect to that point (rows: u, v, disparity).
+fn project_linearised(
     camera: &Camera,
     bf: f64,
-    camera_from_world: &Isometry3<f64>,
-    point_in_world: &Point3<f64>,
+    point_in_camera: &Point3<f64>,
     m: &Measurement,
-) -> Option<Linearised> {
-    const MIN_Z: f64 = 1e-3;
-    let pc = camera_from_world * point_in_world;
+) -> Option<(Residual, Matrix3<f64>)> {
+    let pc = point_in_camera;
     if pc.z < MIN_Z {
         return None;
     }
@@ -78,13 +114,84 @@ pub fn linearise(
     } else {
         2
     };
-    // d(pc)/dδ = [ -[pc]× | I ]
+    Some((Residual { error, rows }, d_proj))
+}
+
+/// The residual of a measurement of `point_in_world` seen from
+/// `camera_from_world` (the same numbers as [`linearise`]'s, without Jacobians).
+pub fn residual(
+    camera: &Camera,
+    bf: f64,
+    camera_from_world: &Isometry3<f64>,
+    point_in_world: &Point3<f64>,
+    m: &Measurement,
+) -> Option<Residual> {
+    let pc = camera_from_world * point_in_world;
+    if pc.z < MIN_Z {
+        return None;
+    }
+    let inv_z = 1.0 / pc.z;
+    let u = camera.fx * pc.x * inv_z + camera.cx;
+    let v = camera.fy * pc.y * inv_z + camera.cy;
+    let mut error = Vector3::new(m.ideal.x - u, m.ideal.y - v, 0.0);
+    let rows = match m.disparity {
+        Some(d) => {
+            error.z = d - bf * inv_z;
+            3
+        }
+        None => 2,
+    };
+    Some(Residual { error, rows })
+}
+
+/// d(point in camera)/dδ for the left perturbation: `[ -[pc]× | I ]`.
+fn d_point_in_camera_d_pose(point_in_camera: &Point3<f64>) -> Matrix3x6<f64> {
     let mut d_pc_pose = Matrix3x6::zeros();
-    d_pc_pose.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-pc.coords.cross_matrix()));
-    d_pc_pose.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
-    let d_pose = d_proj * d_pc_pose;
+    d_pc_pose
+        .fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(-point_in_camera.coords.cross_matrix()));
+    d_pc_pose
+        .fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&Matrix3::identity());
+    d_pc_pose
+}
+
+/// [`linearise`] without the point Jacobian.
+pub fn linearise_pose(
+    camera: &Camera,
+    bf: f64,
+    camera_from_world: &Isometry3<f64>,
+    point_in_world: &Point3<f64>,
+    m: &Measurement,
+) -> Option<PoseLinearised> {
+    let pc = camera_from_world * point_in_world;
+    let (r, d_proj) = project_linearised(camera, bf, &pc, m)?;
+    Some(PoseLinearised {
+        error: r.error,
+        rows: r.rows,
+        d_pose: d_proj * d_point_in_camera_d_pose(&pc),
+    })
+}
+
+/// Linearises a measurement of `point_in_world` seen from `camera_from_world`.
+/// `None` when the point is behind or too close to the camera.
+pub fn linearise(
+    camera: &Camera,
+    bf: f64,
+    camera_from_world: &Isometry3<f64>,
+    point_in_world: &Point3<f64>,
+    m: &Measurement,
+) -> Option<Linearised> {
+    let pc = camera_from_world * point_in_world;
+    let (r, d_proj) = project_linearised(camera, bf, &pc, m)?;
+    let d_pose = d_proj * d_point_in_camera_d_pose(&pc);
     let d_point = d_proj * camera_from_world.rotation.to_rotation_matrix().matrix();
-    Some(Linearised { error, rows, d_pose, d_point })
+    Some(Linearised {
+        error: r.error,
+        rows: r.rows,
+        d_pose,
+        d_point,
+    })
 }
 
 /// PnP-RANSAC parameters for [`pnp_ransac`].
@@ -181,5 +288,41 @@ mod tests {
             let numeric = (e2 - lin.error) / h;
             assert!((numeric + lin.d_point.column(k)).norm() < 1e-3, "point column {k}");
         }
+    }
+
+    #[test]
+    fn residual_and_pose_linearisation_match_the_full_one() {
+        let camera = Camera::pinhole(640, 480, 520.0, 521.0, 320.0, 240.0, 5000.0);
+        let pose = Isometry3::new(
+            Vector3::new(0.1, -0.05, 0.2),
+            Vector3::new(0.03, -0.02, 0.01),
+        );
+        for (pw, disparity) in [
+            (Point3::new(0.3, -0.2, 2.0), Some(20.0)),
+            (Point3::new(-0.4, 0.1, 1.2), None),
+        ] {
+            let m = Measurement {
+                ideal: Point2::new(400.0, 200.0),
+                disparity,
+                information: 0.7,
+            };
+            let full = linearise(&camera, 41.6, &pose, &pw, &m).unwrap();
+            let r = residual(&camera, 41.6, &pose, &pw, &m).unwrap();
+            let p = linearise_pose(&camera, 41.6, &pose, &pw, &m).unwrap();
+            assert_eq!((r.error, r.rows), (full.error, full.rows));
+            assert_eq!(
+                (p.error, p.rows, p.d_pose),
+                (full.error, full.rows, full.d_pose)
+            );
+            assert_eq!(r.chi2(m.information), full.chi2(m.information));
+        }
+        let behind = Point3::new(0.0, 0.0, -0.5);
+        let m = Measurement {
+            ideal: Point2::new(0.0, 0.0),
+            disparity: None,
+            information: 1.0,
+        };
+        assert!(residual(&camera, 41.6, &Isometry3::identity(), &behind, &m).is_none());
+        assert!(linearise_pose(&camera, 41.6, &Isometry3::identity(), &behind, &m).is_none());
     }
 }

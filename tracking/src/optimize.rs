@@ -5,7 +5,7 @@
 use nalgebra::{Isometry3, Matrix6, Point3, Vector6};
 
 use crate::camera::Camera;
-use crate::geometry::{Measurement, huber_weight, linearise, perturb, robust_cost};
+use crate::geometry::{Measurement, huber_weight, linearise_pose, perturb, residual, robust_cost};
 
 /// Classification rounds; the last one runs without the robust kernel.
 const ROUNDS: usize = 4;
@@ -44,9 +44,9 @@ pub fn optimize_pose(
                 .iter()
                 .zip(inliers)
                 .filter(|(_, i)| **i)
-                .map(|((pw, m), _)| match linearise(camera, bf, pose, pw, m) {
-                    Some(lin) => {
-                        let chi2 = lin.chi2(m.information);
+                .map(|((pw, m), _)| match residual(camera, bf, pose, pw, m) {
+                    Some(r) => {
+                        let chi2 = r.chi2(m.information);
                         if robust { robust_cost(chi2, m.chi2_threshold()) } else { chi2 }
                     }
                     None => 2.0 * m.chi2_threshold(),
@@ -63,7 +63,7 @@ pub fn optimize_pose(
                 if !inlier {
                     continue;
                 }
-                let Some(lin) = linearise(camera, bf, &pose, pw, m) else { continue };
+                let Some(lin) = linearise_pose(camera, bf, &pose, pw, m) else { continue };
                 let chi2 = lin.chi2(m.information);
                 let w = m.information * if robust { huber_weight(chi2, m.chi2_threshold()) } else { 1.0 };
                 let j = lin.d_pose.rows(0, lin.rows);
@@ -95,7 +95,7 @@ pub fn optimize_pose(
             }
         }
         for ((pw, m), inlier) in correspondences.iter().zip(inliers.iter_mut()) {
-            *inlier = linearise(camera, bf, &pose, pw, m).is_some_and(|lin| lin.chi2(m.information) <= m.chi2_threshold());
+            *inlier = residual(camera, bf, &pose, pw, m).is_some_and(|r| r.chi2(m.information) <= m.chi2_threshold());
         }
     }
     let inlier_count = inliers.iter().filter(|&&i| i).count();
