@@ -297,22 +297,25 @@ impl EgoMotion {
                 // point_in_previous = z · (R · ray) + t, at the depth and one σ_z farther.
                 let r = self.ray[i];
                 let q = rotation * nalgebra::Vector3::new(r.x, r.y, 1.0);
-                let (Some(ideal), Some(ideal_far)) = (
-                    self.camera.project(&Point3::from(q * z + translation)),
-                    self.camera.project(&Point3::from(q * (z + a + b * z * z) + translation)),
-                ) else {
-                    continue;
-                };
+                let far = Point3::from(q * (z + a + b * z * z) + translation);
+                let Some(ideal) = self.camera.project(&Point3::from(q * z + translation)) else { continue };
+                if far.z <= 0.0 {
+                    continue; // no prediction one σ_z farther (what `project` refuses)
+                }
                 let p = self.camera.distort(&ideal);
                 let f = flow.data[i];
                 let measured = Point2::new(self.raw[i].x + f64::from(f[0]) * s, self.raw[i].y + f64::from(f[1]) * s);
                 let residual = (measured - p).norm();
-                // The depth's effect on the prediction, through the pinhole (the lens
-                // scales it by a few per cent at most).
-                let depth_var = (ideal_far - ideal).norm_squared();
-                let threshold = (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px);
                 residual_px[i] = residual as f32;
-                let moving = residual > threshold && {
+                // The threshold is never below min_residual_px: most pixels are decided
+                // without the depth term.
+                let moving = residual > self.config.min_residual_px && {
+                    // The depth's effect on the prediction, through the pinhole (the lens
+                    // scales it by a few per cent at most).
+                    let ideal_far = self.camera.project(&far).unwrap_or(ideal);
+                    let depth_var = (ideal_far - ideal).norm_squared();
+                    residual > (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px)
+                } && {
                     // Where the camera motion alone puts this pixel in the previous flow image.
                     let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
                     // The pixel's own patch, compared where the camera motion and where the flow put it.
@@ -428,7 +431,8 @@ pub fn min_eigen_texture(image: &SmallGray) -> Vec<f32> {
         for x in 2..w.saturating_sub(2) {
             let (u, m, d) = (row_sums[(y - 1) * w + x], row_sums[y * w + x], row_sums[(y + 1) * w + x]);
             let (a, b, c) = (u[0] + m[0] + d[0], u[1] + m[1] + d[1], u[2] + m[2] + d[2]);
-            let (mean, diff) = ((a + c) * 0.5, ((a - c) * 0.5).hypot(b));
+            let half = (a - c) * 0.5;
+            let (mean, diff) = ((a + c) * 0.5, (half * half + b * b).sqrt());
             out[y * w + x] = (mean - diff).max(0.0) / 9.0;
         }
     }
