@@ -41,6 +41,9 @@ pub struct EgoResult {
     pub previous_from_current: Isometry3<f64>,
     /// Whether the motion was refined on the flow (else the prior alone was used).
     pub refined: bool,
+    /// Whether the flow tested the motion: it is a refinement on the flow, or it
+    /// left fewer pixels moving than one (false: a prior nothing could check).
+    pub confirmed: bool,
     /// Flow samples used by the refinement, and how many it kept as inliers.
     pub samples: usize,
     pub inliers: usize,
@@ -252,7 +255,8 @@ impl EgoMotion {
             Some(vote) => self.classify(flow, current, previous, &depth_m, &previous_from_current, Cells::OffVoteGrid, Some(vote)),
             None => self.classify(flow, current, previous, &depth_m, &previous_from_current, Cells::All, None),
         };
-        EgoResult { previous_from_current, refined, samples, inliers, class, residual_px, depth_m }
+        let confirmed = candidates.iter().any(|&(_, is_refined, _)| is_refined);
+        EgoResult { previous_from_current, refined, confirmed, samples, inliers, class, residual_px, depth_m }
     }
 
     /// Classifies flow pixels under `previous_from_current`: their class and
@@ -370,6 +374,8 @@ impl EgoMotion {
         Some(EgoResult {
             previous_from_current: *candidate,
             refined: false,
+            // It left fewer pixels moving than the earlier result.
+            confirmed: true,
             samples: earlier.samples,
             inliers: 0,
             class,

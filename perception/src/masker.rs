@@ -257,11 +257,12 @@ impl DynamicMasker {
         };
         // The tracking mask counts as fusion.
         let t = Instant::now();
-        // Only a motion the flow confirmed (refined, with enough inliers) labels
-        // pixels for tracking: an unconfirmed prediction (a sudden acceleration,
+        // Only a motion the flow confirmed (a refinement with enough inliers, or
+        // the prediction when it beat one in the vote) labels pixels for tracking:
+        // an unchecked prediction (no refinement held: a sudden acceleration,
         // motion blur) can call most of the scene moving and starve the tracker.
         let tracking_dynamic = match (&early, carried_dynamic) {
-            (Some((ego, fused)), carried) if ego.refined => {
+            (Some((ego, fused)), carried) if ego.confirmed => {
                 let own = dilate(self.dynamic_cells(&fused.labels), gw, gh, radius_cells)?;
                 Some(match carried {
                     Some(c) => own.iter().zip(&c).map(|(&a, &b)| a | b).collect(),

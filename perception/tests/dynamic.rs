@@ -46,8 +46,11 @@ fn moving_board_is_found_while_the_camera_rotates() {
         s.scored_frames, s.mean_iou, s.min_iou, s.false_dynamic, s.object_features, s.eliminated_fraction, with_object.ate_m, without.ate_m, with_object.rpe_m, without.rpe_m
     );
     // Measured (this machine): 107 frames scored, IoU mean 0.79, false-dynamic 1.4 %,
-    // 93.3 % of the board's features eliminated, ATE 4.7 cm with the board vs 3.2 cm
-    // without (with the mask computed after tracking only: 87 % and 8.1 cm). The IoU
+    // 94.3 % of the board's features eliminated (94.3–94.4 % with the tracker's
+    // feature count at 990, 1010 or 1020), ATE 6.4 cm with the board vs 3.2 cm
+    // without (4.6–6.7 vs 3.2–4.3 cm over those four runs: tracking on this clip
+    // swings with tiny changes; with the mask computed after tracking only: 87 % and
+    // 8.1 cm). The IoU
     // and false-dynamic bounds are the targets; the elimination (≥ 95 %) and
     // tracking (within 20 %) targets are NOT met yet: frame 0 has no flow, the board
     // re-entering the view has no previous position to compare with, and on
@@ -56,7 +59,7 @@ fn moving_board_is_found_while_the_camera_rotates() {
     assert!(s.scored_frames >= 100, "object visible in {} frames", s.scored_frames);
     assert!(s.mean_iou >= 0.7, "IoU {:.3}", s.mean_iou);
     assert!(s.false_dynamic <= 0.02, "false-dynamic {:.4}", s.false_dynamic);
-    assert!(s.eliminated_fraction >= 0.9, "eliminated {:.4}", s.eliminated_fraction);
+    assert!(s.eliminated_fraction >= 0.93, "eliminated {:.4}", s.eliminated_fraction);
     // Labelled before tracking, the board is masked on the first frame with flow
     // (measured: 137 of its 195 features; with the previous frame's labels alone, none).
     let (on_board, removed) = s.first_flow_frame_features;
