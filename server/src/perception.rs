@@ -63,6 +63,9 @@ pub struct SegmentationService {
     queue: Arc<(Mutex<Queue>, Condvar)>,
     class_names: Vec<String>,
     device: String,
+    /// The worker threads, joined by [`close`](Self::close): a worker must not be
+    /// inferring while the process tears ONNX Runtime down.
+    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
 }
 
 impl SegmentationService {
@@ -71,17 +74,19 @@ impl SegmentationService {
         let queue: Arc<(Mutex<Queue>, Condvar)> = Arc::default();
         let mut class_names = Vec::new();
         let mut device = String::new();
+        let mut threads = Vec::new();
         for n in 0..config.segmentation.workers {
             let mut segmenter = YoloSegmenter::new(&config.segmentation)?;
             class_names = segmenter.class_names().to_vec();
             device = segmenter.device().to_string();
             let queue = queue.clone();
-            std::thread::Builder::new()
+            let thread = std::thread::Builder::new()
                 .name(format!("segmentation-{n}"))
                 .spawn(move || worker(&mut segmenter, &queue))
                 .map_err(|e| PerceptionError::Runtime(format!("cannot start a segmentation worker: {e}")))?;
+            threads.push(thread);
         }
-        Ok(Arc::new(Self { queue, class_names, device }))
+        Ok(Arc::new(Self { queue, class_names, device, threads: Mutex::new(threads) }))
     }
 
     pub fn class_names(&self) -> &[String] {
@@ -96,10 +101,17 @@ impl SegmentationService {
         SegmentationClient { service: self.clone(), slot: Arc::default() }
     }
 
-    /// Stops the workers once the jobs already queued are done.
+    /// Stops the workers once the jobs already queued are done, and waits for them.
+    /// Call it after the sessions' workers have stopped (a deterministic session
+    /// waits for its jobs).
     pub fn close(&self) {
         lock(&self.queue.0).closed = true;
         self.queue.1.notify_all();
+        for thread in std::mem::take(&mut *lock(&self.threads)) {
+            if thread.join().is_err() {
+                tracing::warn!("a segmentation worker panicked");
+            }
+        }
     }
 }
 

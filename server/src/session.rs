@@ -591,11 +591,15 @@ impl Registry {
         }
     }
 
-    /// Waits for every worker to finish its queue and its last commit.
+    /// Waits for every worker to finish its queue and its last commit, then stops
+    /// the segmentation workers (the sessions' last frames may still need them).
     pub fn join_workers(&self) {
         let workers = std::mem::take(&mut *lock(&self.workers));
         for w in workers {
             let _ = w.join();
+        }
+        if let Some((_, Some(service))) = &self.perception {
+            service.close();
         }
     }
 
@@ -603,9 +607,6 @@ impl Registry {
     pub fn close_all(&self) {
         for s in self.list() {
             s.queue.close();
-        }
-        if let Some((_, Some(service))) = &self.perception {
-            service.close();
         }
     }
 }
