@@ -540,7 +540,7 @@ mod tests {
         let (flow, current, previous, depth) = wall_with_patch(&ego, &truth);
         let (w, h) = ego.grid_size();
         let out = ego.compensate(&flow, &current, &previous, &depth, None, None);
-        assert!(out.refined);
+        assert!(out.refined && out.confirmed);
         let err = out.previous_from_current.inverse() * truth;
         assert!(err.translation.vector.norm() < 1e-3 && err.rotation.angle() < 1e-4, "{err:?}");
         for i in 0..w * h {
@@ -570,7 +570,10 @@ mod tests {
         let under_truth = ego.compensate(&flow, &current, &previous, &depth, Some(truth), None);
         assert!(moving(&under_wrong) > 4 * moving(&under_truth), "{} vs {}", moving(&under_wrong), moving(&under_truth));
 
+        // Priors used as they are: nothing on the flow checked them.
+        assert!(!under_wrong.confirmed && !under_wrong.refined);
         let better = ego.reconsider(&flow, &current, &previous, &under_wrong, &truth, None).expect("the tracked motion explains more");
+        assert!(better.confirmed, "it won the vote on the flow");
         assert_eq!(better.previous_from_current, truth);
         assert_eq!(better.class, under_truth.class);
         assert_eq!(better.residual_px, under_truth.residual_px);

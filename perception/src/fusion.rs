@@ -373,7 +373,7 @@ mod tests {
                 depth_m[y * gw + x] = depth(x, y);
             }
         }
-        EgoResult { previous_from_current: Isometry3::identity(), refined: true, samples: 0, inliers: 0, class, residual_px, depth_m }
+        EgoResult { previous_from_current: Isometry3::identity(), refined: true, confirmed: true, samples: 0, inliers: 0, class, residual_px, depth_m }
     }
 
     fn person_box(width: usize, height: usize, x0: usize, x1: usize, y0: usize, y1: usize) -> Segmentation {
