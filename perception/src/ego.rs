@@ -541,6 +541,11 @@ mod tests {
         let (w, h) = ego.grid_size();
         let out = ego.compensate(&flow, &current, &previous, &depth, None, None);
         assert!(out.refined && out.confirmed);
+        // With the true motion as the prior, a refinement competes with it: whichever
+        // wins, the flow checked the motion.
+        let with_prior = ego.compensate(&flow, &current, &previous, &depth, Some(truth), None);
+        assert!(with_prior.confirmed);
+        assert_eq!(with_prior.class, ego.compensate(&flow, &current, &previous, &depth, None, None).class);
         let err = out.previous_from_current.inverse() * truth;
         assert!(err.translation.vector.norm() < 1e-3 && err.rotation.angle() < 1e-4, "{err:?}");
         for i in 0..w * h {
