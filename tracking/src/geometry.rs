@@ -30,11 +30,6 @@ impl Measurement {
     }
 }
 
-/// Mahalanobis squared error of the first `rows` rows of `error`.
-fn chi2(error: &Vector3<f64>, rows: usize, information: f64) -> f64 {
-    error.rows(0, rows).norm_squared() * information
-}
-
 /// A residual `e = measured − predicted` of one measurement.
 #[derive(Debug, Clone, Copy)]
 pub struct Residual {
@@ -46,7 +41,7 @@ pub struct Residual {
 impl Residual {
     /// Mahalanobis squared error.
     pub fn chi2(&self, information: f64) -> f64 {
-        chi2(&self.error, self.rows, information)
+        self.error.rows(0, self.rows).norm_squared() * information
     }
 }
 
@@ -63,22 +58,7 @@ pub struct Linearised {
 impl Linearised {
     /// Mahalanobis squared error.
     pub fn chi2(&self, information: f64) -> f64 {
-        chi2(&self.error, self.rows, information)
-    }
-}
-
-/// A residual with its Jacobian with respect to the pose perturbation only (what
-/// motion-only optimisation needs).
-pub struct PoseLinearised {
-    pub error: Vector3<f64>,
-    pub rows: usize,
-    pub d_pose: Matrix3x6<f64>,
-}
-
-impl PoseLinearised {
-    /// Mahalanobis squared error.
-    pub fn chi2(&self, information: f64) -> f64 {
-        chi2(&self.error, self.rows, information)
+        self.error.rows(0, self.rows).norm_squared() * information
     }
 }
 
@@ -87,12 +67,7 @@ const MIN_Z: f64 = 1e-3;
 
 /// The residual of a point in the camera, and the projection's Jacobian with
 /// respect to that point (rows: u, v, disparity).
-fn project_linearised(
-    camera: &Camera,
-    bf: f64,
-    point_in_camera: &Point3<f64>,
-    m: &Measurement,
-) -> Option<(Residual, Matrix3<f64>)> {
+fn project_linearised(camera: &Camera, bf: f64, point_in_camera: &Point3<f64>, m: &Measurement) -> Option<(Residual, Matrix3<f64>)> {
     let pc = point_in_camera;
     if pc.z < MIN_Z {
         return None;
@@ -118,59 +93,32 @@ fn project_linearised(
 }
 
 /// The residual of a measurement of `point_in_world` seen from
-/// `camera_from_world` (the same numbers as [`linearise`]'s, without Jacobians).
-pub fn residual(
-    camera: &Camera,
-    bf: f64,
-    camera_from_world: &Isometry3<f64>,
-    point_in_world: &Point3<f64>,
-    m: &Measurement,
-) -> Option<Residual> {
-    let pc = camera_from_world * point_in_world;
-    if pc.z < MIN_Z {
-        return None;
-    }
-    let inv_z = 1.0 / pc.z;
-    let u = camera.fx * pc.x * inv_z + camera.cx;
-    let v = camera.fy * pc.y * inv_z + camera.cy;
-    let mut error = Vector3::new(m.ideal.x - u, m.ideal.y - v, 0.0);
-    let rows = match m.disparity {
-        Some(d) => {
-            error.z = d - bf * inv_z;
-            3
-        }
-        None => 2,
-    };
-    Some(Residual { error, rows })
+/// `camera_from_world` (the same numbers as [`linearise`]'s, without the pose and
+/// point Jacobians).
+pub fn residual(camera: &Camera, bf: f64, camera_from_world: &Isometry3<f64>, point_in_world: &Point3<f64>, m: &Measurement) -> Option<Residual> {
+    project_linearised(camera, bf, &(camera_from_world * point_in_world), m).map(|(r, _)| r)
 }
 
 /// d(point in camera)/dδ for the left perturbation: `[ -[pc]× | I ]`.
 fn d_point_in_camera_d_pose(point_in_camera: &Point3<f64>) -> Matrix3x6<f64> {
     let mut d_pc_pose = Matrix3x6::zeros();
-    d_pc_pose
-        .fixed_view_mut::<3, 3>(0, 0)
-        .copy_from(&(-point_in_camera.coords.cross_matrix()));
-    d_pc_pose
-        .fixed_view_mut::<3, 3>(0, 3)
-        .copy_from(&Matrix3::identity());
+    d_pc_pose.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-point_in_camera.coords.cross_matrix()));
+    d_pc_pose.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
     d_pc_pose
 }
 
-/// [`linearise`] without the point Jacobian.
+/// [`linearise`] without the point Jacobian: the residual and its Jacobian with
+/// respect to the pose perturbation (what motion-only optimisation needs).
 pub fn linearise_pose(
     camera: &Camera,
     bf: f64,
     camera_from_world: &Isometry3<f64>,
     point_in_world: &Point3<f64>,
     m: &Measurement,
-) -> Option<PoseLinearised> {
+) -> Option<(Residual, Matrix3x6<f64>)> {
     let pc = camera_from_world * point_in_world;
     let (r, d_proj) = project_linearised(camera, bf, &pc, m)?;
-    Some(PoseLinearised {
-        error: r.error,
-        rows: r.rows,
-        d_pose: d_proj * d_point_in_camera_d_pose(&pc),
-    })
+    Some((r, d_proj * d_point_in_camera_d_pose(&pc)))
 }
 
 /// Linearises a measurement of `point_in_world` seen from `camera_from_world`.
@@ -186,12 +134,7 @@ pub fn linearise(
     let (r, d_proj) = project_linearised(camera, bf, &pc, m)?;
     let d_pose = d_proj * d_point_in_camera_d_pose(&pc);
     let d_point = d_proj * camera_from_world.rotation.to_rotation_matrix().matrix();
-    Some(Linearised {
-        error: r.error,
-        rows: r.rows,
-        d_pose,
-        d_point,
-    })
+    Some(Linearised { error: r.error, rows: r.rows, d_pose, d_point })
 }
 
 /// PnP-RANSAC parameters for [`pnp_ransac`].
@@ -308,12 +251,9 @@ mod tests {
             };
             let full = linearise(&camera, 41.6, &pose, &pw, &m).unwrap();
             let r = residual(&camera, 41.6, &pose, &pw, &m).unwrap();
-            let p = linearise_pose(&camera, 41.6, &pose, &pw, &m).unwrap();
+            let (p, d_pose) = linearise_pose(&camera, 41.6, &pose, &pw, &m).unwrap();
             assert_eq!((r.error, r.rows), (full.error, full.rows));
-            assert_eq!(
-                (p.error, p.rows, p.d_pose),
-                (full.error, full.rows, full.d_pose)
-            );
+            assert_eq!((p.error, p.rows, d_pose), (full.error, full.rows, full.d_pose));
             assert_eq!(r.chi2(m.information), full.chi2(m.information));
         }
         let behind = Point3::new(0.0, 0.0, -0.5);

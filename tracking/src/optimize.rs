@@ -63,11 +63,11 @@ pub fn optimize_pose(
                 if !inlier {
                     continue;
                 }
-                let Some(lin) = linearise_pose(camera, bf, &pose, pw, m) else { continue };
-                let chi2 = lin.chi2(m.information);
+                let Some((r, d_pose)) = linearise_pose(camera, bf, &pose, pw, m) else { continue };
+                let chi2 = r.chi2(m.information);
                 let w = m.information * if robust { huber_weight(chi2, m.chi2_threshold()) } else { 1.0 };
-                let j = lin.d_pose.rows(0, lin.rows);
-                let e = lin.error.rows(0, lin.rows);
+                let j = d_pose.rows(0, r.rows);
+                let e = r.error.rows(0, r.rows);
                 h += j.transpose() * j * w;
                 b += j.transpose() * e * w;
                 used += 1;
