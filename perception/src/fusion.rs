@@ -101,12 +101,7 @@ pub fn fuse(
     let s = subsample.max(1);
     let (gw, gh) = (width / s, height / s);
     // The instance at each flow cell's centre pixel.
-    let grid_ids: Option<Vec<u16>> = segmentation.map(|seg| {
-        (0..gh)
-            .flat_map(|y| (0..gw).map(move |x| ((y * s + s / 2).min(height - 1), (x * s + s / 2).min(width - 1))))
-            .map(|(fy, fx)| seg.instance_map[fy * width + fx])
-            .collect()
-    });
+    let grid_ids: Option<Vec<u16>> = segmentation.map(|seg| cell_centres(width, height, s).map(|i| seg.instance_map[i]).collect());
     let grid_instance = |i: usize| -> u16 { grid_ids.as_ref().map_or(NO_INSTANCE, |ids| ids[i]) };
 
     // 3×3 neighbourhood test on the flow grid: residual cells counted over each
@@ -339,6 +334,14 @@ fn prune_to_core_depth(region: &[usize], ego: &EgoResult, ratio: f64) -> Vec<usi
             z == 0.0 || (z - z_core).abs() <= ratio * z_core
         })
         .collect()
+}
+
+/// The full-size pixel index at the centre of each flow-grid cell (`subsample`×
+/// `subsample` blocks of a `width`×`height` image), row by row.
+pub(crate) fn cell_centres(width: usize, height: usize, subsample: usize) -> impl Iterator<Item = usize> {
+    let s = subsample.max(1);
+    let (gw, gh) = (width / s, height / s);
+    (0..gh).flat_map(move |y| (0..gw).map(move |x| (y * s + s / 2).min(height - 1) * width + (x * s + s / 2).min(width - 1)))
 }
 
 /// Fraction of valid-depth pixels that are not static (for `FrameCounts.dynamic_fraction`).

@@ -17,7 +17,7 @@ use crate::PerceptionError;
 use crate::config::{PerceptionConfig, PriorDynamicTracking};
 use crate::ego::{EgoMotion, EgoResult};
 use crate::flow::{FlowField, SmallGray, farneback};
-use crate::fusion::{Fused, PixelLabel, dynamic_fraction, fuse};
+use crate::fusion::{Fused, PixelLabel, cell_centres, dynamic_fraction, fuse};
 use crate::segment::Segmentation;
 use crate::warp::{warp_grid, warp_segmentation};
 
@@ -87,6 +87,13 @@ struct FlowStep {
     flow: FlowField,
 }
 
+impl FlowStep {
+    /// Frame intervals the step spans (more than one after drops).
+    fn frames(&self) -> u64 {
+        self.to - self.from
+    }
+}
+
 struct Carried {
     segmentation: Segmentation,
     source_sequence: u64,
@@ -117,8 +124,9 @@ struct Pending {
     previous: Option<SmallGray>,
     /// Flow-grid cells the ego-motion estimate ignores.
     exclude: Vec<u8>,
-    /// Compensation and labels computed before tracking (`ego_motion.before_tracking`).
-    early: Option<(EgoResult, Fused)>,
+    /// Compensation, labels and their dynamic flow-grid cells computed before
+    /// tracking (`ego_motion.before_tracking`).
+    early: Option<(EgoResult, Fused, Vec<u8>)>,
     times: MaskTimes,
 }
 
@@ -241,7 +249,7 @@ impl DynamicMasker {
         let early = if self.config.ego_motion.before_tracking {
             let t = Instant::now();
             // Constant velocity over the frames this step spans (more than one after drops).
-            let step_frames = self.flows.back().filter(|f| f.to == input.sequence).map_or(1, |f| f.to - f.from);
+            let step_frames = self.latest_step(input.sequence).map_or(1, FlowStep::frames);
             let factor = step_frames as f64 / self.last_ego_frames.max(1) as f64;
             let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
             let ego = self.compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), input.depth, predicted, &exclude);
@@ -249,8 +257,9 @@ impl DynamicMasker {
             ego.map(|ego| {
                 let t = Instant::now();
                 let fused = fuse(w, h, s as usize, Some(&ego), self.carried.as_ref().map(|c| &c.segmentation), &self.prior_dynamic, &self.config.fusion);
+                let cells = self.dynamic_cells(&fused.labels);
                 times.fusion += t.elapsed();
-                (ego, fused)
+                (ego, fused, cells)
             })
         } else {
             None
@@ -262,8 +271,8 @@ impl DynamicMasker {
         // an unchecked prediction (no refinement held: a sudden acceleration,
         // motion blur) can call most of the scene moving and starve the tracker.
         let tracking_dynamic = match (&early, carried_dynamic) {
-            (Some((ego, fused)), carried) if ego.confirmed => {
-                let own = dilate(self.dynamic_cells(&fused.labels), gw, gh, radius_cells)?;
+            (Some((ego, _, cells)), carried) if ego.confirmed => {
+                let own = dilate(cells.clone(), gw, gh, radius_cells)?;
                 Some(match carried {
                     Some(c) => own.iter().zip(&c).map(|(&a, &b)| a | b).collect(),
                     None => own,
@@ -329,16 +338,15 @@ impl DynamicMasker {
         let (ego, fused) = match early {
             // Labelled before tracking: the tracked motion re-decides only when it
             // disagrees and leaves fewer pixels moving.
-            Some((early_ego, early_fused)) => {
-                let step = self.flows.back().filter(|step| step.to == sequence);
-                let better = match (step, &previous, previous_from_current) {
+            Some((early_ego, early_fused, early_cells)) => {
+                let better = match (self.latest_step(sequence), &previous, previous_from_current) {
                     (Some(step), Some(prev), Some(tracked)) => self.ego.reconsider(&step.flow, &small, prev, &early_ego, &tracked, Some(&exclude)),
                     _ => None,
                 };
                 times.ego_motion += t.elapsed();
                 match better {
                     Some(ego) => (Some(ego), None),
-                    None => (Some(early_ego), Some(early_fused)),
+                    None => (Some(early_ego), Some((early_fused, early_cells))),
                 }
             }
             None => {
@@ -350,15 +358,17 @@ impl DynamicMasker {
         self.previous = Some((sequence, small));
 
         let t = Instant::now();
-        let fused = match fused {
-            Some(fused) => fused,
+        let (fused, cells) = match fused {
+            Some(labelled) => labelled,
             None => {
                 let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
-                fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion)
+                let fused = fuse(w, h, s as usize, ego.as_ref(), segmentation, &self.prior_dynamic, &self.config.fusion);
+                let cells = self.dynamic_cells(&fused.labels);
+                (fused, cells)
             }
         };
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
-        self.dynamic_grid = Some((sequence, self.dynamic_cells(&fused.labels)));
+        self.dynamic_grid = Some((sequence, cells));
         times.fusion += t.elapsed();
 
         let source = match &self.carried {
@@ -373,7 +383,7 @@ impl DynamicMasker {
             inliers: e.inliers,
         });
         if ego.is_some() {
-            self.last_ego_frames = self.flows.back().filter(|f| f.to == sequence).map_or(1, |f| f.to - f.from);
+            self.last_ego_frames = self.latest_step(sequence).map_or(1, FlowStep::frames);
         }
         self.last_ego = ego;
         times.total += started.elapsed();
@@ -398,10 +408,15 @@ impl DynamicMasker {
         prior: Option<Isometry3<f64>>,
         exclude: &[u8],
     ) -> Option<EgoResult> {
-        match (self.flows.back(), previous) {
-            (Some(step), Some(prev)) if step.to == sequence => Some(self.ego.compensate(&step.flow, small, prev, depth, prior, Some(exclude))),
+        match (self.latest_step(sequence), previous) {
+            (Some(step), Some(prev)) => Some(self.ego.compensate(&step.flow, small, prev, depth, prior, Some(exclude))),
             _ => None,
         }
+    }
+
+    /// The latest flow step, when it ends at frame `sequence`.
+    fn latest_step(&self, sequence: u64) -> Option<&FlowStep> {
+        self.flows.back().filter(|step| step.to == sequence)
     }
 
     fn is_prior_dynamic(&self, seg: &Segmentation, id: u16) -> bool {
@@ -441,11 +456,8 @@ impl DynamicMasker {
     }
 
     /// The full-size pixel index at the centre of each flow-grid cell, row by row.
-    fn cell_centres(&self) -> impl Iterator<Item = usize> + '_ {
-        let s = self.config.flow.subsample as usize;
-        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
-        let (gw, gh) = self.ego.grid_size();
-        (0..gh).flat_map(move |y| (0..gw).map(move |x| (y * s + s / 2).min(h - 1) * w + (x * s + s / 2).min(w - 1)))
+    fn cell_centres(&self) -> impl Iterator<Item = usize> {
+        cell_centres(self.camera.width as usize, self.camera.height as usize, self.config.flow.subsample as usize)
     }
 
     /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
