@@ -183,6 +183,14 @@ pub struct FusionConfig {
     /// a flow grid at 1/subsample, and the strongest corners of a moving object sit
     /// on its outline, where either is least exact.
     pub tracking_mask_dilation_px: u32,
+    /// Before that dilation, the dynamic cells tracking avoids grow over neighbouring
+    /// cells that continue their surface in depth (within `region_depth_ratio` of the
+    /// cell grown from), up to this distance (full-size pixels) from the cells the
+    /// flow flagged: an object moves as a whole, while the flow flags its textured
+    /// and fast-moving parts, so its features sit up to a few tens of pixels inside
+    /// or beside the flagged cells. Only the tracking mask grows (mapping labels and
+    /// instance decisions do not); a depth edge stops it. 0 disables growing.
+    pub tracking_mask_growth_px: u32,
 }
 
 impl PerceptionConfig {
@@ -248,6 +256,9 @@ impl PerceptionConfig {
         }
         if !(u.region_depth_ratio >= 0.0 && u.region_depth_ratio < 1.0) {
             return Err("perception.fusion.region_depth_ratio must be in [0, 1)".into());
+        }
+        if u.tracking_mask_growth_px > 256 {
+            return Err(format!("perception.fusion.tracking_mask_growth_px must be at most 256, got {}", u.tracking_mask_growth_px));
         }
         if u.tracking_mask_dilation_px > 64 {
             return Err(format!("perception.fusion.tracking_mask_dilation_px must be at most 64, got {}", u.tracking_mask_dilation_px));
@@ -337,6 +348,7 @@ impl Default for FusionConfig {
             prior_dynamic_tracking: PriorDynamicTracking::ExcludeWhileMoving,
             flow_regions_in_tracking_mask: true,
             tracking_mask_dilation_px: 8,
+            tracking_mask_growth_px: 12,
         }
     }
 }

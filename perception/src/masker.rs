@@ -209,10 +209,11 @@ impl DynamicMasker {
         // corners sit on its outline, where the carried mask is least exact).
         let (gw, gh) = self.ego.grid_size();
         let radius_cells = self.config.fusion.tracking_mask_dilation_px.div_ceil(s);
-        let carried_dynamic = match (&flow, self.dynamic_grid.take()) {
-            (Some(step), Some((at, grid))) if at == step.from => Some(dilate(warp_grid(&grid, &step.flow), gw, gh, radius_cells)?),
+        let carried_cells = match (&flow, self.dynamic_grid.take()) {
+            (Some(step), Some((at, grid))) if at == step.from => Some(warp_grid(&grid, &step.flow)),
             _ => None,
         };
+        let carried_dynamic = carried_cells.clone().map(|g| dilate(g, gw, gh, radius_cells)).transpose()?;
         match &flow {
             Some(step) => {
                 // Carry the last segmentation forward one frame.
@@ -270,15 +271,26 @@ impl DynamicMasker {
         // the prediction when it beat one in the vote) labels pixels for tracking:
         // an unchecked prediction (no refinement held: a sudden acceleration,
         // motion blur) can call most of the scene moving and starve the tracker.
-        let tracking_dynamic = match (&early, carried_dynamic) {
-            (Some((ego, _, cells)), carried) if ego.confirmed => {
-                let own = dilate(cells.clone(), gw, gh, radius_cells)?;
-                Some(match carried {
-                    Some(c) => own.iter().zip(&c).map(|(&a, &b)| a | b).collect(),
-                    None => own,
-                })
-            }
+        let seeds = match (&early, carried_cells) {
+            (Some((ego, _, cells)), carried) if ego.confirmed => Some(match carried {
+                Some(c) => cells.iter().zip(&c).map(|(&a, &b)| a | b).collect(),
+                None => cells.clone(),
+            }),
             (_, carried) => carried,
+        };
+        // Grown over the objects' surfaces (the flow flags an object's textured,
+        // fast-moving parts; its features sit inside and beside them), then dilated.
+        let growth_cells = self.config.fusion.tracking_mask_growth_px.div_ceil(s) as usize;
+        let tracking_dynamic = match seeds {
+            Some(seeds) if growth_cells > 0 && seeds.contains(&1) => {
+                let grown = match &early {
+                    Some((ego, _, _)) => grow_over_surfaces(seeds, &ego.depth_m, gw, gh, growth_cells, self.config.fusion.region_depth_ratio),
+                    None => grow_over_surfaces(seeds, &self.ego.sample_depth(input.depth), gw, gh, growth_cells, self.config.fusion.region_depth_ratio),
+                };
+                Some(dilate(grown, gw, gh, radius_cells)?)
+            }
+            Some(seeds) => Some(dilate(seeds, gw, gh, radius_cells)?),
+            None => None,
         };
 
         // The mask for tracking this frame.
@@ -490,6 +502,42 @@ fn scaled(motion: &Isometry3<f64>, factor: f64) -> Isometry3<f64> {
     Isometry3::from_parts((motion.translation.vector * factor).into(), motion.rotation.powf(factor))
 }
 
+/// Grows the 0/1 flow-grid mask `seeds` over 4-neighbours whose depth continues
+/// the surface of the cell they are reached from (within `ratio` of its depth), at
+/// most `max_steps` cells from the nearest seed. Cells without depth neither grow
+/// nor are grown into, so a depth edge or a hole stops the growth.
+fn grow_over_surfaces(mut grid: Vec<u8>, depth_m: &[f32], width: usize, height: usize, max_steps: usize, ratio: f64) -> Vec<u8> {
+    debug_assert_eq!(grid.len(), width * height);
+    debug_assert_eq!(depth_m.len(), width * height);
+    let mut frontier: Vec<usize> = (0..grid.len()).filter(|&i| grid[i] != 0 && depth_m[i] > 0.0).collect();
+    let mut next = Vec::new();
+    for _ in 0..max_steps {
+        if frontier.is_empty() {
+            break;
+        }
+        for &i in &frontier {
+            let z = f64::from(depth_m[i]);
+            let (x, y) = (i % width, i / width);
+            let neighbours = [
+                (x > 0).then(|| i - 1),
+                (x + 1 < width).then(|| i + 1),
+                (y > 0).then(|| i - width),
+                (y + 1 < height).then(|| i + width),
+            ];
+            for j in neighbours.into_iter().flatten() {
+                let zj = f64::from(depth_m[j]);
+                if grid[j] == 0 && zj > 0.0 && (zj - z).abs() <= ratio * z {
+                    grid[j] = 1;
+                    next.push(j);
+                }
+            }
+        }
+        std::mem::swap(&mut frontier, &mut next);
+        next.clear();
+    }
+    grid
+}
+
 /// Dilates a 0/1 mask by a disc of `radius` pixels (OpenCV).
 fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
     use opencv::core::{Mat, Point, Size};
@@ -510,6 +558,41 @@ fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec
 mod tests {
     use super::*;
     use nalgebra::Vector3;
+
+    /// A board at 0.8 m in front of a wall at 2 m, on a 12×5 grid; one cell of the
+    /// board is flagged. Growth covers the board within reach, never the wall, and
+    /// stops at cells without depth.
+    #[test]
+    fn growth_follows_the_surface_and_stops_at_depth_edges_holes_and_its_reach() {
+        let (w, h) = (12, 5);
+        // Columns 0–7 board (with a hole at (4, 2)), 8–11 wall.
+        let depth: Vec<f32> = (0..w * h).map(|i| match (i % w, i / w) {
+            (4, 2) => 0.0,
+            (x, _) if x < 8 => 0.8 + 0.01 * x as f32,
+            _ => 2.0,
+        }).collect();
+        let mut seeds = vec![0u8; w * h];
+        seeds[2 * w + 2] = 1;
+        let grown = grow_over_surfaces(seeds.clone(), &depth, w, h, 3, 0.05);
+        for y in 0..h {
+            for x in 0..w {
+                // 4-neighbour steps from (2, 2), on depth, not through the hole.
+                let reach = x.abs_diff(2) + y.abs_diff(2);
+                let through_hole_only = (x, y) == (5, 2);
+                let expected = x < 8 && (x, y) != (4, 2) && reach <= 3 && !through_hole_only;
+                assert_eq!(grown[y * w + x] == 1, expected, "cell ({x}, {y})");
+            }
+        }
+        // Far enough, the whole board but still not the wall.
+        let all = grow_over_surfaces(seeds.clone(), &depth, w, h, 100, 0.05);
+        assert_eq!(all.iter().filter(|&&v| v == 1).count(), 8 * h - 1);
+        assert!((0..h).all(|y| (8..w).all(|x| all[y * w + x] == 0)));
+        // No reach, or a seed without depth: nothing grows.
+        assert_eq!(grow_over_surfaces(seeds.clone(), &depth, w, h, 0, 0.05), seeds);
+        let mut in_hole = vec![0u8; w * h];
+        in_hole[2 * w + 4] = 1;
+        assert_eq!(grow_over_surfaces(in_hole.clone(), &depth, w, h, 5, 0.05), in_hole);
+    }
 
     #[test]
     fn a_motion_scales_with_the_frames_it_spans() {

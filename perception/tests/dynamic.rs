@@ -57,20 +57,20 @@ fn moving_board_is_found_while_the_camera_rotates() {
         eprintln!("masked, without the object: ATE {:.4} m, RPE {:.4} m", masked_without.ate_m, masked_without.rpe_m);
     }
     // Measured (this machine): 107 frames scored, IoU mean 0.79, false-dynamic 1.4 %,
-    // 94.3 % of the board's features eliminated (94.3–94.4 % with the tracker's
-    // feature count at 990, 1010 or 1020), ATE 6.4 cm with the board vs 3.2 cm
-    // without (4.6–6.7 vs 3.2–4.3 cm over those four runs: tracking on this clip
-    // swings with tiny changes; with the mask computed after tracking only: 87 % and
-    // 8.1 cm); the same masker and tracker without the board: 5.8 cm. The IoU
-    // and false-dynamic bounds are the targets; the elimination (≥ 95 %) and
-    // tracking (within 20 %) targets are NOT met yet: frame 0 has no flow, the board
-    // re-entering the view has no previous position to compare with, and on
-    // motion-blurred frames the flow misses part of it (see the closing note).
-    // Those bounds guard what works.
+    // 96.5 % of the board's features eliminated (95.5–96.5 % with the tracker's
+    // feature count nudged by ±1–2 %, `--example composite_spread`; 94.3 % before
+    // the tracking mask grew over the flagged surfaces, 87 % with the mask computed
+    // after tracking only), ATE 6.0 cm with the board vs 3.2 cm without (3.4–6.7 vs
+    // 3.2–5.2 cm over those five runs: tracking on this clip swings with tiny
+    // changes). The IoU, false-dynamic and elimination bounds are the issue's
+    // targets; the tracking target (within 20 %) is NOT met yet: the board
+    // entering the view on frame 114 has no previous position to compare with, and
+    // on motion-blurred frames false-dynamic regions and a wrong flow motion cost
+    // the tracker too (see the closing note). The ATE bound guards what works.
     assert!(s.scored_frames >= 100, "object visible in {} frames", s.scored_frames);
     assert!(s.mean_iou >= 0.7, "IoU {:.3}", s.mean_iou);
     assert!(s.false_dynamic <= 0.02, "false-dynamic {:.4}", s.false_dynamic);
-    assert!(s.eliminated_fraction >= 0.93, "eliminated {:.4}", s.eliminated_fraction);
+    assert!(s.eliminated_fraction >= 0.95, "eliminated {:.4}", s.eliminated_fraction);
     // Labelled before tracking, the board is masked on the first frame with flow
     // (measured: 137 of its 195 features; with the previous frame's labels alone, none).
     let (on_board, removed) = s.first_flow_frame_features;
@@ -110,7 +110,7 @@ fn a_moving_person_is_a_moving_prior_dynamic_instance() {
         "person board: {} frames scored, IoU {:.3}, person instance moving on {} of {} frames seen",
         s.scored_frames, s.mean_iou, s.moving_person_frames, s.person_frames
     );
-    // Measured: a person on 33 of 39 scored frames, judged moving on 23 of them,
+    // Measured: a person on 33 of 39 scored frames, judged moving on 22 of them,
     // IoU 0.62. The misses are motion-blurred frames where the sharp, large photo's
     // motion wins the camera-motion estimate, and frames where the board re-enters.
     assert!(s.person_frames * 4 >= s.scored_frames * 3, "person found on {} of {} frames", s.person_frames, s.scored_frames);

@@ -107,10 +107,14 @@ pub struct MaskedTracking {
 
 impl MaskedTracking {
     pub fn new(class_names: &[String]) -> Self {
+        Self::with_configs(class_names, PerceptionConfig::default(), TrackerConfig::default())
+    }
+
+    pub fn with_configs(class_names: &[String], perception: PerceptionConfig, tracking: TrackerConfig) -> Self {
         let camera = tum::fr1_camera();
         Self {
-            masker: DynamicMasker::new(camera.clone(), PerceptionConfig::default(), class_names).expect("masker"),
-            tracker: Tracker::new(camera, TrackerConfig::default()).expect("tracker"),
+            masker: DynamicMasker::new(camera.clone(), perception, class_names).expect("masker"),
+            tracker: Tracker::new(camera, tracking).expect("tracker"),
             last_pose: None,
         }
     }
@@ -131,10 +135,22 @@ impl MaskedTracking {
 
 /// Runs the masker (with `segmenter` on `schedule`) and the tracker with its mask.
 pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, schedule: Schedule, verbose: bool) -> Scores {
+    run_with(frames, segmenter, schedule, verbose, PerceptionConfig::default(), TrackerConfig::default())
+}
+
+/// [`run`] with the given perception and tracking configurations.
+pub fn run_with(
+    frames: &[CompositeFrame],
+    segmenter: Option<&mut dyn Segmenter>,
+    schedule: Schedule,
+    verbose: bool,
+    perception: PerceptionConfig,
+    tracking: TrackerConfig,
+) -> Scores {
     let camera = tum::fr1_camera();
     let (w, h) = (camera.width as usize, camera.height as usize);
     let names: Vec<String> = segmenter.as_ref().map(|s| s.class_names().to_vec()).unwrap_or_default();
-    let mut pipeline = MaskedTracking::new(&names);
+    let mut pipeline = MaskedTracking::with_configs(&names, perception, tracking);
     let mut extractor = Extractor::new(&TrackerConfig::default()).expect("extractor");
     let mut segmenter = segmenter;
     let mut pending: Vec<(usize, u64, Segmentation)> = Vec::new();
@@ -237,7 +253,12 @@ pub fn run(frames: &[CompositeFrame], segmenter: Option<&mut dyn Segmenter>, sch
 
 /// Tracks frames without any mask (the reference for the tracking-error comparison).
 pub fn track_plain(frames: &[tum::TumFrame]) -> Vec<(u64, Isometry3<f64>)> {
-    let mut tracker = Tracker::new(tum::fr1_camera(), TrackerConfig::default()).expect("tracker");
+    track_plain_with(frames, TrackerConfig::default())
+}
+
+/// [`track_plain`] with the given tracking configuration.
+pub fn track_plain_with(frames: &[tum::TumFrame], config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
+    let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
     frames
         .iter()
         .filter_map(|f| {
