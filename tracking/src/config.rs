@@ -48,6 +48,18 @@ pub struct TrackerConfig {
     /// sequence the prediction fed its own error back through the motion-model
     /// search and made tracking worse (README, "Tracking accuracy").
     pub constant_velocity: bool,
+    /// Dense RGB-D odometry (photometric + point-to-plane ICP, OpenCV's
+    /// RgbdICPOdometry at half resolution) from the previous frame predicts each
+    /// pose and enters its optimisation as a robust prior (`dense.rs`).
+    pub dense_odometry: bool,
+    /// Per-axis σ of that prior on one frame step: rotation in degrees and
+    /// translation in metres. A dense alignment of tens of thousands of pixels
+    /// pins the step down far more tightly than a few hundred corners at one
+    /// pixel each do along their weakest direction (a sideways translation traded
+    /// for a rotation), so the prior is tight; it is robust (Huber at χ² 95 %), so
+    /// a failed alignment loses its weight instead of dragging the pose.
+    pub dense_prior_sigma_deg: f64,
+    pub dense_prior_sigma_m: f64,
     /// Matches below which the motion-model search is repeated with a wider radius,
     /// then replaced by PnP-RANSAC.
     pub min_motion_matches: usize,
@@ -89,6 +101,9 @@ impl TrackerConfig {
         if !(self.depth_baseline_m > 0.0) {
             return Err("tracking.depth_baseline_m must be positive".into());
         }
+        if !(self.dense_prior_sigma_deg > 0.0 && self.dense_prior_sigma_m > 0.0) {
+            return Err("tracking.dense_prior_sigma_deg and tracking.dense_prior_sigma_m must be positive".into());
+        }
         if !(self.match_ratio > 0.0 && self.match_ratio <= 1.0) {
             return Err("tracking.match_ratio must be in (0, 1]".into());
         }
@@ -118,6 +133,9 @@ impl Default for TrackerConfig {
             max_descriptor_distance: 80,
             match_ratio: 0.9,
             constant_velocity: false,
+            dense_odometry: true,
+            dense_prior_sigma_deg: 0.1,
+            dense_prior_sigma_m: 0.001,
             min_motion_matches: 20,
             min_tracked_inliers: 30,
             min_relocalization_inliers: 50,

@@ -7,6 +7,7 @@
 pub mod ba;
 pub mod camera;
 pub mod config;
+pub mod dense;
 pub mod features;
 pub mod geometry;
 pub mod map;

@@ -28,6 +28,37 @@ pub struct PoseEstimate {
     pub inlier_count: usize,
 }
 
+/// χ² 95 % quantile for 6 degrees of freedom: a pose prior further off than this
+/// is down-weighted (Huber) like an outlying measurement.
+const CHI2_6DOF: f64 = 12.592;
+
+/// A Gaussian prior on `camera_from_world`: the pose it expects and the
+/// information (1/σ²) of the rotation (rad⁻²) and translation (m⁻²) of the
+/// difference, per axis, in the camera frame.
+#[derive(Debug, Clone, Copy)]
+pub struct PosePrior {
+    pub camera_from_world: Isometry3<f64>,
+    pub rotation_information: f64,
+    pub translation_information: f64,
+}
+
+impl PosePrior {
+    /// The prior's residual `e = (ω, v)` with `prior = exp(e) · pose` (to first
+    /// order), and its Mahalanobis norm².
+    fn residual(&self, pose: &Isometry3<f64>) -> (Vector6<f64>, f64) {
+        let d = self.camera_from_world * pose.inverse();
+        let (w, v) = (d.rotation.scaled_axis(), d.translation.vector);
+        let e = Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z);
+        let chi2 = w.norm_squared() * self.rotation_information + v.norm_squared() * self.translation_information;
+        (e, chi2)
+    }
+
+    fn information(&self) -> Vector6<f64> {
+        let (r, t) = (self.rotation_information, self.translation_information);
+        Vector6::new(r, r, r, t, t, t)
+    }
+}
+
 /// Optimises `camera_from_world` from 3D–2D(+depth) correspondences.
 pub fn optimize_pose(
     camera: &Camera,
@@ -35,12 +66,26 @@ pub fn optimize_pose(
     initial: Isometry3<f64>,
     correspondences: &[(Point3<f64>, Measurement)],
 ) -> PoseEstimate {
+    optimize_pose_with_prior(camera, bf, initial, correspondences, None)
+}
+
+/// [`optimize_pose`] with a robust (Huber) Gaussian prior on the pose.
+pub fn optimize_pose_with_prior(
+    camera: &Camera,
+    bf: f64,
+    initial: Isometry3<f64>,
+    correspondences: &[(Point3<f64>, Measurement)],
+    prior: Option<&PosePrior>,
+) -> PoseEstimate {
     let mut pose = initial;
     let mut inliers = vec![true; correspondences.len()];
     for round in 0..ROUNDS {
         let robust = round + 1 < ROUNDS;
         let cost = |pose: &Isometry3<f64>, inliers: &[bool]| -> f64 {
-            correspondences
+            // The prior stays robust in every round: it is one measurement, and
+            // a wrong one must not outweigh the features in the last round.
+            let prior_cost = prior.map_or(0.0, |p| robust_cost(p.residual(pose).1, CHI2_6DOF));
+            prior_cost + correspondences
                 .iter()
                 .zip(inliers)
                 .filter(|(_, i)| **i)
@@ -51,7 +96,7 @@ pub fn optimize_pose(
                     }
                     None => 2.0 * m.chi2_threshold(),
                 })
-                .sum()
+                .sum::<f64>()
         };
         let mut current = cost(&pose, &inliers);
         let mut lambda = INITIAL_LAMBDA;
@@ -71,6 +116,14 @@ pub fn optimize_pose(
                 h += j.transpose() * j * w;
                 b += j.transpose() * e * w;
                 used += 1;
+            }
+            if let Some(p) = prior {
+                let (e, chi2) = p.residual(&pose);
+                let information = p.information() * huber_weight(chi2, CHI2_6DOF);
+                for i in 0..6 {
+                    h[(i, i)] += information[i];
+                    b[i] += information[i] * e[i];
+                }
             }
             if used < 3 {
                 break;

@@ -13,7 +13,8 @@ use crate::config::TrackerConfig;
 use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales};
 use crate::geometry::{Measurement, PnpRansac, pnp_ransac};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
-use crate::optimize::optimize_pose;
+use crate::dense::DenseOdometry;
+use crate::optimize::{PosePrior, optimize_pose_with_prior};
 
 /// The state of tracking for one frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -43,6 +44,8 @@ pub struct FrameInput<'a> {
 #[derive(Debug, Clone, Copy, Default)]
 pub struct StageTimes {
     pub extraction: Duration,
+    /// Dense odometry from the previous frame (the motion prior).
+    pub dense: Duration,
     pub matching: Duration,
     pub optimization: Duration,
     pub local_ba: Duration,
@@ -113,6 +116,9 @@ pub struct Tracker {
     reference: Option<KeyframeId>,
     reference_inliers: usize,
     frames_since_keyframe: u32,
+    dense: Option<DenseOdometry>,
+    /// This frame's pose as dense odometry predicts it from the last frame's.
+    prior: Option<PosePrior>,
 }
 
 /// The grey image of an RGB8 image: BT.601 luma, rounded to 8 bits.
@@ -157,7 +163,10 @@ impl Tracker {
         config.validate().map_err(TrackingError::Config)?;
         let extractor = Extractor::new(&config)?;
         let bf = camera.fx * config.depth_baseline_m;
+        let dense = if config.dense_odometry { Some(DenseOdometry::new(&camera, config.min_depth_m, config.max_depth_m)?) } else { None };
         Ok(Self {
+            dense,
+            prior: None,
             scales: level_scales(&config),
             camera,
             extractor,
@@ -213,6 +222,21 @@ impl Tracker {
         let gray = to_gray(frame.rgb);
         let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask)?;
         times.extraction = t.elapsed();
+        let t = Instant::now();
+        let step = match self.dense.as_mut() {
+            Some(dense) => dense.push(&gray, frame.depth, frame.dynamic_mask)?,
+            None => None,
+        };
+        times.dense = t.elapsed();
+        // current_from_world = current_from_previous · previous_from_world.
+        self.prior = match (step, &self.last) {
+            (Some(previous_from_current), Some(last)) if !self.lost => Some(PosePrior {
+                camera_from_world: previous_from_current.inverse() * last.camera_from_world,
+                rotation_information: self.config.dense_prior_sigma_deg.to_radians().powi(2).recip(),
+                translation_information: self.config.dense_prior_sigma_m.powi(2).recip(),
+            }),
+            _ => None,
+        };
 
         let mut out = TrackOutput {
             state: TrackingState::Lost,
@@ -249,6 +273,8 @@ impl Tracker {
             tracked = self.track_with_motion_model(&feats, &index, &mut out.times);
         }
         if tracked.is_none() {
+            // Relocalization stands on the map alone.
+            self.prior = None;
             tracked = self.relocalize(&feats, &index, &gray, &mut out.times);
             relocalized = tracked.is_some();
         }
@@ -280,8 +306,12 @@ impl Tracker {
             self.reference_inliers = inliers;
             out.times.local_ba = t.elapsed();
             out.keyframe = true;
-            // Local BA may have moved this keyframe: report the refined pose.
-            if let Some(kf) = self.reference.and_then(|r| self.map.keyframes.get(&r)) {
+            // Local BA may have moved this keyframe: without a dense prior, report
+            // the refined pose. With one, the tracked pose stands: BA weighs the
+            // features alone, and moving the keyframe to them would undo the
+            // prior's smoothing for this frame and the next (README, "Tracking
+            // accuracy"); the map takes BA's result either way.
+            if self.prior.is_none() && let Some(kf) = self.reference.and_then(|r| self.map.keyframes.get(&r)) {
                 out.world_from_camera = Some(kf.world_from_camera);
             }
             points
@@ -303,8 +333,9 @@ impl Tracker {
         times: &mut StageTimes,
     ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
         let last = self.last.as_ref()?;
-        let predicted = match self.velocity {
-            Some(v) if self.config.constant_velocity => v * last.camera_from_world,
+        let predicted = match (&self.prior, self.velocity) {
+            (Some(prior), _) => prior.camera_from_world,
+            (None, Some(v)) if self.config.constant_velocity => v * last.camera_from_world,
             _ => last.camera_from_world,
         };
         let candidates = last.points.clone();
@@ -469,7 +500,7 @@ impl Tracker {
         if corr.len() < 3 {
             return None;
         }
-        let est = optimize_pose(&self.camera, self.bf, initial, &corr);
+        let est = optimize_pose_with_prior(&self.camera, self.bf, initial, &corr, self.prior.as_ref());
         for (k, &i) in which.iter().enumerate() {
             if !est.inliers[k] {
                 matches[i] = None;

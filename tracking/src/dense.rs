@@ -1,0 +1,176 @@
+//! Dense RGB-D odometry between consecutive frames, the tracker's motion prior.
+//!
+//! OpenCV's `rgbd::RgbdICPOdometry` (the contrib `rgbd` module that Debian's
+//! libopencv-dev ships): coarse-to-fine Gauss–Newton on the photometric error of
+//! every textured pixel plus point-to-plane ICP on every depth pixel, between the
+//! previous frame and this one. Features constrain the pose only through a few
+//! hundred corners, and on rotation-heavy hand-held motion the solution slides
+//! along the direction where a sideways translation and a rotation look alike
+//! (README, "Tracking accuracy"); every surface the depth camera sees pins that
+//! direction down. Frame to frame it drifts, so it does not replace the map: its
+//! motion predicts the pose for the projection search and enters the pose
+//! optimisation as a robust prior (see `optimize::optimize_pose_with_prior`).
+//!
+//! The images are undistorted with the camera's lens model (the dense model is a
+//! pinhole) and reduced by [`SCALE`] before alignment; dynamic pixels are masked.
+
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
+use opencv::core::{self, Mat, Ptr, Scalar, Size};
+use opencv::prelude::*;
+use opencv::{calib3d, imgproc, rgbd};
+
+use crate::TrackingError;
+use crate::camera::Camera;
+
+/// Integer reduction of the image before alignment (640×480 → 320×240): the
+/// coarse-to-fine alignment needs the fine level only to polish, and a quarter
+/// of the pixels keeps the step near the feature tracker's own cost.
+pub const SCALE: usize = 2;
+/// Gauss–Newton iterations per pyramid level, finest first.
+const ITERATIONS: [i32; 4] = [3, 3, 3, 3];
+/// Pixels whose grey gradient is weaker than this (grey levels) carry no
+/// photometric residual (OpenCV's default).
+const MIN_GRADIENT: f32 = 10.0;
+/// Depth pairs farther apart than this (metres) are not ICP correspondences (OpenCV's default).
+const MAX_DEPTH_DIFFERENCE_M: f64 = 0.07;
+/// Share of the depth pixels that enter ICP, the strongest-gradient ones first.
+const MAX_POINTS_PART: f64 = 0.26;
+/// OpenCV's `Odometry::RIGID_BODY_MOTION`.
+const RIGID_BODY_MOTION: i32 = 4;
+/// OpenCV's `OdometryFrame::CACHE_ALL`: a frame is prepared once, as the
+/// destination of one step and the source of the next.
+const CACHE_ALL: i32 = 3;
+
+/// Frame-to-frame dense odometry for one camera.
+pub struct DenseOdometry {
+    odometry: Ptr<rgbd::Odometry>,
+    /// Undistortion maps at full size (None: the camera has no distortion).
+    undistort: Option<(Mat, Mat)>,
+    /// Full-size image, and the reduced one aligned.
+    full: (usize, usize),
+    width: usize,
+    height: usize,
+    depth_scale: f32,
+    depth_range: (f32, f32),
+    previous: Option<Ptr<rgbd::OdometryFrame>>,
+    frames: i32,
+}
+
+impl DenseOdometry {
+    pub fn new(camera: &Camera, min_depth_m: f64, max_depth_m: f64) -> Result<Self, TrackingError> {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        if w < 8 * SCALE || h < 8 * SCALE {
+            return Err(TrackingError::Config(format!("image {w}x{h} is too small for dense odometry")));
+        }
+        let k = Mat::from_slice_2d(&[[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])?;
+        let undistort = match camera.distortion {
+            Some(d) => {
+                let coefficients = Mat::from_slice(&d)?.try_clone()?;
+                let (mut map_x, mut map_y) = (Mat::default(), Mat::default());
+                calib3d::init_undistort_rectify_map(&k, &coefficients, &Mat::default(), &k, Size::new(w as i32, h as i32), core::CV_32FC1, &mut map_x, &mut map_y)?;
+                Some((map_x, map_y))
+            }
+            None => None,
+        };
+        // Pixel (x, y) of the reduced image covers full-size pixels SCALE·x .. SCALE·x + SCALE − 1.
+        let s = SCALE as f64;
+        let reduced = Mat::from_slice_2d(&[
+            [camera.fx / s, 0.0, (camera.cx + 0.5) / s - 0.5],
+            [0.0, camera.fy / s, (camera.cy + 0.5) / s - 0.5],
+            [0.0, 0.0, 1.0],
+        ])?;
+        let iterations: core::Vector<i32> = ITERATIONS.iter().copied().collect();
+        let gradients: core::Vector<f32> = ITERATIONS.iter().map(|_| MIN_GRADIENT).collect();
+        let odometry = Ptr::<rgbd::Odometry>::from(rgbd::RgbdICPOdometry::create(
+            &reduced,
+            min_depth_m as f32,
+            max_depth_m as f32,
+            MAX_DEPTH_DIFFERENCE_M as f32,
+            MAX_POINTS_PART as f32,
+            &iterations,
+            &gradients,
+            RIGID_BODY_MOTION,
+        )?);
+        Ok(Self {
+            odometry,
+            undistort,
+            full: (w, h),
+            width: w / SCALE,
+            height: h / SCALE,
+            depth_scale: (1.0 / camera.depth_units_per_metre) as f32,
+            depth_range: (min_depth_m as f32, max_depth_m as f32),
+            previous: None,
+            frames: 0,
+        })
+    }
+
+    /// Forgets the previous frame (after a loss the next step has nothing to align to).
+    pub fn reset(&mut self) {
+        self.previous = None;
+    }
+
+    /// Adds a frame (`gray` and raw `depth` at full size, `dynamic_mask` nonzero =
+    /// dynamic) and returns `previous_from_current` when there was a previous frame
+    /// and the alignment converged (OpenCV also refuses steps beyond 15 cm or 15°).
+    pub fn push(&mut self, gray: &[u8], depth: &[u16], dynamic_mask: Option<&[u8]>) -> Result<Option<Isometry3<f64>>, TrackingError> {
+        let (w, h) = self.full;
+        if gray.len() != w * h || depth.len() != w * h || dynamic_mask.is_some_and(|m| m.len() != w * h) {
+            return Err(TrackingError::Input(format!("dense odometry: images must be {w}x{h}")));
+        }
+        let (rows, cols) = (h as i32, w as i32);
+        let (lo, hi) = self.depth_range;
+        let metres: Vec<f32> = depth
+            .iter()
+            .map(|&d| {
+                let z = f32::from(d) * self.depth_scale;
+                if d != 0 && (lo..=hi).contains(&z) { z } else { f32::NAN }
+            })
+            .collect();
+        let valid: Vec<u8> = match dynamic_mask {
+            Some(m) => m.iter().map(|&v| if v == 0 { 255 } else { 0 }).collect(),
+            None => vec![255; gray.len()],
+        };
+        let gray = Mat::new_rows_cols_with_data(rows, cols, gray)?;
+        let metres = Mat::new_rows_cols_with_data(rows, cols, &metres)?;
+        let valid = Mat::new_rows_cols_with_data(rows, cols, &valid)?;
+        let (gray, metres, valid) = match &self.undistort {
+            Some((map_x, map_y)) => (
+                remap(&gray, map_x, map_y, imgproc::INTER_LINEAR, 0.0)?,
+                remap(&metres, map_x, map_y, imgproc::INTER_NEAREST, f64::NAN)?,
+                remap(&valid, map_x, map_y, imgproc::INTER_NEAREST, 0.0)?,
+            ),
+            None => (gray.try_clone()?, metres.try_clone()?, valid.try_clone()?),
+        };
+        let size = Size::new(self.width as i32, self.height as i32);
+        let reduce = |src: &Mat, interpolation: i32| -> Result<Mat, TrackingError> {
+            let mut out = Mat::default();
+            imgproc::resize(src, &mut out, size, 0.0, 0.0, interpolation)?;
+            Ok(out)
+        };
+        let (gray, metres, valid) = (reduce(&gray, imgproc::INTER_AREA)?, reduce(&metres, imgproc::INTER_NEAREST)?, reduce(&valid, imgproc::INTER_NEAREST)?);
+        let mut frame = rgbd::OdometryFrame::create(&gray, &metres, &valid, &Mat::default(), self.frames)?;
+        self.frames = self.frames.wrapping_add(1);
+        self.odometry.prepare_frame_cache(&mut frame, CACHE_ALL)?;
+        let Some(mut previous) = self.previous.replace(frame) else { return Ok(None) };
+        let Some(current) = self.previous.as_mut() else { return Ok(None) };
+        let mut rt = Mat::default();
+        if !self.odometry.compute2(&mut previous, current, &mut rt, &Mat::default())? {
+            return Ok(None);
+        }
+        let m = |r: i32, c: i32| rt.at_2d::<f64>(r, c).copied();
+        let rotation = Matrix3::new(m(0, 0)?, m(0, 1)?, m(0, 2)?, m(1, 0)?, m(1, 1)?, m(1, 2)?, m(2, 0)?, m(2, 1)?, m(2, 2)?);
+        // OpenCV's Rt takes points of the source (previous) frame into the destination (current) one.
+        let current_from_previous = Isometry3::from_parts(
+            Translation3::new(m(0, 3)?, m(1, 3)?, m(2, 3)?),
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
+        );
+        Ok(Some(current_from_previous.inverse()))
+    }
+}
+
+/// `src` resampled through the undistortion maps; outside the image: `border`.
+fn remap(src: &impl core::ToInputArray, map_x: &Mat, map_y: &Mat, interpolation: i32, border: f64) -> Result<Mat, TrackingError> {
+    let mut out = Mat::default();
+    imgproc::remap(src, &mut out, map_x, map_y, interpolation, core::BORDER_CONSTANT, Scalar::all(border))?;
+    Ok(out)
+}
