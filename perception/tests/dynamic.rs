@@ -56,17 +56,14 @@ fn moving_board_is_found_while_the_camera_rotates() {
         let masked_without = tum::score(gt, &composite_run::run(&unpasted, Some(&mut seg), Schedule::EveryFrame, false).trajectory);
         eprintln!("masked, without the object: ATE {:.4} m, RPE {:.4} m", masked_without.ate_m, masked_without.rpe_m);
     }
-    // Measured (this machine): 107 frames scored, IoU mean 0.79, false-dynamic 1.4 %,
-    // 96.5 % of the board's features eliminated (95.5–96.5 % with the tracker's
-    // feature count nudged by ±1–2 %, `--example composite_spread`; 94.3 % before
-    // the tracking mask grew over the flagged surfaces, 87 % with the mask computed
-    // after tracking only), ATE 6.0 cm with the board vs 3.2 cm without (3.4–6.7 vs
-    // 3.2–5.2 cm over those five runs: tracking on this clip swings with tiny
-    // changes). The IoU, false-dynamic and elimination bounds are the issue's
-    // targets; the tracking target (within 20 %) is NOT met yet: the board
-    // entering the view on frame 114 has no previous position to compare with, and
-    // on motion-blurred frames false-dynamic regions and a wrong flow motion cost
-    // the tracker too (see the closing note). The ATE bound guards what works.
+    // Measured (this machine): 107 frames scored, IoU mean 0.79, false-dynamic 1.3 %,
+    // 96.5 % of the board's features eliminated (94.3 % before the tracking mask grew
+    // over the flagged surfaces, 87 % with the mask computed after tracking only),
+    // ATE 2.21 cm with the board vs 2.06 cm for the tracker alone without it (+7 %;
+    // `--example composite_spread` over five runs with the tracker's feature count
+    // nudged by ±1–2 %: medians 2.32 vs 2.19 cm, +6 %). Before the tracker had its
+    // dense-odometry prior: 6.0 vs 3.2 cm. The IoU, false-dynamic, elimination and
+    // tracking bounds are the targets.
     assert!(s.scored_frames >= 100, "object visible in {} frames", s.scored_frames);
     assert!(s.mean_iou >= 0.7, "IoU {:.3}", s.mean_iou);
     assert!(s.false_dynamic <= 0.02, "false-dynamic {:.4}", s.false_dynamic);
@@ -76,7 +73,8 @@ fn moving_board_is_found_while_the_camera_rotates() {
     let (on_board, removed) = s.first_flow_frame_features;
     assert!(on_board > 100 && removed * 2 >= on_board, "frame 1: {removed} of {on_board} board features removed");
     assert_eq!(s.trajectory.len(), frames.len(), "every composite frame tracked");
-    assert!(with_object.ate_m <= 0.07, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
+    assert!(with_object.ate_m <= 0.035, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
+    assert!(with_object.ate_m <= 1.2 * without.ate_m, "ATE with the board {:.4} m is over 120 % of {:.4} m without it", with_object.ate_m, without.ate_m);
 }
 
 /// Segmentation that arrives late (every third frame, two frames after its own) is
@@ -110,7 +108,7 @@ fn a_moving_person_is_a_moving_prior_dynamic_instance() {
         "person board: {} frames scored, IoU {:.3}, person instance moving on {} of {} frames seen",
         s.scored_frames, s.mean_iou, s.moving_person_frames, s.person_frames
     );
-    // Measured: a person on 33 of 39 scored frames, judged moving on 22 of them,
+    // Measured: a person on 33 of 39 scored frames, judged moving on 23 of them,
     // IoU 0.62. The misses are motion-blurred frames where the sharp, large photo's
     // motion wins the camera-motion estimate, and frames where the board re-enters.
     assert!(s.person_frames * 4 >= s.scored_frames * 3, "person found on {} of {} frames", s.person_frames, s.scored_frames);

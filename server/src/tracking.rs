@@ -15,6 +15,8 @@ pub mod tracking_stage {
     pub const MATCH: &str = "track_match";
     pub const OPTIMIZE: &str = "track_optimize";
     pub const LOCAL_BA: &str = "track_local_ba";
+    /// Dense odometry, on its own thread beside extraction.
+    pub const DENSE: &str = "track_dense";
     pub const TRACK: &str = "track";
 }
 
@@ -105,6 +107,7 @@ impl SessionTracker {
         let t = out.times;
         let stages = [
             (tracking_stage::EXTRACT, t.extraction),
+            (tracking_stage::DENSE, t.dense),
             (tracking_stage::MATCH, t.matching),
             (tracking_stage::OPTIMIZE, t.optimization),
             (tracking_stage::LOCAL_BA, t.local_ba),

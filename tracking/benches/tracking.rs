@@ -27,8 +27,9 @@ const PERCENTILE: f64 = 95.0;
 /// Reads one stage's time from a frame's [`StageTimes`].
 type Stage = fn(&StageTimes) -> Duration;
 /// The table's rows, in pipeline order.
-const STAGES: [(&str, Stage); 5] = [
+const STAGES: [(&str, Stage); 6] = [
     ("extraction", |t| t.extraction),
+    ("dense odometry (beside extraction)", |t| t.dense),
     ("matching", |t| t.matching),
     ("optimization", |t| t.optimization),
     ("local_ba", |t| t.local_ba),

@@ -220,14 +220,29 @@ impl Tracker {
         let mut times = StageTimes::default();
         let t = Instant::now();
         let gray = to_gray(frame.rgb);
-        let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask)?;
-        times.extraction = t.elapsed();
-        let t = Instant::now();
-        let step = match self.dense.as_mut() {
-            Some(dense) => dense.push(&gray, frame.depth, frame.dynamic_mask)?,
-            None => None,
-        };
-        times.dense = t.elapsed();
+        // Dense odometry needs only the images: it runs on its own thread while the
+        // features are extracted.
+        let (feats, step) = std::thread::scope(|scope| {
+            let dense = self.dense.as_mut().map(|dense| {
+                let gray = &gray;
+                scope.spawn(move || {
+                    let t = Instant::now();
+                    (dense.push(gray, frame.depth, frame.dynamic_mask), t.elapsed())
+                })
+            });
+            let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask);
+            times.extraction = t.elapsed();
+            let step = match dense.map(|handle| handle.join()) {
+                Some(Ok((step, elapsed))) => {
+                    times.dense = elapsed;
+                    step
+                }
+                Some(Err(_)) => Err(TrackingError::Input("dense odometry panicked".into())),
+                None => Ok(None),
+            };
+            (feats, step)
+        });
+        let (feats, step) = (feats?, step?);
         // current_from_world = current_from_previous · previous_from_world.
         self.prior = match (step, &self.last) {
             (Some(previous_from_current), Some(last)) if !self.lost => Some(PosePrior {
