@@ -237,7 +237,8 @@ impl Tracker {
                     times.dense = elapsed;
                     step
                 }
-                Some(Err(_)) => Err(TrackingError::Input("dense odometry panicked".into())),
+                // A panic there is a bug, as it would be inline: pass it on.
+                Some(Err(panic)) => std::panic::resume_unwind(panic),
                 None => Ok(None),
             };
             (feats, step)
