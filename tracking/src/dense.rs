@@ -2,7 +2,7 @@
 //!
 //! OpenCV's `rgbd::RgbdICPOdometry` (the contrib `rgbd` module that Debian's
 //! libopencv-dev ships): coarse-to-fine Gauss–Newton on the photometric error of
-//! every textured pixel plus point-to-plane ICP on every depth pixel, between the
+//! every textured pixel plus point-to-plane ICP on a sample of the depth pixels, between the
 //! previous frame and this one. Features constrain the pose only through a few
 //! hundred corners, and on rotation-heavy hand-held motion the solution slides
 //! along the direction where a sideways translation and a rotation look alike
