@@ -114,23 +114,22 @@ impl DenseOdometry {
         if gray.len() != w * h || depth.len() != w * h || dynamic_mask.is_some_and(|m| m.len() != w * h) {
             return Err(TrackingError::Input(format!("dense odometry: images must be {w}x{h}")));
         }
-        let (rows, cols) = (h as i32, w as i32);
+        // The reduced depth and mask take pixel (SCALE·x, SCALE·y), as OpenCV's
+        // nearest-neighbour resize would, without converting the full-size images.
         let (lo, hi) = self.depth_range;
-        let metres: Vec<f32> = depth
-            .iter()
-            .map(|&d| {
-                let z = f32::from(d) * self.depth_scale;
-                if d != 0 && (lo..=hi).contains(&z) { z } else { f32::NAN }
+        let reduced = (0..self.height).flat_map(|y| (0..self.width).map(move |x| y * SCALE * w + x * SCALE));
+        let metres: Vec<f32> = reduced
+            .clone()
+            .map(|i| {
+                let z = f32::from(depth[i]) * self.depth_scale;
+                if depth[i] != 0 && (lo..=hi).contains(&z) { z } else { f32::NAN }
             })
             .collect();
-        let valid: Vec<u8> = match dynamic_mask {
-            Some(m) => m.iter().map(|&v| if v == 0 { 255 } else { 0 }).collect(),
-            None => vec![255; gray.len()],
-        };
+        let valid: Vec<u8> = reduced.map(|i| if dynamic_mask.is_some_and(|m| m[i] != 0) { 0 } else { 255 }).collect();
         let size = Size::new(self.width as i32, self.height as i32);
-        let gray = reduce(&Mat::new_rows_cols_with_data(rows, cols, gray)?, size, imgproc::INTER_AREA)?;
-        let metres = reduce(&Mat::new_rows_cols_with_data(rows, cols, &metres)?, size, imgproc::INTER_NEAREST)?;
-        let valid = reduce(&Mat::new_rows_cols_with_data(rows, cols, &valid)?, size, imgproc::INTER_NEAREST)?;
+        let gray = reduce(&Mat::new_rows_cols_with_data(h as i32, w as i32, gray)?, size, imgproc::INTER_AREA)?;
+        let metres = Mat::new_rows_cols_with_data(size.height, size.width, &metres)?.try_clone()?;
+        let valid = Mat::new_rows_cols_with_data(size.height, size.width, &valid)?.try_clone()?;
         let (gray, metres, valid) = match &self.undistort {
             Some((map_x, map_y)) => (
                 remap(&gray, map_x, map_y, imgproc::INTER_LINEAR, 0.0)?,
