@@ -262,12 +262,12 @@ pub fn fuse(
 
 
 /// Grows a (pruned) flow region over neighbouring cells whose depth continues its
-/// surface: within `ratio` of the cell it grows from. An object moves as a whole,
-/// and the 3×3 vote and Farneback's smoothing leave its rim and weakly textured
-/// inside unflagged. Growth stays inside the region's bounding box (a person's feet
-/// must not leak along the floor) and out of `blocked` cells.
+/// surface (see [`grow_over_depth`]). An object moves as a whole, and the 3×3 vote
+/// and Farneback's smoothing leave its rim and weakly textured inside unflagged.
+/// Growth stays inside the region's bounding box (a person's feet must not leak
+/// along the floor) and out of `blocked` cells.
 fn grow_along_depth(mut region: Vec<usize>, ego: &EgoResult, gw: usize, gh: usize, ratio: f64, blocked: impl Fn(usize) -> bool) -> Vec<usize> {
-    if ratio <= 0.0 || region.is_empty() {
+    if region.is_empty() {
         return region;
     }
     let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
@@ -279,29 +279,59 @@ fn grow_along_depth(mut region: Vec<usize>, ego: &EgoResult, gw: usize, gh: usiz
     for &i in &region {
         inside[i] = true;
     }
-    let mut frontier = region.clone();
-    while let Some(i) = frontier.pop() {
-        let z = f64::from(ego.depth_m[i]);
-        if z == 0.0 {
-            continue;
-        }
-        let (x, y) = (i % gw, i / gw);
-        let neighbours = [(x.wrapping_sub(1), y), (x + 1, y), (x, y.wrapping_sub(1)), (x, y + 1)];
-        for (nx, ny) in neighbours {
-            if nx < x0 || nx > x1 || ny < y0 || ny > y1 {
-                continue;
-            }
-            let j = ny * gw + nx;
-            let zj = f64::from(ego.depth_m[j]);
-            if inside[j] || zj == 0.0 || (zj - z).abs() > ratio * z || blocked(j) {
-                continue;
-            }
-            inside[j] = true;
-            region.push(j);
-            frontier.push(j);
-        }
-    }
+    let in_box = |j: usize| (x0..=x1).contains(&(j % gw)) && (y0..=y1).contains(&(j / gw));
+    region.extend(grow_over_depth(&mut inside, &ego.depth_m, gw, gh, ratio, usize::MAX, |j| in_box(j) && !blocked(j)));
     region
+}
+
+/// Marks in `inside` (a `width`×`height` grid) every cell reachable from the marked
+/// ones in at most `max_steps` 4-neighbour steps, each onto an `allowed` cell whose
+/// depth is within `ratio` of the depth of the cell stepped from; cells without depth
+/// (0) neither grow nor are grown into. Returns the cells it marked. `ratio` ≤ 0
+/// grows nothing.
+pub(crate) fn grow_over_depth(
+    inside: &mut [bool],
+    depth_m: &[f32],
+    width: usize,
+    height: usize,
+    ratio: f64,
+    max_steps: usize,
+    allowed: impl Fn(usize) -> bool,
+) -> Vec<usize> {
+    debug_assert_eq!(inside.len(), width * height);
+    debug_assert_eq!(depth_m.len(), width * height);
+    let mut grown = Vec::new();
+    if ratio <= 0.0 {
+        return grown;
+    }
+    let mut frontier: Vec<usize> = (0..inside.len()).filter(|&i| inside[i] && depth_m[i] > 0.0).collect();
+    let mut next = Vec::new();
+    for _ in 0..max_steps {
+        if frontier.is_empty() {
+            break;
+        }
+        for &i in &frontier {
+            let z = f64::from(depth_m[i]);
+            let (x, y) = (i % width, i / width);
+            let neighbours = [
+                (x > 0).then(|| i - 1),
+                (x + 1 < width).then(|| i + 1),
+                (y > 0).then(|| i - width),
+                (y + 1 < height).then(|| i + width),
+            ];
+            for j in neighbours.into_iter().flatten() {
+                let zj = f64::from(depth_m[j]);
+                if !inside[j] && zj > 0.0 && (zj - z).abs() <= ratio * z && allowed(j) {
+                    inside[j] = true;
+                    grown.push(j);
+                    next.push(j);
+                }
+            }
+        }
+        std::mem::swap(&mut frontier, &mut next);
+        next.clear();
+    }
+    grown
 }
 
 /// Keeps the pixels of a flow region at the depth of its core: the median depth of

@@ -17,7 +17,7 @@ use crate::PerceptionError;
 use crate::config::{PerceptionConfig, PriorDynamicTracking};
 use crate::ego::{EgoMotion, EgoResult};
 use crate::flow::{FlowField, SmallGray, farneback};
-use crate::fusion::{Fused, PixelLabel, cell_centres, dynamic_fraction, fuse};
+use crate::fusion::{Fused, PixelLabel, cell_centres, dynamic_fraction, fuse, grow_over_depth};
 use crate::segment::Segmentation;
 use crate::warp::{warp_grid, warp_segmentation};
 
@@ -502,38 +502,12 @@ fn scaled(motion: &Isometry3<f64>, factor: f64) -> Isometry3<f64> {
     Isometry3::from_parts((motion.translation.vector * factor).into(), motion.rotation.powf(factor))
 }
 
-/// Grows the 0/1 flow-grid mask `seeds` over 4-neighbours whose depth continues
-/// the surface of the cell they are reached from (within `ratio` of its depth), at
-/// most `max_steps` cells from the nearest seed. Cells without depth neither grow
-/// nor are grown into, so a depth edge or a hole stops the growth.
+/// Grows the 0/1 flow-grid mask over the surfaces its cells lie on, at most
+/// `max_steps` cells (see [`grow_over_depth`]).
 fn grow_over_surfaces(mut grid: Vec<u8>, depth_m: &[f32], width: usize, height: usize, max_steps: usize, ratio: f64) -> Vec<u8> {
-    debug_assert_eq!(grid.len(), width * height);
-    debug_assert_eq!(depth_m.len(), width * height);
-    let mut frontier: Vec<usize> = (0..grid.len()).filter(|&i| grid[i] != 0 && depth_m[i] > 0.0).collect();
-    let mut next = Vec::new();
-    for _ in 0..max_steps {
-        if frontier.is_empty() {
-            break;
-        }
-        for &i in &frontier {
-            let z = f64::from(depth_m[i]);
-            let (x, y) = (i % width, i / width);
-            let neighbours = [
-                (x > 0).then(|| i - 1),
-                (x + 1 < width).then(|| i + 1),
-                (y > 0).then(|| i - width),
-                (y + 1 < height).then(|| i + width),
-            ];
-            for j in neighbours.into_iter().flatten() {
-                let zj = f64::from(depth_m[j]);
-                if grid[j] == 0 && zj > 0.0 && (zj - z).abs() <= ratio * z {
-                    grid[j] = 1;
-                    next.push(j);
-                }
-            }
-        }
-        std::mem::swap(&mut frontier, &mut next);
-        next.clear();
+    let mut inside: Vec<bool> = grid.iter().map(|&v| v != 0).collect();
+    for j in grow_over_depth(&mut inside, depth_m, width, height, ratio, max_steps, |_| true) {
+        grid[j] = 1;
     }
     grid
 }
