@@ -67,10 +67,7 @@ fn main() {
     let frames = tum::load(&dir, 150);
     let gt = tum::groundtruth(&dir);
     let with_board = composite_run::composite(&frames, &gt);
-    let without_board: Vec<CompositeFrame> = frames
-        .iter()
-        .map(|f| CompositeFrame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone(), object_mask: vec![0; f.depth.len()] })
-        .collect();
+    let without_board = composite_run::without_object(&frames);
     let perception: PerceptionConfig = overrides("PERCEPTION");
     let base: TrackerConfig = overrides("TRACKING");
     let mut model = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");

@@ -49,10 +49,7 @@ fn moving_board_is_found_while_the_camera_rotates() {
         // The same masker and tracker on the frames without the board: what
         // perception itself costs tracking on this clip, apart from the object
         // (another 40 s, so only on request).
-        let unpasted: Vec<CompositeFrame> = frames
-            .iter()
-            .map(|f| CompositeFrame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone(), object_mask: vec![0; f.depth.len()] })
-            .collect();
+        let unpasted = composite_run::without_object(frames);
         let masked_without = tum::score(gt, &composite_run::run(&unpasted, Some(&mut seg), Schedule::EveryFrame, false).trajectory);
         eprintln!("masked, without the object: ATE {:.4} m, RPE {:.4} m", masked_without.ate_m, masked_without.rpe_m);
     }

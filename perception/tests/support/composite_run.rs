@@ -65,6 +65,14 @@ pub fn composite_with(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)], pl
         .collect()
 }
 
+/// The real clip as composite frames with nothing pasted in (an empty object mask).
+pub fn without_object(frames: &[tum::TumFrame]) -> Vec<CompositeFrame> {
+    frames
+        .iter()
+        .map(|f| CompositeFrame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone(), object_mask: vec![0; f.depth.len()] })
+        .collect()
+}
+
 /// When segmentation results become available to the masker.
 #[derive(Debug, Clone, Copy)]
 pub enum Schedule {
