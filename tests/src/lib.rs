@@ -50,8 +50,23 @@ pub struct Server {
     pub zenoh: String,
 }
 
+/// Attempts at starting a server: [`free_port`] only finds ports free at that
+/// moment, and another process (a client's outgoing connection, say) can take one
+/// before the server binds it; the server then exits naming the port.
+const SERVER_START_ATTEMPTS: usize = 3;
+
 impl Server {
     pub fn start(extra: &[&str]) -> Self {
+        for _ in 1..SERVER_START_ATTEMPTS {
+            if let Some(server) = Self::try_start(extra) {
+                return server;
+            }
+        }
+        Self::try_start(extra).expect("server exited before its ready line (its stderr is above)")
+    }
+
+    /// `None` when the server exited before printing its ready line.
+    fn try_start(extra: &[&str]) -> Option<Self> {
         let (grpc, http, zenoh) = (
             format!("127.0.0.1:{}", free_port()),
             format!("127.0.0.1:{}", free_port()),
@@ -86,9 +101,16 @@ impl Server {
                 }
             }
         });
-        let line = rx.recv_timeout(SERVER_START_TIMEOUT).expect("server printed no ready line");
-        assert!(line.contains(&grpc), "{line}");
-        Self { child, own_store, grpc, http, zenoh }
+        // Dropped on a failed start: killed, waited for, its own store removed.
+        let server = Self { child, own_store, grpc, http, zenoh };
+        match rx.recv_timeout(SERVER_START_TIMEOUT) {
+            Ok(line) => {
+                assert!(line.contains(&server.grpc), "{line}");
+                Some(server)
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => None,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => panic!("server printed no ready line in {SERVER_START_TIMEOUT:?}"),
+        }
     }
 
     /// SIGTERM, then waits for the graceful shutdown to finish.
