@@ -4,7 +4,7 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use stillmap_e2e::{Server, free_port, run_client, tum_dir};
+use stillmap_e2e::{Server, run_client, tum_dir};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
@@ -52,8 +52,9 @@ async fn client_reconnects_and_resumes_the_session() {
     // (drop_oldest), which is the overload policy working, not a resume bug. A deeper
     // queue keeps this test about resume: every frame received once and processed.
     let server = Server::start(&["--queue-capacity", "64"]);
-    let port = free_port();
-    let listener = TcpListener::bind(("127.0.0.1", port)).await.expect("proxy bind");
+    // The proxy binds port 0: the kernel picks a free port and no one can take it first.
+    let listener = TcpListener::bind(("127.0.0.1", 0)).await.expect("proxy bind");
+    let port = listener.local_addr().expect("proxy address").port();
     tokio::spawn(proxy(listener, server.grpc.clone()));
 
     let src = format!("tum:{}", tum_dir().display());
