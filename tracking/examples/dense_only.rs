@@ -27,6 +27,7 @@ fn main() {
         }
         est.push((f.timestamp_ns, world_from_camera));
     }
+    tum::write_est_if_asked(&est);
     let s = tum::score(&gt, &est);
     println!(
         "dense odometry alone, {} frames ({failed} steps failed, kept as no motion) | ATE {:.2} cm (origin-aligned {:.2} deg) | RPE {:.2} mm {:.3} deg",

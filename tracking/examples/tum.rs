@@ -51,6 +51,7 @@ fn main() {
         }
         totals.push(out.times.total.as_secs_f64() * 1e3);
     }
+    tum::write_est_if_asked(&est);
     totals.sort_by(f64::total_cmp);
     let s = tum::score(&gt, &est);
     println!(

@@ -153,3 +153,18 @@ pub fn score(gt: &[(u64, Isometry3<f64>)], est: &[(u64, Isometry3<f64>)]) -> Sco
     }
     Scores { pairs: pairs.len(), ate_m: rms(&te), ate_deg: rms(&re), ate_origin_deg: rms(&ro), rpe_m: rms(&rt), rpe_deg: rms(&rr) }
 }
+
+/// Writes `est` as a TUM trajectory file when the environment variable `EST`
+/// names one (for evo or `stillmap-client eval`).
+#[allow(dead_code)]
+pub fn write_est_if_asked(est: &[(u64, Isometry3<f64>)]) {
+    let Some(path) = std::env::var_os("EST") else { return };
+    let text: String = est
+        .iter()
+        .map(|(t, p)| {
+            let (q, v) = (p.rotation.coords, p.translation.vector);
+            format!("{:.6} {} {} {} {} {} {} {}\n", *t as f64 * 1e-9, v.x, v.y, v.z, q.x, q.y, q.z, q.w)
+        })
+        .collect();
+    std::fs::write(path, text).expect("write EST");
+}
