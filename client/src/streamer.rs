@@ -120,10 +120,11 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[rank.min(sorted.len() - 1)]
 }
 
+/// The source's camera and frame count (when known), sent once when it opens.
+type SourceOpened = oneshot::Receiver<Result<(pb::CameraInfo, Option<usize>), ClientError>>;
+
 /// Reads the source on its own thread (OpenNI2 handles stay on one thread) and encodes.
-fn spawn_source(
-    options: &StreamOptions,
-) -> (oneshot::Receiver<Result<(pb::CameraInfo, Option<usize>), ClientError>>, mpsc::Receiver<Result<Encoded, ClientError>>) {
+fn spawn_source(options: &StreamOptions) -> (SourceOpened, mpsc::Receiver<Result<Encoded, ClientError>>) {
     let (camera_tx, camera_rx) = oneshot::channel();
     let (frames_tx, frames_rx) = mpsc::channel(ENCODE_AHEAD);
     let (spec, max_frames, quality) = (options.source.clone(), options.max_frames, options.jpeg_quality);

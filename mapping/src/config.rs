@@ -97,6 +97,8 @@ impl Default for MappingConfig {
 }
 
 impl MappingConfig {
+    /// (Comparisons are negated so that NaN fails them too.)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn validate(&self) -> Result<(), crate::MappingError> {
         let bad = |m: &str| Err(crate::MappingError::Config(m.to_string()));
         if !(self.voxel_size_m > 0.001 && self.voxel_size_m <= 1.0) {

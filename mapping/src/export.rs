@@ -146,6 +146,6 @@ pub fn objects(map: &VoxelMap, map_from_world: &UnitQuaternion<f64>) -> Vec<MapO
             confidence: conf / members.len() as f32,
         });
     }
-    out.sort_by(|a, b| b.voxels.cmp(&a.voxels));
+    out.sort_by_key(|o| std::cmp::Reverse(o.voxels));
     out
 }

@@ -158,6 +158,8 @@ impl VoxelMap {
     }
 
     /// Reduces a frame to its fusion input. Checks the image sizes.
+    /// (Comparisons are negated so that NaN fails them too.)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn prepare(&self, rays: &CameraRays, view: &DepthView<'_>) -> Result<FusionInput, MappingError> {
         let (w, h) = (rays.camera.width as usize, rays.camera.height as usize);
         let n = w * h;
@@ -273,8 +275,8 @@ impl VoxelMap {
             let mut labelled = false;
             for &(_, i) in group {
                 let s = &input.samples[i as usize];
-                for c in 0..3 {
-                    sum[c] += u32::from(s.rgb[c]);
+                for (total, channel) in sum.iter_mut().zip(s.rgb) {
+                    *total += u32::from(channel);
                 }
                 if let Some(class) = s.class {
                     labelled = true;

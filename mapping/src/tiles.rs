@@ -201,6 +201,8 @@ impl OccupancyGrid {
     /// Occupied: a surface within [min_height, max_height]. Free: no surface in the
     /// band, and either a voxel in the band was seen and carved free, or a surface
     /// below the band (the floor) was seen. Unknown otherwise.
+    /// (Comparisons are negated so that NaN fails them too.)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn build(map: &VoxelMap, map_from_world: &UnitQuaternion<f64>, min_height_m: f64, max_height_m: f64, resolution_m: f64) -> Result<Self, MappingError> {
         if !(max_height_m > min_height_m) {
             return Err(MappingError::Input(format!("height band [{min_height_m}, {max_height_m}] is empty")));

@@ -103,9 +103,10 @@ impl Voxel {
             return;
         }
         let (a, b) = (u32::from(older.hits), u32::from(self.hits));
-        if a + b > 0 {
-            for c in 0..3 {
-                self.color[c] = ((u32::from(older.color[c]) * a + u32::from(self.color[c]) * b) / (a + b)) as u8;
+        for c in 0..3 {
+            // No hits on either side: the colour stays.
+            if let Some(mixed) = (u32::from(older.color[c]) * a + u32::from(self.color[c]) * b).checked_div(a + b) {
+                self.color[c] = mixed as u8;
             }
         }
         self.log_odds = (self.log_odds + older.log_odds).clamp(min, max);

@@ -262,7 +262,7 @@ fn the_static_clip_map_carries_the_segmenters_classes() {
     assert!(covered as f64 >= 0.5 * seen as f64, "coverage: {covered} of {seen}");
     // The three classes the model sees most in these frames are objects in the map.
     let mut top: Vec<(u16, usize)> = seen_pixels.into_iter().collect();
-    top.sort_by(|a, b| b.1.cmp(&a.1));
+    top.sort_by_key(|&(_, pixels)| std::cmp::Reverse(pixels));
     for &(class, _) in top.iter().take(3) {
         let name = &names[usize::from(class)];
         assert!(objs.iter().any(|o| o.class == class), "no {name} among {found:?}");
@@ -299,7 +299,7 @@ fn the_static_clip_map_carries_the_segmenters_classes() {
     let pgm = grid.to_pgm();
     assert!(pgm.starts_with(b"P5\n"));
     assert_eq!(grid.cells.len(), grid.width * grid.height);
-    assert!(grid.cells.iter().any(|&c| c == stillmap_mapping::tiles::PGM_OCCUPIED));
+    assert!(grid.cells.contains(&stillmap_mapping::tiles::PGM_OCCUPIED));
 }
 
 /// Without an accelerometer, up comes from the dominant plane of the first

@@ -198,7 +198,7 @@ impl PerceptionConfig {
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn validate(&self) -> Result<(), String> {
         let s = &self.segmentation;
-        if s.input_size != 0 && (s.input_size % 32 != 0 || s.input_size > 2048) {
+        if s.input_size != 0 && (!s.input_size.is_multiple_of(32) || s.input_size > 2048) {
             return Err(format!("perception.segmentation.input_size must be 0 or a multiple of 32 up to 2048, got {}", s.input_size));
         }
         for (k, v) in [("score_threshold", s.score_threshold), ("nms_iou_threshold", s.nms_iou_threshold), ("mask_threshold", s.mask_threshold)] {

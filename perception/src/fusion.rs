@@ -142,7 +142,7 @@ pub fn fuse(
         for inst in &seg.instances {
             let id = usize::from(inst.id);
             let fraction = if judged[id] > 0 { moving_px[id] as f64 / judged[id] as f64 } else { 0.0 };
-            let moving = (ego.is_some() && judged[id] >= MIN_JUDGED_PIXELS).then(|| fraction >= config.instance_moving_fraction);
+            let moving = (ego.is_some() && judged[id] >= MIN_JUDGED_PIXELS).then_some(fraction >= config.instance_moving_fraction);
             instances.push(InstanceState {
                 id: inst.id,
                 class_id: inst.class_id,

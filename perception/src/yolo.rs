@@ -111,6 +111,8 @@ pub fn iou(a: &[f32; 4], b: &[f32; 4]) -> f32 {
 
 /// Decodes `output0` (`[4 + classes + mask_dim, anchors]`, row-major) into detections
 /// above the score threshold, then applies class-aware NMS. Highest scores first.
+/// (A negated comparison, so that a NaN score is dropped too.)
+#[allow(clippy::neg_cmp_op_on_partial_ord)]
 pub fn decode_detections(
     output0: &[f32],
     anchors: usize,

@@ -14,8 +14,11 @@ use std::sync::OnceLock;
 use stillmap_perception::YoloSegmenter;
 use composite_run::{CompositeFrame, Schedule};
 
-fn clip() -> &'static (Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgebra::Isometry3<f64>)>) {
-    static CLIP: OnceLock<(Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgebra::Isometry3<f64>)>)> = OnceLock::new();
+/// The clip's frames, their composite with the board, and the ground truth.
+type Clip = (Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgebra::Isometry3<f64>)>);
+
+fn clip() -> &'static Clip {
+    static CLIP: OnceLock<Clip> = OnceLock::new();
     CLIP.get_or_init(|| {
         let dir = tum::fr1_rpy_dir();
         let frames = tum::load(&dir, 150);

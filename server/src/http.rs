@@ -185,6 +185,8 @@ async fn metrics(State(registry): State<Arc<Registry>>) -> Response {
 }
 
 /// The session's map, or the 404 to answer.
+// The error is the finished HTTP response, handed straight back by the handlers.
+#[allow(clippy::result_large_err)]
 fn session_map(registry: &Registry, id: &str) -> Result<SharedMap, Response> {
     let Some(s) = registry.get(id) else {
         return Err(error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")));

@@ -62,12 +62,13 @@ async fn bind(addr: &str) -> Result<tokio::net::TcpListener, ServerError> {
     tokio::net::TcpListener::bind(addr).await.map_err(|source| ServerError::Bind { addr: addr.into(), source })
 }
 
+/// Perception's configuration and, when a model is loaded, the shared segmentation service.
+type PerceptionSetup = (stillmap_perception::PerceptionConfig, Option<Arc<perception::SegmentationService>>);
+
 /// Loads the segmentation model(s) when perception wants them: any problem with
 /// the configured model is a start-up error. No model configured: masks come from
 /// the flow alone (every pixel prior-static), with a warning.
-fn perception_service(
-    config: &ServerConfig,
-) -> Result<Option<(stillmap_perception::PerceptionConfig, Option<Arc<perception::SegmentationService>>)>, ServerError> {
+fn perception_service(config: &ServerConfig) -> Result<Option<PerceptionSetup>, ServerError> {
     let p = &config.perception;
     if !p.enabled {
         return Ok(None);

@@ -105,11 +105,11 @@ impl SessionMap {
             self.builder.restore_block(k, b);
         }
         self.builder.note_restored(meta.keyframes, meta.map_stamp);
-        if let (Some(up), Some(source)) = (meta.up_in_world, meta.up_source.as_deref()) {
-            if let Some(up) = nalgebra::Unit::try_new(Vector3::from(up), 1e-9) {
-                let source = UpSource::from_label(source).unwrap_or(UpSource::Config);
-                self.builder.freeze_up(up, source);
-            }
+        if let (Some(up), Some(source)) = (meta.up_in_world, meta.up_source.as_deref())
+            && let Some(up) = nalgebra::Unit::try_new(Vector3::from(up), 1e-9)
+        {
+            let source = UpSource::from_label(source).unwrap_or(UpSource::Config);
+            self.builder.freeze_up(up, source);
         }
         let evicted = self.builder.evict_now(&last_camera.unwrap_or_else(nalgebra::Point3::origin));
         if let Some(p) = &mut self.persistence {

@@ -213,7 +213,7 @@ impl SessionPerception {
         self.frames += 1;
         let finished = match (&self.segmentation, self.deterministic) {
             (Some(client), Some((every, delay))) => {
-                if index % u64::from(every) == 0
+                if index.is_multiple_of(u64::from(every))
                     && let Some(f) = client.segment_now(sequence, color)
                 {
                     self.held.push_back((index + u64::from(delay), f));

@@ -92,12 +92,12 @@ impl FrameQueue {
                 OverloadPolicy::DropOldest => {
                     // frames == capacity >= 1, so a frame is always found.
                     let mut dropped = None;
-                    if let Some(slot) = inner.items.iter_mut().find(|w| matches!(w, Work::Frame(_))) {
-                        if let Work::Frame(old) = slot {
-                            let (sequence, capture_time_ns) = (old.frame.sequence, old.frame.capture_time_ns);
-                            *slot = Work::Dropped { sequence, capture_time_ns };
-                            dropped = Some(sequence);
-                        }
+                    if let Some(slot) = inner.items.iter_mut().find(|w| matches!(w, Work::Frame(_)))
+                        && let Work::Frame(old) = slot
+                    {
+                        let (sequence, capture_time_ns) = (old.frame.sequence, old.frame.capture_time_ns);
+                        *slot = Work::Dropped { sequence, capture_time_ns };
+                        dropped = Some(sequence);
                     }
                     inner.frames -= usize::from(dropped.is_some());
                     inner.items.push_back(Work::Frame(frame));
