@@ -79,6 +79,12 @@ pub struct ZenohConfig {
     pub connect: Vec<String>,
     /// Multicast scouting (off by default: explicit endpoints only).
     pub multicast_scouting: bool,
+    /// Seconds without a message, with every frame answered, after which a Zenoh
+    /// robot's session counts as disconnected. Zenoh has no per-robot connection whose close the server could
+    /// see (gRPC has its stream), so without this a robot that vanished would show
+    /// as connected forever. Its next frame attaches the session again; nothing is
+    /// closed or lost. 0: never.
+    pub idle_disconnect_s: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -131,6 +137,7 @@ impl Default for ZenohConfig {
             listen: vec!["tcp/127.0.0.1:7447".into()],
             connect: vec![],
             multicast_scouting: false,
+            idle_disconnect_s: 10.0,
         }
     }
 }
@@ -155,6 +162,8 @@ impl ServerConfig {
     }
 
     /// Rejects values the server cannot run with.
+    /// (Comparisons are negated so that NaN fails them too.)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn validate(&self) -> Result<(), ServerError> {
         let bad = |msg: String| Err(ServerError::Config(msg));
         if self.session.queue_capacity == 0 {
@@ -174,6 +183,9 @@ impl ServerConfig {
         }
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
+        }
+        if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s.is_finite()) {
+            return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds, got {}", self.zenoh.idle_disconnect_s));
         }
         Ok(())
     }
@@ -199,5 +211,8 @@ mod tests {
         assert!(err.contains("unknown field `listen_addr`"), "{err}");
         let err = ServerConfig::from_toml("[session]\nqueue_capacity = 0\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: session.queue_capacity must be at least 1");
+        let err = ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = -1.0\n").unwrap_err().to_string();
+        assert_eq!(err, "invalid configuration: zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds, got -1");
+        assert_eq!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 0.0\n").unwrap().zenoh.idle_disconnect_s, 0.0);
     }
 }

@@ -115,6 +115,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             registry.clone(),
             config.session.result_buffer,
             config.grpc.max_message_bytes,
+            std::time::Duration::from_secs_f64(config.zenoh.idle_disconnect_s),
             shutdown.clone(),
         ));
         Some((z, task))

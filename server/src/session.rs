@@ -163,6 +163,12 @@ impl Session {
         }
     }
 
+    /// Frames received and not yet answered.
+    pub fn unanswered(&self) -> u64 {
+        let received = self.counters.received.load(Ordering::Relaxed);
+        received.saturating_sub(self.counters.answered.load(Ordering::Relaxed))
+    }
+
     /// Waits until every frame received so far has been answered.
     pub async fn drained(&self) {
         let mut rx = self.answered_tx.subscribe();

@@ -7,6 +7,7 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use prost::Message;
 use stillmap_proto::{keys, pb, pb::client_message::Msg as ClientMsg, pb::server_message::Msg};
@@ -37,14 +38,39 @@ pub fn zenoh_config(cfg: &ZenohConfig) -> Result<zenoh::Config, ServerError> {
 struct Link {
     session: Arc<Session>,
     sink: ResultSink,
+    /// When the robot last sent anything.
+    last_seen: Instant,
+    /// Whether `sink` is attached to the session (false once the robot went quiet).
+    attached: bool,
 }
 
-/// Subscribes to every robot's frames until `shutdown` fires.
+impl Link {
+    fn new(session: Arc<Session>, sink: ResultSink) -> Self {
+        Self { session, sink, last_seen: Instant::now(), attached: true }
+    }
+
+    /// The robot spoke: it is connected again if it had gone quiet.
+    fn seen(&mut self) {
+        self.last_seen = Instant::now();
+        if !self.attached {
+            self.session.attach(self.sink.clone());
+            self.attached = true;
+            tracing::info!(session = %self.session.id, "zenoh robot is back");
+        }
+    }
+}
+
+/// Longest wait between two checks for quiet robots.
+const MAX_IDLE_CHECK: Duration = Duration::from_secs(1);
+
+/// Subscribes to every robot's frames until `shutdown` fires. A robot silent for
+/// `idle_disconnect` (zero: never) counts as disconnected until it sends again.
 pub async fn serve(
     zenoh: zenoh::Session,
     registry: Arc<Registry>,
     result_buffer: usize,
     max_message_bytes: usize,
+    idle_disconnect: Duration,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
     let subscriber = zenoh
@@ -52,9 +78,22 @@ pub async fn serve(
         .await
         .map_err(|e| ServerError::Zenoh(format!("subscribe {}: {e}", keys::ALL_FRAMES)))?;
     let mut links: HashMap<String, Link> = HashMap::new();
+    let mut idle_check = tokio::time::interval((idle_disconnect / 2).clamp(Duration::from_millis(10), MAX_IDLE_CHECK));
+    idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         let sample = tokio::select! {
             s = subscriber.recv_async() => match s { Ok(s) => s, Err(_) => break },
+            _ = idle_check.tick(), if !idle_disconnect.is_zero() => {
+                // Quiet and answered: a robot whose frames are still in the pipeline
+                // (its window full behind a slow server) is waiting, not gone.
+                let quiet = |l: &Link| l.attached && l.last_seen.elapsed() >= idle_disconnect && l.session.unanswered() == 0;
+                for link in links.values_mut().filter(|l| quiet(l)) {
+                    link.session.detach(&link.sink);
+                    link.attached = false;
+                    tracing::info!(session = %link.session.id, "zenoh robot silent for {idle_disconnect:?}: disconnected");
+                }
+                continue;
+            }
             _ = shutdown.changed() => break,
         };
         let Some(robot) = keys::robot_of_frames_key(sample.key_expr().as_str()).map(str::to_owned) else {
@@ -100,9 +139,10 @@ pub async fn serve(
                     continue;
                 }
                 // A repeated hello for the session already attached is a retry: answer it again.
-                if let Some(link) = links.get(&robot)
+                if let Some(link) = links.get_mut(&robot)
                     && hello.resume_session_id == link.session.id
                 {
+                    link.seen();
                     let opened = crate::session::Opened { session: link.session.clone(), resumed: true };
                     let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
                     continue;
@@ -111,7 +151,7 @@ pub async fn serve(
                 match registry.open(&hello, Transport::Zenoh, sink.clone()) {
                     Ok(opened) => {
                         let _ = sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
-                        if let Some(old) = links.insert(robot.clone(), Link { session: opened.session, sink }) {
+                        if let Some(old) = links.insert(robot.clone(), Link::new(opened.session, sink)) {
                             old.session.detach(&old.sink);
                         }
                     }
@@ -121,11 +161,12 @@ pub async fn serve(
                 }
             }
             Some(ClientMsg::Frame(frame)) => {
-                let Some(link) = links.get(&robot) else {
+                let Some(link) = links.get_mut(&robot) else {
                     metrics.rejected("no_hello");
                     reply(&links, frame_before_hello(frame.sequence)).await;
                     continue;
                 };
+                link.seen();
                 if let Err(e) = link.session.push(frame, payload.len()) {
                     let _ = link.sink.send(Err(queue_status(e))).await;
                 }

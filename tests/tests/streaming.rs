@@ -163,3 +163,58 @@ fn trajectory_file_holds_only_returned_poses() {
     assert!(text.lines().nth(1).is_some_and(|l| l.ends_with(" 0.000000 0.000000 0.000000 0.000000 0.000000 0.000000 1.000000")), "{text}");
     let _ = std::fs::remove_file(path);
 }
+
+/// Zenoh shows the server no connection closing (gRPC has its stream): a robot that
+/// goes quiet counts as disconnected after `zenoh.idle_disconnect_s`, and its next
+/// frame attaches the same session again, answered on its results key.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
+    use prost::Message;
+    use stillmap_e2e::{eventually, tempfile_path, tum_frame};
+    use stillmap_proto::{keys, pb};
+    use std::time::Duration;
+
+    let config = tempfile_path("idle.toml");
+    std::fs::write(&config, "[zenoh]\nidle_disconnect_s = 1.0\n").expect("write config");
+    let server = Server::start(&["--config", config.to_str().expect("utf-8 path")]);
+    let (out, summary) = run_client(&[
+        "--source", &tum_source(), "--transport", "zenoh", "--zenoh-connect", &server.zenoh, "--rate", "max",
+        "--max-frames", "10", "--robot-id", "quiet-bot",
+    ]);
+    assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
+    let summary = summary.expect("summary JSON");
+    assert_complete(&summary, 10);
+    let id = summary["session_id"].as_str().expect("session id").to_string();
+    let connected = async |want: bool| {
+        let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+        let gauge = server.get_text("/metrics").await;
+        session["connected"] == want && gauge.contains(&format!("stillmap_sessions_connected {}", u8::from(want)))
+    };
+    eventually(Duration::from_secs(10), "the quiet robot to count as disconnected", async || connected(false).await).await;
+
+    // The robot speaks again on its key: the same session takes the frame and answers.
+    let mut zconfig = zenoh::Config::default();
+    for (key, value) in [
+        ("mode", "\"peer\"".to_string()),
+        ("scouting/multicast/enabled", "false".to_string()),
+        ("listen/endpoints", "[]".to_string()),
+        ("connect/endpoints", format!("[\"{}\"]", server.zenoh)),
+    ] {
+        zconfig.insert_json5(key, &value).expect(key);
+    }
+    let robot = zenoh::open(zconfig).await.expect("zenoh open");
+    let results = robot.declare_subscriber(keys::results("quiet-bot")).await.expect("subscribe");
+    eventually(Duration::from_secs(10), "the server as a Zenoh peer", async || robot.info().peers_zid().await.count() > 0).await;
+    let frame = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(tum_frame(10, 1_000_000_000))) };
+    robot.put(keys::frames("quiet-bot"), frame.encode_to_vec()).await.expect("put frame");
+    let answer = tokio::time::timeout(Duration::from_secs(10), results.recv_async()).await.expect("an answer").expect("sample");
+    let answer = pb::ServerMessage::decode(answer.payload().to_bytes().as_ref()).expect("server message");
+    match answer.msg {
+        Some(pb::server_message::Msg::Result(r)) => assert_eq!(r.sequence, 10),
+        other => panic!("expected the frame's result, got {other:?}"),
+    }
+    assert!(connected(true).await, "the robot's frame attached its session again");
+    let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!(session["counters"]["frames_received"], 11);
+    let _ = std::fs::remove_file(&config);
+}
