@@ -24,6 +24,18 @@ pub struct ServerConfig {
     /// The static semantic map (defaults documented in `stillmap_mapping::MappingConfig`).
     pub mapping: stillmap_mapping::MappingConfig,
     pub store: StoreConfig,
+    pub auth: AuthConfig,
+}
+
+/// Who may stream to this server.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AuthConfig {
+    /// Bearer tokens a robot's hello must carry (`Hello.auth_token`, `stillmap-client
+    /// --token`) on gRPC and Zenoh; a hello without one of them is refused with
+    /// UNAUTHENTICATED. Empty (the default): every hello is accepted, for a server on
+    /// a trusted network. The query APIs (HTTP, gRPC `Query`) are not covered.
+    pub tokens: Vec<String>,
 }
 
 /// The embedded store (redb): sessions, trajectories, keyframes and map blocks
@@ -183,6 +195,9 @@ impl ServerConfig {
         }
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
+        }
+        if let Some(i) = self.auth.tokens.iter().position(|t| t.trim().is_empty()) {
+            return bad(format!("auth.tokens[{i}] is empty"));
         }
         if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s.is_finite()) {
             return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds, got {}", self.zenoh.idle_disconnect_s));

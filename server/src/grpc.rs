@@ -16,6 +16,7 @@ use crate::session::{Registry, ResultSink, Session, Transport, accepted_message,
 
 pub struct IngestService {
     pub registry: Arc<Registry>,
+    pub tokens: Arc<crate::auth::Tokens>,
     pub result_buffer: usize,
     pub max_message_bytes: usize,
 }
@@ -45,9 +46,10 @@ impl Ingest for IngestService {
         let inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(self.result_buffer);
         let registry = self.registry.clone();
+        let tokens = self.tokens.clone();
         let max = self.max_message_bytes;
         tokio::spawn(async move {
-            if let Err(status) = serve_stream(inbound, &registry, tx.clone(), max).await {
+            if let Err(status) = serve_stream(inbound, &registry, &tokens, tx.clone(), max).await {
                 let _ = tx.send(Err(status)).await;
             }
         });
@@ -59,6 +61,7 @@ impl Ingest for IngestService {
 async fn serve_stream(
     mut inbound: Streaming<pb::ClientMessage>,
     registry: &Registry,
+    tokens: &crate::auth::Tokens,
     sink: ResultSink,
     max_message_bytes: usize,
 ) -> Result<(), Status> {
@@ -75,6 +78,7 @@ async fn serve_stream(
             return Err(Status::invalid_argument("empty client message: expected a hello"));
         }
     };
+    tokens.check(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
     let opened = registry
         .open(&hello, Transport::Grpc, sink.clone())
         .map_err(|e| Status::invalid_argument(format!("bad hello: {e}")))?;

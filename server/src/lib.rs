@@ -4,6 +4,7 @@
 //! Algorithms ([`pipeline`], [`queue`]) are free of network and file I/O; the
 //! shells ([`grpc`], [`zenoh_ingest`], [`http`]) only translate.
 
+pub mod auth;
 pub mod config;
 pub mod dashboard;
 pub mod grpc;
@@ -95,6 +96,10 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         None => Vec::new(),
     };
     let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, Arc::default()));
+    let tokens = Arc::new(auth::Tokens::new(&config.auth.tokens));
+    if !tokens.required() {
+        tracing::info!("auth.tokens is empty: every robot's hello is accepted");
+    }
     if !stored.is_empty() {
         tracing::info!(sessions = stored.len(), "restoring sessions from the store");
         registry.restore(stored);
@@ -116,6 +121,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             config.session.result_buffer,
             config.grpc.max_message_bytes,
             std::time::Duration::from_secs_f64(config.zenoh.idle_disconnect_s),
+            tokens.clone(),
             shutdown.clone(),
         ));
         Some((z, task))
@@ -130,6 +136,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let max = config.grpc.max_message_bytes;
     let ingest = IngestServer::new(grpc::IngestService {
         registry: registry.clone(),
+        tokens: tokens.clone(),
         result_buffer: config.session.result_buffer,
         max_message_bytes: max,
     })

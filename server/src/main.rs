@@ -49,7 +49,10 @@ struct Args {
     /// Keep nothing on disk: a restart forgets every session.
     #[arg(long, env = "STILLMAP_NO_STORE")]
     no_store: bool,
-    /// Print the effective configuration as TOML and exit.
+    /// Bearer token a robot's hello must carry, repeatable (adds to auth.tokens).
+    #[arg(long = "auth-token", env = "STILLMAP_AUTH_TOKENS", value_delimiter = ',', hide_env_values = true)]
+    auth_tokens: Vec<String>,
+    /// Print the effective configuration as TOML and exit (auth tokens redacted).
     #[arg(long)]
     print_config: bool,
 }
@@ -106,6 +109,7 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     if args.no_store {
         c.store.enabled = false;
     }
+    c.auth.tokens.extend(args.auth_tokens.iter().cloned());
     c.validate()?;
     Ok(c)
 }
@@ -138,7 +142,9 @@ async fn real_main() -> anyhow::Result<()> {
         .init();
     let config = effective_config(&args)?;
     if args.print_config {
-        print!("{}", toml::to_string_pretty(&config)?);
+        let mut shown = config.clone();
+        shown.auth.tokens.iter_mut().for_each(|t| *t = "<redacted>".into());
+        print!("{}", toml::to_string_pretty(&shown)?);
         return Ok(());
     }
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);

@@ -71,6 +71,7 @@ pub async fn serve(
     result_buffer: usize,
     max_message_bytes: usize,
     idle_disconnect: Duration,
+    tokens: Arc<crate::auth::Tokens>,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
     let subscriber = zenoh
@@ -136,6 +137,11 @@ pub async fn serve(
                 if hello.robot_id != robot {
                     let msg = format!("hello for robot {:?} published on the key of robot {robot:?}", hello.robot_id);
                     reply(&links, Status::invalid_argument(msg)).await;
+                    continue;
+                }
+                if let Err(status) = tokens.check(&hello) {
+                    metrics.rejected("unauthenticated");
+                    reply(&links, status).await;
                     continue;
                 }
                 // A repeated hello for the session already attached is a retry: answer it again.

@@ -223,3 +223,57 @@ async fn queries_answer_for_a_live_session() {
         .into_inner();
     assert_eq!(trajectory.poses.iter().map(|p| p.sequence).collect::<Vec<_>>(), [0]);
 }
+
+/// With `auth.tokens` set, a hello must carry one of them, on gRPC and on Zenoh:
+/// raw streams get UNAUTHENTICATED naming what is wrong, the real client exits 1
+/// with that one line, and the holder of a token streams as usual.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_hello_without_a_configured_token_is_unauthenticated() {
+    let server = Server::start(&["--auth-token", "fleet-secret-1", "--auth-token", "fleet-secret-2"]);
+    for (token, message) in [
+        ("", "this server requires an auth token in the hello (stillmap-client --token)"),
+        ("fleet-secret-3", "unknown auth token"),
+    ] {
+        let mut s = Stream::open(&server).await;
+        s.send(ClientMsg::Hello(pb::Hello { auth_token: token.into(), ..tum_hello("r") })).await;
+        let status = s.next().await.expect_err("status");
+        assert_eq!((status.code(), status.message()), (Code::Unauthenticated, message), "token {token:?}");
+    }
+    // A resumed session needs the token too.
+    let (_, accepted) = Stream::hello(&server, pb::Hello { auth_token: "fleet-secret-2".into(), ..tum_hello("r") }).await;
+    let mut s = Stream::open(&server).await;
+    s.send(ClientMsg::Hello(pb::Hello { resume_session_id: accepted.session_id.clone(), ..tum_hello("r") })).await;
+    assert_eq!(s.next().await.expect_err("status").code(), Code::Unauthenticated);
+
+    let src = format!("tum:{}", stillmap_e2e::tum_dir().display());
+    for transport in [&["--server", &server.grpc_url()][..], &["--transport", "zenoh", "--zenoh-connect", &server.zenoh][..]] {
+        let mut args = vec!["--source", src.as_str(), "--max-frames", "5", "--rate", "max", "--token", "wrong"];
+        args.extend_from_slice(transport);
+        let (out, _) = stillmap_e2e::run_client(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{transport:?}: {stderr}");
+        assert!(stderr.contains("unknown auth token"), "{transport:?}: {stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "one line: {stderr}");
+
+        let mut args = vec!["--source", src.as_str(), "--max-frames", "5", "--rate", "max", "--token", "fleet-secret-1"];
+        args.extend_from_slice(transport);
+        let (out, summary) = stillmap_e2e::run_client(&args);
+        assert!(out.status.success(), "{transport:?}: {}", String::from_utf8_lossy(&out.stderr));
+        assert_eq!(summary.expect("summary")["frames_acknowledged"], 5);
+    }
+    let metrics = server.get_text("/metrics").await;
+    assert!(metrics.contains("reason=\"unauthenticated\"} 5"), "{metrics}");
+}
+
+/// Tokens never show in `--print-config`; an empty one is a named start-up error.
+#[test]
+fn auth_tokens_are_redacted_and_an_empty_one_is_refused() {
+    let server = || std::process::Command::new(stillmap_e2e::bin("stillmap-server"));
+    let out = server().args(["--print-config", "--auth-token", "s3cret-token"]).output().expect("run server");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("tokens = [\"<redacted>\"]") && !stdout.contains("s3cret"), "{stdout}");
+    let out = server().args(["--print-config", "--auth-token", ""]).output().expect("run server");
+    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(String::from_utf8_lossy(&out.stderr).trim(), "stillmap-server: invalid configuration: auth.tokens[0] is empty");
+}
