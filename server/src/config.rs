@@ -27,6 +27,9 @@ pub struct ServerConfig {
     pub auth: AuthConfig,
 }
 
+/// Largest `zenoh.idle_disconnect_s`: a day.
+const MAX_IDLE_DISCONNECT_S: f64 = 86_400.0;
+
 /// Who may stream to this server.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -34,7 +37,9 @@ pub struct AuthConfig {
     /// Bearer tokens a robot's hello must carry (`Hello.auth_token`, `stillmap-client
     /// --token`) on gRPC and Zenoh; a hello without one of them is refused with
     /// UNAUTHENTICATED. Empty (the default): every hello is accepted, for a server on
-    /// a trusted network. The query APIs (HTTP, gRPC `Query`) are not covered.
+    /// a trusted network. Not covered: the query APIs (HTTP, gRPC `Query`), the HTTP
+    /// map import, and Zenoh frames after an accepted hello (anyone who can publish
+    /// on a robot's key speaks for it: use Zenoh's access control and TLS there).
     pub tokens: Vec<String>,
 }
 
@@ -199,8 +204,11 @@ impl ServerConfig {
         if let Some(i) = self.auth.tokens.iter().position(|t| t.trim().is_empty()) {
             return bad(format!("auth.tokens[{i}] is empty"));
         }
-        if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s.is_finite()) {
-            return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds, got {}", self.zenoh.idle_disconnect_s));
+        if let Some(i) = self.auth.tokens.iter().position(|t| t.trim() != t) {
+            return bad(format!("auth.tokens[{i}] has leading or trailing whitespace"));
+        }
+        if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s <= MAX_IDLE_DISCONNECT_S) {
+            return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.zenoh.idle_disconnect_s));
         }
         Ok(())
     }
@@ -227,7 +235,10 @@ mod tests {
         let err = ServerConfig::from_toml("[session]\nqueue_capacity = 0\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: session.queue_capacity must be at least 1");
         let err = ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = -1.0\n").unwrap_err().to_string();
-        assert_eq!(err, "invalid configuration: zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds, got -1");
+        assert_eq!(err, "invalid configuration: zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to 86400, got -1");
+        assert!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 1e300\n").is_err(), "would overflow a Duration");
+        let err = ServerConfig::from_toml("[auth]\ntokens = [\"a\", \" b\"]\n").unwrap_err().to_string();
+        assert_eq!(err, "invalid configuration: auth.tokens[1] has leading or trailing whitespace");
         assert_eq!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 0.0\n").unwrap().zenoh.idle_disconnect_s, 0.0);
     }
 }

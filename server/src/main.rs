@@ -109,7 +109,8 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     if args.no_store {
         c.store.enabled = false;
     }
-    c.auth.tokens.extend(args.auth_tokens.iter().cloned());
+    // "a, b" in STILLMAP_AUTH_TOKENS means the tokens "a" and "b".
+    c.auth.tokens.extend(args.auth_tokens.iter().map(|t| t.trim().to_string()));
     c.validate()?;
     Ok(c)
 }

@@ -152,6 +152,22 @@ impl Session {
         }
     }
 
+    /// Attaches `sink` when no connection holds the session (never takes it from
+    /// another one); true when `sink` is attached afterwards.
+    pub fn attach_if_vacant(&self, sink: &ResultSink) -> bool {
+        let mut current = lock(&self.sink);
+        match current.as_ref() {
+            Some(held) => held.same_channel(sink),
+            None => {
+                *current = Some(sink.clone());
+                if !self.connected.swap(true, Ordering::Relaxed) {
+                    self.metrics.connected_delta(1);
+                }
+                true
+            }
+        }
+    }
+
     /// Detaches `sink` if it is still the attached one (a newer connection may have replaced it).
     pub fn detach(&self, sink: &ResultSink) {
         let mut current = lock(&self.sink);
@@ -627,5 +643,49 @@ pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::Server
             max_message_bytes: max_message_bytes as u64,
             server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
         })),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A Zenoh robot's frames re-attach its link only when no other connection holds
+    /// the session: a gRPC resume keeps the results, and the gauge counts once.
+    #[test]
+    fn attach_if_vacant_never_takes_a_session_from_another_connection() {
+        let mapping = MappingConfig { enabled: false, ..MappingConfig::default() };
+        let registry = Registry::new(SessionConfig::default(), TrackerConfig::default(), None, mapping, None, Arc::default());
+        let camera = pb::CameraInfo {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 32.0,
+            cy: 24.0,
+            depth_units_per_metre: 1000.0,
+            color_encoding: pb::ColorEncoding::Rgb8 as i32,
+            depth_encoding: pb::DepthEncoding::Zstd as i32,
+            ..Default::default()
+        };
+        let hello = pb::Hello { robot_id: "r".into(), camera: Some(camera), ..Default::default() };
+        let (zenoh, _zenoh_rx) = mpsc::channel(4);
+        let (grpc, _grpc_rx) = mpsc::channel(4);
+        let session = registry.open(&hello, Transport::Zenoh, zenoh.clone()).expect("open").session;
+        let gauge = || registry.metrics().render().lines().find(|l| l.starts_with("stillmap_sessions_connected ")).map(str::to_owned);
+        assert!(session.is_connected());
+        assert!(session.attach_if_vacant(&zenoh), "already ours");
+        session.attach(grpc.clone()); // a gRPC resume takes the session
+        assert!(!session.attach_if_vacant(&zenoh), "held by the gRPC stream");
+        session.detach(&zenoh); // the idle check detaches only its own sink
+        assert!(session.is_connected());
+        assert_eq!(gauge().as_deref(), Some("stillmap_sessions_connected 1"));
+        session.detach(&grpc); // the gRPC stream ends
+        assert!(!session.is_connected());
+        assert_eq!(gauge().as_deref(), Some("stillmap_sessions_connected 0"));
+        assert!(session.attach_if_vacant(&zenoh), "vacant: the robot's next frame takes it");
+        assert!(session.is_connected());
+        assert_eq!(gauge().as_deref(), Some("stillmap_sessions_connected 1"));
+        registry.close_all();
     }
 }

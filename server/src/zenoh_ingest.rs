@@ -40,23 +40,23 @@ struct Link {
     sink: ResultSink,
     /// When the robot last sent anything.
     last_seen: Instant,
-    /// Whether `sink` is attached to the session (false once the robot went quiet).
-    attached: bool,
+    /// Whether the idle check has found the robot quiet since it last spoke.
+    quiet: bool,
 }
 
 impl Link {
     fn new(session: Arc<Session>, sink: ResultSink) -> Self {
-        Self { session, sink, last_seen: Instant::now(), attached: true }
+        Self { session, sink, last_seen: Instant::now(), quiet: false }
     }
 
-    /// The robot spoke: it is connected again if it had gone quiet.
+    /// The robot sent a frame: its results go to it again, unless another
+    /// connection (a gRPC resume) holds the session now.
     fn seen(&mut self) {
         self.last_seen = Instant::now();
-        if !self.attached {
-            self.session.attach(self.sink.clone());
-            self.attached = true;
+        if self.session.attach_if_vacant(&self.sink) && self.quiet {
             tracing::info!(session = %self.session.id, "zenoh robot is back");
         }
+        self.quiet = false;
     }
 }
 
@@ -87,10 +87,11 @@ pub async fn serve(
             _ = idle_check.tick(), if !idle_disconnect.is_zero() => {
                 // Quiet and answered: a robot whose frames are still in the pipeline
                 // (its window full behind a slow server) is waiting, not gone.
-                let quiet = |l: &Link| l.attached && l.last_seen.elapsed() >= idle_disconnect && l.session.unanswered() == 0;
+                let quiet = |l: &Link| !l.quiet && l.last_seen.elapsed() >= idle_disconnect && l.session.unanswered() == 0;
                 for link in links.values_mut().filter(|l| quiet(l)) {
+                    // Only our own sink is detached: a gRPC resume keeps the session.
                     link.session.detach(&link.sink);
-                    link.attached = false;
+                    link.quiet = true;
                     tracing::info!(session = %link.session.id, "zenoh robot silent for {idle_disconnect:?}: disconnected");
                 }
                 continue;
@@ -148,7 +149,10 @@ pub async fn serve(
                 if let Some(link) = links.get_mut(&robot)
                     && hello.resume_session_id == link.session.id
                 {
-                    link.seen();
+                    // A hello asks for the session outright, as a new one would.
+                    link.last_seen = Instant::now();
+                    link.quiet = false;
+                    link.session.attach(link.sink.clone());
                     let opened = crate::session::Opened { session: link.session.clone(), resumed: true };
                     let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
                     continue;

@@ -175,7 +175,9 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     use std::time::Duration;
 
     let config = tempfile_path("idle.toml");
-    std::fs::write(&config, "[zenoh]\nidle_disconnect_s = 1.0\n").expect("write config");
+    // Long enough that answering the next frame (debug build, with the model) cannot
+    // be mistaken for going quiet again.
+    std::fs::write(&config, "[zenoh]\nidle_disconnect_s = 3.0\n").expect("write config");
     let server = Server::start(&["--config", config.to_str().expect("utf-8 path")]);
     let (out, summary) = run_client(&[
         "--source", &tum_source(), "--transport", "zenoh", "--zenoh-connect", &server.zenoh, "--rate", "max",
@@ -205,8 +207,14 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     let robot = zenoh::open(zconfig).await.expect("zenoh open");
     let results = robot.declare_subscriber(keys::results("quiet-bot")).await.expect("subscribe");
     eventually(Duration::from_secs(10), "the server as a Zenoh peer", async || robot.info().peers_zid().await.count() > 0).await;
+    // A put before the server's subscription has reached this peer would be lost.
+    let publisher = robot.declare_publisher(keys::frames("quiet-bot")).await.expect("publisher");
+    eventually(Duration::from_secs(10), "the server's subscription", async || {
+        publisher.matching_status().await.is_ok_and(|m| m.matching())
+    })
+    .await;
     let frame = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(tum_frame(10, 1_000_000_000))) };
-    robot.put(keys::frames("quiet-bot"), frame.encode_to_vec()).await.expect("put frame");
+    publisher.put(frame.encode_to_vec()).await.expect("put frame");
     let answer = tokio::time::timeout(Duration::from_secs(10), results.recv_async()).await.expect("an answer").expect("sample");
     let answer = pb::ServerMessage::decode(answer.payload().to_bytes().as_ref()).expect("server message");
     match answer.msg {

@@ -28,6 +28,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 
+# The metric's association: the ground-truth pose nearest in time, within 20 ms.
+MAX_DIFF_S = 0.02
+
+
 def load(path):
     data = np.loadtxt(path)
     return data[:, 0], Rotation.from_quat(data[:, 4:8])
@@ -64,13 +68,18 @@ def main():
     slerp = Slerp(gt_t, gt_r)
     for path in sys.argv[2:]:
         t, est = load(path)
-        nearest = gt_r[[int(np.argmin(np.abs(gt_t - s))) for s in t]]
+        index = np.array([int(np.argmin(np.abs(gt_t - s))) for s in t])
+        # Frames the metric cannot associate, or outside the ground truth's span, are left out.
+        keep = (np.abs(gt_t[index] - t) <= MAX_DIFF_S) & (t >= gt_t[0]) & (t <= gt_t[-1])
+        t, est, index = t[keep], est[keep], index[keep]
+        nearest = gt_r[index]
         exact = slerp(t)
         world = procrustes([exact[i].as_matrix() @ est[i].as_matrix().T for i in range(len(t))])
         a, x = hand_eye(exact, est)
         residual = (exact.inv() * a.inv() * est * x.inv()).magnitude()
-        speed = np.r_[0.0, (exact[:-1].inv() * exact[1:]).magnitude()]
-        print(path)
+        # Angular speed (rad/s) of the ground truth between a frame and the one before.
+        speed = np.r_[0.0, (exact[:-1].inv() * exact[1:]).magnitude() / np.diff(t)]
+        print(f"{path} ({len(t)} frames associated)")
         print(f"  origin-aligned, nearest ground truth (the metric)  {origin_aligned(nearest, est):.3f}")
         print(f"  origin-aligned, interpolated ground truth          {origin_aligned(exact, est):.3f}")
         print(f"  best world rotation, interpolated                  {rms_deg(exact.inv() * world * est):.3f}")

@@ -163,7 +163,7 @@ pub fn write_est_if_asked(est: &[(u64, Isometry3<f64>)]) {
         .iter()
         .map(|(t, p)| {
             let (q, v) = (p.rotation.coords, p.translation.vector);
-            format!("{:.6} {} {} {} {} {} {} {}\n", *t as f64 * 1e-9, v.x, v.y, v.z, q.x, q.y, q.z, q.w)
+            format!("{}.{:06} {} {} {} {} {} {} {}\n", t / 1_000_000_000, t % 1_000_000_000 / 1000, v.x, v.y, v.z, q.x, q.y, q.z, q.w)
         })
         .collect();
     std::fs::write(path, text).expect("write EST");
