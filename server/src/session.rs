@@ -147,9 +147,7 @@ impl Session {
     /// Attaches a connection's result sink, replacing any older one.
     pub fn attach(&self, sink: ResultSink) {
         *lock(&self.sink) = Some(sink);
-        if !self.connected.swap(true, Ordering::Relaxed) {
-            self.metrics.connected_delta(1);
-        }
+        self.set_connected(true);
     }
 
     /// Attaches `sink` when no connection holds the session (never takes it from
@@ -160,9 +158,7 @@ impl Session {
             Some(held) => held.same_channel(sink),
             None => {
                 *current = Some(sink.clone());
-                if !self.connected.swap(true, Ordering::Relaxed) {
-                    self.metrics.connected_delta(1);
-                }
+                self.set_connected(true);
                 true
             }
         }
@@ -173,9 +169,14 @@ impl Session {
         let mut current = lock(&self.sink);
         if current.as_ref().is_some_and(|s| s.same_channel(sink)) {
             *current = None;
-            if self.connected.swap(false, Ordering::Relaxed) {
-                self.metrics.connected_delta(-1);
-            }
+            self.set_connected(false);
+        }
+    }
+
+    /// Records the connection state; the gauge moves only when it changes.
+    fn set_connected(&self, connected: bool) {
+        if self.connected.swap(connected, Ordering::Relaxed) != connected {
+            self.metrics.connected_delta(if connected { 1 } else { -1 });
         }
     }
 

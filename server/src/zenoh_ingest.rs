@@ -150,9 +150,8 @@ pub async fn serve(
                     && hello.resume_session_id == link.session.id
                 {
                     // A hello asks for the session outright, as a new one would.
-                    link.last_seen = Instant::now();
-                    link.quiet = false;
                     link.session.attach(link.sink.clone());
+                    link.seen();
                     let opened = crate::session::Opened { session: link.session.clone(), resumed: true };
                     let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
                     continue;
