@@ -19,7 +19,14 @@ origin-aligned rotation RMSE (degrees) under several readings of the ground trut
 - floors: a perfect estimate, scored like the metric: with X = identity and
   with the fitted X;
 - the correlation of the remaining per-frame error with the ground truth's
-  angular speed (rolling shutter and timing errors grow with it).
+  angular speed (rolling shutter and timing errors grow with it);
+- image latency: how far the image content lags its timestamp on the ground
+  truth's clock, from the frame-to-frame rotations alone (they carry no drift
+  and no origin): the shift of the ground truth that matches them best, over
+  the whole clip and over each half;
+- floors with that latency: a perfect estimate of what the images show (the
+  ground truth that far back), scored like the metric, with X = identity and
+  with the fitted X.
 """
 
 import sys
@@ -30,6 +37,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 # The metric's association: the ground-truth pose nearest in time, within 20 ms.
 MAX_DIFF_S = 0.02
+
+# Ground-truth shifts tried when measuring the image latency (seconds).
+LATENCIES_S = np.arange(-0.03, 0.0301, 0.001)
 
 
 def load(path):
@@ -61,6 +71,23 @@ def hand_eye(gt, est):
     return a, x
 
 
+def image_latency(gt_t, slerp, t, est, x):
+    """The shift of the ground truth (seconds; positive: the images show an
+    earlier pose than their timestamps say) whose frame-to-frame rotations, seen
+    in the fitted camera frame X, best match the estimate's; and the RMS
+    mismatch (degrees) at that shift and at no shift."""
+    steps = (est[:-1].inv() * est[1:]).as_rotvec()
+
+    def mismatch(latency):
+        truth = slerp(np.clip(t - latency, gt_t[0], gt_t[-1])) * x
+        truth_steps = (truth[:-1].inv() * truth[1:]).as_rotvec()
+        return float(np.sqrt(np.mean(np.sum((steps - truth_steps) ** 2, axis=1))) * 180.0 / np.pi)
+
+    errors = [mismatch(latency) for latency in LATENCIES_S]
+    best = int(np.argmin(errors))
+    return float(LATENCIES_S[best]), errors[best], mismatch(0.0)
+
+
 def main():
     if len(sys.argv) < 3:
         sys.exit("usage: rotation_diagnostics.py GROUNDTRUTH EST [EST ...]")
@@ -88,6 +115,15 @@ def main():
         print(f"  floor: perfect estimate, metric                    {origin_aligned(nearest, exact):.3f}")
         print(f"  floor: perfect estimate moving the fitted X frame  {origin_aligned(nearest, exact * x):.3f}")
         print(f"  correlation of the residual with angular speed     {np.corrcoef(residual, speed)[0, 1]:.2f}")
+        latency, best, unshifted = image_latency(gt_t, slerp, t, est, x)
+        half = len(t) // 2
+        first = image_latency(gt_t, slerp, t[:half], est[:half], x)[0]
+        second = image_latency(gt_t, slerp, t[half:], est[half:], x)[0]
+        print(f"  image latency from frame-to-frame rotations        {latency * 1e3:+.0f} ms"
+              f" (step mismatch {unshifted:.3f} -> {best:.3f}; halves {first * 1e3:+.0f} / {second * 1e3:+.0f} ms)")
+        seen = slerp(np.clip(t - latency, gt_t[0], gt_t[-1]))
+        print(f"  floor: perfect estimate of the images, metric      {origin_aligned(nearest, seen):.3f}")
+        print(f"  floor: the same moving the fitted X frame          {origin_aligned(nearest, seen * x):.3f}")
 
 
 if __name__ == "__main__":
