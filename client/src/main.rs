@@ -94,6 +94,11 @@ enum Command {
         /// Frames sent but not yet answered, at most.
         #[arg(long, default_value_t = 8)]
         max_in_flight: usize,
+        /// The colour camera's rolling-shutter readout in milliseconds (first row to
+        /// last; 0 = global shutter), sent in the hello so the tracker models it.
+        /// Unset: what the source says (0 for TUM recordings and OpenNI2 devices).
+        #[arg(long)]
+        rolling_shutter_ms: Option<f64>,
         /// Reconnection attempts (gRPC) before giving up.
         #[arg(long, default_value_t = 10)]
         reconnect_attempts: u32,
@@ -200,8 +205,18 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             trajectory,
             summary_json,
             quiet,
+            rolling_shutter_ms,
         } => {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
+            if let Some(ms) = rolling_shutter_ms
+                && !(0.0..=stillmap_proto::MAX_ROLLING_SHUTTER_READOUT_S * 1e3).contains(&ms)
+            {
+                return Err(ClientError::Usage(format!(
+                    "--rolling-shutter-ms {ms} is outside 0..={}",
+                    stillmap_proto::MAX_ROLLING_SHUTTER_READOUT_S * 1e3
+                ))
+                .into());
+            }
             if max_in_flight == 0 {
                 return Err(ClientError::Usage("--max-in-flight must be at least 1".into()).into());
             }
@@ -226,6 +241,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 },
                 max_in_flight,
                 progress: !quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
+                rolling_shutter_readout_s: rolling_shutter_ms.map(|ms| ms * 1e-3),
             };
             let summary = match transport {
                 TransportArg::Grpc => {

@@ -56,6 +56,8 @@ pub struct StreamOptions {
     pub depth_encoding: DepthEncoding,
     pub max_in_flight: usize,
     pub progress: bool,
+    /// Overrides the source's rolling-shutter readout (seconds) in the hello.
+    pub rolling_shutter_readout_s: Option<f64>,
 }
 
 /// A frame ready to send, with what the client needs to check its result.
@@ -177,6 +179,9 @@ pub async fn run(
         camera_rx.await.map_err(|_| ClientError::Source("the source thread stopped".into()))??;
     camera.color_encoding = options.color_encoding as i32;
     camera.depth_encoding = options.depth_encoding as i32;
+    if let Some(readout_s) = options.rolling_shutter_readout_s {
+        camera.rolling_shutter_readout_s = readout_s;
+    }
     let nominal_rate_hz = camera.nominal_rate_hz;
     let hello = pb::Hello {
         robot_id: options.robot_id.clone(),

@@ -73,7 +73,15 @@ pub fn associate(first: &[u64], second: &[u64], max_difference_ns: u64) -> Vec<(
     pairs
 }
 
-/// Calibration of the TUM cameras (from the benchmark's page), by sequence name.
+/// Rolling-shutter readout of the freiburg1 Kinect's colour camera (seconds): not
+/// published with the dataset; measured without ground truth as the readout at
+/// which the tracker's map is most consistent (README, "Rolling shutter";
+/// `cargo run --release -p stillmap-tracking --example readout_sweep`).
+pub const TUM_FREIBURG1_READOUT_S: f64 = 0.025;
+
+/// Calibration of the TUM cameras (intrinsics from the benchmark's page), by sequence
+/// name. Only freiburg1's rolling-shutter readout has been measured; the others are
+/// sent as global shutters.
 pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
     let (fx, fy, cx, cy, coeffs, known): (f64, f64, f64, f64, Option<[f64; 5]>, bool) = if dir_name.contains("freiburg1") {
         (517.3, 516.5, 318.6, 255.3, Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]), true)
@@ -96,6 +104,7 @@ pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
         distortion_coeffs: coeffs.map(|c| c.to_vec()).unwrap_or_default(),
         depth_units_per_metre: TUM_DEPTH_UNITS_PER_METRE,
         nominal_rate_hz: TUM_RATE_HZ,
+        rolling_shutter_readout_s: if dir_name.contains("freiburg1") { TUM_FREIBURG1_READOUT_S } else { 0.0 },
         ..Default::default()
     };
     (camera, known)
@@ -256,8 +265,10 @@ mod tests {
         assert!(known);
         assert_eq!((c.fx, c.fy, c.cx, c.cy), (517.3, 516.5, 318.6, 255.3));
         assert_eq!(c.distortion_coeffs.len(), 5);
+        assert_eq!(c.rolling_shutter_readout_s, 0.025);
         let (c, _) = tum_camera("freiburg3_walking_xyz");
         assert_eq!(c.distortion_model(), DistortionModel::None);
+        assert_eq!(c.rolling_shutter_readout_s, 0.0, "not measured: sent as a global shutter");
         assert!(!tum_camera("my_sequence").1);
     }
 }

@@ -35,6 +35,10 @@ pub mod keys {
     }
 }
 
+/// Longest rolling-shutter readout the contract accepts (`CameraInfo.rolling_shutter_readout_s`),
+/// seconds: a 10 Hz camera reading its whole frame.
+pub const MAX_ROLLING_SHUTTER_READOUT_S: f64 = 0.1;
+
 /// Largest robot id the contract accepts.
 pub const MAX_ROBOT_ID_LEN: usize = 64;
 

@@ -60,6 +60,7 @@ fn camera_json(c: &pb::CameraInfo) -> Value {
         "color_encoding": enum_name(c.color_encoding, |e: pb::ColorEncoding| e.as_str_name()),
         "depth_encoding": enum_name(c.depth_encoding, |e: pb::DepthEncoding| e.as_str_name()),
         "nominal_rate_hz": c.nominal_rate_hz,
+        "rolling_shutter_readout_s": c.rolling_shutter_readout_s,
     })
 }
 

@@ -8,6 +8,7 @@
 
 use std::time::{Duration, Instant};
 
+use stillmap_proto::MAX_ROLLING_SHUTTER_READOUT_S;
 use stillmap_proto::codec::{self, ColorImage, DepthImage};
 use stillmap_proto::pb::{self, ColorEncoding, DepthEncoding, FrameStatus, TrackingState};
 use tonic::Code;
@@ -155,6 +156,16 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
     if !c.cx.is_finite() || !c.cy.is_finite() {
         return Err("camera principal point is not finite".into());
     }
+    let readout = c.rolling_shutter_readout_s;
+    if !(0.0..=MAX_ROLLING_SHUTTER_READOUT_S).contains(&readout) {
+        return Err(format!("rolling_shutter_readout_s must be within 0..={MAX_ROLLING_SHUTTER_READOUT_S} s, got {readout}"));
+    }
+    if c.nominal_rate_hz > 0.0 && readout > 1.0 / c.nominal_rate_hz {
+        return Err(format!(
+            "rolling_shutter_readout_s {readout} s is longer than one frame at the nominal {} Hz",
+            c.nominal_rate_hz
+        ));
+    }
     if !finite_positive(c.depth_units_per_metre) {
         return Err(format!("depth_units_per_metre must be positive, got {}", c.depth_units_per_metre));
     }
@@ -265,5 +276,15 @@ mod tests {
         let mut c = camera();
         c.distortion_model = pb::DistortionModel::PlumbBob as i32;
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "plumb_bob distortion needs 5 coefficients, got 0");
+        let mut c = camera();
+        c.rolling_shutter_readout_s = 0.03;
+        assert!(validate_camera(Some(&c)).is_ok(), "a 30 ms readout");
+        for bad in [-0.001, 0.2, f64::NAN] {
+            c.rolling_shutter_readout_s = bad;
+            assert_eq!(validate_camera(Some(&c)).unwrap_err(), format!("rolling_shutter_readout_s must be within 0..=0.1 s, got {bad}"));
+        }
+        c.rolling_shutter_readout_s = 0.05;
+        c.nominal_rate_hz = 30.0;
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz");
     }
 }

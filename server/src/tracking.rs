@@ -35,6 +35,7 @@ pub fn camera_of(info: &pb::CameraInfo) -> Camera {
         cy: info.cy,
         distortion,
         depth_units_per_metre: info.depth_units_per_metre,
+        readout_s: info.rolling_shutter_readout_s,
     }
 }
 

@@ -265,6 +265,40 @@ async fn a_hello_without_a_configured_token_is_unauthenticated() {
     assert!(metrics.contains("reason=\"unauthenticated\"} 5"), "{metrics}");
 }
 
+/// A rolling-shutter readout the tracker cannot use is refused by name: in a raw
+/// hello (INVALID_ARGUMENT) and on the client's command line (exit 1, one line); one
+/// it can use reaches the session.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_rolling_shutter_readout_is_checked_and_reaches_the_session() {
+    let server = Server::start(&[]);
+    for (readout_s, message) in [
+        (0.2, "bad hello: rolling_shutter_readout_s must be within 0..=0.1 s, got 0.2"),
+        (0.05, "bad hello: rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz"),
+    ] {
+        let mut hello = tum_hello("r");
+        if let Some(camera) = hello.camera.as_mut() {
+            camera.rolling_shutter_readout_s = readout_s;
+        }
+        let mut s = Stream::open(&server).await;
+        s.send(ClientMsg::Hello(hello)).await;
+        let status = s.next().await.expect_err("status");
+        assert_eq!((status.code(), status.message()), (Code::InvalidArgument, message));
+    }
+
+    let src = format!("tum:{}", stillmap_e2e::tum_dir().display());
+    let (out, _) = stillmap_e2e::run_client(&["--source", &src, "--server", &server.grpc_url(), "--rolling-shutter-ms", "500"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert_eq!(stderr.trim(), "stillmap-client: --rolling-shutter-ms 500 is outside 0..=100");
+
+    let args = ["--source", &src, "--server", &server.grpc_url(), "--max-frames", "3", "--rate", "max", "--rolling-shutter-ms", "0"];
+    let (out, summary) = stillmap_e2e::run_client(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let id = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
+    let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!(session["camera"]["rolling_shutter_readout_s"], 0.0, "the flag overrides the source's 25 ms");
+}
+
 /// Tokens never show in `--print-config`; an empty one is a named start-up error.
 #[test]
 fn auth_tokens_are_redacted_and_an_empty_one_is_refused() {

@@ -96,17 +96,18 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     assert_eq!(missing["error"], "unknown session \"nobody-1\"");
 
     // Accuracy against the ground truth, evo semantics (20 ms association).
-    // Measured on this machine (every frame segmented): ATE 1.90 cm, origin-aligned
-    // rotation 2.20 deg, RPE 5.7 mm / 0.480 deg per frame (the feature-only tracker:
-    // 5.12 cm, 2.33 deg, 13.1 mm, 0.70 deg; README, "Tracking accuracy"). The issue's
-    // targets are 2.0 cm, 2.0 deg, 6 mm and 0.5 deg: all but the rotation are met on
-    // this run. The bounds leave a margin for the clip's sensitivity to tiny changes.
+    // Measured on this machine (every frame segmented, the client declaring the
+    // freiburg1 camera's 25 ms rolling-shutter readout): ATE 0.87 cm, origin-aligned
+    // rotation 2.10 deg, RPE 5.9 mm / 0.513 deg per frame (as a global shutter: 1.90 cm,
+    // 2.20 deg, 5.7 mm, 0.480 deg; README, "Tracking accuracy"). The targets are
+    // 2.0 cm, 2.0 deg, 6 mm and 0.5 deg: the rotations are not met on this run. The
+    // bounds leave a margin for the clip's sensitivity to tiny changes.
     let ate = eval(&["ape", "--align", "--relation", "trans"], &server_trajectory);
     let ate_rot = eval(&["ape", "--align-origin", "--relation", "rot"], &server_trajectory);
     let rpe = eval(&["rpe"], &server_trajectory);
     let (t, r, rt, rr) = (rmse(&ate, "translation"), rmse(&ate_rot, "rotation"), rmse(&rpe, "translation"), rmse(&rpe, "rotation"));
     println!("streamed fr1_rpy: ATE {:.2} cm, {r:.2} deg (origin) | RPE {:.1} mm, {rr:.3} deg", t * 100.0, rt * 1000.0);
-    assert!(t <= 0.025, "ATE translation {t} m");
+    assert!(t <= 0.013, "ATE translation {t} m");
     assert!(r <= 2.6, "ATE rotation {r} deg");
     assert!(rt <= 0.0068, "RPE translation {rt} m");
     assert!(rr <= 0.56, "RPE rotation {rr} deg");

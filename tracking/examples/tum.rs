@@ -13,7 +13,7 @@ fn main() {
     let frames = tum::load(&dir, usize::MAX);
     let gt = tum::groundtruth(&dir);
     let config: TrackerConfig = toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
-    let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
+    let mut tracker = Tracker::new(tum::fr1_camera_with_readout_from_env(), config).expect("tracker");
     let mut est = Vec::new();
     let mut totals = Vec::new();
     let mut tracked = 0;

@@ -28,7 +28,7 @@ fn main() {
     for nudge in NUDGES {
         let features = (base.features as f64 * nudge).round() as usize;
         let config = TrackerConfig { features, candidate_features: base.candidate_features.max(features), ..base.clone() };
-        let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
+        let mut tracker = Tracker::new(tum::fr1_camera_with_readout_from_env(), config).expect("tracker");
         let (mut est, mut tracked) = (Vec::new(), 0);
         for f in &frames {
             let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");

@@ -16,6 +16,10 @@ pub struct Camera {
     pub distortion: Option<[f64; 5]>,
     /// Raw depth units per metre (5000 for TUM, 1000 for OpenNI millimetres).
     pub depth_units_per_metre: f64,
+    /// Rolling-shutter readout of the colour camera: seconds from the first row's
+    /// exposure to the last row's, rows read top to bottom (0 = global shutter).
+    /// Poses then refer to the middle row's time.
+    pub readout_s: f64,
 }
 
 /// Iterations of the fixed-point undistortion; converges to < 1e-6 px for TUM-like lenses.
@@ -24,7 +28,7 @@ const UNDISTORT_ITERATIONS: usize = 10;
 impl Camera {
     /// An ideal pinhole camera (no distortion).
     pub fn pinhole(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64, depth_units_per_metre: f64) -> Self {
-        Self { width, height, fx, fy, cx, cy, distortion: None, depth_units_per_metre }
+        Self { width, height, fx, fy, cx, cy, distortion: None, depth_units_per_metre, readout_s: 0.0 }
     }
 
     /// Projects a point in the camera frame (z forward) to an ideal (undistorted) pixel.
@@ -40,6 +44,15 @@ impl Camera {
     /// Back-projects an ideal (undistorted) pixel at depth `z` metres.
     pub fn unproject(&self, ideal_pixel: &Point2<f64>, z: f64) -> Point3<f64> {
         Point3::new((ideal_pixel.x - self.cx) / self.fx * z, (ideal_pixel.y - self.cy) / self.fy * z, z)
+    }
+
+    /// Seconds between the exposure of raw row `row` and the middle row's (negative
+    /// above the middle); 0 for a global shutter.
+    pub fn row_time_s(&self, row: f64) -> f64 {
+        if self.height == 0 {
+            return 0.0;
+        }
+        (row - (f64::from(self.height) - 1.0) / 2.0) / f64::from(self.height) * self.readout_s
     }
 
     /// Whether an ideal pixel lies inside the image.

@@ -1,7 +1,7 @@
 //! ORB extraction (OpenCV), even spreading over the image, undistortion and depth
 //! lookup, plus the grid index used by projection search.
 
-use nalgebra::{Point2, Point3};
+use nalgebra::{Isometry3, Point2, Point3, UnitQuaternion};
 use opencv::core::{KeyPoint, Mat, Vector};
 use opencv::features2d::{ORB, ORB_ScoreType};
 use opencv::prelude::*;
@@ -152,6 +152,33 @@ impl Extractor {
     }
 }
 
+/// Moves each feature to where it would have been seen at the middle row's time by a
+/// rolling-shutter camera (`Camera::readout_s`) moving at constant velocity:
+/// `previous_from_current` over `interval_s` (the frame's step, `world_from_camera`
+/// advancing by it). A row read `Δt` after the middle one saw the scene from the
+/// camera moved by that step scaled to `Δt`, so the keypoint's point is moved back
+/// into the middle row's frame; its depth, registered to that colour row, moves with
+/// it. A keypoint without depth turns with the rotation alone.
+pub fn rectify_rolling_shutter(camera: &Camera, features: &mut [Feature], previous_from_current: &Isometry3<f64>, interval_s: f64) {
+    if camera.readout_s == 0.0 || interval_s.is_nan() || interval_s <= 0.0 {
+        return;
+    }
+    let angular_velocity = previous_from_current.rotation.scaled_axis() / interval_s;
+    let linear_velocity = previous_from_current.translation.vector / interval_s;
+    for f in features {
+        let dt = camera.row_time_s(f64::from(f.raw.y));
+        let rotation = UnitQuaternion::from_scaled_axis(angular_velocity * dt);
+        let moved = match f.depth {
+            Some(z) => rotation * camera.unproject(&f.ideal, z) + linear_velocity * dt,
+            None => rotation * camera.unproject(&f.ideal, 1.0),
+        };
+        if let Some(ideal) = camera.project(&moved) {
+            f.ideal = ideal;
+            f.depth = f.depth.map(|_| moved.z);
+        }
+    }
+}
+
 /// Depth in metres at a raw pixel, if valid, in range and not on a depth edge.
 fn depth_at(camera: &Camera, depth: &[u16], w: usize, h: usize, raw: Point2<f32>, config: &TrackerConfig) -> Option<f64> {
     let (x, y) = (raw.x.round() as isize, raw.y.round() as isize);
@@ -229,5 +256,58 @@ impl GridIndex {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{Translation3, Vector3};
+
+    use super::*;
+    use crate::synthetic::{ROLLING_SHUTTER_BAND_ROWS, RenderOptions, Scene, kinect_camera, render_rolling_shutter, sway_pose};
+    use crate::tracker::to_gray;
+
+    /// A rolling-shutter render of the room while the camera turns at 100°/s and moves at 0.5 m/s: every
+    /// keypoint, turned to the middle row's time, lands where the middle row's camera
+    /// sees its scene point, where it was off by pixels before.
+    #[test]
+    fn rolling_shutter_keypoints_are_turned_to_the_middle_row_time() {
+        let camera = Camera { readout_s: 0.03, ..kinect_camera() };
+        let config = TrackerConfig::default();
+        let scene = Scene::room(7);
+        let world_from_middle = sway_pose(10.0);
+        // 100°/s and 0.5 m/s, as one 33 ms frame step.
+        let interval_s = 0.033;
+        let (angular_velocity, linear_velocity) = (Vector3::new(0.6, -1.6, 0.3), Vector3::new(0.4, -0.1, 0.3));
+        let step = |t: f64| Isometry3::from_parts(Translation3::from(linear_velocity * t), UnitQuaternion::from_scaled_axis(angular_velocity * t));
+        let world_from_camera_at = |t: f64| world_from_middle * step(t);
+        let image = render_rolling_shutter(&scene, &camera, world_from_camera_at, &RenderOptions::default());
+        let mut features = Extractor::new(&config).expect("extractor").extract(&camera, &to_gray(&image.rgb), &image.depth, None).expect("extract").features;
+        // Where the middle row's camera sees each keypoint's scene point (the render
+        // gave every band of rows the pose of its middle row).
+        let truth: Vec<Option<Point2<f64>>> = features
+            .iter()
+            .map(|f| {
+                let band_row = (f.raw.y.round() as usize / ROLLING_SHUTTER_BAND_ROWS * ROLLING_SHUTTER_BAND_ROWS) as f64 + (ROLLING_SHUTTER_BAND_ROWS as f64 - 1.0) / 2.0;
+                let point_in_world = world_from_camera_at(camera.row_time_s(band_row)) * camera.unproject(&f.ideal, f.depth?);
+                camera.project(&(world_from_middle.inverse() * point_in_world))
+            })
+            .collect();
+        let median_error = |features: &[Feature]| {
+            let mut e: Vec<f64> = features.iter().zip(&truth).filter_map(|(f, t)| t.map(|t| (f.ideal - t).norm())).collect();
+            e.sort_by(f64::total_cmp);
+            e[e.len() / 2]
+        };
+        let before = median_error(&features);
+        rectify_rolling_shutter(&camera, &mut features, &step(interval_s), interval_s);
+        let after = median_error(&features);
+        assert!(before > 2.0, "as read, keypoints are {before} px from the middle row's view (median)");
+        assert!(after < 0.3, "turned to the middle row's time they are {after} px off (was {before})");
+
+        // A global shutter is left alone.
+        let global = Camera { readout_s: 0.0, ..camera.clone() };
+        let mut untouched = features.clone();
+        rectify_rolling_shutter(&global, &mut untouched, &step(interval_s), interval_s);
+        assert!(untouched.iter().zip(&features).all(|(a, b)| a.ideal == b.ideal));
     }
 }

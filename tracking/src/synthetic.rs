@@ -566,18 +566,50 @@ pub fn render(scene: &Scene, camera: &Camera, world_from_camera: &Isometry3<f64>
 
 /// Renders `scene` seen by `camera` at `world_from_camera`.
 pub fn render_with(scene: &Scene, camera: &Camera, world_from_camera: &Isometry3<f64>, options: &RenderOptions) -> Rendered {
-    let camera_from_world = world_from_camera.inverse();
-    let renderer = Renderer {
-        quads: scene.quads.iter().filter_map(|q| CameraQuad::new(q, &camera_from_world)).collect(),
-        camera,
-        options,
-        samples: options.supersampling.max(1) as usize,
-        inverse_focal: [1.0 / camera.fx, 1.0 / camera.fy],
-    };
+    render_bands(scene, camera, options, |_| *world_from_camera)
+}
+
+/// Renders `scene` through a rolling shutter (`camera.readout_s`): each band of
+/// [`TILE`] rows is seen from `world_from_camera_at(t)`, `t` being its middle row's
+/// time relative to the image's middle row ([`Camera::row_time_s`]). Depth is
+/// rendered the same way (a depth camera reading rows with the colour camera).
+pub fn render_rolling_shutter(
+    scene: &Scene,
+    camera: &Camera,
+    world_from_camera_at: impl Fn(f64) -> Isometry3<f64>,
+    options: &RenderOptions,
+) -> Rendered {
+    render_bands(scene, camera, options, |first_row| world_from_camera_at(camera.row_time_s(first_row as f64 + (TILE as f64 - 1.0) / 2.0)))
+}
+
+/// Rows a band of a rolling-shutter render shares one pose for.
+pub const ROLLING_SHUTTER_BAND_ROWS: usize = TILE;
+
+/// Renders with `world_from_camera_of_band(first_row)` for each band of [`TILE`] rows.
+fn render_bands(scene: &Scene, camera: &Camera, options: &RenderOptions, world_from_camera_of_band: impl Fn(usize) -> Isometry3<f64>) -> Rendered {
     let (width, height) = (camera.width as usize, camera.height as usize);
     if width == 0 || height == 0 {
         return Rendered { width: camera.width, height: camera.height, rgb: Vec::new(), depth: Vec::new() };
     }
+    let renderer_at = |world_from_camera: &Isometry3<f64>| {
+        let camera_from_world = world_from_camera.inverse();
+        Renderer {
+            quads: scene.quads.iter().filter_map(|q| CameraQuad::new(q, &camera_from_world)).collect(),
+            camera,
+            options,
+            samples: options.supersampling.max(1) as usize,
+            inverse_focal: [1.0 / camera.fx, 1.0 / camera.fy],
+        }
+    };
+    // One renderer per distinct pose: a global shutter shares one for every band.
+    let poses: Vec<Isometry3<f64>> = (0..height.div_ceil(TILE)).map(|band| world_from_camera_of_band(band * TILE)).collect();
+    let renderers: Vec<Renderer> = if poses.windows(2).all(|p| p[0] == p[1]) {
+        vec![renderer_at(&poses[0])]
+    } else {
+        poses.iter().map(renderer_at).collect()
+    };
+    let renderer_of = |band: usize| &renderers[band.min(renderers.len() - 1)];
+    let renderer = &renderers[0];
     // Linear colour (0–255 per channel) before blur, noise and quantisation.
     let mut colour = vec![0f32; width * height * 3];
     let mut depth = vec![0u16; width * height];
@@ -590,7 +622,7 @@ pub fn render_with(scene: &Scene, camera: &Camera, world_from_camera: &Isometry3
     if threads <= 1 {
         let mut scratch = Scratch::default();
         for (band, (colour, depth)) in bands {
-            renderer.render_band(band * TILE, colour, depth, &mut scratch);
+            renderer_of(band).render_band(band * TILE, colour, depth, &mut scratch);
         }
     } else {
         // Interleave the bands so that every thread gets a similar share of the scene.
@@ -600,11 +632,11 @@ pub fn render_with(scene: &Scene, camera: &Camera, world_from_camera: &Isometry3
         }
         std::thread::scope(|scope| {
             for share in shares {
-                let renderer = &renderer;
+                let renderer_of = &renderer_of;
                 scope.spawn(move || {
                     let mut scratch = Scratch::default();
                     for (band, (colour, depth)) in share {
-                        renderer.render_band(band * TILE, colour, depth, &mut scratch);
+                        renderer_of(band).render_band(band * TILE, colour, depth, &mut scratch);
                     }
                 });
             }

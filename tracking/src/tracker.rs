@@ -10,7 +10,7 @@ use crate::TrackingError;
 use crate::ba;
 use crate::camera::Camera;
 use crate::config::TrackerConfig;
-use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales};
+use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales, rectify_rolling_shutter};
 use crate::geometry::{Measurement, PnpRansac, pnp_ransac};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
 use crate::dense::DenseOdometry;
@@ -119,6 +119,11 @@ pub struct Tracker {
     dense: Option<DenseOdometry>,
     /// This frame's pose as dense odometry predicts it from the last frame's.
     prior: Option<PosePrior>,
+    /// Timestamp of the frame before this one (dense odometry's step starts there).
+    previous_timestamp_ns: Option<u64>,
+    /// A keyframe made before any motion was known (the first one), whose keypoints a
+    /// rolling shutter still distorts: rectified with the next frame's step.
+    unrectified_keyframe: Option<KeyframeId>,
 }
 
 /// The grey image of an RGB8 image: BT.601 luma, rounded to 8 bits.
@@ -167,6 +172,8 @@ impl Tracker {
         Ok(Self {
             dense,
             prior: None,
+            previous_timestamp_ns: None,
+            unrectified_keyframe: None,
             scales: level_scales(&config),
             camera,
             extractor,
@@ -243,7 +250,24 @@ impl Tracker {
             };
             (feats, step)
         });
-        let (feats, step) = (feats?, step?);
+        let (mut feats, step) = (feats?, step?);
+        let previous_timestamp_ns = self.previous_timestamp_ns.replace(frame.timestamp_ns);
+        // A rolling shutter saw each row at its own time: turn the keypoints to the
+        // middle row's, with this frame's motion (the dense step, else the last
+        // tracked step repeated).
+        let mut rectified = false;
+        if self.camera.readout_s > 0.0
+            && let Some(previous_ns) = previous_timestamp_ns
+            && frame.timestamp_ns > previous_ns
+            && let Some(previous_from_current) = step.or_else(|| self.velocity.filter(|_| !self.lost).map(|v| v.inverse()))
+        {
+            let interval_s = (frame.timestamp_ns - previous_ns) as f64 * 1e-9;
+            rectify_rolling_shutter(&self.camera, &mut feats.features, &previous_from_current, interval_s);
+            if let Some(id) = self.unrectified_keyframe.take() {
+                self.rectify_keyframe(id, &previous_from_current, interval_s);
+            }
+            rectified = true;
+        }
         // current_from_world = current_from_previous · previous_from_world.
         self.prior = match (step, &self.last) {
             (Some(previous_from_current), Some(last)) if !self.lost => Some(PosePrior {
@@ -270,6 +294,9 @@ impl Tracker {
                 let t = Instant::now();
                 let points = self.insert_keyframe(frame.timestamp_ns, Isometry3::identity(), feats, &gray, Vec::new());
                 out.times.local_ba = t.elapsed();
+                if self.camera.readout_s > 0.0 && !rectified {
+                    self.unrectified_keyframe = self.map.keyframes.keys().next_back().copied();
+                }
                 self.initialized = true;
                 self.reference_inliers = points.len();
                 self.last = Some(LastFrame { camera_from_world: Isometry3::identity(), points });
@@ -653,6 +680,24 @@ impl Tracker {
         self.local_bundle_adjustment();
         self.cull_points(id);
         self.map.keyframes.get(&id).map(|kf| kf.points.iter().flatten().copied().collect()).unwrap_or_default()
+    }
+
+    /// Rectifies a keyframe's keypoints for a rolling shutter with the camera's motion
+    /// `previous_from_current` over `interval_s` (a step next to it, as constant
+    /// velocity), and moves the points only it has seen to its rectified keypoints.
+    fn rectify_keyframe(&mut self, id: KeyframeId, previous_from_current: &Isometry3<f64>, interval_s: f64) {
+        let Some(kf) = self.map.keyframes.get_mut(&id) else { return };
+        rectify_rolling_shutter(&self.camera, &mut kf.features.features, previous_from_current, interval_s);
+        let kf = &self.map.keyframes[&id];
+        for (i, point) in kf.points.iter().enumerate() {
+            let Some(pid) = point else { continue };
+            let Some(mp) = self.map.points.get_mut(pid) else { continue };
+            if let ([(only, _)], Some(pc)) = (mp.observations.as_slice(), kf.features.features[i].point_in_camera(&self.camera))
+                && *only == id
+            {
+                mp.point_in_world = kf.world_from_camera * pc;
+            }
+        }
     }
 
     /// Sliding-window BA over the newest keyframes and their points.

@@ -20,11 +20,27 @@ pub fn fr1_rpy_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy")
 }
 
-/// TUM freiburg1 calibration (from the dataset's documentation).
+/// Rolling-shutter readout of the freiburg1 Kinect's colour camera, as the client's
+/// TUM source declares it (`client/src/tum.rs`; README, "Rolling shutter").
+pub const FR1_READOUT_S: f64 = 0.025;
+
+/// TUM freiburg1 calibration (intrinsics from the dataset's documentation, readout
+/// from `--example readout_sweep`), as the client sends it.
 pub fn fr1_camera() -> Camera {
     Camera {
         distortion: Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
+        readout_s: FR1_READOUT_S,
         ..Camera::pinhole(640, 480, 517.3, 516.5, 318.6, 255.3, 5000.0)
+    }
+}
+
+/// [`fr1_camera`] with the rolling-shutter readout `READOUT_MS` (milliseconds; 0 =
+/// a global shutter) from the environment when set, for the examples.
+#[allow(dead_code)]
+pub fn fr1_camera_with_readout_from_env() -> Camera {
+    match std::env::var("READOUT_MS") {
+        Ok(ms) => Camera { readout_s: ms.parse::<f64>().expect("READOUT_MS: milliseconds") * 1e-3, ..fr1_camera() },
+        Err(_) => fr1_camera(),
     }
 }
 
