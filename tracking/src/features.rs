@@ -267,11 +267,11 @@ mod tests {
     use crate::synthetic::{ROLLING_SHUTTER_BAND_ROWS, RenderOptions, Scene, kinect_camera, render_rolling_shutter, sway_pose};
     use crate::tracker::to_gray;
 
-    /// A rolling-shutter render of the room while the camera turns at 100°/s and moves at 0.5 m/s: every
-    /// keypoint, turned to the middle row's time, lands where the middle row's camera
-    /// sees its scene point, where it was off by pixels before.
+    /// A rolling-shutter render of the room while the camera turns at 100°/s and
+    /// moves at 0.5 m/s: every keypoint, moved to the middle row's time, lands where
+    /// the middle row's camera sees its scene point, where it was off by pixels before.
     #[test]
-    fn rolling_shutter_keypoints_are_turned_to_the_middle_row_time() {
+    fn rolling_shutter_keypoints_are_moved_to_the_middle_row_time() {
         let camera = Camera { readout_s: 0.03, ..kinect_camera() };
         let config = TrackerConfig::default();
         let scene = Scene::room(7);
@@ -302,7 +302,7 @@ mod tests {
         rectify_rolling_shutter(&camera, &mut features, &step(interval_s), interval_s);
         let after = median_error(&features);
         assert!(before > 2.0, "as read, keypoints are {before} px from the middle row's view (median)");
-        assert!(after < 0.3, "turned to the middle row's time they are {after} px off (was {before})");
+        assert!(after < 0.3, "moved to the middle row's time they are {after} px off (was {before})");
 
         // A global shutter is left alone.
         let global = Camera { readout_s: 0.0, ..camera.clone() };

@@ -121,8 +121,9 @@ pub struct Tracker {
     prior: Option<PosePrior>,
     /// Timestamp of the frame before this one (dense odometry's step starts there).
     previous_timestamp_ns: Option<u64>,
-    /// A keyframe made before any motion was known (the first one), whose keypoints a
-    /// rolling shutter still distorts: rectified with the next frame's step.
+    /// A keyframe made while no motion was known (the first one; one after a failed
+    /// dense step with no tracked velocity), whose keypoints a rolling shutter still
+    /// distorts: rectified with the next frame's step.
     unrectified_keyframe: Option<KeyframeId>,
 }
 
@@ -294,9 +295,7 @@ impl Tracker {
                 let t = Instant::now();
                 let points = self.insert_keyframe(frame.timestamp_ns, Isometry3::identity(), feats, &gray, Vec::new());
                 out.times.local_ba = t.elapsed();
-                if self.camera.readout_s > 0.0 && !rectified {
-                    self.unrectified_keyframe = self.map.keyframes.keys().next_back().copied();
-                }
+                self.remember_if_unrectified(rectified);
                 self.initialized = true;
                 self.reference_inliers = points.len();
                 self.last = Some(LastFrame { camera_from_world: Isometry3::identity(), points });
@@ -346,6 +345,7 @@ impl Tracker {
         let points = if need_keyframe {
             let t = Instant::now();
             let points = self.insert_keyframe(frame.timestamp_ns, camera_from_world.inverse(), feats, &gray, matches);
+            self.remember_if_unrectified(rectified);
             self.reference_inliers = inliers;
             out.times.local_ba = t.elapsed();
             out.keyframe = true;
@@ -682,13 +682,21 @@ impl Tracker {
         self.map.keyframes.get(&id).map(|kf| kf.points.iter().flatten().copied().collect()).unwrap_or_default()
     }
 
+    /// After inserting a keyframe: remembers it for rectification when a rolling
+    /// shutter distorts it and this frame had no motion to rectify it with.
+    fn remember_if_unrectified(&mut self, rectified: bool) {
+        if self.camera.readout_s > 0.0 && !rectified {
+            self.unrectified_keyframe = self.map.keyframes.keys().next_back().copied();
+        }
+    }
+
     /// Rectifies a keyframe's keypoints for a rolling shutter with the camera's motion
     /// `previous_from_current` over `interval_s` (a step next to it, as constant
     /// velocity), and moves the points only it has seen to its rectified keypoints.
     fn rectify_keyframe(&mut self, id: KeyframeId, previous_from_current: &Isometry3<f64>, interval_s: f64) {
         let Some(kf) = self.map.keyframes.get_mut(&id) else { return };
         rectify_rolling_shutter(&self.camera, &mut kf.features.features, previous_from_current, interval_s);
-        let kf = &self.map.keyframes[&id];
+        let Some(kf) = self.map.keyframes.get(&id) else { return };
         for (i, point) in kf.points.iter().enumerate() {
             let Some(pid) = point else { continue };
             let Some(mp) = self.map.points.get_mut(pid) else { continue };
