@@ -96,7 +96,8 @@ enum Command {
         max_in_flight: usize,
         /// The colour camera's rolling-shutter readout in milliseconds (first row to
         /// last; 0 = global shutter), sent in the hello so the tracker models it.
-        /// Unset: what the source says (0 for TUM recordings and OpenNI2 devices).
+        /// Unset: what the source says (25 ms for TUM freiburg1, 0 for other TUM
+        /// recordings and OpenNI2 devices).
         #[arg(long)]
         rolling_shutter_ms: Option<f64>,
         /// Reconnection attempts (gRPC) before giving up.
