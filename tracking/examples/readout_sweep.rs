@@ -25,13 +25,14 @@ const TRIMMED_SHARE: f64 = 0.9;
 /// (multi-view observations, median squared error, trimmed mean squared error) of a tracker's map.
 fn consistency(tracker: &Tracker) -> (usize, f64, f64) {
     let (map, camera) = (tracker.map(), tracker.camera());
+    let scale_factor = f64::from(TrackerConfig::default().scale_factor);
     let mut errors = Vec::new();
     for point in map.points.values().filter(|p| p.observations.len() >= 2) {
         for &(id, feature) in &point.observations {
             let Some(kf) = map.keyframes.get(&id) else { continue };
             let f = &kf.features.features[feature];
             if let Some(pixel) = camera.project(&(kf.world_from_camera.inverse() * point.point_in_world)) {
-                let level_scale = f64::from(TrackerConfig::default().scale_factor).powi(i32::from(f.octave));
+                let level_scale = scale_factor.powi(i32::from(f.octave));
                 errors.push((pixel - f.ideal).norm_squared() / (level_scale * level_scale));
             }
         }
