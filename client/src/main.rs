@@ -100,6 +100,13 @@ enum Command {
         /// recordings and OpenNI2 devices).
         #[arg(long)]
         rolling_shutter_ms: Option<f64>,
+        /// When the image was exposed relative to the frame's timestamp, in
+        /// milliseconds (for a rolling shutter, the middle row's; negative when the
+        /// timestamp is taken after the exposure), so poses carry the time they refer
+        /// to. Unset: what the source says (-12.5 for TUM freiburg1, whose driver
+        /// stamps a frame when it arrives; 0 otherwise).
+        #[arg(long, allow_negative_numbers = true)]
+        exposure_offset_ms: Option<f64>,
         /// Reconnection attempts (gRPC) before giving up.
         #[arg(long, default_value_t = 10)]
         reconnect_attempts: u32,
@@ -207,6 +214,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             summary_json,
             quiet,
             rolling_shutter_ms,
+            exposure_offset_ms,
         } => {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
             if let Some(ms) = rolling_shutter_ms
@@ -217,6 +225,12 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     stillmap_proto::MAX_ROLLING_SHUTTER_READOUT_S * 1e3
                 ))
                 .into());
+            }
+            let max_offset_ms = stillmap_proto::MAX_EXPOSURE_TIME_OFFSET_S * 1e3;
+            if let Some(ms) = exposure_offset_ms
+                && !(-max_offset_ms..=max_offset_ms).contains(&ms)
+            {
+                return Err(ClientError::Usage(format!("--exposure-offset-ms {ms} is outside -{max_offset_ms}..={max_offset_ms}")).into());
             }
             if max_in_flight == 0 {
                 return Err(ClientError::Usage("--max-in-flight must be at least 1".into()).into());
@@ -243,6 +257,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 max_in_flight,
                 progress: !quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
                 rolling_shutter_readout_s: rolling_shutter_ms.map(|ms| ms * 1e-3),
+                exposure_time_offset_s: exposure_offset_ms.map(|ms| ms * 1e-3),
             };
             let summary = match transport {
                 TransportArg::Grpc => {

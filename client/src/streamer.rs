@@ -58,6 +58,8 @@ pub struct StreamOptions {
     pub progress: bool,
     /// Overrides the source's rolling-shutter readout (seconds) in the hello.
     pub rolling_shutter_readout_s: Option<f64>,
+    /// Overrides the source's exposure-time offset (seconds) in the hello.
+    pub exposure_time_offset_s: Option<f64>,
 }
 
 /// A frame ready to send, with what the client needs to check its result.
@@ -70,6 +72,8 @@ struct Encoded {
 #[derive(Debug, Clone, Serialize)]
 pub struct ReturnedPose {
     pub capture_time_ns: u64,
+    /// The time the pose refers to (`FrameResult.pose_time_ns`).
+    pub pose_time_ns: u64,
     pub translation: [f64; 3],
     pub rotation_xyzw: [f64; 4],
 }
@@ -182,6 +186,9 @@ pub async fn run(
     if let Some(readout_s) = options.rolling_shutter_readout_s {
         camera.rolling_shutter_readout_s = readout_s;
     }
+    if let Some(offset_s) = options.exposure_time_offset_s {
+        camera.exposure_time_offset_s = offset_s;
+    }
     let nominal_rate_hz = camera.nominal_rate_hz;
     let hello = pb::Hello {
         robot_id: options.robot_id.clone(),
@@ -250,6 +257,8 @@ pub async fn run(
                         let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
                         summary.poses.push(ReturnedPose {
                             capture_time_ns: r.capture_time_ns,
+                            // A server that predates the field sends 0: its poses refer to the timestamp.
+                            pose_time_ns: if r.pose_time_ns != 0 { r.pose_time_ns } else { r.capture_time_ns },
                             translation: [t.x, t.y, t.z],
                             rotation_xyzw: [q.x, q.y, q.z, q.w],
                         });
@@ -347,11 +356,12 @@ impl Summary {
         s
     }
 
-    /// The returned poses in TUM format: `timestamp tx ty tz qx qy qz qw`.
+    /// The returned poses in TUM format: `timestamp tx ty tz qx qy qz qw`, each at
+    /// the time it refers to (`pose_time_ns`).
     pub fn tum_trajectory(&self) -> String {
-        let mut out = String::from("# stillmap poses: timestamp tx ty tz qx qy qz qw (world_from_camera)\n");
+        let mut out = String::from("# stillmap poses: timestamp tx ty tz qx qy qz qw (world_from_camera at pose_time_ns)\n");
         for p in &self.poses {
-            let t = p.capture_time_ns;
+            let t = p.pose_time_ns;
             out.push_str(&format!(
                 "{}.{:09} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n",
                 t / 1_000_000_000,

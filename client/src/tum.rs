@@ -79,6 +79,14 @@ pub fn associate(first: &[u64], second: &[u64], max_difference_ns: u64) -> Vec<(
 /// `cargo run --release -p stillmap-tracking --example readout_sweep`).
 pub const TUM_FREIBURG1_READOUT_S: f64 = 0.025;
 
+/// When a freiburg1 image was exposed relative to its timestamp (seconds). The TUM
+/// recordings are ROS bags from the `openni_camera` driver, which stamps an image
+/// with the host's clock when it arrives (`ros::Time::now()` in its image callback),
+/// so after the last row was read: the middle row was exposed at least half a
+/// readout earlier. The transfer time after the last row is not known and counts
+/// as 0. freiburg2/3 stay at 0: their timing is not measured.
+pub const TUM_FREIBURG1_EXPOSURE_OFFSET_S: f64 = -TUM_FREIBURG1_READOUT_S / 2.0;
+
 /// Calibration of the TUM cameras (intrinsics from the benchmark's page), by sequence
 /// name. Only freiburg1's rolling-shutter readout has been measured; the others are
 /// sent as global shutters.
@@ -105,6 +113,7 @@ pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
         depth_units_per_metre: TUM_DEPTH_UNITS_PER_METRE,
         nominal_rate_hz: TUM_RATE_HZ,
         rolling_shutter_readout_s: if dir_name.contains("freiburg1") { TUM_FREIBURG1_READOUT_S } else { 0.0 },
+        exposure_time_offset_s: if dir_name.contains("freiburg1") { TUM_FREIBURG1_EXPOSURE_OFFSET_S } else { 0.0 },
         ..Default::default()
     };
     (camera, known)
@@ -266,9 +275,11 @@ mod tests {
         assert_eq!((c.fx, c.fy, c.cx, c.cy), (517.3, 516.5, 318.6, 255.3));
         assert_eq!(c.distortion_coeffs.len(), 5);
         assert_eq!(c.rolling_shutter_readout_s, 0.025);
+        assert_eq!(c.exposure_time_offset_s, -0.0125, "stamped on arrival, after the last row");
         let (c, _) = tum_camera("freiburg3_walking_xyz");
         assert_eq!(c.distortion_model(), DistortionModel::None);
         assert_eq!(c.rolling_shutter_readout_s, 0.0, "not measured: sent as a global shutter");
+        assert_eq!(c.exposure_time_offset_s, 0.0, "not measured");
         assert!(!tum_camera("my_sequence").1);
     }
 }

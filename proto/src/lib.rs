@@ -39,6 +39,18 @@ pub mod keys {
 /// seconds: a 10 Hz camera reading its whole frame.
 pub const MAX_ROLLING_SHUTTER_READOUT_S: f64 = 0.1;
 
+/// Largest exposure-time offset the contract accepts either way
+/// (`CameraInfo.exposure_time_offset_s`), seconds.
+pub const MAX_EXPOSURE_TIME_OFFSET_S: f64 = 0.1;
+
+/// The time a frame's pose refers to: its timestamp plus the camera's exposure-time
+/// offset (`FrameResult.pose_time_ns`), rounded to the nanosecond and saturating at
+/// the clock's ends.
+pub fn pose_time_ns(capture_time_ns: u64, exposure_time_offset_s: f64) -> u64 {
+    let offset_ns = (exposure_time_offset_s * 1e9).round() as i64;
+    capture_time_ns.saturating_add_signed(offset_ns)
+}
+
 /// Largest robot id the contract accepts.
 pub const MAX_ROBOT_ID_LEN: usize = 64;
 
@@ -54,6 +66,14 @@ pub fn validate_robot_id(robot_id: &str) -> Result<(), String> {
         return Err(format!("robot_id {robot_id:?} contains {c:?}; allowed are A-Z a-z 0-9 _ -"));
     }
     Ok(())
+}
+
+impl pb::PoseStamped {
+    /// The time the pose refers to: `pose_time_ns`, or `capture_time_ns` for a pose
+    /// stored before that field existed.
+    pub fn time_ns(&self) -> u64 {
+        if self.pose_time_ns != 0 { self.pose_time_ns } else { self.capture_time_ns }
+    }
 }
 
 impl pb::Pose {
@@ -87,5 +107,14 @@ mod tests {
         );
         assert!(validate_robot_id("").unwrap_err().contains("1-64"));
         assert!(validate_robot_id(&"x".repeat(65)).is_err());
+    }
+
+    #[test]
+    fn pose_time_adds_the_exposure_offset() {
+        assert_eq!(pose_time_ns(1_305_031_229_528_748_000, -0.0125), 1_305_031_229_516_248_000);
+        assert_eq!(pose_time_ns(1_000, 0.0), 1_000);
+        assert_eq!(pose_time_ns(1_000, 2e-6), 3_000);
+        assert_eq!(pose_time_ns(1_000, -0.05), 0, "saturates at the clock's start");
+        assert_eq!(pose_time_ns(u64::MAX - 5, 0.05), u64::MAX, "and at its end");
     }
 }

@@ -61,6 +61,7 @@ fn camera_json(c: &pb::CameraInfo) -> Value {
         "depth_encoding": enum_name(c.depth_encoding, |e: pb::DepthEncoding| e.as_str_name()),
         "nominal_rate_hz": c.nominal_rate_hz,
         "rolling_shutter_readout_s": c.rolling_shutter_readout_s,
+        "exposure_time_offset_s": c.exposure_time_offset_s,
     })
 }
 
@@ -108,6 +109,7 @@ fn pose_json(p: &pb::PoseStamped) -> Value {
     json!({
         "sequence": p.sequence,
         "capture_time_ns": p.capture_time_ns,
+        "pose_time_ns": p.time_ns(),
         "tracking_state": enum_name(p.tracking_state, |t: pb::TrackingState| t.as_str_name()),
         "translation": [t.x, t.y, t.z],
         "rotation_xyzw": [q.x, q.y, q.z, q.w],
@@ -153,11 +155,11 @@ async fn get_trajectory(
         }))
         .into_response(),
         Some("tum") => {
-            let mut text = String::from("# timestamp tx ty tz qx qy qz qw (stillmap world_from_camera)\n");
+            let mut text = String::from("# timestamp tx ty tz qx qy qz qw (stillmap world_from_camera; timestamp = pose_time_ns)\n");
             for p in &poses {
                 let pose = p.world_from_camera.unwrap_or_default();
                 let (t, r) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
-                let ns = p.capture_time_ns;
+                let ns = p.time_ns();
                 text.push_str(&format!(
                     "{}.{:09} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}\n",
                     ns / 1_000_000_000,

@@ -8,7 +8,7 @@
 
 use std::time::{Duration, Instant};
 
-use stillmap_proto::MAX_ROLLING_SHUTTER_READOUT_S;
+use stillmap_proto::{MAX_EXPOSURE_TIME_OFFSET_S, MAX_ROLLING_SHUTTER_READOUT_S};
 use stillmap_proto::codec::{self, ColorImage, DepthImage};
 use stillmap_proto::pb::{self, ColorEncoding, DepthEncoding, FrameStatus, TrackingState};
 use tonic::Code;
@@ -166,6 +166,12 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
             c.nominal_rate_hz
         ));
     }
+    let offset = c.exposure_time_offset_s;
+    if !(-MAX_EXPOSURE_TIME_OFFSET_S..=MAX_EXPOSURE_TIME_OFFSET_S).contains(&offset) {
+        return Err(format!(
+            "exposure_time_offset_s must be within -{MAX_EXPOSURE_TIME_OFFSET_S}..={MAX_EXPOSURE_TIME_OFFSET_S} s, got {offset}"
+        ));
+    }
     if !finite_positive(c.depth_units_per_metre) {
         return Err(format!("depth_units_per_metre must be positive, got {}", c.depth_units_per_metre));
     }
@@ -286,5 +292,14 @@ mod tests {
         c.rolling_shutter_readout_s = 0.05;
         c.nominal_rate_hz = 30.0;
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz");
+        let mut c = camera();
+        for good in [-0.0125, 0.0, 0.1, -0.1] {
+            c.exposure_time_offset_s = good;
+            assert!(validate_camera(Some(&c)).is_ok(), "offset {good}");
+        }
+        for bad in [-0.2, 0.11, f64::NAN, f64::INFINITY] {
+            c.exposure_time_offset_s = bad;
+            assert_eq!(validate_camera(Some(&c)).unwrap_err(), format!("exposure_time_offset_s must be within -0.1..=0.1 s, got {bad}"));
+        }
     }
 }

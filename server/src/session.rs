@@ -213,6 +213,7 @@ impl Session {
             capture_time_ns: result.capture_time_ns,
             world_from_camera: Some(p),
             tracking_state: state as i32,
+            pose_time_ns: result.pose_time_ns,
         });
         let mut track = self.tracking();
         track.state = state;

@@ -65,15 +65,24 @@ pub struct SessionTracker {
     masked_features: usize,
     /// The keyframe the last frame became, if it did.
     new_keyframe: Option<u64>,
+    /// `CameraInfo.exposure_time_offset_s`: from a frame's timestamp to its pose's time.
+    exposure_time_offset_s: f64,
 }
 
 impl SessionTracker {
     pub fn new(camera: &pb::CameraInfo, config: &TrackerConfig) -> Result<Self, TrackingError> {
-        Ok(Self { tracker: Tracker::new(camera_of(camera), config.clone())?, last_pose: None, previous_pose: None, masked_features: 0, new_keyframe: None })
+        Ok(Self {
+            tracker: Tracker::new(camera_of(camera), config.clone())?,
+            last_pose: None,
+            previous_pose: None,
+            masked_features: 0,
+            new_keyframe: None,
+            exposure_time_offset_s: camera.exposure_time_offset_s,
+        })
     }
 
-    /// Tracks a decoded frame and writes state, pose, counts and stage times into
-    /// `result`. Returns the pose when there is one. A tracking error (which only
+    /// Tracks a decoded frame and writes state, pose (with the time it refers to),
+    /// counts and stage times into `result`. Returns the pose when there is one. A tracking error (which only
     /// malformed input can cause) leaves the frame `LOST` without a pose.
     pub fn track(
         &mut self,
@@ -103,6 +112,9 @@ impl SessionTracker {
         result.tracking_state = state_of(out.state) as i32;
         let pose = out.world_from_camera.as_ref().map(pose_of);
         result.world_from_camera = pose;
+        if pose.is_some() {
+            result.pose_time_ns = stillmap_proto::pose_time_ns(result.capture_time_ns, self.exposure_time_offset_s);
+        }
         let counts = result.counts.get_or_insert_with(pb::FrameCounts::default);
         counts.features = out.tracked_points as u32;
         let t = out.times;

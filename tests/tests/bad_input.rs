@@ -265,19 +265,21 @@ async fn a_hello_without_a_configured_token_is_unauthenticated() {
     assert!(metrics.contains("reason=\"unauthenticated\"} 5"), "{metrics}");
 }
 
-/// A rolling-shutter readout the tracker cannot use is refused by name: in a raw
-/// hello (INVALID_ARGUMENT) and on the client's command line (exit 1, one line); one
-/// it can use reaches the session.
+/// A rolling-shutter readout or an exposure-time offset the server cannot use is
+/// refused by name: in a raw hello (INVALID_ARGUMENT) and on the client's command
+/// line (exit 1, one line); ones it can use reach the session and its poses' times.
 #[tokio::test(flavor = "multi_thread")]
-async fn a_rolling_shutter_readout_is_checked_and_reaches_the_session() {
+async fn camera_timing_is_checked_and_reaches_the_session() {
     let server = Server::start(&[]);
-    for (readout_s, message) in [
-        (0.2, "bad hello: rolling_shutter_readout_s must be within 0..=0.1 s, got 0.2"),
-        (0.05, "bad hello: rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz"),
+    for (readout_s, offset_s, message) in [
+        (0.2, 0.0, "bad hello: rolling_shutter_readout_s must be within 0..=0.1 s, got 0.2"),
+        (0.05, 0.0, "bad hello: rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz"),
+        (0.025, -0.5, "bad hello: exposure_time_offset_s must be within -0.1..=0.1 s, got -0.5"),
     ] {
         let mut hello = tum_hello("r");
         if let Some(camera) = hello.camera.as_mut() {
             camera.rolling_shutter_readout_s = readout_s;
+            camera.exposure_time_offset_s = offset_s;
         }
         let mut s = Stream::open(&server).await;
         s.send(ClientMsg::Hello(hello)).await;
@@ -290,13 +292,38 @@ async fn a_rolling_shutter_readout_is_checked_and_reaches_the_session() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{stderr}");
     assert_eq!(stderr.trim(), "stillmap-client: --rolling-shutter-ms 500 is outside 0..=100");
+    let (out, _) = stillmap_e2e::run_client(&["--source", &src, "--server", &server.grpc_url(), "--exposure-offset-ms", "-150"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert_eq!(stderr.trim(), "stillmap-client: --exposure-offset-ms -150 is outside -100..=100");
 
-    let args = ["--source", &src, "--server", &server.grpc_url(), "--max-frames", "3", "--rate", "max", "--rolling-shutter-ms", "0"];
+    let args = [
+        "--source",
+        &src,
+        "--server",
+        &server.grpc_url(),
+        "--max-frames",
+        "3",
+        "--rate",
+        "max",
+        "--rolling-shutter-ms",
+        "0",
+        "--exposure-offset-ms",
+        "-4",
+    ];
     let (out, summary) = stillmap_e2e::run_client(&args);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
     let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
     assert_eq!(session["camera"]["rolling_shutter_readout_s"], 0.0, "the flag overrides the source's 25 ms");
+    assert_eq!(session["camera"]["exposure_time_offset_s"], -0.004, "and this one its -12.5 ms");
+    let (_, trajectory) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    let poses = trajectory["poses"].as_array().expect("poses");
+    assert!(!poses.is_empty(), "{trajectory}");
+    for p in poses {
+        let capture_ns = p["capture_time_ns"].as_u64().expect("capture time");
+        assert_eq!(p["pose_time_ns"].as_u64(), Some(capture_ns - 4_000_000), "{p}");
+    }
 }
 
 /// Tokens never show in `--print-config`; an empty one is a named start-up error.

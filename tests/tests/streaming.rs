@@ -38,6 +38,7 @@ async fn grpc_delivers_every_tum_frame_bit_exact_and_in_order() {
     assert_eq!(session["counters"]["frames_processed"], TUM_FRAMES);
     assert_eq!(session["camera"]["fx"], 517.3);
     assert_eq!(session["camera"]["rolling_shutter_readout_s"], 0.025, "the freiburg1 readout the TUM source declares");
+    assert_eq!(session["camera"]["exposure_time_offset_s"], -0.0125, "stamped on arrival, half the readout after the middle row");
     assert_eq!(session["camera"]["distortion_model"], "DISTORTION_MODEL_PLUMB_BOB");
     assert_eq!(session["camera"]["depth_encoding"], "DEPTH_ENCODING_ZSTD");
     assert_eq!(session["tracking_state"], "TRACKING_STATE_TRACKING");

@@ -64,6 +64,10 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     assert_eq!(pose["tracking_state"], "TRACKING_STATE_TRACKING");
     assert_eq!(pose["pose"]["sequence"], TUM_FRAMES as u64 - 1);
     assert_eq!(pose["pose"]["rotation_xyzw"].as_array().map(Vec::len), Some(4));
+    // The TUM source stamps freiburg1 frames on arrival, after the last row: the pose
+    // refers to the middle row, half the 25 ms readout earlier.
+    let capture_ns = pose["pose"]["capture_time_ns"].as_u64().expect("capture time");
+    assert_eq!(pose["pose"]["pose_time_ns"].as_u64(), Some(capture_ns - 12_500_000), "{pose}");
 
     // Trajectory as JSON and as TUM text; both hold every frame, and the text is
     // exactly what the client got back on its result stream.
@@ -74,6 +78,8 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     let tum = server.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await;
     let lines: Vec<&str> = tum.lines().filter(|l| !l.starts_with('#')).collect();
     assert_eq!(lines.len(), TUM_FRAMES);
+    let first_stamp = lines[0].split_whitespace().next().expect("timestamp");
+    assert_eq!(first_stamp, "1305031229.516248000", "the first frame (stamped 1305031229.528748) at its pose's time");
     let server_trajectory = tempfile_path("server.tum");
     std::fs::write(&server_trajectory, &tum).expect("write trajectory");
     let client_text = std::fs::read_to_string(&client_trajectory).expect("client trajectory");

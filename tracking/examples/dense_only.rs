@@ -25,7 +25,7 @@ fn main() {
             None if !est.is_empty() => failed += 1,
             None => {}
         }
-        est.push((f.timestamp_ns, world_from_camera));
+        est.push((tum::fr1_pose_time_ns_from_env(f.timestamp_ns), world_from_camera));
     }
     tum::write_est_if_asked(&est);
     let s = tum::score(&gt, &est);

@@ -59,7 +59,7 @@ fn main() {
             for f in &frames {
                 let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
                 if let Some(p) = out.world_from_camera {
-                    est.push((f.timestamp_ns, p));
+                    est.push((stillmap_proto::pose_time_ns(f.timestamp_ns, -camera.readout_s / 2.0), p));
                 }
             }
             let (o, m, t) = consistency(&tracker);

@@ -25,7 +25,7 @@ fn main() {
             tracked += 1;
         }
         if let Some(p) = out.world_from_camera {
-            est.push((f.timestamp_ns, p));
+            est.push((tum::fr1_pose_time_ns_from_env(f.timestamp_ns), p));
         }
         if std::env::var_os("VERBOSE").is_some() {
             let g = |t: u64| gt.iter().min_by_key(|(g, _)| g.abs_diff(t)).map(|x| x.1).expect("gt");

@@ -34,7 +34,7 @@ fn main() {
             let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
             tracked += usize::from(matches!(out.state, TrackingState::Tracking | TrackingState::Relocalized));
             if let Some(p) = out.world_from_camera {
-                est.push((f.timestamp_ns, p));
+                est.push((tum::fr1_pose_time_ns_from_env(f.timestamp_ns), p));
             }
         }
         let s = tum::score(&gt, &est);

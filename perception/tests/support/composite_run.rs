@@ -183,7 +183,7 @@ pub fn run_with(
         }
         let (tracking_mask, track, out) = pipeline.step(sequence, f.timestamp_ns, &f.rgb, &f.depth, arrived);
         if let Some(p) = track.world_from_camera {
-            s.trajectory.push((f.timestamp_ns, p));
+            s.trajectory.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
         }
         if verbose {
             eprintln!(
@@ -271,7 +271,7 @@ pub fn track_plain_with(frames: &[tum::TumFrame], config: TrackerConfig) -> Vec<
         .iter()
         .filter_map(|f| {
             let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).ok()?;
-            out.world_from_camera.map(|p| (f.timestamp_ns, p))
+            out.world_from_camera.map(|p| (tum::fr1_pose_time_ns(f.timestamp_ns), p))
         })
         .collect()
 }

@@ -34,6 +34,27 @@ pub fn fr1_camera() -> Camera {
     }
 }
 
+/// When a freiburg1 image was exposed relative to its timestamp, as the client's TUM
+/// source declares it (`client/src/tum.rs`): the driver stamps a frame on arrival,
+/// half a readout after its middle row.
+pub const FR1_EXPOSURE_OFFSET_S: f64 = -FR1_READOUT_S / 2.0;
+
+/// The time the pose of the frame stamped `capture_time_ns` refers to, as the server
+/// reports it for freiburg1 (`FrameResult.pose_time_ns`).
+pub fn fr1_pose_time_ns(capture_time_ns: u64) -> u64 {
+    stillmap_proto::pose_time_ns(capture_time_ns, FR1_EXPOSURE_OFFSET_S)
+}
+
+/// [`fr1_pose_time_ns`] with the offset `EXPOSURE_OFFSET_MS` (milliseconds) from the
+/// environment when set, for the examples.
+#[allow(dead_code)]
+pub fn fr1_pose_time_ns_from_env(capture_time_ns: u64) -> u64 {
+    match std::env::var("EXPOSURE_OFFSET_MS") {
+        Ok(ms) => stillmap_proto::pose_time_ns(capture_time_ns, ms.parse::<f64>().expect("EXPOSURE_OFFSET_MS: milliseconds") * 1e-3),
+        Err(_) => fr1_pose_time_ns(capture_time_ns),
+    }
+}
+
 /// [`fr1_camera`] with the rolling-shutter readout `READOUT_MS` (milliseconds; 0 =
 /// a global shutter) from the environment when set, for the examples.
 #[allow(dead_code)]
