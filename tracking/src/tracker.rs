@@ -537,7 +537,9 @@ impl Tracker {
         for (i, m) in matches.iter().enumerate() {
             if let Some(mp) = m.and_then(|id| self.map.points.get(&id)) {
                 which.push(i);
-                corr.push((mp.point_in_world, self.measurement(&feats.features[i])));
+                let mut measurement = self.measurement(&feats.features[i]);
+                measurement.information *= point_information_share(mp.observations.len());
+                corr.push((mp.point_in_world, measurement));
             }
         }
         if corr.len() < 3 {
@@ -823,9 +825,27 @@ fn brute_force_match(frame: &[Descriptor], points: &[(Descriptor, PointId)], max
     out
 }
 
+/// The share of a measurement's information left when it is matched to a map point
+/// known from `observations` keyframe measurements of the same noise: the point's
+/// own error (variance σ²/n) adds to the new measurement's (σ²), so the residual has
+/// variance σ²·(1 + 1/n). A point seen once counts half; a well-observed one almost
+/// fully.
+fn point_information_share(observations: usize) -> f64 {
+    let n = observations.max(1) as f64;
+    n / (n + 1.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_match_weighs_by_how_well_its_point_is_known() {
+        assert_eq!(point_information_share(1), 0.5, "a point measured once: residual variance doubles");
+        assert_eq!(point_information_share(0), 0.5, "no observation left counts as one");
+        assert_eq!(point_information_share(3), 0.75);
+        assert!(point_information_share(99) > 0.98);
+    }
 
     #[test]
     fn gray_matches_bt601() {
