@@ -50,6 +50,15 @@ fn total_cost(camera: &Camera, bf: f64, p: &Problem) -> f64 {
         .sum()
 }
 
+/// The normal equations of one state: pose blocks, point blocks and their coupling.
+struct Linearisation {
+    hpp: DMatrix<f64>,
+    bp: DVector<f64>,
+    hll: Vec<Matrix3<f64>>,
+    bl: Vec<Vector3<f64>>,
+    hpl: Vec<Option<Matrix6x3<f64>>>,
+}
+
 /// Runs at most `iterations` LM iterations, updating the problem in place.
 pub fn solve(camera: &Camera, bf: f64, problem: &mut Problem, iterations: u32) -> Report {
     let mut fixed = problem.fixed.clone();
@@ -78,30 +87,37 @@ pub fn solve(camera: &Camera, bf: f64, problem: &mut Problem, iterations: u32) -
         by_point[*pi].push(k);
     }
 
+    // The linearisation at the current state; a rejected step leaves the state, and
+    // so it, unchanged.
+    let mut linearised: Option<Linearisation> = None;
     for _ in 0..iterations {
         report.iterations += 1;
-        let mut hpp = DMatrix::<f64>::zeros(n, n);
-        let mut bp = DVector::<f64>::zeros(n);
-        let mut hll = vec![Matrix3::<f64>::zeros(); problem.points.len()];
-        let mut bl = vec![Vector3::<f64>::zeros(); problem.points.len()];
-        let mut hpl: Vec<Option<Matrix6x3<f64>>> = vec![None; problem.observations.len()];
-        for (k, (ci, pi, m)) in problem.observations.iter().enumerate() {
-            let Some(lin) = linearise(camera, bf, &problem.poses[*ci], &problem.points[*pi], m) else { continue };
-            let w = huber_weight(lin.chi2(m.information), m.chi2_threshold()) * m.information;
-            let jl = lin.d_point.rows(0, lin.rows);
-            let e = lin.error.rows(0, lin.rows);
-            hll[*pi] += jl.transpose() * jl * w;
-            bl[*pi] += jl.transpose() * e * w;
-            let a = block_of[*ci];
-            if a != usize::MAX {
-                let jp = lin.d_pose.rows(0, lin.rows);
-                let mut block = hpp.view_mut((6 * a, 6 * a), (6, 6));
-                block += jp.transpose() * jp * w;
-                let mut rhs = bp.rows_mut(6 * a, 6);
-                rhs += jp.transpose() * e * w;
-                hpl[k] = Some(jp.transpose() * jl * w);
+        let Linearisation { hpp, bp, hll, bl, hpl } = linearised.get_or_insert_with(|| {
+            let mut hpp = DMatrix::<f64>::zeros(n, n);
+            let mut bp = DVector::<f64>::zeros(n);
+            let mut hll = vec![Matrix3::<f64>::zeros(); problem.points.len()];
+            let mut bl = vec![Vector3::<f64>::zeros(); problem.points.len()];
+            let mut hpl: Vec<Option<Matrix6x3<f64>>> = vec![None; problem.observations.len()];
+            for (k, (ci, pi, m)) in problem.observations.iter().enumerate() {
+                let Some(lin) = linearise(camera, bf, &problem.poses[*ci], &problem.points[*pi], m) else { continue };
+                let w = huber_weight(lin.chi2(m.information), m.chi2_threshold()) * m.information;
+                let jl = lin.d_point.rows(0, lin.rows);
+                let e = lin.error.rows(0, lin.rows);
+                hll[*pi] += jl.transpose() * jl * w;
+                bl[*pi] += jl.transpose() * e * w;
+                let a = block_of[*ci];
+                if a != usize::MAX {
+                    let jp = lin.d_pose.rows(0, lin.rows);
+                    let mut block = hpp.view_mut((6 * a, 6 * a), (6, 6));
+                    block += jp.transpose() * jp * w;
+                    let mut rhs = bp.rows_mut(6 * a, 6);
+                    rhs += jp.transpose() * e * w;
+                    hpl[k] = Some(jp.transpose() * jl * w);
+                }
             }
-        }
+            Linearisation { hpp, bp, hll, bl, hpl }
+        });
+        let (hpp, bp, hll, bl, hpl) = (&*hpp, &*bp, &*hll, &*bl, &*hpl);
         let lam = *lambda.get_or_insert_with(|| {
             let diag: f64 = (0..n).map(|i| hpp[(i, i)]).sum::<f64>()
                 + hll.iter().map(|h| h.trace()).sum::<f64>();
@@ -174,6 +190,7 @@ pub fn solve(camera: &Camera, bf: f64, problem: &mut Problem, iterations: u32) -
         if new_cost < cost {
             let decrease = (cost - new_cost) / cost.max(f64::MIN_POSITIVE);
             cost = new_cost;
+            linearised = None;
             lambda = Some(lam / LAMBDA_DOWN);
             if decrease < MIN_RELATIVE_DECREASE {
                 break;

@@ -100,31 +100,37 @@ pub fn optimize_pose_with_prior(
         };
         let mut current = cost(&pose, &inliers);
         let mut lambda = INITIAL_LAMBDA;
+        // The normal equations at the current pose; a rejected step leaves the pose,
+        // and so them, unchanged.
+        let mut normal: Option<(Matrix6<f64>, Vector6<f64>, usize)> = None;
         for _ in 0..ITERATIONS {
-            let mut h = Matrix6::zeros();
-            let mut b = Vector6::zeros();
-            let mut used = 0;
-            for ((pw, m), &inlier) in correspondences.iter().zip(&inliers) {
-                if !inlier {
-                    continue;
+            let (h, b, used) = *normal.get_or_insert_with(|| {
+                let mut h = Matrix6::zeros();
+                let mut b = Vector6::zeros();
+                let mut used = 0;
+                for ((pw, m), &inlier) in correspondences.iter().zip(&inliers) {
+                    if !inlier {
+                        continue;
+                    }
+                    let Some((r, d_pose)) = linearise_pose(camera, bf, &pose, pw, m) else { continue };
+                    let chi2 = r.chi2(m.information);
+                    let w = m.information * if robust { huber_weight(chi2, m.chi2_threshold()) } else { 1.0 };
+                    let j = d_pose.rows(0, r.rows);
+                    let e = r.error.rows(0, r.rows);
+                    h += j.transpose() * j * w;
+                    b += j.transpose() * e * w;
+                    used += 1;
                 }
-                let Some((r, d_pose)) = linearise_pose(camera, bf, &pose, pw, m) else { continue };
-                let chi2 = r.chi2(m.information);
-                let w = m.information * if robust { huber_weight(chi2, m.chi2_threshold()) } else { 1.0 };
-                let j = d_pose.rows(0, r.rows);
-                let e = r.error.rows(0, r.rows);
-                h += j.transpose() * j * w;
-                b += j.transpose() * e * w;
-                used += 1;
-            }
-            if let Some(p) = prior {
-                let (e, chi2) = p.residual(&pose);
-                let information = p.information() * huber_weight(chi2, CHI2_6DOF);
-                for i in 0..6 {
-                    h[(i, i)] += information[i];
-                    b[i] += information[i] * e[i];
+                if let Some(p) = prior {
+                    let (e, chi2) = p.residual(&pose);
+                    let information = p.information() * huber_weight(chi2, CHI2_6DOF);
+                    for i in 0..6 {
+                        h[(i, i)] += information[i];
+                        b[i] += information[i] * e[i];
+                    }
                 }
-            }
+                (h, b, used)
+            });
             if used < 3 {
                 break;
             }
@@ -137,6 +143,7 @@ pub fn optimize_pose_with_prior(
             let next = cost(&candidate, &inliers);
             if next <= current {
                 pose = candidate;
+                normal = None;
                 lambda = (lambda / LAMBDA_FACTOR).max(MIN_LAMBDA);
                 let done = current - next < CONVERGED_COST * current.max(1.0) && delta.norm() < CONVERGED_STEP;
                 current = next;
