@@ -20,7 +20,7 @@ use std::path::PathBuf;
 
 use nalgebra::Matrix3;
 use stillmap_tracking::geometry::{Measurement, linearise};
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
+use stillmap_tracking::{Tracker, TrackerConfig};
 
 /// Baselines tried, metres.
 const BASELINES_M: [f64; 7] = [0.04, 0.08, 0.16, 0.24, 0.32, 0.4, 0.48];
@@ -86,14 +86,7 @@ fn main() {
         let (mut s_uv, mut s_d, mut count, mut ate, mut rpe) = (0.0, 0.0, 0, 0.0, 0.0);
         for features in FEATURE_COUNTS {
             let config = TrackerConfig { features, depth_baseline_m: baseline_m, ..TrackerConfig::default() };
-            let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
-            let mut est = Vec::new();
-            for f in &frames {
-                let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
-                if let Some(p) = out.world_from_camera {
-                    est.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
-                }
-            }
+            let (tracker, est) = tum::track_clip(tum::fr1_camera(), config, &frames, tum::fr1_pose_time_ns);
             let (a, b, n) = residual_spreads(&tracker, baseline_m);
             s_uv += a;
             s_d += b;

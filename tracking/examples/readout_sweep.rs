@@ -12,7 +12,7 @@ mod tum;
 
 use std::path::PathBuf;
 
-use stillmap_tracking::{Camera, FrameInput, Tracker, TrackerConfig};
+use stillmap_tracking::{Camera, Tracker, TrackerConfig};
 
 /// Readouts tried, milliseconds.
 const READOUTS_MS: [f64; 9] = [0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0];
@@ -54,14 +54,8 @@ fn main() {
         let (mut observations, mut median, mut trimmed, mut ate) = (0.0, 0.0, 0.0, 0.0);
         for features in FEATURE_COUNTS {
             let config = TrackerConfig { features, ..TrackerConfig::default() };
-            let mut tracker = Tracker::new(camera.clone(), config).expect("tracker");
-            let mut est = Vec::new();
-            for f in &frames {
-                let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
-                if let Some(p) = out.world_from_camera {
-                    est.push((stillmap_proto::pose_time_ns(f.timestamp_ns, -camera.readout_s / 2.0), p));
-                }
-            }
+            let offset_s = -camera.readout_s / 2.0;
+            let (tracker, est) = tum::track_clip(camera.clone(), config, &frames, |t| stillmap_proto::pose_time_ns(t, offset_s));
             let (o, m, t) = consistency(&tracker);
             observations += o as f64;
             median += m;

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use stillmap_proto::codec;
 use stillmap_proto::pb::{ColorEncoding, DepthEncoding};
-use stillmap_tracking::Camera;
+use stillmap_tracking::{Camera, FrameInput, Tracker, TrackerConfig};
 
 pub struct TumFrame {
     pub timestamp_ns: u64,
@@ -120,6 +120,21 @@ pub fn load(dir: &Path, max_frames: usize) -> Vec<TumFrame> {
             }
         })
         .collect()
+}
+
+/// Tracks `frames` with a fresh tracker; returns it (with its map) and the poses,
+/// each at `pose_time_ns` of its frame's timestamp.
+#[allow(dead_code)]
+pub fn track_clip(camera: Camera, config: TrackerConfig, frames: &[TumFrame], pose_time_ns: impl Fn(u64) -> u64) -> (Tracker, Vec<(u64, Isometry3<f64>)>) {
+    let mut tracker = Tracker::new(camera, config).expect("tracker");
+    let mut est = Vec::new();
+    for f in frames {
+        let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
+        if let Some(p) = out.world_from_camera {
+            est.push((pose_time_ns(f.timestamp_ns), p));
+        }
+    }
+    (tracker, est)
 }
 
 /// `groundtruth.txt` as (timestamp, world_from_camera).
