@@ -104,7 +104,8 @@ enum Command {
         /// milliseconds (for a rolling shutter, the middle row's; negative when the
         /// timestamp is taken after the exposure), so poses carry the time they refer
         /// to. Unset: what the source says (-12.5 for TUM freiburg1, whose driver
-        /// stamps a frame when it arrives; 0 otherwise).
+        /// stamps a frame when it arrives; 0 otherwise), also when
+        /// --rolling-shutter-ms overrides the readout.
         #[arg(long, allow_negative_numbers = true)]
         exposure_offset_ms: Option<f64>,
         /// Reconnection attempts (gRPC) before giving up.

@@ -257,8 +257,8 @@ pub async fn run(
                         let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
                         summary.poses.push(ReturnedPose {
                             capture_time_ns: r.capture_time_ns,
-                            // A server that predates the field sends 0: its poses refer to the timestamp.
-                            pose_time_ns: if r.pose_time_ns != 0 { r.pose_time_ns } else { r.capture_time_ns },
+                            // A server that predates the field sends none: its poses refer to the timestamp.
+                            pose_time_ns: r.pose_time_ns.unwrap_or(r.capture_time_ns),
                             translation: [t.x, t.y, t.z],
                             rotation_xyzw: [q.x, q.y, q.z, q.w],
                         });

@@ -72,7 +72,7 @@ impl pb::PoseStamped {
     /// The time the pose refers to: `pose_time_ns`, or `capture_time_ns` for a pose
     /// stored before that field existed.
     pub fn time_ns(&self) -> u64 {
-        if self.pose_time_ns != 0 { self.pose_time_ns } else { self.capture_time_ns }
+        self.pose_time_ns.unwrap_or(self.capture_time_ns)
     }
 }
 
@@ -116,5 +116,13 @@ mod tests {
         assert_eq!(pose_time_ns(1_000, 2e-6), 3_000);
         assert_eq!(pose_time_ns(1_000, -0.05), 0, "saturates at the clock's start");
         assert_eq!(pose_time_ns(u64::MAX - 5, 0.05), u64::MAX, "and at its end");
+    }
+
+    #[test]
+    fn a_stored_pose_without_its_time_refers_to_its_capture() {
+        let p = pb::PoseStamped { capture_time_ns: 7, ..Default::default() };
+        assert_eq!(p.time_ns(), 7);
+        let p = pb::PoseStamped { capture_time_ns: 7, pose_time_ns: Some(0), ..Default::default() };
+        assert_eq!(p.time_ns(), 0, "0 is a time, not a missing one");
     }
 }

@@ -62,6 +62,8 @@ pub struct SessionMeta {
 #[derive(Debug, Clone, PartialEq)]
 pub struct KeyframeRecord {
     pub id: u64,
+    /// The keyframe's frame timestamp (`capture_time_ns`; its pose refers to that
+    /// plus the session's `exposure_time_offset_s`).
     pub timestamp_ns: u64,
     /// tx, ty, tz, qx, qy, qz, qw of `world_from_camera`.
     pub world_from_camera: [f64; 7],

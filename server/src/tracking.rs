@@ -113,7 +113,7 @@ impl SessionTracker {
         let pose = out.world_from_camera.as_ref().map(pose_of);
         result.world_from_camera = pose;
         if pose.is_some() {
-            result.pose_time_ns = stillmap_proto::pose_time_ns(result.capture_time_ns, self.exposure_time_offset_s);
+            result.pose_time_ns = Some(stillmap_proto::pose_time_ns(result.capture_time_ns, self.exposure_time_offset_s));
         }
         let counts = result.counts.get_or_insert_with(pb::FrameCounts::default);
         counts.features = out.tracked_points as u32;

@@ -52,6 +52,10 @@ fn residual_spreads(tracker: &Tracker, baseline_m: f64) -> (f64, f64, usize) {
                 inliers.push((lin, m.information));
             }
         }
+        // Two rows from one keyframe cannot fix a point's three coordinates.
+        if inliers.len() < MIN_OBSERVATIONS {
+            continue;
+        }
         let mut normal = Matrix3::zeros();
         for (lin, w) in &inliers {
             let j = lin.d_point.rows(0, lin.rows);
@@ -61,7 +65,8 @@ fn residual_spreads(tracker: &Tracker, baseline_m: f64) -> (f64, f64, usize) {
         for (lin, w) in &inliers {
             let leverage = lin.d_point * covariance * lin.d_point.transpose() * *w;
             for row in 0..lin.rows {
-                let (square, redundancy) = (lin.error[row] * lin.error[row] * w, 1.0 - leverage[(row, row)]);
+                // Leverage lies in 0..=1; rounding on a nearly degenerate point must not push it out.
+                let (square, redundancy) = (lin.error[row] * lin.error[row] * w, 1.0 - leverage[(row, row)].clamp(0.0, 1.0));
                 if row < 2 {
                     sum_uv += square;
                     redundancy_uv += redundancy;

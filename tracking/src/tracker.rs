@@ -829,7 +829,9 @@ fn brute_force_match(frame: &[Descriptor], points: &[(Descriptor, PointId)], max
 /// known from `observations` keyframe measurements of the same noise: the point's
 /// own error (variance σ²/n) adds to the new measurement's (σ²), so the residual has
 /// variance σ²·(1 + 1/n). A point seen once counts half; a well-observed one almost
-/// fully.
+/// fully. The χ² inlier gate scales with it (a match to a point seen once may be
+/// √2 further off), and right after a keyframe the dense prior weighs relatively
+/// more against the features.
 fn point_information_share(observations: usize) -> f64 {
     let n = observations.max(1) as f64;
     n / (n + 1.0)
