@@ -91,7 +91,8 @@ pub const TUM_FREIBURG1_EXPOSURE_OFFSET_S: f64 = -TUM_FREIBURG1_READOUT_S / 2.0;
 /// name. Only freiburg1's rolling-shutter readout has been measured; the others are
 /// sent as global shutters.
 pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
-    let (fx, fy, cx, cy, coeffs, known): (f64, f64, f64, f64, Option<[f64; 5]>, bool) = if dir_name.contains("freiburg1") {
+    let freiburg1 = dir_name.contains("freiburg1");
+    let (fx, fy, cx, cy, coeffs, known): (f64, f64, f64, f64, Option<[f64; 5]>, bool) = if freiburg1 {
         (517.3, 516.5, 318.6, 255.3, Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]), true)
     } else if dir_name.contains("freiburg2") {
         (520.9, 521.0, 325.1, 249.7, Some([0.2312, -0.7849, -0.0033, -0.0001, 0.9172]), true)
@@ -112,8 +113,8 @@ pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
         distortion_coeffs: coeffs.map(|c| c.to_vec()).unwrap_or_default(),
         depth_units_per_metre: TUM_DEPTH_UNITS_PER_METRE,
         nominal_rate_hz: TUM_RATE_HZ,
-        rolling_shutter_readout_s: if dir_name.contains("freiburg1") { TUM_FREIBURG1_READOUT_S } else { 0.0 },
-        exposure_time_offset_s: if dir_name.contains("freiburg1") { TUM_FREIBURG1_EXPOSURE_OFFSET_S } else { 0.0 },
+        rolling_shutter_readout_s: if freiburg1 { TUM_FREIBURG1_READOUT_S } else { 0.0 },
+        exposure_time_offset_s: if freiburg1 { TUM_FREIBURG1_EXPOSURE_OFFSET_S } else { 0.0 },
         ..Default::default()
     };
     (camera, known)
