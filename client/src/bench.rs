@@ -62,7 +62,9 @@ fn measure<T, E: Fn(&T) -> Vec<u8>, D: Fn(&[u8], &T) -> bool>(
 
 /// Runs every codec over up to `max_frames` frames of a TUM sequence.
 pub fn bench_codecs(dir: &Path, max_frames: usize, repeats: usize, jpeg_quality: u8) -> Result<Vec<CodecRow>, ClientError> {
-    let mut src = TumSource::open(dir, Some(max_frames))?;
+    // Codecs do not depend on the intrinsics: any folder name will do.
+    let nominal = crate::calibration::CameraOptions { allow_default_intrinsics: true, ..Default::default() };
+    let mut src = TumSource::open(dir, Some(max_frames), &nominal)?;
     let (mut depths, mut colors): (Vec<DepthImage>, Vec<ColorImage>) = (vec![], vec![]);
     while let Some(f) = src.next_frame()? {
         depths.push(f.depth);

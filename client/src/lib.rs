@@ -1,9 +1,11 @@
 //! The stillmap robot client as a library: frame sources ([`source`], [`tum`],
-//! `openni`), the transport links ([`link`]), the streaming core ([`streamer`]) and
+//! `openni`) and their calibration ([`calibration`]), the transport links ([`link`]), the streaming core ([`streamer`]) and
 //! trajectory evaluation like evo ([`eval`]).
 
 pub mod bench;
+pub mod calibration;
 pub mod eval;
+pub mod fleet;
 pub mod link;
 #[cfg(feature = "openni2")]
 pub mod openni;

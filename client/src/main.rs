@@ -6,10 +6,12 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use stillmap_client::calibration::{CameraOptions, KnownCamera};
 use stillmap_client::eval::{self, Alignment, EvalOptions, Metric, Relation};
 use stillmap_client::link::{self, GrpcOptions, ZenohOptions};
 use stillmap_client::source::SourceSpec;
 use stillmap_client::streamer::{self, Rate, StreamOptions};
+use stillmap_client::fleet::{self, FleetOptions, FleetTransport};
 use stillmap_client::{ClientError, bench};
 use stillmap_proto::pb::{ColorEncoding, DepthEncoding};
 
@@ -24,6 +26,14 @@ struct Cli {
 enum TransportArg {
     Grpc,
     Zenoh,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum FleetTransportArg {
+    Grpc,
+    Zenoh,
+    /// Even robots over gRPC, odd ones over Zenoh.
+    Mixed,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -108,6 +118,20 @@ enum Command {
         /// --rolling-shutter-ms overrides the readout.
         #[arg(long, allow_negative_numbers = true)]
         exposure_offset_ms: Option<f64>,
+        /// Camera calibration file: ROS camera_info YAML, OpenCV FileStorage YAML
+        /// (camera_matrix, distortion_coefficients, image_width/height) or ORB-SLAM
+        /// settings. Its intrinsics win over --camera's and the source's own.
+        #[arg(long)]
+        calibration: Option<PathBuf>,
+        /// A camera whose calibration stillmap knows (tum-fr1, tum-fr2, tum-fr3):
+        /// intrinsics and timing. Unset for a TUM folder: the folder's own name says.
+        #[arg(long)]
+        camera: Option<KnownCamera>,
+        /// Track with nominal intrinsics when the source's calibration is not known
+        /// (a TUM folder whose name names no freiburg camera, an OpenNI2 device that
+        /// reports no field of view) instead of refusing to start.
+        #[arg(long)]
+        allow_default_intrinsics: bool,
         /// Reconnection attempts (gRPC) before giving up.
         #[arg(long, default_value_t = 10)]
         reconnect_attempts: u32,
@@ -123,6 +147,55 @@ enum Command {
         /// No progress bar.
         #[arg(long)]
         quiet: bool,
+    },
+    /// Load generator: N robots from one process, each its own session and link,
+    /// replaying a TUM recording in a ping-pong loop from its own offset; prints a
+    /// table per robot, the totals and the server's time per stage.
+    Fleet {
+        #[arg(long, default_value_t = 3)]
+        robots: usize,
+        /// tum:<dir>, read and encoded once.
+        #[arg(long)]
+        source: SourceSpec,
+        /// A rate in Hz, realtime (the camera's nominal rate) or max.
+        #[arg(long, default_value = "30")]
+        rate: Rate,
+        /// Seconds every robot sends frames (then the last results are awaited).
+        #[arg(long, default_value_t = 20.0)]
+        duration: f64,
+        #[arg(long, value_enum, default_value = "grpc")]
+        transport: FleetTransportArg,
+        #[arg(long, env = "STILLMAP_SERVER", default_value = "http://127.0.0.1:50051")]
+        server: String,
+        #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
+        zenoh_connect: Vec<String>,
+        #[arg(long, default_value = "peer")]
+        zenoh_mode: String,
+        /// The server's HTTP address, for its per-stage times from /metrics ("" skips them).
+        #[arg(long, env = "STILLMAP_HTTP", default_value = "http://127.0.0.1:8080")]
+        http: String,
+        /// Robot ids are <prefix>-01, <prefix>-02, ...
+        #[arg(long, default_value = "fleet")]
+        robot_prefix: String,
+        #[arg(long, env = "STILLMAP_TOKEN", default_value = "")]
+        token: String,
+        #[arg(long, default_value_t = 8)]
+        max_in_flight: usize,
+        /// Frames of the recording to load (default: all).
+        #[arg(long)]
+        max_frames: Option<usize>,
+        #[arg(long)]
+        calibration: Option<PathBuf>,
+        #[arg(long)]
+        camera: Option<KnownCamera>,
+        #[arg(long)]
+        allow_default_intrinsics: bool,
+        /// Seconds to wait for the server (connect, Zenoh hello, late results).
+        #[arg(long, default_value_t = 10.0)]
+        timeout: f64,
+        /// Write the whole report here as JSON.
+        #[arg(long)]
+        summary_json: Option<PathBuf>,
     },
     /// Measure the depth codecs and JPEG on real TUM frames; print a Markdown table.
     BenchCodecs {
@@ -216,6 +289,9 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             quiet,
             rolling_shutter_ms,
             exposure_offset_ms,
+            calibration,
+            camera,
+            allow_default_intrinsics,
         } => {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
             if let Some(ms) = rolling_shutter_ms
@@ -259,6 +335,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 progress: !quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
                 rolling_shutter_readout_s: rolling_shutter_ms.map(|ms| ms * 1e-3),
                 exposure_time_offset_s: exposure_offset_ms.map(|ms| ms * 1e-3),
+                camera: CameraOptions { calibration, camera, allow_default_intrinsics },
             };
             let summary = match transport {
                 TransportArg::Grpc => {
@@ -293,6 +370,71 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
             }
             let clean = summary.frames_rejected == 0 && summary.depth_mismatch == 0;
+            Ok(if clean { ExitCode::SUCCESS } else { ExitCode::from(2) })
+        }
+        Command::Fleet {
+            robots,
+            source,
+            rate,
+            duration,
+            transport,
+            server,
+            zenoh_connect,
+            zenoh_mode,
+            http,
+            robot_prefix,
+            token,
+            max_in_flight,
+            max_frames,
+            calibration,
+            camera,
+            allow_default_intrinsics,
+            timeout,
+            summary_json,
+        } => {
+            let SourceSpec::Tum(tum) = source else {
+                return Err(ClientError::Usage("fleet replays a recording: --source tum:<dir>".into()).into());
+            };
+            let duration = Duration::try_from_secs_f64(duration)
+                .ok()
+                .filter(|d| !d.is_zero())
+                .ok_or_else(|| ClientError::Usage(format!("--duration {duration} is not a positive number of seconds")))?;
+            let timeout = Duration::try_from_secs_f64(timeout)
+                .map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
+            let options = FleetOptions {
+                robots,
+                tum,
+                camera: CameraOptions { calibration, camera, allow_default_intrinsics },
+                max_frames,
+                rate,
+                duration,
+                transport: match transport {
+                    FleetTransportArg::Grpc => FleetTransport::Grpc,
+                    FleetTransportArg::Zenoh => FleetTransport::Zenoh,
+                    FleetTransportArg::Mixed => FleetTransport::Mixed,
+                },
+                grpc: GrpcOptions {
+                    endpoint: server,
+                    keepalive: Duration::from_secs(10),
+                    connect_timeout: timeout,
+                    initial_backoff: Duration::from_millis(100),
+                    max_backoff: Duration::from_secs(5),
+                    max_attempts: 10,
+                },
+                zenoh: ZenohOptions { connect: zenoh_connect, mode: zenoh_mode, timeout },
+                http: (!http.is_empty()).then_some(http),
+                robot_prefix,
+                token,
+                max_in_flight,
+            };
+            let report = fleet::run(&options).await?;
+            print!("{}", report.table());
+            if let Some(path) = summary_json {
+                std::fs::write(&path, serde_json::to_string_pretty(&report)?)
+                    .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
+            }
+            let t = &report.total;
+            let clean = t.robots_failed == 0 && t.frames_rejected == 0 && t.frames_unanswered == 0;
             Ok(if clean { ExitCode::SUCCESS } else { ExitCode::from(2) })
         }
         Command::Eval {

@@ -12,13 +12,15 @@ use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb::{self, DistortionModel};
 
 use crate::ClientError;
+use crate::calibration::{CameraOptions, SourceCamera};
 use crate::source::{FrameSource, RawFrame};
 
 /// Depth units per metre of OpenNI2's two metric depth formats.
 const DEPTH_1_MM_UNITS: f64 = 1000.0;
 const DEPTH_100_UM_UNITS: f64 = 10_000.0;
 /// Nominal field of view of PrimeSense-class sensors (Kinect v1, Xtion), radians,
-/// used when a driver does not report one (the Dummy device does not).
+/// used with `--allow-default-intrinsics` when a driver reports none (the Dummy
+/// device does not).
 const NOMINAL_HFOV_RAD: f64 = 1.0144; // 58.1 degrees
 const NOMINAL_VFOV_RAD: f64 = 0.7898; // 45.3 degrees
 
@@ -39,7 +41,7 @@ fn err(what: &str) -> impl Fn(openni2::Status) -> ClientError + '_ {
 }
 
 impl OpenNiSource {
-    pub fn open(uri: Option<&str>, max_frames: Option<usize>) -> Result<Self, ClientError> {
+    pub fn open(uri: Option<&str>, max_frames: Option<usize>, options: &CameraOptions) -> Result<Self, ClientError> {
         openni2::init().map_err(err("init"))?;
         let device = match uri {
             Some(uri) => Device::open_uri(uri).map_err(|e| match uri {
@@ -85,16 +87,18 @@ impl OpenNiSource {
         }
         let (w, h) = (cmode.resolution_x as u32, cmode.resolution_y as u32);
         // Pinhole intrinsics from the colour stream's field of view.
-        let (hfov, vfov) = match (color.get_horizontal_fov(), color.get_vertical_fov()) {
-            (Ok(h), Ok(v)) => (f64::from(h), f64::from(v)),
-            _ => {
-                tracing::warn!("device reports no field of view; assuming the PrimeSense nominal 58.1 x 45.3 degrees");
-                (NOMINAL_HFOV_RAD, NOMINAL_VFOV_RAD)
-            }
+        // The driver's field of view is the device's own report (PS1080 reads it from
+        // the sensor); without one, the PrimeSense nominal field of view is a guess.
+        let what = format!("OpenNI2 device {}", uri.unwrap_or("(first)"));
+        let reported = match (color.get_horizontal_fov(), color.get_vertical_fov()) {
+            (Ok(h), Ok(v)) if h.is_finite() && v.is_finite() && h > 0.0 && v > 0.0 => Some((f64::from(h), f64::from(v))),
+            _ => None,
         };
+        let (hfov, vfov) = reported.unwrap_or((NOMINAL_HFOV_RAD, NOMINAL_VFOV_RAD));
+        let known = reported.map(|(h, v)| format!("device:{what} field of view {:.1} x {:.1} deg", h.to_degrees(), v.to_degrees()));
         let fx = f64::from(w) / (2.0 * (hfov / 2.0).tan());
         let fy = f64::from(h) / (2.0 * (vfov / 2.0).tan());
-        let camera = pb::CameraInfo {
+        let info = pb::CameraInfo {
             width: w,
             height: h,
             fx,
@@ -106,6 +110,7 @@ impl OpenNiSource {
             nominal_rate_hz: f64::from(cmode.fps),
             ..Default::default()
         };
+        let camera = crate::calibration::resolve(SourceCamera { info, known, what }, options)?;
         depth.start().map_err(err("start depth"))?;
         color.start().map_err(err("start colour"))?;
         Ok(Self { depth: ManuallyDrop::new(depth), color: ManuallyDrop::new(color), camera, max_frames, read: 0, last_ns: 0 })

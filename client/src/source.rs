@@ -4,6 +4,7 @@ use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb;
 
 use crate::ClientError;
+use crate::calibration::CameraOptions;
 
 /// One captured RGB-D frame, depth registered to colour.
 #[derive(Debug, Clone)]
@@ -18,7 +19,8 @@ pub struct RawFrame {
 
 /// A camera or a recording. Runs on one thread (OpenNI2 handles are not `Send`).
 pub trait FrameSource {
-    /// The camera's intrinsics and size; encodings are filled in by the streamer.
+    /// The camera's intrinsics and size, resolved with the user's calibration
+    /// options (`calibration::resolve`); encodings are filled in by the streamer.
     fn camera(&self) -> pb::CameraInfo;
     /// Frames in this source when known (recordings), for the progress bar.
     fn len_hint(&self) -> Option<usize>;
@@ -55,11 +57,11 @@ impl std::str::FromStr for SourceSpec {
 }
 
 /// Opens a source. Call it on the thread that will read it.
-pub fn open(spec: &SourceSpec, max_frames: Option<usize>) -> Result<Box<dyn FrameSource>, ClientError> {
+pub fn open(spec: &SourceSpec, max_frames: Option<usize>, camera: &CameraOptions) -> Result<Box<dyn FrameSource>, ClientError> {
     match spec {
-        SourceSpec::Tum(dir) => Ok(Box::new(crate::tum::TumSource::open(dir, max_frames)?)),
+        SourceSpec::Tum(dir) => Ok(Box::new(crate::tum::TumSource::open(dir, max_frames, camera)?)),
         #[cfg(feature = "openni2")]
-        SourceSpec::OpenNi2(uri) => Ok(Box::new(crate::openni::OpenNiSource::open(uri.as_deref(), max_frames)?)),
+        SourceSpec::OpenNi2(uri) => Ok(Box::new(crate::openni::OpenNiSource::open(uri.as_deref(), max_frames, camera)?)),
         #[cfg(not(feature = "openni2"))]
         SourceSpec::OpenNi2(_) => Err(ClientError::Source("this client was built without the openni2 feature".into())),
     }

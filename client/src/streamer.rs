@@ -11,8 +11,9 @@ use stillmap_proto::pb::{self, ColorEncoding, DepthEncoding, FrameStatus};
 use tokio::sync::{mpsc, oneshot};
 
 use crate::ClientError;
+use crate::calibration::CameraOptions;
 use crate::link::{Link, LinkEvent};
-use crate::source::{self, SourceSpec};
+use crate::source::{self, RawFrame, SourceSpec};
 
 /// Frames read and encoded ahead of the sender.
 const ENCODE_AHEAD: usize = 4;
@@ -60,12 +61,24 @@ pub struct StreamOptions {
     pub rolling_shutter_readout_s: Option<f64>,
     /// Overrides the source's exposure-time offset (seconds) in the hello.
     pub exposure_time_offset_s: Option<f64>,
+    /// Where the intrinsics come from (`--calibration`, `--camera`, `--allow-default-intrinsics`).
+    pub camera: CameraOptions,
 }
 
 /// A frame ready to send, with what the client needs to check its result.
-struct Encoded {
-    frame: pb::Frame,
-    depth_crc32: u32,
+#[derive(Debug, Clone)]
+pub struct Encoded {
+    pub frame: pb::Frame,
+    /// CRC-32 of the raw depth, to prove the server decoded it bit-exact.
+    pub depth_crc32: u32,
+}
+
+/// Where a stream's frames come from: the camera they were taken with, how many
+/// there are (when known), and the encoded frames in order.
+pub struct Feed {
+    pub camera: pb::CameraInfo,
+    pub len_hint: Option<usize>,
+    pub frames: mpsc::Receiver<Result<Encoded, ClientError>>,
 }
 
 /// A pose the server returned, for `--trajectory`.
@@ -108,7 +121,19 @@ pub struct Summary {
     pub nominal_rate_hz: f64,
     pub latency_ms_p50: f64,
     pub latency_ms_p95: f64,
+    pub latency_ms_p99: f64,
+    /// Age in frames of the segmentation each OK result used (0 = segmented on that
+    /// very frame), over the results that had one.
+    pub mask_age_p50: f64,
+    pub mask_age_p95: f64,
+    /// OK results whose frame had no segmentation at all (none yet, or perception off).
+    pub frames_without_mask: u64,
     pub first_errors: Vec<String>,
+    /// Every result's latency (ms) and OK result's mask age, for fleet totals.
+    #[serde(skip)]
+    pub latencies_ms: Vec<f64>,
+    #[serde(skip)]
+    pub mask_ages: Vec<f64>,
     /// Poses the server returned (the JSON summary holds their count as `poses_returned`).
     #[serde(rename = "poses_returned", serialize_with = "serialize_count")]
     pub poses: Vec<ReturnedPose>,
@@ -118,7 +143,8 @@ fn serialize_count<S: serde::Serializer>(poses: &[ReturnedPose], s: S) -> Result
     s.serialize_u64(poses.len() as u64)
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
+/// Nearest-rank percentile of sorted values (0 for none).
+pub fn percentile(sorted: &[f64], p: f64) -> f64 {
     if sorted.is_empty() {
         return 0.0;
     }
@@ -129,14 +155,36 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 /// The source's camera and frame count (when known), sent once when it opens.
 type SourceOpened = oneshot::Receiver<Result<(pb::CameraInfo, Option<usize>), ClientError>>;
 
+/// Encodes one captured frame as frame `sequence`.
+pub fn encode(
+    raw: &RawFrame,
+    sequence: u64,
+    color_encoding: ColorEncoding,
+    depth_encoding: DepthEncoding,
+    jpeg_quality: u8,
+) -> Result<Encoded, ClientError> {
+    (|| {
+        let frame = pb::Frame {
+            sequence,
+            capture_time_ns: raw.capture_time_ns,
+            color: codec::encode_color(color_encoding, &raw.color, jpeg_quality)?.into(),
+            depth: codec::encode_depth(depth_encoding, &raw.depth)?.into(),
+            accel_in_camera: raw.accel_in_camera.map(|[x, y, z]| pb::Vector3 { x, y, z }),
+        };
+        Ok(Encoded { frame, depth_crc32: raw.depth.crc32() })
+    })()
+    .map_err(|e: codec::CodecError| ClientError::Source(format!("encoding frame {sequence}: {e}")))
+}
+
 /// Reads the source on its own thread (OpenNI2 handles stay on one thread) and encodes.
 fn spawn_source(options: &StreamOptions) -> (SourceOpened, mpsc::Receiver<Result<Encoded, ClientError>>) {
     let (camera_tx, camera_rx) = oneshot::channel();
     let (frames_tx, frames_rx) = mpsc::channel(ENCODE_AHEAD);
     let (spec, max_frames, quality) = (options.source.clone(), options.max_frames, options.jpeg_quality);
     let (color_encoding, depth_encoding) = (options.color_encoding, options.depth_encoding);
+    let camera_options = options.camera.clone();
     std::thread::spawn(move || {
-        let mut src = match source::open(&spec, max_frames) {
+        let mut src = match source::open(&spec, max_frames, &camera_options) {
             Ok(s) => s,
             Err(e) => {
                 let _ = camera_tx.send(Err(e));
@@ -148,18 +196,7 @@ fn spawn_source(options: &StreamOptions) -> (SourceOpened, mpsc::Receiver<Result
         loop {
             let item = match src.next_frame() {
                 Ok(None) => break,
-                Ok(Some(raw)) => (|| {
-                    let depth_crc32 = raw.depth.crc32();
-                    let frame = pb::Frame {
-                        sequence,
-                        capture_time_ns: raw.capture_time_ns,
-                        color: codec::encode_color(color_encoding, &raw.color, quality)?.into(),
-                        depth: codec::encode_depth(depth_encoding, &raw.depth)?.into(),
-                        accel_in_camera: raw.accel_in_camera.map(|[x, y, z]| pb::Vector3 { x, y, z }),
-                    };
-                    Ok(Encoded { frame, depth_crc32 })
-                })()
-                .map_err(|e: codec::CodecError| ClientError::Source(format!("encoding frame {sequence}: {e}"))),
+                Ok(Some(raw)) => encode(&raw, sequence, color_encoding, depth_encoding, quality),
                 Err(e) => Err(e),
             };
             sequence += 1;
@@ -178,9 +215,20 @@ pub async fn run(
     transport: &str,
     connect: impl FnOnce(pb::Hello) -> Link,
 ) -> Result<Summary, ClientError> {
-    let (camera_rx, mut encoded_rx) = spawn_source(options);
-    let (mut camera, len_hint) =
-        camera_rx.await.map_err(|_| ClientError::Source("the source thread stopped".into()))??;
+    let (camera_rx, frames) = spawn_source(options);
+    let (camera, len_hint) = camera_rx.await.map_err(|_| ClientError::Source("the source thread stopped".into()))??;
+    stream(options, transport, Feed { camera, len_hint, frames }, connect).await
+}
+
+/// Streams a feed of encoded frames through a link built by `connect` from the
+/// hello (the source in `options` is not read: the feed is).
+pub async fn stream(
+    options: &StreamOptions,
+    transport: &str,
+    feed: Feed,
+    connect: impl FnOnce(pb::Hello) -> Link,
+) -> Result<Summary, ClientError> {
+    let Feed { mut camera, len_hint, frames: mut encoded_rx } = feed;
     camera.color_encoding = options.color_encoding as i32;
     camera.depth_encoding = options.depth_encoding as i32;
     if let Some(readout_s) = options.rolling_shutter_readout_s {
@@ -204,6 +252,7 @@ pub async fn run(
     let mut summary = Summary { transport: transport.into(), nominal_rate_hz, ..Default::default() };
     let mut sent_at: HashMap<u64, (Instant, u32)> = HashMap::new();
     let mut latencies_ms: Vec<f64> = Vec::new();
+    let mut mask_ages: Vec<f64> = Vec::new();
     let mut last_result_seq: Option<u64> = None;
     let mut max_message_bytes: Option<u64> = None;
     let mut pending: Option<Encoded> = None;
@@ -243,6 +292,11 @@ pub async fn run(
                         FrameStatus::Ok => {
                             summary.frames_acknowledged += 1;
                             if r.depth_crc32 == crc { summary.depth_bit_exact += 1 } else { summary.depth_mismatch += 1 }
+                            match r.counts.as_ref().map(|c| (c.mask_source(), c.mask_age_frames)) {
+                                Some((pb::MaskSource::Fresh, _)) => mask_ages.push(0.0),
+                                Some((pb::MaskSource::Warped, age)) => mask_ages.push(f64::from(age)),
+                                _ => summary.frames_without_mask += 1,
+                            }
                         }
                         FrameStatus::Dropped => summary.frames_dropped += 1,
                         _ => {
@@ -315,6 +369,12 @@ pub async fn run(
     latencies_ms.sort_by(f64::total_cmp);
     summary.latency_ms_p50 = percentile(&latencies_ms, 50.0);
     summary.latency_ms_p95 = percentile(&latencies_ms, 95.0);
+    summary.latency_ms_p99 = percentile(&latencies_ms, 99.0);
+    mask_ages.sort_by(f64::total_cmp);
+    summary.mask_age_p50 = percentile(&mask_ages, 50.0);
+    summary.mask_age_p95 = percentile(&mask_ages, 95.0);
+    summary.latencies_ms = latencies_ms;
+    summary.mask_ages = mask_ages;
     summary.frames_unanswered += sent_at.len() as u64;
     Ok(summary)
 }
@@ -327,7 +387,8 @@ impl Summary {
              frames: sent {} | acknowledged {} | dropped {} | rejected {} | too large {} | unanswered {}\n\
              depth: {} bit-exact, {} mismatched | results out of order: {} | reconnects: {}\n\
              bytes: {} ({:.0} per frame) | {:.1} frames/s | {:.2} Mbit/s ({:.2} Mbit/s at {:.0} Hz)\n\
-             result latency: p50 {:.1} ms, p95 {:.1} ms over {:.2} s",
+             result latency: p50 {:.1} ms, p95 {:.1} ms, p99 {:.1} ms over {:.2} s\n\
+             segmentation age: p50 {:.0}, p95 {:.0} frames | {} frames without one",
             self.transport,
             self.session_id,
             self.frames_sent,
@@ -348,7 +409,11 @@ impl Summary {
             self.nominal_rate_hz,
             self.latency_ms_p50,
             self.latency_ms_p95,
+            self.latency_ms_p99,
             self.seconds,
+            self.mask_age_p50,
+            self.mask_age_p95,
+            self.frames_without_mask,
         );
         for e in &self.first_errors {
             s.push_str(&format!("\nrejected: {e}"));

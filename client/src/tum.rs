@@ -10,14 +10,13 @@ use stillmap_proto::codec;
 use stillmap_proto::pb::{self, DistortionModel};
 
 use crate::ClientError;
+use crate::calibration::{CameraOptions, KnownCamera, SourceCamera};
 use crate::source::{FrameSource, RawFrame};
 
 /// `associate.py`'s default maximum time difference.
 pub const MAX_ASSOCIATION_NS: u64 = 20_000_000;
-/// TUM depth PNGs store metres × 5000.
-pub const TUM_DEPTH_UNITS_PER_METRE: f64 = 5000.0;
-/// TUM sequences are recorded at 30 Hz.
-pub const TUM_RATE_HZ: f64 = 30.0;
+/// TUM sequences' depth scale, rate and known cameras live in `calibration`.
+pub use crate::calibration::{TUM_DEPTH_UNITS_PER_METRE, TUM_RATE_HZ};
 
 /// Parses a TUM timestamp ("1305031229.528748") to nanoseconds, exactly.
 pub fn parse_timestamp_ns(s: &str) -> Option<u64> {
@@ -73,51 +72,56 @@ pub fn associate(first: &[u64], second: &[u64], max_difference_ns: u64) -> Vec<(
     pairs
 }
 
-/// Rolling-shutter readout of the freiburg1 Kinect's colour camera (seconds): not
-/// published with the dataset; measured without ground truth as the readout at
-/// which the tracker's map is most consistent (README, "Rolling shutter";
-/// `cargo run --release -p stillmap-tracking --example readout_sweep`).
-pub const TUM_FREIBURG1_READOUT_S: f64 = 0.025;
+/// What a TUM folder says about its camera: the freiburg calibration its name
+/// (as given, not a symlink's target) names, or 640×480 with the ROS default
+/// intrinsics the TUM page recommends for unknown Kinects, marked unknown.
+pub fn tum_camera(dir: &Path) -> SourceCamera {
+    let name = folder_name(dir);
+    match KnownCamera::from_tum_folder_name(&name) {
+        Some(camera) => SourceCamera {
+            info: camera.camera_info(),
+            known: Some(format!("tum-folder:{name} ({})", camera.name())),
+            what: format!("TUM folder {name}"),
+        },
+        None => SourceCamera {
+            info: pb::CameraInfo {
+                width: 640,
+                height: 480,
+                fx: 525.0,
+                fy: 525.0,
+                cx: 319.5,
+                cy: 239.5,
+                distortion_model: DistortionModel::None as i32,
+                depth_units_per_metre: TUM_DEPTH_UNITS_PER_METRE,
+                nominal_rate_hz: TUM_RATE_HZ,
+                ..Default::default()
+            },
+            known: None,
+            what: format!("TUM folder {name} (no freiburg1/2/3 in its name)"),
+        },
+    }
+}
 
-/// When a freiburg1 image was exposed relative to its timestamp (seconds). The TUM
-/// recordings are ROS bags from the `openni_camera` driver, which stamps an image
-/// with the host's clock when it arrives (`ros::Time::now()` in its image callback),
-/// so after the last row was read: the middle row was exposed at least half a
-/// readout earlier. The transfer time after the last row is not known and counts
-/// as 0. freiburg2/3 stay at 0: their timing is not measured.
-pub const TUM_FREIBURG1_EXPOSURE_OFFSET_S: f64 = -TUM_FREIBURG1_READOUT_S / 2.0;
-
-/// Calibration of the TUM cameras (intrinsics from the benchmark's page), by sequence
-/// name. Only freiburg1's rolling-shutter readout has been measured; the others are
-/// sent as global shutters.
-pub fn tum_camera(dir_name: &str) -> (pb::CameraInfo, bool) {
-    let freiburg1 = dir_name.contains("freiburg1");
-    let (fx, fy, cx, cy, coeffs, known): (f64, f64, f64, f64, Option<[f64; 5]>, bool) = if freiburg1 {
-        (517.3, 516.5, 318.6, 255.3, Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]), true)
-    } else if dir_name.contains("freiburg2") {
-        (520.9, 521.0, 325.1, 249.7, Some([0.2312, -0.7849, -0.0033, -0.0001, 0.9172]), true)
-    } else if dir_name.contains("freiburg3") {
-        (535.4, 539.2, 320.1, 247.6, None, true)
-    } else {
-        // The ROS default the TUM page recommends for unknown Kinects.
-        (525.0, 525.0, 319.5, 239.5, None, false)
-    };
-    let camera = pb::CameraInfo {
-        width: 640,
-        height: 480,
-        fx,
-        fy,
-        cx,
-        cy,
-        distortion_model: if coeffs.is_some() { DistortionModel::PlumbBob } else { DistortionModel::None } as i32,
-        distortion_coeffs: coeffs.map(|c| c.to_vec()).unwrap_or_default(),
-        depth_units_per_metre: TUM_DEPTH_UNITS_PER_METRE,
-        nominal_rate_hz: TUM_RATE_HZ,
-        rolling_shutter_readout_s: if freiburg1 { TUM_FREIBURG1_READOUT_S } else { 0.0 },
-        exposure_time_offset_s: if freiburg1 { TUM_FREIBURG1_EXPOSURE_OFFSET_S } else { 0.0 },
-        ..Default::default()
-    };
-    (camera, known)
+/// The folder's own name as the user gave it: `a/b/` → `b`; `.` or `..` → the
+/// last component of the absolute path (`std::path::absolute` resolves no symlink).
+fn folder_name(dir: &Path) -> String {
+    dir.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .or_else(|| {
+            let abs = std::path::absolute(dir).ok()?;
+            let mut parts: Vec<String> = Vec::new();
+            for c in abs.components() {
+                match c {
+                    std::path::Component::Normal(n) => parts.push(n.to_string_lossy().into_owned()),
+                    std::path::Component::ParentDir => {
+                        parts.pop();
+                    }
+                    _ => {}
+                }
+            }
+            parts.pop()
+        })
+        .unwrap_or_default()
 }
 
 pub struct TumSource {
@@ -127,7 +131,7 @@ pub struct TumSource {
 }
 
 impl TumSource {
-    pub fn open(dir: &Path, max_frames: Option<usize>) -> Result<Self, ClientError> {
+    pub fn open(dir: &Path, max_frames: Option<usize>, options: &CameraOptions) -> Result<Self, ClientError> {
         if !dir.is_dir() {
             return Err(ClientError::Source(format!("TUM folder {} does not exist", dir.display())));
         }
@@ -165,11 +169,7 @@ impl TumSource {
         if let Some(max) = max_frames {
             frames.truncate(max);
         }
-        let name = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
-        let (camera, known) = tum_camera(&name.to_string_lossy());
-        if !known {
-            tracing::warn!("{}: not a freiburg1/2/3 sequence name; using the ROS default intrinsics", dir.display());
-        }
+        let camera = crate::calibration::resolve(tum_camera(dir), options)?;
         Ok(Self { frames, next: 0, camera })
     }
 
@@ -270,17 +270,34 @@ mod tests {
     }
 
     #[test]
-    fn freiburg_calibrations() {
-        let (c, known) = tum_camera("/data/rgbd_dataset_freiburg1_rpy");
-        assert!(known);
-        assert_eq!((c.fx, c.fy, c.cx, c.cy), (517.3, 516.5, 318.6, 255.3));
-        assert_eq!(c.distortion_coeffs.len(), 5);
-        assert_eq!(c.rolling_shutter_readout_s, 0.025);
-        assert_eq!(c.exposure_time_offset_s, -0.0125, "stamped on arrival, after the last row");
-        let (c, _) = tum_camera("freiburg3_walking_xyz");
-        assert_eq!(c.distortion_model(), DistortionModel::None);
-        assert_eq!(c.rolling_shutter_readout_s, 0.0, "not measured: sent as a global shutter");
-        assert_eq!(c.exposure_time_offset_s, 0.0, "not measured");
-        assert!(!tum_camera("my_sequence").1);
+    fn tum_folder_names_as_given() {
+        let c = tum_camera(Path::new("/data/rgbd_dataset_freiburg1_rpy"));
+        assert_eq!(c.known.as_deref(), Some("tum-folder:rgbd_dataset_freiburg1_rpy (tum-fr1)"));
+        assert_eq!((c.info.fx, c.info.rolling_shutter_readout_s), (517.3, 0.025));
+        let c = tum_camera(Path::new("/data/freiburg3_walking_xyz/"));
+        assert_eq!(c.known.as_deref(), Some("tum-folder:freiburg3_walking_xyz (tum-fr3)"));
+        // Only the folder's own name counts, not its parents'.
+        let c = tum_camera(Path::new("/data/rgbd_dataset_freiburg1_rpy/renamed"));
+        assert_eq!(c.known, None);
+        assert_eq!(c.what, "TUM folder renamed (no freiburg1/2/3 in its name)");
+        assert_eq!(folder_name(Path::new("/x/rgbd_dataset_freiburg2_desk/sub/..")), "rgbd_dataset_freiburg2_desk");
+    }
+
+    /// A symlink named like a TUM folder is taken by its own name; a renamed link to
+    /// a freiburg1 folder is not taken for freiburg1 and the source refuses to start.
+    #[test]
+    fn symlinked_folders_use_their_own_name() {
+        let real = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy");
+        let dir = std::env::temp_dir().join(format!("stillmap-tum-link-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let renamed = dir.join("my_kinect_run");
+        std::os::unix::fs::symlink(&real, &renamed).expect("symlink");
+        let e = TumSource::open(&renamed, Some(2), &CameraOptions::default()).err().expect("refused").to_string();
+        assert!(e.contains("TUM folder my_kinect_run (no freiburg1/2/3 in its name): the camera's calibration is not known"), "{e}");
+        let preset = CameraOptions { camera: Some(KnownCamera::TumFr1), ..Default::default() };
+        let s = TumSource::open(&renamed, Some(2), &preset).expect("with --camera");
+        assert_eq!(s.camera().calibration_source, "preset:tum-fr1 (--camera)");
+        assert_eq!(s.camera().fx, 517.3);
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -62,6 +62,7 @@ fn camera_json(c: &pb::CameraInfo) -> Value {
         "nominal_rate_hz": c.nominal_rate_hz,
         "rolling_shutter_readout_s": c.rolling_shutter_readout_s,
         "exposure_time_offset_s": c.exposure_time_offset_s,
+        "calibration_source": if c.calibration_source.is_empty() { "unstated" } else { c.calibration_source.as_str() },
     })
 }
 

@@ -140,6 +140,9 @@ impl FramePipeline {
     }
 }
 
+/// Longest `CameraInfo.calibration_source` the server accepts.
+pub const MAX_CALIBRATION_SOURCE_BYTES: usize = 512;
+
 /// Largest image side the server accepts in a hello.
 pub const MAX_IMAGE_SIDE: u32 = 8192;
 
@@ -170,6 +173,12 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
     if !(-MAX_EXPOSURE_TIME_OFFSET_S..=MAX_EXPOSURE_TIME_OFFSET_S).contains(&offset) {
         return Err(format!(
             "exposure_time_offset_s must be within -{MAX_EXPOSURE_TIME_OFFSET_S}..={MAX_EXPOSURE_TIME_OFFSET_S} s, got {offset}"
+        ));
+    }
+    if c.calibration_source.len() > MAX_CALIBRATION_SOURCE_BYTES {
+        return Err(format!(
+            "calibration_source is {} bytes, more than {MAX_CALIBRATION_SOURCE_BYTES}",
+            c.calibration_source.len()
         ));
     }
     if !finite_positive(c.depth_units_per_metre) {
@@ -301,5 +310,10 @@ mod tests {
             c.exposure_time_offset_s = bad;
             assert_eq!(validate_camera(Some(&c)).unwrap_err(), format!("exposure_time_offset_s must be within -0.1..=0.1 s, got {bad}"));
         }
+        let mut c = camera();
+        c.calibration_source = "x".repeat(512);
+        assert!(validate_camera(Some(&c)).is_ok());
+        c.calibration_source.push('x');
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "calibration_source is 513 bytes, more than 512");
     }
 }

@@ -41,6 +41,7 @@ async fn grpc_delivers_every_tum_frame_bit_exact_and_in_order() {
     assert_eq!(session["camera"]["exposure_time_offset_s"], -0.0125, "stamped on arrival, half the readout after the middle row");
     assert_eq!(session["camera"]["distortion_model"], "DISTORTION_MODEL_PLUMB_BOB");
     assert_eq!(session["camera"]["depth_encoding"], "DEPTH_ENCODING_ZSTD");
+    assert_eq!(session["camera"]["calibration_source"], "tum-folder:rgbd_dataset_freiburg1_rpy (tum-fr1)");
     assert_eq!(session["tracking_state"], "TRACKING_STATE_TRACKING");
     // Every frame's result carried a pose back on the gRPC stream.
     assert_eq!(summary["poses_returned"], TUM_FRAMES);
@@ -94,8 +95,14 @@ async fn every_depth_codec_arrives_bit_exact() {
 #[tokio::test(flavor = "multi_thread")]
 async fn openni2_dummy_device_streams_through_the_real_client() {
     let server = Server::start(&[]);
+    // The Dummy device reports no field of view: without a calibration it refuses.
+    let (out, _) = run_client(&["--source", "openni2:Dummy", "--server", &server.grpc_url(), "--max-frames", "2"]);
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("OpenNI2 device Dummy: the camera's calibration is not known; give --calibration FILE"), "{stderr}");
     let (out, summary) = run_client(&[
         "--source", "openni2:Dummy", "--server", &server.grpc_url(), "--max-frames", "12", "--robot-id", "kinect",
+        "--allow-default-intrinsics",
     ]);
     assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     assert_complete(&summary.expect("summary"), 12);
@@ -105,6 +112,61 @@ async fn openni2_dummy_device_streams_through_the_real_client() {
     assert_eq!(detail["camera"]["width"], 320);
     assert_eq!(detail["camera"]["height"], 240);
     assert_eq!(detail["camera"]["depth_units_per_metre"], 1000.0);
+    assert_eq!(detail["camera"]["calibration_source"], "default:nominal intrinsics (--allow-default-intrinsics)");
+}
+
+/// A TUM folder reached through a renamed symlink is not guessed: it refuses, and
+/// streams with the calibration given as a ROS camera_info file or a known camera.
+#[tokio::test(flavor = "multi_thread")]
+async fn calibration_comes_from_a_file_or_a_named_camera_never_a_guess() {
+    let server = Server::start(&[]);
+    let dir = std::env::temp_dir().join(format!("stillmap-e2e-calib-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let link = dir.join("kitchen_run");
+    let _ = std::fs::remove_file(&link);
+    std::os::unix::fs::symlink(tum_dir(), &link).expect("symlink");
+    let src = format!("tum:{}", link.display());
+
+    let (out, _) = run_client(&["--source", &src, "--server", &server.grpc_url(), "--max-frames", "3"]);
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("TUM folder kitchen_run (no freiburg1/2/3 in its name): the camera's calibration is not known"), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "one line: {stderr}");
+
+    let yaml = dir.join("kinect_rgb.yaml");
+    std::fs::write(
+        &yaml,
+        "image_width: 640\nimage_height: 480\ncamera_name: kinect\ncamera_matrix:\n  rows: 3\n  cols: 3\n  \
+         data: [517.3, 0, 318.6, 0, 516.5, 255.3, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  \
+         rows: 1\n  cols: 5\n  data: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]\n",
+    )
+    .expect("write yaml");
+    let (out, summary) = run_client(&[
+        "--source", &src, "--server", &server.grpc_url(), "--max-frames", "5", "--rate", "max", "--robot-id", "from-file",
+        "--calibration", &yaml.display().to_string(),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
+    let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!(session["camera"]["calibration_source"], format!("file:{} (ROS camera_info)", yaml.display()));
+    assert_eq!(session["camera"]["fy"], 516.5);
+    assert_eq!(session["camera"]["distortion_coeffs"][4], 1.1633);
+    assert_eq!(session["camera"]["rolling_shutter_readout_s"], 0.0, "a file gives no timing");
+
+    let (out, summary) = run_client(&[
+        "--source", &src, "--server", &server.grpc_url(), "--max-frames", "5", "--rate", "max", "--robot-id", "named",
+        "--camera", "tum-fr1",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
+    let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!(session["camera"]["calibration_source"], "preset:tum-fr1 (--camera)");
+    assert_eq!(session["camera"]["rolling_shutter_readout_s"], 0.025);
+
+    let (out, _) = run_client(&["--source", &src, "--server", &server.grpc_url(), "--camera", "kinect2"]);
+    assert_eq!(out.status.code(), Some(2), "clap's usage error");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("unknown camera \"kinect2\": use tum-fr1|tum-fr2|tum-fr3"));
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
