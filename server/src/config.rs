@@ -116,6 +116,11 @@ pub struct SessionConfig {
     /// Dropped-frame notices a session may hold for a client that does not read its
     /// results; past it the stream ends with RESOURCE_EXHAUSTED.
     pub max_pending_drop_notices: usize,
+    /// Robots streaming at once (sessions with a connection attached); a hello beyond
+    /// it is refused with RESOURCE_EXHAUSTED, so an overloaded server turns robots
+    /// away instead of dropping every robot's frames. Size it from the fleet
+    /// benchmark (`make bench-fleet`). 0 = no limit.
+    pub max_connected: usize,
 }
 
 /// Overload policy of a session's frame queue. Every dropped frame is counted in
@@ -166,6 +171,7 @@ impl Default for SessionConfig {
             overload_policy: OverloadPolicy::DropOldest,
             result_buffer: 64,
             max_pending_drop_notices: 1024,
+            max_connected: 64,
         }
     }
 }

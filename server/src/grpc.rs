@@ -12,7 +12,7 @@ use tokio_stream::wrappers::{BroadcastStream, ReceiverStream};
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::queue::QueueError;
-use crate::session::{Registry, ResultSink, Session, Transport, accepted_message, summary};
+use crate::session::{BadHello, Registry, ResultSink, Session, Transport, accepted_message, summary};
 
 pub struct IngestService {
     pub registry: Arc<Registry>,
@@ -81,7 +81,12 @@ async fn serve_stream(
     tokens.check(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
     let opened = registry
         .open(&hello, Transport::Grpc, sink.clone())
-        .map_err(|e| Status::invalid_argument(format!("bad hello: {e}")))?;
+        .map_err(|e| {
+            if matches!(e, BadHello::Full { .. }) {
+                metrics.rejected("server_full");
+            }
+            e.status()
+        })?;
     let session = opened.session.clone();
     sink.send(Ok(accepted_message(&opened, max_message_bytes)))
         .await

@@ -370,8 +370,29 @@ pub enum ImportError {
 
 /// A hello the server cannot open a session for.
 #[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub struct BadHello(pub String);
+pub enum BadHello {
+    /// The hello itself is wrong (INVALID_ARGUMENT).
+    #[error("bad hello: {0}")]
+    Invalid(String),
+    /// `session.max_connected` robots stream already (RESOURCE_EXHAUSTED).
+    #[error("server full: {connected} robots connected, session.max_connected = {limit}")]
+    Full { connected: usize, limit: usize },
+    /// The server could not start the session (INTERNAL).
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl BadHello {
+    /// The gRPC status this refusal is answered with (gRPC, and Zenoh's `ServerMessage.error`).
+    pub fn status(&self) -> tonic::Status {
+        let code = match self {
+            Self::Invalid(_) => tonic::Code::InvalidArgument,
+            Self::Full { .. } => tonic::Code::ResourceExhausted,
+            Self::Internal(_) => tonic::Code::Internal,
+        };
+        tonic::Status::new(code, self.to_string())
+    }
+}
 
 /// Every session of this server process.
 pub struct Registry {
@@ -387,6 +408,9 @@ pub struct Registry {
     /// Worker threads, joined at shutdown (their last commit must land).
     workers: Mutex<Vec<std::thread::JoinHandle<()>>>,
     next_id: AtomicU64,
+    /// Held through `open`, so concurrent hellos see each other when the
+    /// `session.max_connected` limit is checked.
+    admission: Mutex<()>,
     /// Distinguishes session ids of different server runs.
     epoch: u64,
 }
@@ -423,7 +447,7 @@ impl Registry {
         metrics: Arc<Metrics>,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, workers: Mutex::new(Vec::new()), sessions: RwLock::default(), next_id: AtomicU64::new(1), epoch }
+        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, workers: Mutex::new(Vec::new()), sessions: RwLock::default(), next_id: AtomicU64::new(1), admission: Mutex::new(()), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -448,20 +472,25 @@ impl Registry {
 
     /// Opens a session for `hello`, or resumes the one it names, and attaches `sink`.
     pub fn open(&self, hello: &pb::Hello, transport: Transport, sink: ResultSink) -> Result<Opened, BadHello> {
-        stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello)?;
+        stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello::Invalid)?;
+        let _admission = lock(&self.admission);
         if !hello.resume_session_id.is_empty()
             && let Some(session) = self.get(&hello.resume_session_id).filter(|s| !s.archived)
         {
             if session.robot_id != hello.robot_id {
-                return Err(BadHello(format!(
+                return Err(BadHello::Invalid(format!(
                     "session {} belongs to robot {:?}, not {:?}",
                     session.id, session.robot_id, hello.robot_id
                 )));
             }
+            if !session.is_connected() {
+                self.check_capacity()?;
+            }
             session.attach(sink);
             return Ok(Opened { session, resumed: true });
         }
-        let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello)?.clone();
+        let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello::Invalid)?.clone();
+        self.check_capacity()?;
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
         let started_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
@@ -512,12 +541,26 @@ impl Registry {
         let handle = std::thread::Builder::new()
             .name(format!("pipeline-{n}"))
             .spawn(move || worker.run_worker())
-            .map_err(|e| BadHello(format!("cannot start a pipeline worker: {e}")))?;
+            .map_err(|e| BadHello::Internal(format!("cannot start a pipeline worker: {e}")))?;
         lock(&self.workers).push(handle);
         self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session.clone());
         self.metrics.session_opened();
         tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
         Ok(Opened { session, resumed: false })
+    }
+
+    /// Refuses a new connection when `session.max_connected` robots stream already
+    /// (under the admission lock, so racing hellos cannot pass together).
+    fn check_capacity(&self) -> Result<(), BadHello> {
+        let limit = self.config.max_connected;
+        if limit == 0 {
+            return Ok(());
+        }
+        let connected = self.sessions.read().unwrap_or_else(|p| p.into_inner()).values().filter(|s| s.is_connected()).count();
+        if connected >= limit {
+            return Err(BadHello::Full { connected, limit });
+        }
+        Ok(())
     }
 
     /// Brings back every session in the store (read-only: queries answer, robots

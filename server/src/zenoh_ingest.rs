@@ -165,7 +165,10 @@ pub async fn serve(
                         }
                     }
                     Err(e) => {
-                        let _ = sink.send(Err(Status::invalid_argument(format!("bad hello: {e}")))).await;
+                        if matches!(e, crate::session::BadHello::Full { .. }) {
+                            metrics.rejected("server_full");
+                        }
+                        let _ = sink.send(Err(e.status())).await;
                     }
                 }
             }
