@@ -24,10 +24,28 @@ pub struct PerceptionConfig {
 pub enum ExecutionProvider {
     /// ONNX Runtime's CPU provider.
     Cpu,
-    /// CUDA when built with the `cuda` feature and a GPU is present; otherwise
-    /// the CPU, with a warning.
+    /// NVIDIA CUDA (needs the GPU build of ONNX Runtime, CUDA 12 and cuDNN 9:
+    /// `make gpu-deps`). Start-up fails when it cannot run, unless `fallback_to_cpu`.
     Cuda,
+    /// NVIDIA TensorRT, CUDA for the nodes it does not take; engines are cached in
+    /// `tensorrt_cache_dir` (the first start builds them: minutes).
+    Tensorrt,
 }
+
+impl ExecutionProvider {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Cpu => "cpu",
+            Self::Cuda => "cuda",
+            Self::Tensorrt => "tensorrt",
+        }
+    }
+}
+
+/// Largest `perception.segmentation.max_batch`.
+pub const MAX_SEGMENTATION_BATCH: usize = 64;
+/// Largest `perception.segmentation.max_queue_delay_ms`: a batch waits at most a frame interval.
+pub const MAX_QUEUE_DELAY_MS: u64 = 33;
 
 /// Instance segmentation (YOLOv8-seg style ONNX model).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -55,7 +73,22 @@ pub struct SegmentationConfig {
     /// core). 1 by default so that on a small CPU segmentation leaves the other
     /// cores to the session pipelines (tracking must never wait for it).
     pub intra_threads: usize,
+    /// Where inference runs: "cpu" (default), "cuda" or "tensorrt".
     pub execution_provider: ExecutionProvider,
+    /// With a GPU provider that cannot run: false (default) fails at start-up naming
+    /// the problem; true runs on the CPU with a warning.
+    pub fallback_to_cpu: bool,
+    /// The GPU the provider runs on (CUDA device ordinal).
+    pub device_id: i32,
+    /// TensorRT's engine and timing cache folder.
+    pub tensorrt_cache_dir: String,
+    /// Server: most frames (of different sessions) one inference runs together. Only
+    /// a model with a symbolic batch dimension batches (deploy/make-batched-model.py);
+    /// with the shipped batch-1 files every frame runs alone.
+    pub max_batch: usize,
+    /// Server: how long a worker holding fewer than `max_batch` frames waits for
+    /// more before it runs them (Triton's `max_queue_delay`), in milliseconds.
+    pub max_queue_delay_ms: u64,
     /// Class names that are dynamic a priori (they may move by themselves).
     /// Default: person, the COCO animals and vehicles.
     pub prior_dynamic_classes: Vec<String>,
@@ -218,6 +251,18 @@ impl PerceptionConfig {
         if s.workers == 0 {
             return Err("perception.segmentation.workers must be at least 1".into());
         }
+        if !(1..=MAX_SEGMENTATION_BATCH).contains(&s.max_batch) {
+            return Err(format!("perception.segmentation.max_batch must be in 1..={MAX_SEGMENTATION_BATCH}, got {}", s.max_batch));
+        }
+        if s.max_queue_delay_ms > MAX_QUEUE_DELAY_MS {
+            return Err(format!("perception.segmentation.max_queue_delay_ms must be at most {MAX_QUEUE_DELAY_MS}, got {}", s.max_queue_delay_ms));
+        }
+        if s.device_id < 0 {
+            return Err(format!("perception.segmentation.device_id must be 0 or more, got {}", s.device_id));
+        }
+        if s.execution_provider == ExecutionProvider::Tensorrt && s.tensorrt_cache_dir.is_empty() {
+            return Err("perception.segmentation.tensorrt_cache_dir must name a folder with execution_provider = \"tensorrt\"".into());
+        }
         let f = &self.flow;
         if !(1..=8).contains(&f.subsample) {
             return Err(format!("perception.flow.subsample must be in 1..=8, got {}", f.subsample));
@@ -301,6 +346,11 @@ impl Default for SegmentationConfig {
             max_instances: 100,
             intra_threads: 1,
             execution_provider: ExecutionProvider::Cpu,
+            fallback_to_cpu: false,
+            device_id: 0,
+            tensorrt_cache_dir: "stillmap-data/tensorrt".into(),
+            max_batch: 8,
+            max_queue_delay_ms: 2,
             prior_dynamic_classes: DEFAULT_PRIOR_DYNAMIC.iter().map(|s| (*s).to_string()).collect(),
             workers: 1,
             max_mask_age_frames: 15,

@@ -75,10 +75,28 @@ impl Segmentation {
     }
 }
 
+/// One RGB8 frame to segment (`width × height × 3` bytes, row-major).
+#[derive(Debug, Clone, Copy)]
+pub struct RgbFrame<'a> {
+    pub rgb: &'a [u8],
+    pub width: u32,
+    pub height: u32,
+}
+
 /// Anything that segments RGB frames into object instances with classes.
 pub trait Segmenter: Send {
     /// Segments one RGB8 frame (`width × height × 3` bytes, row-major).
     fn segment(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<Segmentation, PerceptionError>;
+    /// Segments several frames, one result per frame in order. A segmenter that
+    /// cannot batch runs them one by one (the default); results equal
+    /// [`segment`](Self::segment)'s either way.
+    fn segment_batch(&mut self, frames: &[RgbFrame<'_>]) -> Result<Vec<Segmentation>, PerceptionError> {
+        frames.iter().map(|f| self.segment(f.rgb, f.width, f.height)).collect()
+    }
+    /// Most frames one [`segment_batch`](Self::segment_batch) call runs together (1: no batching).
+    fn max_batch(&self) -> usize {
+        1
+    }
     /// Class names, indexed by class id.
     fn class_names(&self) -> &[String];
     /// Where inference runs ("cpu", "cuda").
@@ -118,6 +136,8 @@ pub struct YoloSegmenter {
     params: DecodeParams,
     device: String,
     model_path: PathBuf,
+    /// The model takes any batch size (its input's first dimension is symbolic).
+    dynamic_batch: bool,
 }
 
 impl YoloSegmenter {
@@ -137,7 +157,7 @@ impl YoloSegmenter {
         if config.intra_threads > 0 {
             builder = builder.with_intra_threads(config.intra_threads).map_err(|e| load(e.to_string()))?;
         }
-        let (mut builder, device) = with_provider(builder, config.execution_provider).map_err(load)?;
+        let (mut builder, device) = with_provider(builder, config).map_err(|e| PerceptionError::Model(e))?;
         let session = builder.commit_from_file(&path).map_err(|e| load(e.to_string()))?;
 
         let not_yolo = |why: String| {
@@ -146,9 +166,10 @@ impl YoloSegmenter {
         let input = session.inputs().first().ok_or_else(|| not_yolo("it has no input".into()))?;
         let input_name = input.name().to_string();
         let input_shape = tensor_shape(input.dtype()).ok_or_else(|| not_yolo("its input is not a tensor".into()))?;
-        let model_size = match input_shape.as_slice() {
-            [1, 3, h, w] if h == w && *h > 0 => *h as u32,
-            other => return Err(not_yolo(format!("input shape {other:?} is not [1, 3, S, S]"))),
+        // A fixed batch of 1, or a symbolic batch (-1: deploy/make-batched-model.py).
+        let (model_size, dynamic_batch) = match input_shape.as_slice() {
+            [b @ (1 | -1), 3, h, w] if h == w && *h > 0 => (*h as u32, *b == -1),
+            other => return Err(not_yolo(format!("input shape {other:?} is not [1, 3, S, S] or [batch, 3, S, S]"))),
         };
         if config.input_size != 0 && config.input_size != model_size {
             return Err(PerceptionError::Model(format!(
@@ -164,12 +185,12 @@ impl YoloSegmenter {
         let det = tensor_shape(outputs[0].dtype()).ok_or_else(|| not_yolo("output0 is not a tensor".into()))?;
         let proto = tensor_shape(outputs[1].dtype()).ok_or_else(|| not_yolo("output1 is not a tensor".into()))?;
         let (rows, anchors) = match det.as_slice() {
-            [1, r, n] if *r > 4 && *n > 0 => (*r as usize, *n as usize),
-            other => return Err(not_yolo(format!("output0 shape {other:?} is not [1, 4+C+M, N]"))),
+            [1 | -1, r, n] if *r > 4 && *n > 0 => (*r as usize, *n as usize),
+            other => return Err(not_yolo(format!("output0 shape {other:?} is not [batch, 4+C+M, N]"))),
         };
         let (mask_dim, proto_side) = match proto.as_slice() {
-            [1, m, p, q] if p == q && *m > 0 && *p > 0 => (*m as usize, *p as usize),
-            other => return Err(not_yolo(format!("output1 shape {other:?} is not [1, M, P, P]"))),
+            [1 | -1, m, p, q] if p == q && *m > 0 && *p > 0 => (*m as usize, *p as usize),
+            other => return Err(not_yolo(format!("output1 shape {other:?} is not [batch, M, P, P]"))),
         };
         if rows <= 4 + mask_dim {
             return Err(not_yolo(format!("output0 has {rows} rows, too few for {mask_dim} mask coefficients")));
@@ -188,7 +209,7 @@ impl YoloSegmenter {
             mask_threshold: config.mask_threshold,
             max_instances: config.max_instances,
         };
-        tracing::info!(model = %path.display(), size = model_size, classes, device, "segmentation model loaded");
+        tracing::info!(model = %path.display(), size = model_size, classes, device, dynamic_batch, "segmentation model loaded");
         Ok(Self {
             session,
             input_name,
@@ -199,9 +220,68 @@ impl YoloSegmenter {
             proto_side,
             names,
             params,
-            device: device.to_string(),
+            device,
             model_path: path,
+            dynamic_batch,
         })
+    }
+
+    /// Whether the model takes batches of any size.
+    pub fn dynamic_batch(&self) -> bool {
+        self.dynamic_batch
+    }
+
+    /// Runs the model on letterboxed frames stacked as one `[B, 3, S, S]` batch and
+    /// decodes each frame's slice of the outputs.
+    fn run_batch(&mut self, frames: &[RgbFrame<'_>]) -> Result<Vec<Segmentation>, PerceptionError> {
+        let s = self.letterbox_size as usize;
+        let mut data = Vec::with_capacity(frames.len() * 3 * s * s);
+        let mut boxes = Vec::with_capacity(frames.len());
+        for f in frames {
+            if f.width == 0 || f.height == 0 {
+                return Err(PerceptionError::Input(format!("image size {}x{} is empty", f.width, f.height)));
+            }
+            let lb = Letterbox::new(f.width, f.height, self.letterbox_size);
+            data.extend(yolo::preprocess(f.rgb, f.width, f.height, &lb)?);
+            boxes.push(lb);
+        }
+        let batch = frames.len();
+        let input = Tensor::from_array(([batch, 3, s, s], data)).map_err(|e| PerceptionError::Runtime(e.to_string()))?;
+        let outputs = self
+            .session
+            .run(ort::inputs![self.input_name.as_str() => input])
+            .map_err(|e| PerceptionError::Runtime(format!("inference failed: {e}")))?;
+        let (_, det) = outputs[0].try_extract_tensor::<f32>().map_err(|e| PerceptionError::Runtime(e.to_string()))?;
+        let (_, proto) = outputs[1].try_extract_tensor::<f32>().map_err(|e| PerceptionError::Runtime(e.to_string()))?;
+        let det_len = (4 + self.classes + self.mask_dim) * self.anchors;
+        let proto_len = self.mask_dim * self.proto_side * self.proto_side;
+        if det.len() != batch * det_len || proto.len() != batch * proto_len {
+            return Err(PerceptionError::Runtime(format!(
+                "model returned {} detection and {} prototype values for a batch of {batch}, expected {} and {}",
+                det.len(),
+                proto.len(),
+                batch * det_len,
+                batch * proto_len
+            )));
+        }
+        let mut out = Vec::with_capacity(batch);
+        for (i, (f, lb)) in frames.iter().zip(&boxes).enumerate() {
+            let det = &det[i * det_len..(i + 1) * det_len];
+            let proto = &proto[i * proto_len..(i + 1) * proto_len];
+            let detections = yolo::decode_detections(det, self.anchors, self.classes, self.mask_dim, &self.params)?;
+            out.push(yolo::assemble(
+                &detections,
+                proto,
+                self.mask_dim,
+                self.proto_side,
+                lb,
+                f.width,
+                f.height,
+                &self.params,
+                &self.names,
+            )?);
+        }
+        Ok(out)
     }
 
     /// The model's square input side.
@@ -221,38 +301,64 @@ fn tensor_shape(t: &ort::value::ValueType) -> Option<Vec<i64>> {
     }
 }
 
-/// Registers the execution provider; CUDA falls back to the CPU with a warning.
+/// Registers the configured execution provider. A GPU provider that cannot be
+/// registered (this ONNX Runtime has none, or its CUDA/cuDNN libraries are missing)
+/// is an error naming the problem, unless `fallback_to_cpu` is set: then the CPU,
+/// with a warning. Returns the device inference runs on ("cpu", "cuda:0", "tensorrt:0").
 fn with_provider(
     builder: ort::session::builder::SessionBuilder,
-    provider: ExecutionProvider,
-) -> Result<(ort::session::builder::SessionBuilder, &'static str), String> {
-    match provider {
-        ExecutionProvider::Cpu => Ok((builder, "cpu")),
-        #[cfg(feature = "cuda")]
-        ExecutionProvider::Cuda => {
-            use ort::ep::ExecutionProvider as _;
-            if !ort::ep::CUDA::is_available().unwrap_or(false) {
-                tracing::warn!("this ONNX Runtime has no CUDA execution provider; segmentation runs on the CPU");
-                return Ok((builder, "cpu"));
-            }
-            let mut with_cuda = builder.clone();
-            match ort::ep::CUDA::default().register(&mut with_cuda) {
-                Ok(()) => Ok((with_cuda, "cuda")),
-                Err(e) => {
-                    tracing::warn!("CUDA execution provider unavailable ({e}); segmentation runs on the CPU");
-                    Ok((builder, "cpu"))
-                }
-            }
+    config: &SegmentationConfig,
+) -> Result<(ort::session::builder::SessionBuilder, String), String> {
+    use ort::ep::ExecutionProvider as _;
+    let device_id = config.device_id;
+    let mut gpu = builder.clone();
+    let registered = match config.execution_provider {
+        ExecutionProvider::Cpu => return Ok((builder, "cpu".into())),
+        ExecutionProvider::Cuda => ort::ep::CUDA::default()
+            .with_device_id(device_id)
+            .register(&mut gpu)
+            .map(|()| format!("cuda:{device_id}")),
+        ExecutionProvider::Tensorrt => {
+            let cache = &config.tensorrt_cache_dir;
+            let trt = ort::ep::TensorRT::default()
+                .with_device_id(device_id)
+                .with_engine_cache(true)
+                .with_engine_cache_path(cache)
+                .with_timing_cache(true)
+                .with_timing_cache_path(cache);
+            // CUDA second: nodes TensorRT does not take run there, not on the CPU.
+            trt.register(&mut gpu)
+                .and_then(|()| ort::ep::CUDA::default().with_device_id(device_id).register(&mut gpu))
+                .map(|()| format!("tensorrt:{device_id}"))
         }
-        #[cfg(not(feature = "cuda"))]
-        ExecutionProvider::Cuda => {
-            tracing::warn!("stillmap was built without the `cuda` feature; segmentation runs on the CPU");
-            Ok((builder, "cpu"))
+    };
+    let name = config.execution_provider.name();
+    match registered {
+        Ok(device) => Ok((gpu, device)),
+        Err(e) if config.fallback_to_cpu => {
+            tracing::warn!("execution provider {name} unavailable ({e}); segmentation runs on the CPU (fallback_to_cpu)");
+            Ok((builder, "cpu".into()))
         }
+        Err(e) => Err(format!(
+            "perception.segmentation.execution_provider = \"{name}\" cannot run: {e}. Install the GPU build of \
+             ONNX Runtime and its CUDA libraries (make gpu-deps) and point ORT_DYLIB_PATH at it, or set \
+             perception.segmentation.fallback_to_cpu = true to run on the CPU"
+        )),
     }
 }
 
 impl Segmenter for YoloSegmenter {
+    fn segment_batch(&mut self, frames: &[RgbFrame<'_>]) -> Result<Vec<Segmentation>, PerceptionError> {
+        if self.dynamic_batch && frames.len() > 1 {
+            return self.run_batch(frames);
+        }
+        frames.iter().map(|f| self.segment(f.rgb, f.width, f.height)).collect()
+    }
+
+    fn max_batch(&self) -> usize {
+        if self.dynamic_batch { usize::MAX } else { 1 }
+    }
+
     fn segment(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<Segmentation, PerceptionError> {
         if width == 0 || height == 0 {
             return Err(PerceptionError::Input(format!("image size {width}x{height} is empty")));

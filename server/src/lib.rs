@@ -69,7 +69,7 @@ type PerceptionSetup = (stillmap_perception::PerceptionConfig, Option<Arc<percep
 /// Loads the segmentation model(s) when perception wants them: any problem with
 /// the configured model is a start-up error. No model configured: masks come from
 /// the flow alone (every pixel prior-static), with a warning.
-fn perception_service(config: &ServerConfig) -> Result<Option<PerceptionSetup>, ServerError> {
+fn perception_service(config: &ServerConfig, metrics: &Arc<metrics::Metrics>) -> Result<Option<PerceptionSetup>, ServerError> {
     let p = &config.perception;
     if !p.enabled {
         return Ok(None);
@@ -81,21 +81,28 @@ fn perception_service(config: &ServerConfig) -> Result<Option<PerceptionSetup>, 
         tracing::warn!("no segmentation model configured (perception.segmentation.model_path / --model): dynamic masks come from optical flow alone");
         return Ok(Some((p.clone(), None)));
     }
-    let service = perception::SegmentationService::start(p)?;
-    tracing::info!(model = %p.segmentation.model_path, device = service.device(), workers = p.segmentation.workers, "segmentation ready");
+    let service = perception::SegmentationService::start(p, metrics.clone())?;
+    tracing::info!(
+        model = %p.segmentation.model_path,
+        device = service.device(),
+        workers = p.segmentation.workers,
+        max_batch = service.max_batch(),
+        "segmentation ready"
+    );
     Ok(Some((p.clone(), Some(service))))
 }
 
 /// Serves until `shutdown` becomes true. `on_ready` is called once every listener is up.
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
-    let perception = perception_service(&config)?;
+    let metrics: Arc<metrics::Metrics> = Arc::default();
+    let perception = perception_service(&config, &metrics)?;
     let store = if config.store.enabled { Some(Arc::new(store::Store::open(std::path::Path::new(&config.store.path))?)) } else { None };
     let stored = match &store {
         Some(s) => s.load_all()?,
         None => Vec::new(),
     };
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, Arc::default()));
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics));
     let tokens = Arc::new(auth::Tokens::new(&config.auth.tokens));
     if !tokens.required() {
         tracing::info!("auth.tokens is empty: every robot's hello is accepted");

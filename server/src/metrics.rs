@@ -32,6 +32,9 @@ pub struct Metrics {
     keyframes_fused: Counter,
     sessions_connected: Gauge,
     sessions_total: Counter,
+    segmentation_batch_size: Histogram,
+    segmentation_batch_seconds: Histogram,
+    segmentation_replaced: Counter,
 }
 
 impl Default for Metrics {
@@ -63,6 +66,16 @@ impl Default for Metrics {
         registry.register("keyframes_fused", "Keyframes fused into the static semantic maps", keyframes_fused.clone());
         registry.register("sessions_connected", "Sessions with a connected robot", sessions_connected.clone());
         registry.register("sessions", "Sessions opened", sessions_total.clone());
+        let segmentation_batch_size = Histogram::new(exponential_buckets(1.0, 2.0, 7));
+        registry.register("segmentation_batch_size", "Frames per segmentation inference", segmentation_batch_size.clone());
+        let segmentation_batch_seconds = latency_histogram();
+        registry.register("segmentation_batch_seconds", "Time of one segmentation inference (a whole batch)", segmentation_batch_seconds.clone());
+        let segmentation_replaced = Counter::default();
+        registry.register(
+            "segmentation_replaced",
+            "Frames waiting for segmentation replaced by their session's newer frame (segmentation fell behind)",
+            segmentation_replaced.clone(),
+        );
         Self {
             registry,
             frames_received,
@@ -76,6 +89,9 @@ impl Default for Metrics {
             keyframes_fused,
             sessions_connected,
             sessions_total,
+            segmentation_batch_size,
+            segmentation_batch_seconds,
+            segmentation_replaced,
         }
     }
 }
@@ -108,6 +124,14 @@ impl Metrics {
 
     pub fn keyframe_fused(&self) {
         self.keyframes_fused.inc();
+    }
+
+    pub fn segmentation_batch(&self, frames: usize, elapsed: std::time::Duration) {
+        self.segmentation_batch_size.observe(frames as f64);
+        self.segmentation_batch_seconds.observe(elapsed.as_secs_f64());
+    }
+    pub fn segmentation_replaced(&self) {
+        self.segmentation_replaced.inc();
     }
 
     pub fn session_opened(&self) {
