@@ -6,14 +6,29 @@ ORT_VERSION := 1.31.1
 ORT_LIB := $(abspath .deps/ort/libonnxruntime.so.$(ORT_VERSION))
 CARGO ?= cargo
 
+# GPU=1 (GPU machines, after `make gpu-deps`): the GPU build of ONNX Runtime and the
+# CUDA libraries from .deps, and segmentation on CUDA.
+GPU ?=
+ifeq ($(GPU),1)
+ORT_LIB := $(abspath .deps/ort-gpu/libonnxruntime.so.$(ORT_VERSION))
+export LD_LIBRARY_PATH := $(abspath .deps/cuda/lib):$(abspath .deps/ort-gpu)$(if $(LD_LIBRARY_PATH),:$(LD_LIBRARY_PATH))
+export STILLMAP_EXECUTION_PROVIDER := cuda
+export GPU
+endif
+
 export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps dashboard build demo test bench bench-codecs bench-transport clean
+.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet clean
 
 deps:
-	@deploy/install-deps.sh
+	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
+
+# The third command on a GPU machine: the GPU build of ONNX Runtime and the CUDA 12 /
+# cuDNN 9 libraries from PyPI wheels (then `make demo GPU=1`, `make bench-fleet GPU=1`).
+gpu-deps:
+	@deploy/install-deps.sh --gpu
 
 # The dashboard is plain ES modules (dashboard/src) plus three.js from npm; `deps`
 # installs the npm packages, the server serves them (no bundling step).
@@ -29,6 +44,12 @@ test: build
 	$(CARGO) test --workspace --no-fail-fast
 
 bench: bench-codecs bench-transport
+
+# Fleet capacity: N robots against a fresh release server per run; prints the
+# README's Markdown table (deploy/bench-fleet.sh says what the sweep is).
+bench-fleet: deps
+	$(CARGO) build --release --workspace --bins
+	deploy/bench-fleet.sh target/release
 
 bench-codecs: deps
 	$(CARGO) run --release -q -p stillmap-client -- bench-codecs --tum $(TUM)

@@ -7,6 +7,8 @@
 # (PyPI, in a virtual environment) for the trajectory-evaluation parity test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+GPU=""
+[ "${1:-}" = "--gpu" ] && GPU=1
 
 APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core chromium)
 # Node.js for the dashboard's npm packages (three.js; playwright-core for its browser test).
@@ -67,4 +69,57 @@ if [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwr
   echo "install-deps: npm ci in dashboard/"
   (cd dashboard && npm ci --no-audit --no-fund --loglevel=error)
   touch dashboard/node_modules
+fi
+
+# The segmentation models with a symbolic batch dimension, made from the shipped
+# batch-1 files (deploy/make-batched-model.py, which checks the outputs equal the
+# batch-1 model's) into .deps/models: the segmentation service batches with them.
+if [ ! -f .deps/models/yolov8n-seg_fp32_320_batch.onnx ] || [ ! -f .deps/models/yolov8n-seg_fp32_640_batch.onnx ] \
+   || [ deploy/make-batched-model.py -nt .deps/models/yolov8n-seg_fp32_640_batch.onnx ]; then
+  echo "install-deps: making the batching segmentation models in .deps/models"
+  if [ ! -x .deps/onnx-tools/bin/python ]; then
+    python3 -m venv .deps/onnx-tools
+    .deps/onnx-tools/bin/pip install -q --disable-pip-version-check -r deploy/onnx-tools-requirements.txt
+  fi
+  mkdir -p .deps/models
+  for size in 320 640; do
+    .deps/onnx-tools/bin/python deploy/make-batched-model.py "${SHARED:-../shared}/models/yolov8n-seg_fp32_${size}.onnx" \
+      ".deps/models/yolov8n-seg_fp32_${size}_batch.onnx" --check >/dev/null
+  done
+fi
+
+# GPU machines (`make gpu-deps`, `deploy/install-deps.sh --gpu`): the GPU build of
+# ONNX Runtime (same version, so ort's api-31 fits) and the CUDA 12 / cuDNN 9
+# libraries its CUDA and TensorRT providers load, all from PyPI wheels: no system
+# CUDA toolkit, only the NVIDIA driver. The libraries go to .deps/ort-gpu and
+# .deps/cuda/lib; `make ... GPU=1` points ORT_DYLIB_PATH and LD_LIBRARY_PATH there.
+if [ -n "$GPU" ]; then
+  gpu_lib=".deps/ort-gpu/libonnxruntime.so.${ORT_VERSION}"
+  if [ ! -f "$gpu_lib" ] || [ ! -d .deps/cuda/lib ]; then
+    echo "install-deps: fetching onnxruntime-gpu ${ORT_VERSION} and the CUDA 12 runtime wheels from PyPI (several GB)"
+    mkdir -p .deps/gpu-wheels .deps/ort-gpu .deps/cuda/lib
+    python3 -m pip download -q --no-deps --only-binary=:all: -d .deps/gpu-wheels \
+      "onnxruntime-gpu==${ORT_VERSION}" \
+      "nvidia-cuda-runtime-cu12==12.9.79" "nvidia-cublas-cu12==12.9.3.13" "nvidia-cudnn-cu12==9.27.0.42" \
+      "nvidia-cufft-cu12==11.4.1.4" "nvidia-curand-cu12==10.3.10.19" "nvidia-cuda-nvrtc-cu12==12.9.86" \
+      "nvidia-nvjitlink-cu12==12.9.86"
+    python3 - "$ORT_VERSION" <<'PY'
+import glob, os, zipfile
+for wheel_path in glob.glob(".deps/gpu-wheels/*.whl"):
+    wheel = zipfile.ZipFile(wheel_path)
+    for name in wheel.namelist():
+        base = os.path.basename(name)
+        if name.startswith("onnxruntime/capi/libonnxruntime"):
+            # The CUDA/TensorRT providers must sit beside libonnxruntime.so.
+            target = ".deps/ort-gpu/" + base
+        elif name.startswith("nvidia/") and "/lib/" in name and ".so" in base:
+            target = ".deps/cuda/lib/" + base
+        else:
+            continue
+        with open(target, "wb") as out:
+            out.write(wheel.read(name))
+PY
+    test -f "$gpu_lib"
+  fi
+  echo "install-deps: GPU libraries ready: ORT_DYLIB_PATH=$PWD/$gpu_lib LD_LIBRARY_PATH=$PWD/.deps/cuda/lib:$PWD/.deps/ort-gpu"
 fi

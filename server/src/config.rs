@@ -27,6 +27,11 @@ pub struct ServerConfig {
     pub auth: AuthConfig,
 }
 
+/// Largest `session.pipeline_threads` and `session.map_threads`.
+const MAX_POOL_THREADS: usize = 1024;
+/// Largest `session.map_queue` (each job holds a keyframe's images, about 1.5 MB).
+const MAX_MAP_QUEUE: usize = 256;
+
 /// Largest `zenoh.idle_disconnect_s`: a day.
 const MAX_IDLE_DISCONNECT_S: f64 = 86_400.0;
 
@@ -121,6 +126,16 @@ pub struct SessionConfig {
     /// away instead of dropping every robot's frames. Size it from the fleet
     /// benchmark (`make bench-fleet`). 0 = no limit.
     pub max_connected: usize,
+    /// Threads that run the sessions' tracking paths (decode, perception,
+    /// tracking), shared by all sessions; 0 (default) = one per core.
+    pub pipeline_threads: usize,
+    /// Threads that fuse keyframes into the maps and commit them to the store,
+    /// shared by all sessions, off the tracking path.
+    pub map_threads: usize,
+    /// Map jobs (keyframes, re-fusions) waiting per session; a keyframe finding the
+    /// queue full is left out of the map and counted (`stillmap_map_jobs_skipped_total`),
+    /// so tracking never waits for the map.
+    pub map_queue: usize,
 }
 
 /// Overload policy of a session's frame queue. Every dropped frame is counted in
@@ -172,6 +187,9 @@ impl Default for SessionConfig {
             result_buffer: 64,
             max_pending_drop_notices: 1024,
             max_connected: 64,
+            pipeline_threads: 0,
+            map_threads: 1,
+            map_queue: 16,
         }
     }
 }
@@ -191,6 +209,15 @@ impl ServerConfig {
         let bad = |msg: String| Err(ServerError::Config(msg));
         if self.session.queue_capacity == 0 {
             return bad("session.queue_capacity must be at least 1".into());
+        }
+        if self.session.pipeline_threads > MAX_POOL_THREADS {
+            return bad(format!("session.pipeline_threads must be at most {MAX_POOL_THREADS}, got {}", self.session.pipeline_threads));
+        }
+        if !(1..=MAX_POOL_THREADS).contains(&self.session.map_threads) {
+            return bad(format!("session.map_threads must be in 1..={MAX_POOL_THREADS}, got {}", self.session.map_threads));
+        }
+        if !(1..=MAX_MAP_QUEUE).contains(&self.session.map_queue) {
+            return bad(format!("session.map_queue must be in 1..={MAX_MAP_QUEUE}, got {}", self.session.map_queue));
         }
         if self.session.result_buffer == 0 {
             return bad("session.result_buffer must be at least 1".into());

@@ -13,6 +13,7 @@ pub mod mapping;
 pub mod metrics;
 pub mod perception;
 pub mod pipeline;
+pub mod pool;
 pub mod queue;
 pub mod session;
 pub mod store;
@@ -49,6 +50,8 @@ pub enum ServerError {
     Perception(#[from] stillmap_perception::PerceptionError),
     #[error("{0}")]
     Store(#[from] store::StoreError),
+    #[error("cannot start the worker pools: {0}")]
+    Threads(std::io::Error),
 }
 
 /// Where the server ended up listening (ports resolved when 0 was asked for).
@@ -96,13 +99,14 @@ fn perception_service(config: &ServerConfig, metrics: &Arc<metrics::Metrics>) ->
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
     let metrics: Arc<metrics::Metrics> = Arc::default();
+    let pools = session::Pools::start(&config.session).map_err(ServerError::Threads)?;
     let perception = perception_service(&config, &metrics)?;
     let store = if config.store.enabled { Some(Arc::new(store::Store::open(std::path::Path::new(&config.store.path))?)) } else { None };
     let stored = match &store {
         Some(s) => s.load_all()?,
         None => Vec::new(),
     };
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics));
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools));
     let tokens = Arc::new(auth::Tokens::new(&config.auth.tokens));
     if !tokens.required() {
         tracing::info!("auth.tokens is empty: every robot's hello is accepted");

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
+use stillmap_perception::config::ExecutionProvider;
 use stillmap_server::config::OverloadPolicy;
 use stillmap_server::{ServerConfig, run};
 
@@ -52,6 +53,9 @@ struct Args {
     /// Bearer token a robot's hello must carry, repeatable (adds to auth.tokens).
     #[arg(long = "auth-token", env = "STILLMAP_AUTH_TOKENS", value_delimiter = ',', hide_env_values = true)]
     auth_tokens: Vec<String>,
+    /// Where segmentation runs: cpu, cuda or tensorrt (perception.segmentation.execution_provider).
+    #[arg(long, env = "STILLMAP_EXECUTION_PROVIDER", value_parser = parse_provider)]
+    execution_provider: Option<ExecutionProvider>,
     /// Print the effective configuration as TOML and exit (auth tokens redacted).
     #[arg(long)]
     print_config: bool,
@@ -62,6 +66,15 @@ fn parse_policy(s: &str) -> Result<OverloadPolicy, String> {
         "drop_oldest" => Ok(OverloadPolicy::DropOldest),
         "drop_newest" => Ok(OverloadPolicy::DropNewest),
         _ => Err(format!("unknown overload policy {s:?}; use drop-oldest or drop-newest")),
+    }
+}
+
+fn parse_provider(s: &str) -> Result<ExecutionProvider, String> {
+    match s {
+        "cpu" => Ok(ExecutionProvider::Cpu),
+        "cuda" => Ok(ExecutionProvider::Cuda),
+        "tensorrt" => Ok(ExecutionProvider::Tensorrt),
+        _ => Err(format!("unknown execution provider {s:?}; use cpu, cuda or tensorrt")),
     }
 }
 
@@ -99,6 +112,9 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     }
     if let Some(v) = &args.model {
         c.perception.segmentation.model_path = v.clone();
+    }
+    if let Some(v) = args.execution_provider {
+        c.perception.segmentation.execution_provider = v;
     }
     if args.no_perception {
         c.perception.enabled = false;

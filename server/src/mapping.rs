@@ -21,7 +21,6 @@ use stillmap_mapping::{DepthView, MapBuilder, MappingConfig, MappingError, NO_CL
 use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb;
 
-use crate::pipeline::append_stages;
 use crate::store::{Commit, KeyframeRecord, SessionMeta, Store, StoreError};
 use crate::tracking::camera_of;
 
@@ -64,7 +63,6 @@ pub struct MapFrame<'a> {
     /// Nonzero where perception keeps the pixel out of the map.
     pub exclude: Option<&'a [u8]>,
     pub classes: Option<&'a [u16]>,
-    pub accel_in_camera: Option<Vector3<f64>>,
 }
 
 /// One map's description (the info endpoint and the dashboard).
@@ -291,20 +289,25 @@ pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
     (m.builder.map().version(), m.builder.keyframes(), m.builder.map().stats().occupied_voxels)
 }
 
-/// Fuses the frame when the tracker just made it a keyframe, and re-fuses recent
-/// keyframes the tracker moved. Writes the `map_fuse` stage time into `result`.
+/// The map's re-fusion window (keyframes whose poses it follows).
+pub fn refuse_window(map: &SharedMap) -> usize {
+    lock(map).builder.config().refuse_window
+}
+
+/// Takes accelerometer samples, re-fuses the keyframes whose pose moved, and fuses
+/// `frame` when it is the new keyframe `new_keyframe`. Returns the fusion time of
+/// the new keyframe.
 pub fn update(
     map: &SharedMap,
-    result: &mut pb::FrameResult,
-    frame: &MapFrame<'_>,
-    world_from_camera: Option<&Isometry3<f64>>,
+    frame: Option<&MapFrame<'_>>,
+    world_from_camera: &Isometry3<f64>,
     new_keyframe: Option<u64>,
+    accel: &[(Isometry3<f64>, Vector3<f64>)],
     keyframe_pose: impl FnMut(u64) -> Option<Isometry3<f64>>,
 ) -> Option<Duration> {
-    let world_from_camera = world_from_camera?;
     let mut m = lock(map);
-    if let Some(accel) = &frame.accel_in_camera {
-        m.builder.observe_accel(world_from_camera, accel);
+    for (pose, a) in accel {
+        m.builder.observe_accel(pose, a);
     }
     let moved = m.builder.moved_keyframes(keyframe_pose);
     if !moved.is_empty() || new_keyframe.is_some() {
@@ -312,16 +315,12 @@ pub fn update(
         m.restore_near(&nalgebra::Point3::from(world_from_camera.translation.vector));
     }
     m.builder.refuse(&moved);
-    let id = new_keyframe?;
+    let (id, frame) = (new_keyframe?, frame?);
     let view = DepthView { depth: &frame.depth.data, rgb: &frame.color.data, exclude: frame.exclude, classes: frame.classes };
     match m.builder.add_keyframe(id, world_from_camera, &view) {
-        Ok(report) => {
-            drop(m);
-            append_stages(result, &[(MAP_FUSE_STAGE, report.fuse_time)], report.fuse_time);
-            Some(report.fuse_time)
-        }
+        Ok(report) => Some(report.fuse_time),
         Err(e) => {
-            tracing::warn!(sequence = result.sequence, "map fusion failed: {e}");
+            tracing::warn!(keyframe = id, "map fusion failed: {e}");
             None
         }
     }

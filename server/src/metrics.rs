@@ -35,6 +35,8 @@ pub struct Metrics {
     segmentation_batch_size: Histogram,
     segmentation_batch_seconds: Histogram,
     segmentation_replaced: Counter,
+    map_backlog: Gauge,
+    map_jobs_skipped: Family<Labels, Counter>,
 }
 
 impl Default for Metrics {
@@ -76,6 +78,14 @@ impl Default for Metrics {
             "Frames waiting for segmentation replaced by their session's newer frame (segmentation fell behind)",
             segmentation_replaced.clone(),
         );
+        let map_backlog = Gauge::default();
+        registry.register("map_backlog", "Map jobs (keyframes, re-fusions) waiting for the map pool, all sessions", map_backlog.clone());
+        let map_jobs_skipped = Family::<Labels, Counter>::default();
+        registry.register(
+            "map_jobs_skipped",
+            "Map jobs left out because their session's map queue was full (kind: keyframe, refuse)",
+            map_jobs_skipped.clone(),
+        );
         Self {
             registry,
             frames_received,
@@ -92,6 +102,8 @@ impl Default for Metrics {
             segmentation_batch_size,
             segmentation_batch_seconds,
             segmentation_replaced,
+            map_backlog,
+            map_jobs_skipped,
         }
     }
 }
@@ -132,6 +144,13 @@ impl Metrics {
     }
     pub fn segmentation_replaced(&self) {
         self.segmentation_replaced.inc();
+    }
+
+    pub fn map_backlog(&self, delta: i64) {
+        self.map_backlog.inc_by(delta);
+    }
+    pub fn map_job_skipped(&self, keyframe: bool) {
+        self.map_jobs_skipped.get_or_create(&one("kind", if keyframe { "keyframe" } else { "refuse" })).inc();
     }
 
     pub fn session_opened(&self) {

@@ -138,6 +138,21 @@ impl FrameQueue {
         }
     }
 
+    /// The next work without waiting (the pool's pipeline slices).
+    pub fn try_pop(&self) -> Option<Work> {
+        let mut inner = self.lock();
+        let work = inner.items.pop_front()?;
+        if matches!(work, Work::Frame(_)) {
+            inner.frames -= 1;
+        }
+        Some(work)
+    }
+
+    /// Whether nothing waits, frames or drop notices.
+    pub fn is_empty_of_work(&self) -> bool {
+        self.lock().items.is_empty()
+    }
+
     /// Frames waiting (not counting drop notices).
     pub fn len(&self) -> usize {
         self.lock().frames

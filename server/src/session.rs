@@ -1,15 +1,26 @@
-//! Robot sessions: the registry both ingest transports feed, and one pipeline
-//! worker thread per session.
+//! Robot sessions: the registry both ingest transports feed, and each session's
+//! pipeline and map work on the shared worker pools.
 //!
 //! A session outlives its connection: a robot that reconnects with
 //! `Hello.resume_session_id` gets the same session back, and queries keep
 //! answering for disconnected sessions. Results go to whichever connection is
-//! attached when the worker finishes a frame.
+//! attached when the pipeline finishes a frame.
+//!
+//! No session owns a thread. Its frame queue is a [`Lane`] of the pipeline pool
+//! (`session.pipeline_threads`); the tracking path (decode, perception, tracking)
+//! runs there and answers the frame. A new keyframe (and keyframes bundle
+//! adjustment moved) become a job on the session's map lane, run by the map pool
+//! (`session.map_threads`): fusion and the store commit never hold up tracking. The
+//! map lane is bounded (`session.map_queue`); a keyframe finding it full is left
+//! out of the map and counted (`stillmap_map_jobs_skipped_total`).
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock, Weak};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use nalgebra::{Isometry3, Vector3};
+use stillmap_proto::codec::{ColorImage, DepthImage};
 
 use stillmap_proto::pb::{self, FrameStatus, TrackingState, server_message::Msg};
 use tokio::sync::{broadcast, mpsc, watch};
@@ -17,13 +28,14 @@ use tonic::Status;
 
 use crate::config::SessionConfig;
 use crate::mapping::{MapFrame, SessionMap, SharedMap};
+use crate::pool::{Lane, Pool};
 use crate::perception::{SegmentationService, SessionPerception};
 use crate::tracking::SessionTracker;
 use stillmap_mapping::MappingConfig;
 use stillmap_perception::PerceptionConfig;
 use stillmap_tracking::TrackerConfig;
 use crate::metrics::Metrics;
-use crate::pipeline::{FramePipeline, validate_camera};
+use crate::pipeline::{FramePipeline, micros, validate_camera};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
 use crate::store::{SessionMeta, Store, StoredSession};
 
@@ -98,6 +110,126 @@ pub struct Session {
     map: Option<SharedMap>,
     /// Restored from the store after a restart: queries only, no worker.
     archived: bool,
+    /// The pools this session's work runs on (`None`: archived).
+    pools: Option<Pools>,
+    /// The pipeline state, built on the first frame (the pool runs one slice of a
+    /// session at a time, so this lock is never contended).
+    worker: Mutex<Option<WorkerState>>,
+    /// On the pipeline pool's ready list or running there.
+    scheduled: AtomicBool,
+    /// Fusion and store commits, in order, off the tracking path.
+    map_lane: Option<Arc<MapLane>>,
+    /// Waiting for room in the connection's result buffer (see `park_while_full`).
+    parked: AtomicBool,
+    /// The runtime that wakes a parked session (`None` outside one: unit tests).
+    runtime: Option<tokio::runtime::Handle>,
+    me: Weak<Session>,
+}
+
+/// The shared worker pools: the tracking path, and map fusion with store commits.
+#[derive(Clone)]
+pub struct Pools {
+    pub pipeline: Arc<Pool>,
+    pub map: Arc<Pool>,
+}
+
+impl Pools {
+    /// Starts the pools `config` sizes (0 pipeline threads: one per core).
+    pub fn start(config: &SessionConfig) -> std::io::Result<Self> {
+        let cores = std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get);
+        let pipeline = if config.pipeline_threads == 0 { cores } else { config.pipeline_threads };
+        Ok(Self { pipeline: Pool::new("pipeline", pipeline)?, map: Pool::new("map", config.map_threads)? })
+    }
+
+    /// Finishes what is queued and stops the threads (the pipeline first: its last
+    /// frames may still give the map work).
+    pub fn close(&self) {
+        self.pipeline.close();
+        self.map.close();
+    }
+}
+
+/// What one session's pipeline keeps between frames.
+struct WorkerState {
+    pipeline: FramePipeline,
+    tracker: Option<SessionTracker>,
+    perception: Option<SessionPerception>,
+    /// Keyframes handed to the map, newest last (at most `mapping.refuse_window`),
+    /// and the poses they were last sent with.
+    map_keyframes: VecDeque<(u64, Isometry3<f64>)>,
+    /// Accelerometer samples (with the camera pose) since the last map job.
+    accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
+}
+
+/// Accelerometer samples carried to the next map job, at most.
+const MAX_ACCEL_PER_MAP_JOB: usize = 64;
+/// Frames a pipeline slice processes before the pool turns to another session.
+const PIPELINE_SLICE_FRAMES: usize = 4;
+
+/// Map work of one tracked frame.
+struct MapJob {
+    world_from_camera: Isometry3<f64>,
+    keyframe: Option<KeyframeJob>,
+    /// Current poses of the keyframes in the map's re-fusion window.
+    keyframe_poses: Vec<(u64, Isometry3<f64>)>,
+    accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
+}
+
+/// A new keyframe: what fusion and the store need of it.
+struct KeyframeJob {
+    id: u64,
+    color: ColorImage,
+    depth: DepthImage,
+    exclude: Option<Vec<u8>>,
+    classes: Option<Vec<u16>>,
+    record: Option<crate::store::KeyframeRecord>,
+}
+
+/// A session's bounded queue of map jobs (a lane of the map pool).
+struct MapLane {
+    jobs: Mutex<VecDeque<MapJob>>,
+    capacity: usize,
+    scheduled: AtomicBool,
+    session: Weak<Session>,
+}
+
+impl Lane for MapLane {
+    fn run_slice(&self) {
+        let Some(session) = self.session.upgrade() else { return };
+        let Some(job) = lock(&self.jobs).pop_front() else { return };
+        session.metrics.map_backlog(-1);
+        session.run_map_job(job);
+    }
+    fn has_work(&self) -> bool {
+        !lock(&self.jobs).is_empty()
+    }
+    fn scheduled(&self) -> &AtomicBool {
+        &self.scheduled
+    }
+}
+
+impl Lane for Session {
+    fn run_slice(&self) {
+        let mut worker = lock(&self.worker);
+        for _ in 0..PIPELINE_SLICE_FRAMES {
+            // A client that does not read its results must not hold a pool thread:
+            // the session parks until its connection has room again, and meanwhile
+            // its queue applies the overload policy (the back-pressure of a slow reader).
+            if self.park_while_full() {
+                return;
+            }
+            let Some(work) = self.queue.try_pop() else { break };
+            let state = worker.get_or_insert_with(|| self.worker_state());
+            let result = self.process(state, work);
+            self.deliver(result);
+        }
+    }
+    fn has_work(&self) -> bool {
+        !self.parked.load(Ordering::SeqCst) && !self.queue.is_empty_of_work()
+    }
+    fn scheduled(&self) -> &AtomicBool {
+        &self.scheduled
+    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -111,6 +243,7 @@ impl Session {
         let sequence = frame.sequence;
         self.metrics.frame_received(transport, encoded_len);
         let outcome = self.queue.push(QueuedFrame { frame, received_at: Instant::now() })?;
+        self.schedule();
         self.counters.received.fetch_add(1, Ordering::Relaxed);
         self.counters.bytes.fetch_add(encoded_len as u64, Ordering::Relaxed);
         {
@@ -197,9 +330,12 @@ impl Session {
     fn deliver(&self, result: pb::FrameResult) {
         let sink = lock(&self.sink).clone();
         if let Some(sink) = sink {
-            // Blocking here is the back-pressure of a slow reader: the queue in front
-            // of the worker then applies the overload policy.
-            let _ = sink.blocking_send(Ok(pb::ServerMessage { msg: Some(Msg::Result(result)) }));
+            let message = Ok(pb::ServerMessage { msg: Some(Msg::Result(result)) });
+            // The slice checked for room first (see `run_slice`); only a message the
+            // ingest shell slipped in meanwhile can fill it, and then this waits.
+            if let Err(mpsc::error::TrySendError::Full(message)) = sink.try_send(message) {
+                let _ = sink.blocking_send(message);
+            }
         }
         let answered = self.counters.answered.fetch_add(1, Ordering::Relaxed) + 1;
         self.answered_tx.send_replace(answered);
@@ -232,105 +368,211 @@ impl Session {
         lock(&self.last_latency).clone()
     }
 
-    /// The worker loop: one thread per session, until the queue closes.
-    fn run_worker(self: Arc<Self>) {
-        let mut pipeline = FramePipeline::new(self.camera.clone());
-        let mut tracker = match SessionTracker::new(&self.camera, &self.tracker_config) {
-            Ok(t) => Some(t),
-            Err(e) => {
-                tracing::error!(session = %self.id, "tracking unavailable for this session: {e}");
-                None
+    /// Puts this session's pipeline on the pool (it has work), unless it is parked.
+    fn schedule(&self) {
+        if self.parked.load(Ordering::SeqCst) {
+            return;
+        }
+        if let (Some(pools), Some(me)) = (&self.pools, self.me.upgrade()) {
+            pools.pipeline.schedule(me);
+        }
+    }
+
+    /// When the attached connection's result buffer is full, parks the session: a
+    /// task waits for room (or for the connection to go) and schedules it again.
+    /// True when parked.
+    fn park_while_full(&self) -> bool {
+        if self.parked.load(Ordering::SeqCst) {
+            return true;
+        }
+        let Some(sink) = lock(&self.sink).clone().filter(|s| s.capacity() == 0) else { return false };
+        let Some(runtime) = &self.runtime else { return false };
+        self.parked.store(true, Ordering::SeqCst);
+        let me = self.me.clone();
+        runtime.spawn(async move {
+            // Room for one result, or the connection is gone: either way go on.
+            drop(sink.reserve().await);
+            if let Some(session) = me.upgrade() {
+                session.parked.store(false, Ordering::SeqCst);
+                session.schedule();
             }
-        };
-        let mut perception = self.perception.as_ref().and_then(|(config, service)| {
+        });
+        true
+    }
+
+    fn worker_state(&self) -> WorkerState {
+        let tracker = SessionTracker::new(&self.camera, &self.tracker_config)
+            .map_err(|e| tracing::error!(session = %self.id, "tracking unavailable for this session: {e}"))
+            .ok();
+        let perception = self.perception.as_ref().and_then(|(config, service)| {
             SessionPerception::new(&self.camera, config, service.as_ref())
                 .map_err(|e| tracing::error!(session = %self.id, "perception unavailable for this session: {e}"))
                 .ok()
         });
-        let transport = self.transport.label();
-        while let Some(work) = self.queue.pop() {
-            let result = match work {
-                Work::Dropped { sequence, capture_time_ns } => pb::FrameResult {
+        WorkerState {
+            pipeline: FramePipeline::new(self.camera.clone()),
+            tracker,
+            perception,
+            map_keyframes: VecDeque::new(),
+            accel: Vec::new(),
+        }
+    }
+
+    /// The tracking path of one frame: decode, perception, tracking; hands map work
+    /// to the map lane. Returns the frame's result.
+    fn process(&self, state: &mut WorkerState, work: Work) -> pb::FrameResult {
+        let queued = match work {
+            Work::Dropped { sequence, capture_time_ns } => {
+                return pb::FrameResult {
                     sequence,
                     capture_time_ns,
                     status: FrameStatus::Dropped as i32,
                     tracking_state: self.tracking().state as i32,
                     ..Default::default()
-                },
-                Work::Frame(queued) => {
-                    let mut out = pipeline.process(&queued.frame, queued.received_at.elapsed());
-                    if let (Some(tracker), Some((color, depth))) = (tracker.as_mut(), out.images.as_ref()) {
-                        let mask = perception.as_mut().and_then(|p| p.prepare(out.result.sequence, color, depth));
-                        let pose = tracker.track(&mut out.result, color, depth, mask);
-                        if let Some(p) = perception.as_mut() {
-                            let eliminated = tracker.masked_features() as u32;
-                            if let Some(source) = p.finish(&mut out.result, depth, tracker.last_motion(), eliminated) {
-                                self.metrics.perception(source, eliminated);
-                            }
-                        }
-                        if let Some(map) = &self.map {
-                            // Only a new keyframe is fused: the full-size masks are built for it alone.
-                            let keyframe = tracker.new_keyframe().is_some();
-                            let exclude = perception.as_ref().filter(|_| keyframe).and_then(SessionPerception::map_exclusion);
-                            let classes = perception.as_ref().filter(|_| keyframe).and_then(SessionPerception::class_map);
-                            let frame = MapFrame {
-                                color,
-                                depth,
-                                exclude: exclude.as_deref(),
-                                classes: classes.as_deref(),
-                                accel_in_camera: queued.frame.accel_in_camera.map(|a| nalgebra::Vector3::new(a.x, a.y, a.z)),
-                            };
-                            let fused = crate::mapping::update(map, &mut out.result, &frame, tracker.last_pose().as_ref(), tracker.new_keyframe(), |id| tracker.keyframe_pose(id));
-                            self.record_pose(&out.result, pose);
-                            if fused.is_some() {
-                                self.metrics.keyframe_fused();
-                                let record = tracker.new_keyframe().and_then(|id| tracker.keyframe_record(id));
-                                self.persist(map, record, Some(&mut out.result));
-                            }
-                        } else {
-                            self.record_pose(&out.result, pose);
-                        }
+                };
+            }
+            Work::Frame(queued) => queued,
+        };
+        let mut out = state.pipeline.process(&queued.frame, queued.received_at.elapsed());
+        if let Some((color, depth)) = out.images.as_ref() {
+            let mut tracked = false;
+            if let Some(tracker) = state.tracker.as_mut() {
+                let mask = state.perception.as_mut().and_then(|p| p.prepare(out.result.sequence, color, depth));
+                let pose = tracker.track(&mut out.result, color, depth, mask);
+                if let Some(p) = state.perception.as_mut() {
+                    let eliminated = tracker.masked_features() as u32;
+                    if let Some(source) = p.finish(&mut out.result, depth, tracker.last_motion(), eliminated) {
+                        self.metrics.perception(source, eliminated);
                     }
-                    if let Some(reason) = out.rejected {
-                        self.counters.rejected.fetch_add(1, Ordering::Relaxed);
-                        self.metrics.rejected(reason.label());
-                    } else {
-                        self.counters.processed.fetch_add(1, Ordering::Relaxed);
-                        self.metrics.frame_processed(transport);
-                        for l in &out.result.latency {
-                            self.metrics.stage(&l.stage, l.micros);
-                        }
-                        *lock(&self.last_latency) = out.result.latency.clone();
-                    }
-                    out.result
                 }
-            };
-            self.deliver(result);
+                self.record_pose(&out.result, pose);
+                tracked = true;
+            }
+            if tracked && let Some(lane) = &self.map_lane {
+                let accel = queued.frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
+                self.hand_to_map(state, lane, accel, color, depth);
+            }
         }
-        // Shutdown: commit the poses after the last keyframe too.
-        if let Some(map) = &self.map {
-            self.persist(map, None, None);
+        if let Some(reason) = out.rejected {
+            self.counters.rejected.fetch_add(1, Ordering::Relaxed);
+            self.metrics.rejected(reason.label());
+        } else {
+            self.counters.processed.fetch_add(1, Ordering::Relaxed);
+            self.metrics.frame_processed(self.transport.label());
+            for l in &out.result.latency {
+                self.metrics.stage(&l.stage, l.micros);
+            }
+            *lock(&self.last_latency) = out.result.latency.clone();
         }
-        tracing::debug!(session = %self.id, "worker stopped");
+        out.result
     }
 
-    /// Commits to the store; the time goes into `result` as the `store_commit` stage.
-    fn persist(&self, map: &SharedMap, keyframe: Option<crate::store::KeyframeRecord>, result: Option<&mut pb::FrameResult>) {
+    /// Queues the map's work for a tracked frame: a new keyframe (with its images,
+    /// masks and store record), keyframes bundle adjustment moved, accelerometer
+    /// samples. Frames with none of these only collect their accelerometer sample.
+    fn hand_to_map(&self, state: &mut WorkerState, lane: &Arc<MapLane>, accel: Option<Vector3<f64>>, color: &ColorImage, depth: &DepthImage) {
+        let Some(tracker) = state.tracker.as_ref() else { return };
+        let Some(world_from_camera) = tracker.last_pose() else { return };
+        if let Some(a) = accel
+            && state.accel.len() < MAX_ACCEL_PER_MAP_JOB
+        {
+            state.accel.push((world_from_camera, a));
+        }
+        let keyframe_poses: Vec<(u64, Isometry3<f64>)> =
+            state.map_keyframes.iter().filter_map(|(id, _)| Some((*id, tracker.keyframe_pose(*id)?))).collect();
+        let moved = keyframe_poses.iter().zip(&state.map_keyframes).any(|((_, now), (_, sent))| now != sent);
+        let keyframe = tracker.new_keyframe().map(|id| {
+            let perception = state.perception.as_ref();
+            KeyframeJob {
+                id,
+                color: color.clone(),
+                depth: depth.clone(),
+                exclude: perception.and_then(SessionPerception::map_exclusion),
+                classes: perception.and_then(SessionPerception::class_map),
+                record: tracker.keyframe_record(id),
+            }
+        });
+        if keyframe.is_none() && !moved {
+            return;
+        }
+        let new_id = keyframe.as_ref().map(|k| k.id);
+        let job = MapJob { world_from_camera, keyframe, keyframe_poses: keyframe_poses.clone(), accel: std::mem::take(&mut state.accel) };
+        {
+            let mut jobs = lock(&lane.jobs);
+            if jobs.len() >= lane.capacity {
+                // Never block tracking: the map misses this work, and it is counted.
+                drop(jobs);
+                self.metrics.map_job_skipped(new_id.is_some());
+                tracing::warn!(session = %self.id, keyframe = ?new_id, "map queue full (session.map_queue): work left out of the map");
+                return;
+            }
+            jobs.push_back(job);
+        }
+        self.metrics.map_backlog(1);
+        for ((id, now), slot) in keyframe_poses.into_iter().zip(state.map_keyframes.iter_mut()) {
+            *slot = (id, now);
+        }
+        if let (Some(id), Some(pose)) = (new_id, Some(world_from_camera)) {
+            state.map_keyframes.push_back((id, pose));
+            if let Some(map) = &self.map
+                && state.map_keyframes.len() > crate::mapping::refuse_window(map)
+            {
+                state.map_keyframes.pop_front();
+            }
+        }
+        if let Some(pools) = &self.pools {
+            pools.map.schedule(lane.clone());
+        }
+    }
+
+    /// Map work of one frame, on the map pool: re-fusion of moved keyframes, the
+    /// new keyframe's fusion, then its store commit. Times go to `/metrics`.
+    fn run_map_job(&self, job: MapJob) {
+        let Some(map) = &self.map else { return };
+        let poses: HashMap<u64, Isometry3<f64>> = job.keyframe_poses.into_iter().collect();
+        let frame = job.keyframe.as_ref().map(|k| MapFrame {
+            color: &k.color,
+            depth: &k.depth,
+            exclude: k.exclude.as_deref(),
+            classes: k.classes.as_deref(),
+        });
+        let fused = crate::mapping::update(
+            map,
+            frame.as_ref(),
+            &job.world_from_camera,
+            job.keyframe.as_ref().map(|k| k.id),
+            &job.accel,
+            |id| poses.get(&id).copied(),
+        );
+        if let Some(spent) = fused {
+            self.metrics.keyframe_fused();
+            self.metrics.stage(crate::mapping::MAP_FUSE_STAGE, micros(spent));
+            self.persist(map, job.keyframe.and_then(|k| k.record));
+        }
+    }
+
+    /// Commits to the store; the time goes to `/metrics` as the `store_commit` stage.
+    fn persist(&self, map: &SharedMap, keyframe: Option<crate::store::KeyframeRecord>) {
         let start = Instant::now();
         // Lock order: tracking, then map (nothing takes them the other way round).
         let track = self.tracking();
         let outcome = lock(map).persist(&track.trajectory, keyframe);
         drop(track);
         match outcome {
-            Ok(true) => {
-                if let Some(r) = result {
-                    let spent = start.elapsed();
-                    crate::pipeline::append_stages(r, &[(crate::mapping::STORE_COMMIT_STAGE, spent)], spent);
-                }
-            }
+            Ok(true) => self.metrics.stage(crate::mapping::STORE_COMMIT_STAGE, micros(start.elapsed())),
             Ok(false) => {}
             Err(e) => tracing::error!(session = %self.id, "cannot commit to the store (the map stays in memory): {e}"),
         }
+    }
+
+    /// Shutdown, after the pools have stopped: commits the poses after the last keyframe.
+    fn finish(&self) {
+        if let Some(map) = &self.map
+            && !self.archived
+        {
+            self.persist(map, None);
+        }
+        tracing::debug!(session = %self.id, "session finished");
     }
 
     /// Whether the session was restored from the store (no worker; read-only).
@@ -405,8 +647,8 @@ pub struct Registry {
     metrics: Arc<Metrics>,
     fleet: broadcast::Sender<FleetPose>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
-    /// Worker threads, joined at shutdown (their last commit must land).
-    workers: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    /// The worker pools every live session's work runs on.
+    pools: Pools,
     next_id: AtomicU64,
     /// Held through `open`, so concurrent hellos see each other when the
     /// `session.max_connected` limit is checked.
@@ -445,9 +687,10 @@ impl Registry {
         mapping: MappingConfig,
         store: Option<Arc<Store>>,
         metrics: Arc<Metrics>,
+        pools: Pools,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, workers: Mutex::new(Vec::new()), sessions: RwLock::default(), next_id: AtomicU64::new(1), admission: Mutex::new(()), epoch }
+        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, pools, sessions: RwLock::default(), next_id: AtomicU64::new(1), admission: Mutex::new(()), epoch }
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -522,7 +765,7 @@ impl Registry {
         } else {
             None
         };
-        let session = Arc::new(self.session(SessionParts {
+        let session = Arc::new_cyclic(|me| self.session(me, SessionParts {
             id: id.clone(),
             robot_id: hello.robot_id.clone(),
             transport,
@@ -537,12 +780,6 @@ impl Registry {
             archived: false,
         }));
         session.attach(sink);
-        let worker = session.clone();
-        let handle = std::thread::Builder::new()
-            .name(format!("pipeline-{n}"))
-            .spawn(move || worker.run_worker())
-            .map_err(|e| BadHello::Internal(format!("cannot start a pipeline worker: {e}")))?;
-        lock(&self.workers).push(handle);
         self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session.clone());
         self.metrics.session_opened();
         tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
@@ -596,7 +833,7 @@ impl Registry {
             let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
             let queue = FrameQueue::new(1, 1, self.config.overload_policy);
             queue.close();
-            let session = Arc::new(self.session(SessionParts {
+            let session = Arc::new_cyclic(|me| self.session(me, SessionParts {
                 id: id.clone(),
                 robot_id: s.meta.robot_id.clone(),
                 transport,
@@ -633,8 +870,24 @@ impl Registry {
     }
 
     /// A session from what differs between a live and a restored one.
-    fn session(&self, p: SessionParts) -> Session {
+    fn session(&self, me: &Weak<Session>, p: SessionParts) -> Session {
+        let live = !p.archived;
+        let map_lane = (live && p.map.is_some()).then(|| {
+            Arc::new(MapLane {
+                jobs: Mutex::default(),
+                capacity: self.config.map_queue,
+                scheduled: AtomicBool::new(false),
+                session: me.clone(),
+            })
+        });
         Session {
+            pools: live.then(|| self.pools.clone()),
+            worker: Mutex::new(None),
+            scheduled: AtomicBool::new(false),
+            map_lane,
+            parked: AtomicBool::new(false),
+            runtime: tokio::runtime::Handle::try_current().ok(),
+            me: me.clone(),
             id: p.id,
             robot_id: p.robot_id,
             transport: p.transport,
@@ -658,12 +911,13 @@ impl Registry {
         }
     }
 
-    /// Waits for every worker to finish its queue and its last commit, then stops
-    /// the segmentation workers (the sessions' last frames may still need them).
+    /// Lets the pools finish every queued frame and map job, commits each session's
+    /// last poses, then stops the segmentation workers (the sessions' last frames
+    /// may still need them). Call it after [`close_all`](Self::close_all).
     pub fn join_workers(&self) {
-        let workers = std::mem::take(&mut *lock(&self.workers));
-        for w in workers {
-            let _ = w.join();
+        self.pools.close();
+        for s in self.list() {
+            s.finish();
         }
         if let Some((_, Some(service))) = &self.perception {
             service.close();
@@ -700,7 +954,9 @@ mod tests {
     #[test]
     fn attach_if_vacant_never_takes_a_session_from_another_connection() {
         let mapping = MappingConfig { enabled: false, ..MappingConfig::default() };
-        let registry = Registry::new(SessionConfig::default(), TrackerConfig::default(), None, mapping, None, Arc::default());
+        let config = SessionConfig::default();
+        let pools = Pools::start(&config).expect("pools");
+        let registry = Registry::new(config, TrackerConfig::default(), None, mapping, None, Arc::default(), pools);
         let camera = pb::CameraInfo {
             width: 64,
             height: 48,
@@ -732,5 +988,6 @@ mod tests {
         assert!(session.is_connected());
         assert_eq!(gauge().as_deref(), Some("stillmap_sessions_connected 1"));
         registry.close_all();
+        registry.join_workers();
     }
 }
