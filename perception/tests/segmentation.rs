@@ -4,7 +4,7 @@
 mod support;
 
 use stillmap_perception::config::SegmentationConfig;
-use stillmap_perception::segment::{NO_CLASS, NO_INSTANCE};
+use stillmap_perception::segment::{NO_CLASS, NO_INSTANCE, RgbFrame};
 use stillmap_perception::{PerceptionError, Segmentation, Segmenter, YoloSegmenter};
 use support::{photo, segmentation_config};
 
@@ -90,4 +90,65 @@ fn model_problems_are_named_at_start_up() {
 
     let bad_input = YoloSegmenter::new(&segmentation_config("yolov8n-seg_fp32_320.onnx")).expect("model").segment(&[0; 10], 4, 4);
     assert_eq!(bad_input.unwrap_err().to_string(), "bad perception input: colour has 10 bytes, expected 48 (4x4x3)");
+}
+
+/// The batching model `deploy/make-batched-model.py` makes (`make test` runs it via
+/// deploy/install-deps.sh into .deps/models).
+fn batched_model(size: u32) -> String {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../.deps/models/yolov8n-seg_fp32_{size}_batch.onnx"));
+    assert!(path.is_file(), "{} is missing: run deploy/install-deps.sh (make test does)", path.display());
+    path.display().to_string()
+}
+
+/// A batch of frames of different sizes through the symbolic-batch model gives each
+/// frame exactly what it gets alone, and what the shipped batch-1 model gives it.
+#[test]
+fn a_batched_run_equals_the_single_frame_runs() {
+    let config = SegmentationConfig { model_path: batched_model(320), ..segmentation_config("x") };
+    let mut batched = YoloSegmenter::new(&config).expect("batched model loads");
+    assert!(batched.dynamic_batch());
+    assert_eq!(batched.max_batch(), usize::MAX);
+    let mut single = YoloSegmenter::new(&segmentation_config("yolov8n-seg_fp32_320.onnx")).expect("model loads");
+    assert!(!single.dynamic_batch());
+    assert_eq!(single.max_batch(), 1);
+
+    let (bus, bw, bh) = photo("bus.jpg");
+    let (astronaut, aw, ah) = photo("astronaut.png");
+    let flipped: Vec<u8> = bus.chunks_exact(3).rev().flatten().copied().collect();
+    let frames = [
+        RgbFrame { rgb: &bus, width: bw, height: bh },
+        RgbFrame { rgb: &astronaut, width: aw, height: ah },
+        RgbFrame { rgb: &flipped, width: bw, height: bh },
+    ];
+    let together = batched.segment_batch(&frames).expect("batch");
+    assert_eq!(together.len(), 3);
+    for (f, seg) in frames.iter().zip(&together) {
+        let alone = batched.segment(f.rgb, f.width, f.height).expect("alone");
+        assert_eq!(seg, &alone, "a frame's result does not depend on its batch");
+        assert_eq!(seg, &single.segment(f.rgb, f.width, f.height).expect("batch-1 model"), "same as the shipped model");
+    }
+    assert_eq!(count(&together[0], "bus"), 1);
+    assert!(count(&together[1], "person") >= 1, "{:?}", together[1].instances);
+    assert_ne!(together[0], together[2], "the flipped photo is a different frame");
+    // A batch-1 model runs a batch one frame at a time, with the same results.
+    assert_eq!(single.segment_batch(&frames).expect("one by one"), together);
+}
+
+/// A GPU provider that cannot run is a start-up error naming the way out, unless
+/// the configuration allows the CPU.
+#[test]
+fn a_gpu_provider_that_cannot_run_fails_unless_the_cpu_is_allowed() {
+    use stillmap_perception::config::ExecutionProvider;
+    // This machine's ONNX Runtime is the CPU build: it has no CUDA provider.
+    for provider in [ExecutionProvider::Cuda, ExecutionProvider::Tensorrt] {
+        let config = SegmentationConfig { execution_provider: provider, ..segmentation_config("yolov8n-seg_fp32_320.onnx") };
+        let e = match YoloSegmenter::new(&config) {
+            Ok(s) => panic!("{provider:?} loaded on {}", s.device()),
+            Err(e) => e.to_string(),
+        };
+        assert!(e.starts_with(&format!("perception.segmentation.execution_provider = \"{}\" cannot run: ", provider.name())), "{e}");
+        assert!(e.contains("make gpu-deps") && e.contains("fallback_to_cpu = true"), "{e}");
+        let fallback = SegmentationConfig { fallback_to_cpu: true, ..config };
+        assert_eq!(YoloSegmenter::new(&fallback).expect("falls back").device(), "cpu");
+    }
 }
