@@ -157,7 +157,7 @@ impl YoloSegmenter {
         if config.intra_threads > 0 {
             builder = builder.with_intra_threads(config.intra_threads).map_err(|e| load(e.to_string()))?;
         }
-        let (mut builder, device) = with_provider(builder, config).map_err(|e| PerceptionError::Model(e))?;
+        let (mut builder, device) = with_provider(builder, config).map_err(PerceptionError::Model)?;
         let session = builder.commit_from_file(&path).map_err(|e| load(e.to_string()))?;
 
         let not_yolo = |why: String| {
@@ -340,9 +340,10 @@ fn with_provider(
             Ok((builder, "cpu".into()))
         }
         Err(e) => Err(format!(
-            "perception.segmentation.execution_provider = \"{name}\" cannot run: {e}. Install the GPU build of \
+            "perception.segmentation.execution_provider = \"{name}\" cannot run: {}. Install the GPU build of \
              ONNX Runtime and its CUDA libraries (make gpu-deps) and point ORT_DYLIB_PATH at it, or set \
-             perception.segmentation.fallback_to_cpu = true to run on the CPU"
+             perception.segmentation.fallback_to_cpu = true to run on the CPU",
+            e.to_string().trim_end_matches('.')
         )),
     }
 }

@@ -46,7 +46,8 @@ pub enum ServerError {
     Http(std::io::Error),
     #[error("zenoh: {0}")]
     Zenoh(String),
-    #[error("perception: {0}")]
+    /// Displayed by its source (`anyhow`'s chain prints "perception: <problem>").
+    #[error("perception")]
     Perception(#[from] stillmap_perception::PerceptionError),
     #[error("{0}")]
     Store(#[from] store::StoreError),
