@@ -1,25 +1,22 @@
 //! The stillmap server as a library: [`run`] serves gRPC, Zenoh and HTTP over one
 //! session registry until the shutdown signal fires.
 //!
-//! Algorithms ([`pipeline`], [`queue`]) are free of network and file I/O; the
-//! shells ([`grpc`], [`zenoh_ingest`], [`http`]) only translate.
+//! The per-frame [`pipeline`] and the [`queue`] are free of network and file
+//! I/O; the shells ([`ingest`] for robots, [`api`] for queries) only translate,
+//! through [`convert`]. Sessions ([`session`]) run on the worker [`pool`]s.
 
+pub mod api;
 pub mod auth;
 pub mod config;
-pub mod dashboard;
-pub mod grpc;
-pub mod http;
-pub mod mapping;
+pub mod convert;
+pub mod ingest;
+pub mod map;
 pub mod metrics;
-pub mod perception;
 pub mod pipeline;
 pub mod pool;
 pub mod queue;
 pub mod session;
 pub mod store;
-pub mod tracking;
-#[cfg(feature = "zenoh")]
-pub mod zenoh_ingest;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -68,7 +65,7 @@ async fn bind(addr: &str) -> Result<tokio::net::TcpListener, ServerError> {
 }
 
 /// Perception's configuration and, when a model is loaded, the shared segmentation service.
-type PerceptionSetup = (stillmap_perception::PerceptionConfig, Option<Arc<perception::SegmentationService>>);
+type PerceptionSetup = (stillmap_perception::PerceptionConfig, Option<Arc<pipeline::segmentation::SegmentationService>>);
 
 /// Loads the segmentation model(s) when perception wants them: any problem with
 /// the configured model is a start-up error. No model configured: masks come from
@@ -85,7 +82,7 @@ fn perception_service(config: &ServerConfig, metrics: &Arc<metrics::Metrics>) ->
         tracing::warn!("no segmentation model configured (perception.segmentation.model_path / --model): dynamic masks come from optical flow alone");
         return Ok(Some((p.clone(), None)));
     }
-    let service = perception::SegmentationService::start(p, metrics.clone())?;
+    let service = pipeline::segmentation::SegmentationService::start(p, metrics.clone())?;
     tracing::info!(
         model = %p.segmentation.model_path,
         device = service.device(),
@@ -124,10 +121,10 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
 
     #[cfg(feature = "zenoh")]
     let zenoh_task = if config.zenoh.enabled {
-        let z = zenoh::open(zenoh_ingest::zenoh_config(&config.zenoh)?)
+        let z = zenoh::open(ingest::zenoh::zenoh_config(&config.zenoh)?)
             .await
             .map_err(|e| ServerError::Zenoh(format!("open: {e}")))?;
-        let task = tokio::spawn(zenoh_ingest::serve(
+        let task = tokio::spawn(ingest::zenoh::serve(
             z.clone(),
             registry.clone(),
             config.session.result_buffer,
@@ -146,14 +143,14 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     }
 
     let max = config.grpc.max_message_bytes;
-    let ingest = IngestServer::new(grpc::IngestService {
+    let ingest = IngestServer::new(ingest::grpc::IngestService {
         registry: registry.clone(),
         tokens: tokens.clone(),
         result_buffer: config.session.result_buffer,
         max_message_bytes: max,
     })
     .max_decoding_message_size(max);
-    let query = QueryServer::new(grpc::QueryService { registry: registry.clone() });
+    let query = QueryServer::new(api::query::QueryService { registry: registry.clone() });
     let grpc_shutdown = wait_for(shutdown.clone());
     let grpc = tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(Duration::from_secs(config.grpc.keepalive_interval_s)))
@@ -161,12 +158,12 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(ingest)
         .add_service(query)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
-    let dashboard_dir = dashboard::locate(&config.http.dashboard_dir);
+    let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
     }
-    let http = axum::serve(http_listener, http::router(registry.clone(), dashboard_dir)).with_graceful_shutdown(wait_for(shutdown.clone()));
+    let http = axum::serve(http_listener, api::http::router(registry.clone(), dashboard_dir)).with_graceful_shutdown(wait_for(shutdown.clone()));
 
     let bound = Bound {
         grpc: bound_grpc,

@@ -19,23 +19,22 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock, Weak};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
-use nalgebra::{Isometry3, Vector3};
-use stillmap_proto::codec::{ColorImage, DepthImage};
-
+use stillmap_mapping::MappingConfig;
+use stillmap_perception::PerceptionConfig;
 use stillmap_proto::pb::{self, FrameStatus, TrackingState, server_message::Msg};
+use stillmap_tracking::TrackerConfig;
 use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
 use crate::config::SessionConfig;
-use crate::mapping::{MapFrame, SessionMap, SharedMap};
-use crate::pool::{Lane, Pool};
-use crate::perception::{SegmentationService, SessionPerception};
-use crate::tracking::SessionTracker;
-use stillmap_mapping::MappingConfig;
-use stillmap_perception::PerceptionConfig;
-use stillmap_tracking::TrackerConfig;
+use crate::convert::pose_of;
+use crate::map::{SessionMap, SharedMap};
 use crate::metrics::Metrics;
-use crate::pipeline::{FramePipeline, micros, validate_camera};
+use crate::pipeline::decode::validate_camera;
+use crate::pipeline::fuse::{self, MapJob};
+use crate::pipeline::segmentation::SegmentationService;
+use crate::pipeline::{FrameOutcome, SessionPipeline, micros, stage};
+use crate::pool::{Lane, Pool};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
 use crate::store::{SessionMeta, Store, StoredSession};
 
@@ -114,7 +113,7 @@ pub struct Session {
     pools: Option<Pools>,
     /// The pipeline state, built on the first frame (the pool runs one slice of a
     /// session at a time, so this lock is never contended).
-    worker: Mutex<Option<WorkerState>>,
+    worker: Mutex<Option<SessionPipeline>>,
     /// On the pipeline pool's ready list or running there.
     scheduled: AtomicBool,
     /// Fusion and store commits, in order, off the tracking path.
@@ -149,41 +148,8 @@ impl Pools {
     }
 }
 
-/// What one session's pipeline keeps between frames.
-struct WorkerState {
-    pipeline: FramePipeline,
-    tracker: Option<SessionTracker>,
-    perception: Option<SessionPerception>,
-    /// Keyframes handed to the map, newest last (at most `mapping.refuse_window`),
-    /// and the poses they were last sent with.
-    map_keyframes: VecDeque<(u64, Isometry3<f64>)>,
-    /// Accelerometer samples (with the camera pose) since the last map job.
-    accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
-}
-
-/// Accelerometer samples carried to the next map job, at most.
-const MAX_ACCEL_PER_MAP_JOB: usize = 64;
 /// Frames a pipeline slice processes before the pool turns to another session.
 const PIPELINE_SLICE_FRAMES: usize = 4;
-
-/// Map work of one tracked frame.
-struct MapJob {
-    world_from_camera: Isometry3<f64>,
-    keyframe: Option<KeyframeJob>,
-    /// Current poses of the keyframes in the map's re-fusion window.
-    keyframe_poses: Vec<(u64, Isometry3<f64>)>,
-    accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
-}
-
-/// A new keyframe: what fusion and the store need of it.
-struct KeyframeJob {
-    id: u64,
-    color: ColorImage,
-    depth: DepthImage,
-    exclude: Option<Vec<u8>>,
-    classes: Option<Vec<u16>>,
-    record: Option<crate::store::KeyframeRecord>,
-}
 
 /// A session's bounded queue of map jobs (a lane of the map pool).
 struct MapLane {
@@ -219,8 +185,25 @@ impl Lane for Session {
                 return;
             }
             let Some(work) = self.queue.try_pop() else { break };
-            let state = worker.get_or_insert_with(|| self.worker_state());
-            let result = self.process(state, work);
+            let result = match work {
+                Work::Dropped { sequence, capture_time_ns } => pb::FrameResult {
+                    sequence,
+                    capture_time_ns,
+                    status: FrameStatus::Dropped as i32,
+                    tracking_state: self.tracking().state as i32,
+                    ..Default::default()
+                },
+                Work::Frame(queued) => {
+                    let pipeline = worker.get_or_insert_with(|| self.new_pipeline());
+                    let mut outcome = pipeline.process(&queued);
+                    if let Some(job) = outcome.map_job.take()
+                        && let Err(job) = self.hand_to_map(job)
+                    {
+                        pipeline.map_job_refused(&job);
+                    }
+                    self.account(&outcome)
+                }
+            };
             self.deliver(result);
         }
     }
@@ -400,153 +383,63 @@ impl Session {
         true
     }
 
-    fn worker_state(&self) -> WorkerState {
-        let tracker = SessionTracker::new(&self.camera, &self.tracker_config)
-            .map_err(|e| tracing::error!(session = %self.id, "tracking unavailable for this session: {e}"))
-            .ok();
-        let perception = self.perception.as_ref().and_then(|(config, service)| {
-            SessionPerception::new(&self.camera, config, service.as_ref())
-                .map_err(|e| tracing::error!(session = %self.id, "perception unavailable for this session: {e}"))
-                .ok()
-        });
-        WorkerState {
-            pipeline: FramePipeline::new(self.camera.clone()),
-            tracker,
-            perception,
-            map_keyframes: VecDeque::new(),
-            accel: Vec::new(),
-        }
+    fn new_pipeline(&self) -> SessionPipeline {
+        SessionPipeline::new(&self.id, &self.camera, &self.tracker_config, self.perception.as_ref(), self.map.as_ref().map(fuse::refuse_window))
     }
 
-    /// The tracking path of one frame: decode, perception, tracking; hands map work
-    /// to the map lane. Returns the frame's result.
-    fn process(&self, state: &mut WorkerState, work: Work) -> pb::FrameResult {
-        let queued = match work {
-            Work::Dropped { sequence, capture_time_ns } => {
-                return pb::FrameResult {
-                    sequence,
-                    capture_time_ns,
-                    status: FrameStatus::Dropped as i32,
-                    tracking_state: self.tracking().state as i32,
-                    ..Default::default()
-                };
-            }
-            Work::Frame(queued) => queued,
-        };
-        let mut out = state.pipeline.process(&queued.frame, queued.received_at.elapsed());
-        if let Some((color, depth)) = out.images.as_ref() {
-            let mut tracked = false;
-            if let Some(tracker) = state.tracker.as_mut() {
-                let mask = state.perception.as_mut().and_then(|p| p.prepare(out.result.sequence, color, depth));
-                let pose = tracker.track(&mut out.result, color, depth, mask);
-                if let Some(p) = state.perception.as_mut() {
-                    let eliminated = tracker.masked_features() as u32;
-                    if let Some(source) = p.finish(&mut out.result, depth, tracker.last_motion(), eliminated) {
-                        self.metrics.perception(source, eliminated);
-                    }
-                }
-                self.record_pose(&out.result, pose);
-                tracked = true;
-            }
-            if tracked && let Some(lane) = &self.map_lane {
-                let accel = queued.frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
-                self.hand_to_map(state, lane, accel, color, depth);
-            }
+    /// Publishes what a processed frame changed (pose, counters, metrics) and
+    /// returns its result.
+    fn account(&self, outcome: &FrameOutcome) -> pb::FrameResult {
+        let result = pb::FrameResult::from(outcome);
+        if let Some(track) = &outcome.track {
+            self.record_pose(&result, track.world_from_camera.as_ref().map(pose_of));
         }
-        if let Some(reason) = out.rejected {
+        if let Some(mask) = &outcome.mask {
+            self.metrics.perception(mask.label(), mask.dynamic_features);
+        }
+        if let Some(r) = &outcome.rejection {
             self.counters.rejected.fetch_add(1, Ordering::Relaxed);
-            self.metrics.rejected(reason.label());
+            self.metrics.rejected(r.reason.label());
         } else {
             self.counters.processed.fetch_add(1, Ordering::Relaxed);
             self.metrics.frame_processed(self.transport.label());
-            for l in &out.result.latency {
+            for l in &result.latency {
                 self.metrics.stage(&l.stage, l.micros);
             }
-            *lock(&self.last_latency) = out.result.latency.clone();
+            *lock(&self.last_latency) = result.latency.clone();
         }
-        out.result
+        result
     }
 
-    /// Queues the map's work for a tracked frame: a new keyframe (with its images,
-    /// masks and store record), keyframes bundle adjustment moved, accelerometer
-    /// samples. Frames with none of these only collect their accelerometer sample.
-    fn hand_to_map(&self, state: &mut WorkerState, lane: &Arc<MapLane>, accel: Option<Vector3<f64>>, color: &ColorImage, depth: &DepthImage) {
-        let Some(tracker) = state.tracker.as_ref() else { return };
-        let Some(world_from_camera) = tracker.last_pose() else { return };
-        if let Some(a) = accel
-            && state.accel.len() < MAX_ACCEL_PER_MAP_JOB
-        {
-            state.accel.push((world_from_camera, a));
-        }
-        let keyframe_poses: Vec<(u64, Isometry3<f64>)> =
-            state.map_keyframes.iter().filter_map(|(id, _)| Some((*id, tracker.keyframe_pose(*id)?))).collect();
-        let moved = keyframe_poses.iter().zip(&state.map_keyframes).any(|((_, now), (_, sent))| now != sent);
-        let keyframe = tracker.new_keyframe().map(|id| {
-            let perception = state.perception.as_ref();
-            KeyframeJob {
-                id,
-                color: color.clone(),
-                depth: depth.clone(),
-                exclude: perception.and_then(SessionPerception::map_exclusion),
-                classes: perception.and_then(SessionPerception::class_map),
-                record: tracker.keyframe_record(id),
-            }
-        });
-        if keyframe.is_none() && !moved {
-            return;
-        }
-        let new_id = keyframe.as_ref().map(|k| k.id);
-        let job = MapJob { world_from_camera, keyframe, keyframe_poses: keyframe_poses.clone(), accel: std::mem::take(&mut state.accel) };
+    /// Queues a map job on the session's map lane; a full lane gives it back
+    /// (tracking never waits for the map), counted in `/metrics`.
+    fn hand_to_map(&self, job: MapJob) -> Result<(), MapJob> {
+        let Some(lane) = &self.map_lane else { return Ok(()) };
         {
             let mut jobs = lock(&lane.jobs);
             if jobs.len() >= lane.capacity {
-                // Never block tracking: the map misses this work, and it is counted.
                 drop(jobs);
-                self.metrics.map_job_skipped(new_id.is_some());
-                tracing::warn!(session = %self.id, keyframe = ?new_id, "map queue full (session.map_queue): work left out of the map");
-                return;
+                let keyframe = job.keyframe.as_ref().map(|k| k.id);
+                self.metrics.map_job_skipped(keyframe.is_some());
+                tracing::warn!(session = %self.id, ?keyframe, "map queue full (session.map_queue): work left out of the map");
+                return Err(job);
             }
             jobs.push_back(job);
         }
         self.metrics.map_backlog(1);
-        for ((id, now), slot) in keyframe_poses.into_iter().zip(state.map_keyframes.iter_mut()) {
-            *slot = (id, now);
-        }
-        if let (Some(id), Some(pose)) = (new_id, Some(world_from_camera)) {
-            state.map_keyframes.push_back((id, pose));
-            if let Some(map) = &self.map
-                && state.map_keyframes.len() > crate::mapping::refuse_window(map)
-            {
-                state.map_keyframes.pop_front();
-            }
-        }
         if let Some(pools) = &self.pools {
             pools.map.schedule(lane.clone());
         }
+        Ok(())
     }
 
     /// Map work of one frame, on the map pool: re-fusion of moved keyframes, the
     /// new keyframe's fusion, then its store commit. Times go to `/metrics`.
     fn run_map_job(&self, job: MapJob) {
         let Some(map) = &self.map else { return };
-        let poses: HashMap<u64, Isometry3<f64>> = job.keyframe_poses.into_iter().collect();
-        let frame = job.keyframe.as_ref().map(|k| MapFrame {
-            color: &k.color,
-            depth: &k.depth,
-            exclude: k.exclude.as_deref(),
-            classes: k.classes.as_deref(),
-        });
-        let fused = crate::mapping::update(
-            map,
-            frame.as_ref(),
-            &job.world_from_camera,
-            job.keyframe.as_ref().map(|k| k.id),
-            &job.accel,
-            |id| poses.get(&id).copied(),
-        );
-        if let Some(spent) = fused {
+        if let Some(spent) = fuse::apply(map, &job) {
             self.metrics.keyframe_fused();
-            self.metrics.stage(crate::mapping::MAP_FUSE_STAGE, micros(spent));
+            self.metrics.stage(stage::MAP_FUSE, micros(spent));
             self.persist(map, job.keyframe.and_then(|k| k.record));
         }
     }
@@ -559,7 +452,7 @@ impl Session {
         let outcome = lock(map).persist(&track.trajectory, keyframe);
         drop(track);
         match outcome {
-            Ok(true) => self.metrics.stage(crate::mapping::STORE_COMMIT_STAGE, micros(start.elapsed())),
+            Ok(true) => self.metrics.stage(stage::STORE_COMMIT, micros(start.elapsed())),
             Ok(false) => {}
             Err(e) => tracing::error!(session = %self.id, "cannot commit to the store (the map stays in memory): {e}"),
         }
@@ -929,19 +822,6 @@ impl Registry {
         for s in self.list() {
             s.queue.close();
         }
-    }
-}
-
-/// The first message on a connection: accepted (or resumed) session.
-pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::ServerMessage {
-    pb::ServerMessage {
-        msg: Some(Msg::Accepted(pb::SessionAccepted {
-            session_id: opened.session.id.clone(),
-            resumed: opened.resumed,
-            last_received_sequence: if opened.resumed { opened.session.last_received_sequence() } else { None },
-            max_message_bytes: max_message_bytes as u64,
-            server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
-        })),
     }
 }
 

@@ -358,7 +358,7 @@ pub fn import_file(bytes: &[u8]) -> Result<StoredSession, StoreError> {
     stillmap_proto::validate_robot_id(&id).map_err(|e| file_error(format!("session id: {e}")))?;
     let meta: SessionMeta = serde_json::from_value(header["meta"].clone()).map_err(|e| file_error(format!("header: {e}")))?;
     let camera = pb::CameraInfo::decode(r.section()?).map_err(|e| file_error(format!("camera: {e}")))?;
-    crate::pipeline::validate_camera(Some(&camera)).map_err(|e| file_error(format!("camera: {e}")))?;
+    crate::pipeline::decode::validate_camera(Some(&camera)).map_err(|e| file_error(format!("camera: {e}")))?;
     let mut poses = Vec::new();
     for _ in 0..r.u32()? {
         poses.push(pb::PoseStamped::decode(r.section()?).map_err(|e| file_error(format!("pose: {e}")))?);

@@ -17,8 +17,8 @@ use zenoh::qos::CongestionControl;
 
 use crate::ServerError;
 use crate::config::ZenohConfig;
-use crate::grpc::{frame_before_hello, queue_status};
-use crate::session::{Registry, ResultSink, Session, Transport, accepted_message};
+use super::{accepted_message, frame_before_hello, queue_status, refusal};
+use crate::session::{Registry, ResultSink, Session, Transport};
 
 /// Builds the Zenoh configuration of the server from its config section.
 pub fn zenoh_config(cfg: &ZenohConfig) -> Result<zenoh::Config, ServerError> {
@@ -165,10 +165,7 @@ pub async fn serve(
                         }
                     }
                     Err(e) => {
-                        if matches!(e, crate::session::BadHello::Full { .. }) {
-                            metrics.rejected("server_full");
-                        }
-                        let _ = sink.send(Err(e.status())).await;
+                        let _ = sink.send(Err(refusal(&e, &metrics))).await;
                     }
                 }
             }

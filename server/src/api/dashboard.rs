@@ -101,7 +101,7 @@ fn not_found(name: &str) -> Response {
 fn session_json(s: &crate::session::Session, fps: f64) -> Value {
     let summary = crate::session::summary(s);
     let latest = s.tracking().latest;
-    let map = s.map().map(crate::mapping::summary);
+    let map = s.map().map(crate::map::summary);
     json!({
         "session_id": summary.session_id,
         "robot_id": summary.robot_id,

@@ -1,10 +1,10 @@
-//! The perception stage of a session's pipeline, and the segmentation service
-//! that all sessions share.
+//! The segmentation service all sessions share.
 //!
 //! Segmentation must not stall tracking: it runs on its own worker threads
 //! ([`SegmentationService`], each with its own model) and a session picks a result
-//! up on a later frame; the masker carries it to the current frame through the
-//! optical flow and the result says `MASK_SOURCE_WARPED` with the age in frames.
+//! up on a later frame; the masker ([`super::mask`]) carries it to the current frame
+//! through the optical flow and the result says `MASK_SOURCE_WARPED` with the age
+//! in frames.
 //!
 //! The service is a dynamic batcher, as Triton's: each session has one slot that
 //! holds its newest frame waiting for segmentation (a newer frame replaces it, so
@@ -19,33 +19,18 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use nalgebra::Isometry3;
 use stillmap_perception::segment::RgbFrame;
-use stillmap_perception::{DynamicMasker, Fused, MaskSource, MaskerInput, PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};
-use stillmap_proto::codec::{ColorImage, DepthImage};
-use stillmap_proto::pb;
+use stillmap_perception::{PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};
+use stillmap_proto::codec::ColorImage;
 
 use crate::metrics::Metrics;
-use crate::pipeline::append_stages;
-use crate::tracking::camera_of;
-
-/// Stage names of perception, as they appear in results and `/metrics`.
-pub mod perception_stage {
-    pub const FLOW: &str = "perception_flow";
-    pub const WARP: &str = "perception_warp";
-    pub const EGO_MOTION: &str = "perception_ego_motion";
-    pub const FUSION: &str = "perception_fusion";
-    /// Inference time of the segmentation the frame used (on the worker; its share
-    /// of the batch it ran in), when it arrived with this frame.
-    pub const SEGMENTATION: &str = "segmentation";
-}
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
 /// A finished segmentation: the frame it was computed on, the result, the inference time.
-type Finished = (u64, Segmentation, Duration);
+pub(crate) type Finished = (u64, Segmentation, Duration);
 
 struct Job {
     sequence: u64,
@@ -276,7 +261,7 @@ impl SegmentationClient {
     }
 
     /// Segments a frame and waits for the result (deterministic mode).
-    fn segment_now(&self, sequence: u64, color: &ColorImage) -> Option<Finished> {
+    pub(crate) fn segment_now(&self, sequence: u64, color: &ColorImage) -> Option<Finished> {
         self.submit(sequence, color);
         loop {
             {
@@ -293,154 +278,6 @@ impl SegmentationClient {
 
 /// How often a deterministic session checks for its segmentation.
 const DETERMINISTIC_POLL: Duration = Duration::from_millis(1);
-
-/// One session's perception state.
-pub struct SessionPerception {
-    masker: DynamicMasker,
-    segmentation: Option<SegmentationClient>,
-    policy_mask: Option<Vec<u8>>,
-    segmentation_time: Option<Duration>,
-    /// The last finished frame's fused mask.
-    fused: Option<Fused>,
-    /// Deterministic mode: (every, delay), the frames seen, and results held back
-    /// until their release frame.
-    deterministic: Option<(u32, u32)>,
-    frames: u64,
-    held: VecDeque<(u64, Finished)>,
-}
-
-impl SessionPerception {
-    pub fn new(camera: &pb::CameraInfo, config: &PerceptionConfig, service: Option<&Arc<SegmentationService>>) -> Result<Self, PerceptionError> {
-        let names = service.map(|s| s.class_names().to_vec()).unwrap_or_default();
-        let masker = DynamicMasker::new(camera_of(camera), config.clone(), &names)?;
-        let seg = &config.segmentation;
-        let deterministic = (seg.deterministic_every_frames > 0).then_some((seg.deterministic_every_frames, seg.deterministic_delay_frames));
-        Ok(Self {
-            masker,
-            segmentation: service.map(|s| s.client()),
-            policy_mask: None,
-            segmentation_time: None,
-            fused: None,
-            deterministic,
-            frames: 0,
-            held: VecDeque::new(),
-        })
-    }
-
-    /// First phase: returns the mask tracking must use for this frame.
-    pub fn prepare(&mut self, sequence: u64, color: &ColorImage, depth: &DepthImage) -> Option<&[u8]> {
-        self.fused = None;
-        let index = self.frames;
-        self.frames += 1;
-        let finished = match (&self.segmentation, self.deterministic) {
-            (Some(client), Some((every, delay))) => {
-                if index.is_multiple_of(u64::from(every))
-                    && let Some(f) = client.segment_now(sequence, color)
-                {
-                    self.held.push_back((index + u64::from(delay), f));
-                }
-                match self.held.front() {
-                    Some((release, _)) if *release <= index => self.held.pop_front().map(|(_, f)| f),
-                    _ => None,
-                }
-            }
-            (Some(client), None) => {
-                let finished = client.take();
-                client.submit(sequence, color);
-                finished
-            }
-            (None, _) => None,
-        };
-        self.segmentation_time = finished.as_ref().map(|f| f.2);
-        let input = MaskerInput {
-            sequence,
-            rgb: &color.data,
-            depth: &depth.data,
-            segmentation: finished.map(|(k, seg, _)| (k, seg)),
-            motion_prior: None,
-        };
-        match self.masker.prepare(input) {
-            Ok(mask) => {
-                self.policy_mask = Some(mask);
-                self.policy_mask.as_deref()
-            }
-            Err(e) => {
-                tracing::warn!(sequence, "perception failed: {e}");
-                self.policy_mask = None;
-                None
-            }
-        }
-    }
-
-    /// Second phase, after tracking: fuses with the tracked motion and writes the
-    /// counts, instances and stage times into `result`.
-    pub fn finish(
-        &mut self,
-        result: &mut pb::FrameResult,
-        depth: &DepthImage,
-        previous_from_current: Option<Isometry3<f64>>,
-        dynamic_features: u32,
-    ) -> Option<&'static str> {
-        self.policy_mask.take()?;
-        let out = match self.masker.finish(&depth.data, previous_from_current) {
-            Ok(out) => out,
-            Err(e) => {
-                tracing::warn!(sequence = result.sequence, "perception failed: {e}");
-                return None;
-            }
-        };
-        let (source, label, age) = match out.source {
-            MaskSource::None => (pb::MaskSource::None, "none", 0),
-            MaskSource::Fresh => (pb::MaskSource::Fresh, "fresh", 0),
-            MaskSource::Warped { age_frames } => (pb::MaskSource::Warped, "warped", age_frames),
-        };
-        let counts = result.counts.get_or_insert_with(pb::FrameCounts::default);
-        counts.dynamic_fraction = out.dynamic_fraction;
-        counts.dynamic_features = dynamic_features;
-        counts.mask_source = source as i32;
-        counts.mask_age_frames = age;
-        result.instances = out
-            .fused
-            .instances
-            .iter()
-            .map(|i| pb::DetectedInstance {
-                class_id: u32::from(i.class_id),
-                class_name: i.class_name.clone(),
-                score: i.score,
-                prior_dynamic: i.prior_dynamic,
-                moving: i.moving == Some(true),
-                pixels: i.pixels,
-                bbox: i.bbox.to_vec(),
-            })
-            .collect();
-        let t = out.times;
-        let mut stages = vec![
-            (perception_stage::FLOW, t.flow),
-            (perception_stage::WARP, t.warp),
-            (perception_stage::EGO_MOTION, t.ego_motion),
-            (perception_stage::FUSION, t.fusion),
-        ];
-        if let Some(d) = self.segmentation_time.take() {
-            stages.push((perception_stage::SEGMENTATION, d));
-        }
-        append_stages(result, &stages, t.total);
-        self.fused = Some(out.fused);
-        Some(label)
-    }
-
-    /// Pixels of the last finished frame that must stay out of the map (nonzero):
-    /// dynamic and prior-dynamic. `None` when perception failed on it.
-    pub fn map_exclusion(&self) -> Option<Vec<u8>> {
-        self.fused.as_ref().map(Fused::mapping_mask)
-    }
-
-    /// The segmentation class per pixel in the current frame (fresh or warped), if any.
-    pub fn class_map(&self) -> Option<Vec<u16>> {
-        self.fused.as_ref()?;
-        self.masker.segmentation().map(|s| s.class_map())
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use std::sync::mpsc;

@@ -1,25 +1,12 @@
-//! Per-frame processing, free of network and file I/O.
-//!
-//! [`FramePipeline::process`] checks a frame against the session's order and
-//! camera, decodes both images and returns the frame's result (state
-//! `TRACKING_STATE_INITIALIZING`, no pose). The session worker then hands the
-//! decoded images to the tracking stage (`tracking.rs`), which sets the state,
-//! the pose and the tracking stage times.
+//! The decode stage: checks a frame against the session's order and camera and
+//! decodes both images. Also the hello's camera check.
 
 use std::time::{Duration, Instant};
 
-use stillmap_proto::{MAX_EXPOSURE_TIME_OFFSET_S, MAX_ROLLING_SHUTTER_READOUT_S};
 use stillmap_proto::codec::{self, ColorImage, DepthImage};
-use stillmap_proto::pb::{self, ColorEncoding, DepthEncoding, FrameStatus, TrackingState};
+use stillmap_proto::pb::{self, ColorEncoding, DepthEncoding};
+use stillmap_proto::{MAX_EXPOSURE_TIME_OFFSET_S, MAX_ROLLING_SHUTTER_READOUT_S};
 use tonic::Code;
-
-/// Names of the pipeline stages, as they appear in results and `/metrics`.
-pub mod stage {
-    pub const QUEUE: &str = "queue";
-    pub const DECODE_COLOR: &str = "decode_color";
-    pub const DECODE_DEPTH: &str = "decode_depth";
-    pub const TOTAL: &str = "total";
-}
 
 /// Why a frame was rejected, as a metrics label.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -39,15 +26,26 @@ impl RejectReason {
     }
 }
 
-/// A processed frame: its result plus the decoded images for later stages.
-pub struct Processed {
-    pub result: pb::FrameResult,
-    pub images: Option<(ColorImage, DepthImage)>,
-    pub rejected: Option<RejectReason>,
+/// A frame that cannot be used: the reason, and the gRPC code and message its
+/// result carries.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rejection {
+    pub reason: RejectReason,
+    pub code: Code,
+    pub message: String,
 }
 
-/// The state a session's pipeline carries from frame to frame.
-pub struct FramePipeline {
+/// A decoded frame.
+pub struct Decoded {
+    pub color: ColorImage,
+    pub depth: DepthImage,
+    pub depth_crc32: u32,
+    pub color_time: Duration,
+    pub depth_time: Duration,
+}
+
+/// What the decode stage carries from frame to frame: the camera and the order.
+pub struct Decoder {
     camera: pb::CameraInfo,
     color_encoding: ColorEncoding,
     depth_encoding: DepthEncoding,
@@ -55,24 +53,7 @@ pub struct FramePipeline {
     last_capture_time_ns: Option<u64>,
 }
 
-pub(crate) fn micros(d: Duration) -> u32 {
-    u32::try_from(d.as_micros()).unwrap_or(u32::MAX)
-}
-
-/// Appends a later stage's times to a result, keeping `total` last and adding
-/// `spent` (that stage's own time) to it.
-pub(crate) fn append_stages(result: &mut pb::FrameResult, stages: &[(&str, Duration)], spent: Duration) {
-    let total = result.latency.iter().position(|l| l.stage == stage::TOTAL).map(|i| result.latency.remove(i));
-    for (name, d) in stages {
-        result.latency.push(pb::StageLatency { stage: (*name).into(), micros: micros(*d) });
-    }
-    if let Some(mut e) = total {
-        e.micros = e.micros.saturating_add(micros(spent));
-        result.latency.push(e);
-    }
-}
-
-impl FramePipeline {
+impl Decoder {
     /// `camera` must have passed [`validate_camera`].
     pub fn new(camera: pb::CameraInfo) -> Self {
         Self {
@@ -84,59 +65,40 @@ impl FramePipeline {
         }
     }
 
-    /// Processes one frame that waited `queued_for` in the session queue.
-    pub fn process(&mut self, frame: &pb::Frame, queued_for: Duration) -> Processed {
-        let start = Instant::now();
-        let mut result = pb::FrameResult {
-            sequence: frame.sequence,
-            capture_time_ns: frame.capture_time_ns,
-            tracking_state: TrackingState::Initializing as i32,
-            latency: vec![pb::StageLatency { stage: stage::QUEUE.into(), micros: micros(queued_for) }],
-            ..Default::default()
-        };
-        let reject = |mut result: pb::FrameResult, reason, code: Code, message: String| {
-            result.status = FrameStatus::Rejected as i32;
-            result.error = Some(pb::RpcStatus { code: code as i32, message });
-            Processed { result, images: None, rejected: Some(reason) }
-        };
-
+    /// Checks the frame's order and decodes it. A rejected frame leaves the order
+    /// as it was only when its own order was wrong (a frame with a bad image still
+    /// counts as seen).
+    pub fn decode(&mut self, frame: &pb::Frame) -> Result<Decoded, Rejection> {
+        let reject = |reason, message: String| Rejection { reason, code: Code::InvalidArgument, message };
         if let Some(last) = self.last_sequence
             && frame.sequence <= last
         {
-            let msg = format!("frame sequence {} is not after the previous frame's {last}", frame.sequence);
-            return reject(result, RejectReason::Order, Code::InvalidArgument, msg);
+            return Err(reject(RejectReason::Order, format!("frame sequence {} is not after the previous frame's {last}", frame.sequence)));
         }
         if let Some(last) = self.last_capture_time_ns
             && frame.capture_time_ns <= last
         {
-            let msg = format!(
-                "capture timestamp went backwards: frame {} at {} ns is not after the previous frame's {last} ns",
-                frame.sequence, frame.capture_time_ns
-            );
-            return reject(result, RejectReason::Order, Code::InvalidArgument, msg);
+            return Err(reject(
+                RejectReason::Order,
+                format!(
+                    "capture timestamp went backwards: frame {} at {} ns is not after the previous frame's {last} ns",
+                    frame.sequence, frame.capture_time_ns
+                ),
+            ));
         }
         self.last_sequence = Some(frame.sequence);
         self.last_capture_time_ns = Some(frame.capture_time_ns);
 
         let (w, h) = (self.camera.width, self.camera.height);
         let t = Instant::now();
-        let color = match codec::decode_color(self.color_encoding, &frame.color, w, h) {
-            Ok(c) => c,
-            Err(e) => return reject(result, RejectReason::Color, Code::InvalidArgument, format!("frame {}: {e}", frame.sequence)),
-        };
-        result.latency.push(pb::StageLatency { stage: stage::DECODE_COLOR.into(), micros: micros(t.elapsed()) });
+        let color = codec::decode_color(self.color_encoding, &frame.color, w, h)
+            .map_err(|e| reject(RejectReason::Color, format!("frame {}: {e}", frame.sequence)))?;
+        let color_time = t.elapsed();
         let t = Instant::now();
-        let depth = match codec::decode_depth(self.depth_encoding, &frame.depth, w, h) {
-            Ok(d) => d,
-            Err(e) => return reject(result, RejectReason::Depth, Code::InvalidArgument, format!("frame {}: {e}", frame.sequence)),
-        };
-        result.depth_crc32 = depth.crc32();
-        result.latency.push(pb::StageLatency { stage: stage::DECODE_DEPTH.into(), micros: micros(t.elapsed()) });
-
-        result.counts = Some(pb::FrameCounts { mask_source: pb::MaskSource::None as i32, ..Default::default() });
-        result.status = FrameStatus::Ok as i32;
-        result.latency.push(pb::StageLatency { stage: stage::TOTAL.into(), micros: micros(start.elapsed()) });
-        Processed { result, images: Some((color, depth)), rejected: None }
+        let depth = codec::decode_depth(self.depth_encoding, &frame.depth, w, h)
+            .map_err(|e| reject(RejectReason::Depth, format!("frame {}: {e}", frame.sequence)))?;
+        let depth_crc32 = depth.crc32();
+        Ok(Decoded { color, depth, depth_crc32, color_time, depth_time: t.elapsed() })
     }
 }
 
@@ -230,52 +192,47 @@ mod tests {
         }
     }
 
-    fn error_of(p: &Processed) -> (i32, String) {
-        let e = p.result.error.clone().unwrap();
-        (e.code, e.message)
+    fn error_of(r: Result<Decoded, Rejection>) -> (i32, String) {
+        let e = r.err().expect("rejected");
+        (e.code as i32, e.message)
     }
 
     #[test]
-    fn good_frame_is_decoded_without_a_pose() {
-        let mut p = FramePipeline::new(camera());
-        let out = p.process(&frame(1, 100), Duration::ZERO);
-        assert_eq!(out.result.status(), FrameStatus::Ok);
-        assert_eq!(out.result.tracking_state(), TrackingState::Initializing);
-        assert!(out.result.world_from_camera.is_none());
+    fn good_frame_is_decoded() {
+        let mut p = Decoder::new(camera());
+        let out = p.decode(&frame(1, 100)).expect("decoded");
         let depth = DepthImage { width: 8, height: 4, data: (0..32).collect() };
-        assert_eq!(out.result.depth_crc32, depth.crc32());
-        let stages: Vec<_> = out.result.latency.iter().map(|l| l.stage.as_str()).collect();
-        assert_eq!(stages, [stage::QUEUE, stage::DECODE_COLOR, stage::DECODE_DEPTH, stage::TOTAL]);
+        assert_eq!(out.depth, depth);
+        assert_eq!(out.depth_crc32, depth.crc32());
+        assert_eq!(out.color.data, vec![7; 96]);
     }
 
     #[test]
     fn order_problems_are_rejected_and_the_session_goes_on() {
-        let mut p = FramePipeline::new(camera());
-        p.process(&frame(5, 500), Duration::ZERO);
-        let back = p.process(&frame(6, 400), Duration::ZERO);
+        let mut p = Decoder::new(camera());
+        assert!(p.decode(&frame(5, 500)).is_ok());
         assert_eq!(
-            error_of(&back),
+            error_of(p.decode(&frame(6, 400))),
             (
                 Code::InvalidArgument as i32,
                 "capture timestamp went backwards: frame 6 at 400 ns is not after the previous frame's 500 ns".into()
             )
         );
-        let dup = p.process(&frame(5, 600), Duration::ZERO);
-        assert_eq!(error_of(&dup).1, "frame sequence 5 is not after the previous frame's 5");
-        assert_eq!(p.process(&frame(6, 600), Duration::ZERO).result.status(), FrameStatus::Ok);
+        assert_eq!(error_of(p.decode(&frame(5, 600))).1, "frame sequence 5 is not after the previous frame's 5");
+        assert!(p.decode(&frame(6, 600)).is_ok());
     }
 
     #[test]
     fn bad_images_name_the_problem() {
-        let mut p = FramePipeline::new(camera());
+        let mut p = Decoder::new(camera());
         let mut f = frame(1, 1);
         f.color.truncate(5);
-        assert_eq!(error_of(&p.process(&f, Duration::ZERO)).1, "frame 1: raw RGB8 colour holds 5 bytes, expected 96 (8x4x3)");
+        assert_eq!(error_of(p.decode(&f)).1, "frame 1: raw RGB8 colour holds 5 bytes, expected 96 (8x4x3)");
         let mut f = frame(2, 2);
         f.depth = vec![0, 0, 0].into();
-        let out = p.process(&f, Duration::ZERO);
-        assert_eq!(out.rejected, Some(RejectReason::Depth));
-        assert_eq!(error_of(&out).1, "frame 2: RVL depth is malformed: length is not a whole number of 32-bit words");
+        let e = p.decode(&f).err().expect("rejected");
+        assert_eq!(e.reason, RejectReason::Depth);
+        assert_eq!(e.message, "frame 2: RVL depth is malformed: length is not a whole number of 32-bit words");
     }
 
     #[test]

@@ -11,15 +11,16 @@ use axum::{Json, Router};
 use serde_json::{Value, json};
 use stillmap_proto::pb;
 
-use crate::mapping::{self, BadQuery, SharedMap};
+use crate::api::map_queries::{self as mapping, BadQuery};
+use crate::map::SharedMap;
 use crate::session::{Registry, Session, summary};
 
 pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>) -> Router {
-    let dashboard = crate::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir };
+    let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir };
     let ui = Router::new()
-        .route("/", get(crate::dashboard::index))
-        .route("/assets/{*path}", get(crate::dashboard::asset))
-        .route("/api/v1/events", get(crate::dashboard::events))
+        .route("/", get(crate::api::dashboard::index))
+        .route("/assets/{*path}", get(crate::api::dashboard::asset))
+        .route("/api/v1/events", get(crate::api::dashboard::events))
         .with_state(dashboard);
     Router::new()
         .route("/healthz", get(|| async { Json(json!({ "status": "ok" })) }))
@@ -210,7 +211,7 @@ async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>)
         Ok(m) => m,
         Err(r) => return r,
     };
-    let info = match blocking(move || mapping::lock_info(&map)).await {
+    let info = match blocking(move || crate::map::lock_info(&map)).await {
         Ok(i) => i,
         Err(r) => return r,
     };

@@ -1,41 +1,34 @@
-//! The mapping stage of a session's pipeline: fuses each new keyframe into the
-//! session's [`MapBuilder`], keeps the map following the tracker's keyframe
-//! poses, and answers the map queries (tiles, legend, occupancy, PLY, objects).
+//! A session's static semantic map: the [`MapBuilder`] with its class names, the
+//! cached top-down index, and its persistence to the store (commits, evicted
+//! blocks read back).
 //!
-//! The map sits behind a mutex shared by the session worker (which fuses) and
-//! the query shells (which read); queries copy what they need (the top-down
-//! index is built once per map version and shared) and render outside the lock.
+//! The map sits behind a mutex shared by the session's map lane (which fuses,
+//! [`crate::pipeline::fuse`]) and the query shells ([`crate::api::map_queries`]);
+//! queries copy what they need (the top-down index is built once per map version
+//! and shared) and render outside the lock.
 
 use std::borrow::Cow;
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::Duration;
 
 use rustc_hash::FxHashSet;
 use stillmap_mapping::VoxelMap;
 use stillmap_mapping::voxel::{BLOCK_EDGE, Block, BlockKey};
 
-use nalgebra::{Isometry3, UnitQuaternion, Vector3};
-use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
-use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, TopDown, class_color, encode_png_rgba};
-use stillmap_mapping::{DepthView, MapBuilder, MappingConfig, MappingError, NO_CLASS, UpSource};
-use stillmap_proto::codec::{ColorImage, DepthImage};
+use nalgebra::{UnitQuaternion, Vector3};
+use stillmap_mapping::tiles::TopDown;
+use stillmap_mapping::{MapBuilder, MappingConfig, MappingError, UpSource};
 use stillmap_proto::pb;
 
+use crate::convert::camera_of;
 use crate::store::{Commit, KeyframeRecord, SessionMeta, Store, StoreError};
-use crate::tracking::camera_of;
 
-/// Stage name of map fusion, as it appears in results and `/metrics` (keyframes only).
-pub const MAP_FUSE_STAGE: &str = "map_fuse";
-/// Stage name of the keyframe's store commit.
-pub const STORE_COMMIT_STAGE: &str = "store_commit";
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
 pub struct SessionMap {
-    builder: MapBuilder,
-    class_names: Vec<String>,
+    pub(crate) builder: MapBuilder,
+    pub(crate) class_names: Vec<String>,
     top: Option<Arc<TopDown>>,
     persistence: Option<Persistence>,
 }
@@ -55,15 +48,6 @@ struct Persistence {
 
 /// A session's map, shared by its worker and the queries.
 pub type SharedMap = Arc<Mutex<SessionMap>>;
-
-/// What a frame gives the map.
-pub struct MapFrame<'a> {
-    pub color: &'a ColorImage,
-    pub depth: &'a DepthImage,
-    /// Nonzero where perception keeps the pixel out of the map.
-    pub exclude: Option<&'a [u8]>,
-    pub classes: Option<&'a [u16]>,
-}
 
 /// One map's description (the info endpoint and the dashboard).
 #[derive(Debug, Clone)]
@@ -181,7 +165,7 @@ impl SessionMap {
     }
 
     /// Brings evicted blocks within sensor range of the camera back into memory.
-    fn restore_near(&mut self, camera_in_world: &nalgebra::Point3<f64>) {
+    pub(crate) fn restore_near(&mut self, camera_in_world: &nalgebra::Point3<f64>) {
         let Some(p) = &mut self.persistence else { return };
         if p.cold.is_empty() {
             return;
@@ -213,7 +197,7 @@ impl SessionMap {
     }
 
     /// The whole map, stored blocks included (a copy when some are evicted).
-    fn full_map(&self) -> Cow<'_, VoxelMap> {
+    pub(crate) fn full_map(&self) -> Cow<'_, VoxelMap> {
         let Some(p) = self.persistence.as_ref().filter(|p| !p.cold.is_empty()) else {
             return Cow::Borrowed(self.builder.map());
         };
@@ -243,11 +227,11 @@ impl SessionMap {
         &mut self.builder
     }
 
-    fn map_from_world(&self) -> UnitQuaternion<f64> {
+    pub(crate) fn map_from_world(&self) -> UnitQuaternion<f64> {
         self.builder.map_from_world().map_or_else(UnitQuaternion::identity, |(r, _)| r)
     }
 
-    fn top_down(&mut self) -> Arc<TopDown> {
+    pub(crate) fn top_down(&mut self) -> Arc<TopDown> {
         let version = self.builder.map().version();
         match &self.top {
             Some(t) if t.map_version == version => t.clone(),
@@ -289,152 +273,3 @@ pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
     (m.builder.map().version(), m.builder.keyframes(), m.builder.map().stats().occupied_voxels)
 }
 
-/// The map's re-fusion window (keyframes whose poses it follows).
-pub fn refuse_window(map: &SharedMap) -> usize {
-    lock(map).builder.config().refuse_window
-}
-
-/// Takes accelerometer samples, re-fuses the keyframes whose pose moved, and fuses
-/// `frame` when it is the new keyframe `new_keyframe`. Returns the fusion time of
-/// the new keyframe.
-pub fn update(
-    map: &SharedMap,
-    frame: Option<&MapFrame<'_>>,
-    world_from_camera: &Isometry3<f64>,
-    new_keyframe: Option<u64>,
-    accel: &[(Isometry3<f64>, Vector3<f64>)],
-    keyframe_pose: impl FnMut(u64) -> Option<Isometry3<f64>>,
-) -> Option<Duration> {
-    let mut m = lock(map);
-    for (pose, a) in accel {
-        m.builder.observe_accel(pose, a);
-    }
-    let moved = m.builder.moved_keyframes(keyframe_pose);
-    if !moved.is_empty() || new_keyframe.is_some() {
-        // Evicted blocks near the camera come back before anything is fused there.
-        m.restore_near(&nalgebra::Point3::from(world_from_camera.translation.vector));
-    }
-    m.builder.refuse(&moved);
-    let (id, frame) = (new_keyframe?, frame?);
-    let view = DepthView { depth: &frame.depth.data, rgb: &frame.color.data, exclude: frame.exclude, classes: frame.classes };
-    match m.builder.add_keyframe(id, world_from_camera, &view) {
-        Ok(report) => Some(report.fuse_time),
-        Err(e) => {
-            tracing::warn!(keyframe = id, "map fusion failed: {e}");
-            None
-        }
-    }
-}
-
-/// Bad query parameters (HTTP 400 / INVALID_ARGUMENT).
-#[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub struct BadQuery(pub String);
-
-impl From<MappingError> for BadQuery {
-    fn from(e: MappingError) -> Self {
-        Self(match e {
-            MappingError::Input(m) => m,
-            other => other.to_string(),
-        })
-    }
-}
-
-/// A rendered tile and its entity tag (changes whenever the map does).
-pub struct Tile {
-    pub png: Vec<u8>,
-    pub etag: String,
-}
-
-/// The ETag a tile of the current map version has (cheap: no rendering).
-pub fn tile_etag(map: &SharedMap, z: u8, x: i64, y: i64) -> String {
-    format!("\"m{}-{z}-{x}-{y}\"", lock(map).builder.map().version())
-}
-
-pub fn tile(map: &SharedMap, z: u8, x: i64, y: i64) -> Result<Tile, BadQuery> {
-    let (top, version) = {
-        let mut m = lock(map);
-        (m.top_down(), m.builder.map().version())
-    };
-    let rgba = top.render(z, x, y)?;
-    let png = encode_png_rgba(&rgba, TILE_PX as u32, TILE_PX as u32).map_err(|e| BadQuery(e.to_string()))?;
-    Ok(Tile { png, etag: format!("\"m{version}-{z}-{x}-{y}\"") })
-}
-
-/// One legend entry: a class drawn on the tiles.
-pub struct LegendEntry {
-    pub class: u16,
-    pub name: String,
-    pub color: [u8; 3],
-    pub cells: usize,
-}
-
-/// The classes the tiles draw now (most cells first), plus "unlabelled".
-pub fn legend(map: &SharedMap) -> Vec<LegendEntry> {
-    let mut m = lock(map);
-    let top = m.top_down();
-    top.class_counts
-        .iter()
-        .map(|&(class, cells)| LegendEntry {
-            class,
-            name: if class == NO_CLASS {
-                "unlabelled".into()
-            } else {
-                m.class_names.get(usize::from(class)).cloned().unwrap_or_else(|| format!("class {class}"))
-            },
-            // Unlabelled surfaces are grey, shaded by height; the legend shows the middle grey.
-            color: if class == NO_CLASS { [145, 145, 145] } else { class_color(class) },
-            cells,
-        })
-        .collect()
-}
-
-pub fn occupancy(map: &SharedMap, min_height: Option<f64>, max_height: Option<f64>, resolution: Option<f64>) -> Result<OccupancyGrid, BadQuery> {
-    let m = lock(map);
-    let cfg = m.builder.config();
-    let grid = OccupancyGrid::build(
-        &m.full_map(),
-        &m.map_from_world(),
-        min_height.unwrap_or(cfg.occupancy_min_height_m),
-        max_height.unwrap_or(cfg.occupancy_max_height_m),
-        resolution.unwrap_or(cfg.occupancy_resolution_m),
-    )?;
-    Ok(grid)
-}
-
-/// Parses `min_x,min_y,min_z,max_x,max_y,max_z` (metres, map frame).
-pub fn parse_bbox(text: &str) -> Result<Aabb, BadQuery> {
-    let v: Vec<f64> = text
-        .split(',')
-        .map(|s| s.trim().parse::<f64>().map_err(|_| BadQuery(format!("bbox value {s:?} is not a number"))))
-        .collect::<Result<_, _>>()?;
-    if v.len() != 6 || v.iter().any(|x| !x.is_finite()) {
-        return Err(BadQuery(format!("bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got {}", v.len())));
-    }
-    if v[0] > v[3] || v[1] > v[4] || v[2] > v[5] {
-        return Err(BadQuery("bbox minimum exceeds its maximum".into()));
-    }
-    Ok(Aabb { min: [v[0], v[1], v[2]], max: [v[3], v[4], v[5]] })
-}
-
-pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
-    let m = lock(map);
-    let up = m.map_from_world();
-    let points = cloud(&m.full_map(), &up, bbox);
-    let q = up.coords;
-    let comment = format!(
-        "stillmap static semantic map, session {session_id}\nmap frame: z up (gravity), origin at the first camera; map_from_world rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
-        q.x, q.y, q.z, q.w
-    );
-    to_ply(&points, &m.class_names, &comment)
-}
-
-pub fn points(map: &SharedMap, bbox: Option<&Aabb>) -> (Vec<stillmap_mapping::export::CloudPoint>, Vec<String>) {
-    let m = lock(map);
-    (cloud(&m.full_map(), &m.map_from_world(), bbox), m.class_names.clone())
-}
-
-pub fn map_objects(map: &SharedMap) -> (Vec<MapObject>, Vec<String>) {
-    let m = lock(map);
-    (objects(&m.full_map(), &m.map_from_world()), m.class_names.clone())
-}

@@ -1,0 +1,7 @@
+//! The query shells: HTTP (axum) with the dashboard, gRPC `Query`, and the map
+//! queries both answer.
+
+pub mod dashboard;
+pub mod http;
+pub mod map_queries;
+pub mod query;

@@ -1,0 +1,117 @@
+//! gRPC queries: the `Query` service (sessions, poses, trajectories, map products)
+//! over the registry.
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use futures_util::Stream;
+use stillmap_proto::pb::{self, query_server::Query};
+use tokio_stream::StreamExt;
+use tokio_stream::wrappers::BroadcastStream;
+use tonic::{Request, Response, Status};
+
+use crate::session::{Registry, Session, summary};
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+pub struct QueryService {
+    pub registry: Arc<Registry>,
+}
+
+impl QueryService {
+    fn session(&self, id: &str) -> Result<Arc<Session>, Status> {
+        self.registry.get(id).ok_or_else(|| Status::not_found(format!("unknown session {id:?}")))
+    }
+
+    fn map(&self, id: &str) -> Result<crate::map::SharedMap, Status> {
+        self.session(id)?.map().cloned().ok_or_else(|| Status::not_found(format!("session {id:?} has no map (mapping is disabled)")))
+    }
+}
+
+#[tonic::async_trait]
+impl Query for QueryService {
+    type SubscribePosesStream = BoxStream<pb::PoseStamped>;
+    type GetMapCloudStream = BoxStream<pb::MapCloudChunk>;
+
+    async fn list_sessions(&self, _: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        let sessions = self.registry.list().iter().map(|s| summary(s)).collect();
+        Ok(Response::new(pb::ListSessionsResponse { sessions }))
+    }
+
+    async fn get_latest_pose(&self, request: Request<pb::SessionRef>) -> Result<Response<pb::LatestPose>, Status> {
+        let session = self.session(&request.get_ref().session_id)?;
+        let track = session.tracking();
+        Ok(Response::new(pb::LatestPose { tracking_state: track.state as i32, pose: track.latest }))
+    }
+
+    async fn get_trajectory(&self, request: Request<pb::TrajectoryRequest>) -> Result<Response<pb::Trajectory>, Status> {
+        let r = request.get_ref();
+        let session = self.session(&r.session_id)?;
+        let end = if r.end_ns == 0 { u64::MAX } else { r.end_ns };
+        if r.start_ns > end {
+            return Err(Status::invalid_argument(format!("start_ns {} is after end_ns {}", r.start_ns, r.end_ns)));
+        }
+        let poses = session
+            .tracking()
+            .trajectory
+            .iter()
+            .filter(|p| (r.start_ns..=end).contains(&p.capture_time_ns))
+            .cloned()
+            .collect();
+        Ok(Response::new(pb::Trajectory { poses }))
+    }
+
+    async fn subscribe_poses(&self, request: Request<pb::SessionRef>) -> Result<Response<Self::SubscribePosesStream>, Status> {
+        let session = self.session(&request.get_ref().session_id)?;
+        // A lagging subscriber skips poses rather than holding the pipeline.
+        let stream = BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
+        Ok(Response::new(Box::pin(stream)))
+    }
+
+    async fn get_map_tile(&self, request: Request<pb::MapTileRequest>) -> Result<Response<pb::MapTile>, Status> {
+        let r = request.into_inner();
+        let map = self.map(&r.session_id)?;
+        let zoom = u8::try_from(r.zoom).map_err(|_| Status::invalid_argument(format!("zoom {} is out of range 0..={}", r.zoom, stillmap_mapping::tiles::MAX_ZOOM)))?;
+        let tile = tokio::task::spawn_blocking(move || crate::api::map_queries::tile(&map, zoom, r.x, r.y))
+            .await
+            .map_err(|e| Status::internal(format!("map query failed: {e}")))?
+            .map_err(|e| Status::invalid_argument(e.0))?;
+        Ok(Response::new(pb::MapTile { png: tile.png, etag: tile.etag }))
+    }
+
+    async fn get_map_cloud(&self, request: Request<pb::MapCloudRequest>) -> Result<Response<Self::GetMapCloudStream>, Status> {
+        let r = request.into_inner();
+        let map = self.map(&r.session_id)?;
+        let bbox = match r.bbox {
+            None => None,
+            Some(b) => {
+                let (lo, hi) = (b.min.unwrap_or_default(), b.max.unwrap_or_default());
+                let text = format!("{},{},{},{},{},{}", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
+                Some(crate::api::map_queries::parse_bbox(&text).map_err(|e| Status::invalid_argument(e.0))?)
+            }
+        };
+        let (points, names) = tokio::task::spawn_blocking(move || crate::api::map_queries::points(&map, bbox.as_ref()))
+            .await
+            .map_err(|e| Status::internal(format!("map query failed: {e}")))?;
+        let mut chunks: Vec<Result<pb::MapCloudChunk, Status>> = points
+            .chunks(CLOUD_CHUNK_POINTS)
+            .map(|c| {
+                Ok(pb::MapCloudChunk {
+                    xyz: c.iter().flat_map(|p| p.point_in_map).collect(),
+                    rgb: c.iter().flat_map(|p| p.rgb).collect(),
+                    class_id: c.iter().map(|p| u32::from(p.class)).collect(),
+                    confidence: c.iter().map(|p| p.confidence).collect(),
+                    class_names: vec![],
+                })
+            })
+            .collect();
+        match chunks.first_mut() {
+            Some(Ok(first)) => first.class_names = names,
+            _ => chunks.push(Ok(pb::MapCloudChunk { class_names: names, ..Default::default() })),
+        }
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+}
+
+/// Points per `MapCloudChunk` (≈ 1.4 MB: well under the default message limit).
+const CLOUD_CHUNK_POINTS: usize = 65536;

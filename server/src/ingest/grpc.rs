@@ -1,0 +1,123 @@
+//! gRPC ingest: the `Ingest` stream (hello, then frames; results back in order).
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use futures_util::Stream;
+use prost::Message;
+use stillmap_proto::pb::{self, client_message::Msg as ClientMsg, ingest_server::Ingest};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+use super::{accepted_message, frame_before_hello, queue_status, refusal};
+use crate::session::{Registry, ResultSink, Session, Transport};
+
+pub struct IngestService {
+    pub registry: Arc<Registry>,
+    pub tokens: Arc<crate::auth::Tokens>,
+    pub result_buffer: usize,
+    pub max_message_bytes: usize,
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+
+#[tonic::async_trait]
+impl Ingest for IngestService {
+    type StreamStream = BoxStream<pb::ServerMessage>;
+
+    async fn stream(&self, request: Request<Streaming<pb::ClientMessage>>) -> Result<Response<Self::StreamStream>, Status> {
+        let inbound = request.into_inner();
+        let (tx, rx) = mpsc::channel(self.result_buffer);
+        let registry = self.registry.clone();
+        let tokens = self.tokens.clone();
+        let max = self.max_message_bytes;
+        tokio::spawn(async move {
+            if let Err(status) = serve_stream(inbound, &registry, &tokens, tx.clone(), max).await {
+                let _ = tx.send(Err(status)).await;
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+}
+
+/// Runs one ingest connection; an `Err` ends the stream with that status.
+async fn serve_stream(
+    mut inbound: Streaming<pb::ClientMessage>,
+    registry: &Registry,
+    tokens: &crate::auth::Tokens,
+    sink: ResultSink,
+    max_message_bytes: usize,
+) -> Result<(), Status> {
+    let metrics = registry.metrics().clone();
+    let hello = match inbound.message().await? {
+        None => return Ok(()),
+        Some(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }) => hello,
+        Some(pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)) }) => {
+            metrics.rejected("no_hello");
+            return Err(frame_before_hello(frame.sequence));
+        }
+        Some(pb::ClientMessage { msg: None }) => {
+            metrics.rejected("malformed");
+            return Err(Status::invalid_argument("empty client message: expected a hello"));
+        }
+    };
+    tokens.check(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
+    let opened = registry
+        .open(&hello, Transport::Grpc, sink.clone())
+        .map_err(|e| refusal(&e, &metrics))?;
+    let session = opened.session.clone();
+    sink.send(Ok(accepted_message(&opened, max_message_bytes)))
+        .await
+        .map_err(|_| Status::cancelled("client went away"))?;
+    let outcome = read_frames(&mut inbound, &session, &metrics).await;
+    if outcome.is_ok() {
+        // The client finished sending: answer everything it sent before closing.
+        session.drained().await;
+    }
+    session.detach(&sink);
+    outcome
+}
+
+async fn read_frames(
+    inbound: &mut Streaming<pb::ClientMessage>,
+    session: &Session,
+    metrics: &crate::metrics::Metrics,
+) -> Result<(), Status> {
+    loop {
+        let message = match inbound.message().await {
+            Ok(Some(m)) => m,
+            Ok(None) => return Ok(()),
+            Err(status) => return Err(oversized_as_resource_exhausted(status, metrics)),
+        };
+        // Counted as the whole message, as on Zenoh.
+        let len = message.encoded_len();
+        match message.msg {
+            Some(ClientMsg::Frame(frame)) => {
+                session.push(frame, len).map_err(queue_status)?;
+            }
+            Some(ClientMsg::Hello(_)) => {
+                metrics.rejected("malformed");
+                return Err(Status::failed_precondition("a second hello on an open session"));
+            }
+            None => {
+                metrics.rejected("malformed");
+                return Err(Status::invalid_argument("empty client message: expected a frame"));
+            }
+        }
+    }
+}
+
+/// tonic reports a message above `max_decoding_message_size` as OUT_OF_RANGE; the
+/// contract promises RESOURCE_EXHAUSTED, with the sizes in the message.
+fn oversized_as_resource_exhausted(status: Status, metrics: &crate::metrics::Metrics) -> Status {
+    const TONIC_TOO_LARGE: &str = "decoded message length too large";
+    if status.code() == tonic::Code::OutOfRange && status.message().contains(TONIC_TOO_LARGE) {
+        metrics.rejected("oversized");
+        let detail = status.message().trim_start_matches("Error, ");
+        return Status::resource_exhausted(format!("message too large: {detail}"));
+    }
+    status
+}
+

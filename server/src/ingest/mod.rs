@@ -1,0 +1,50 @@
+//! The ingest shells, one per transport: they decode messages, open or resume a
+//! session on a hello and push frames into its queue; results come back through
+//! the sink the session holds. What both transports share is here.
+
+pub mod grpc;
+#[cfg(feature = "zenoh")]
+pub mod zenoh;
+
+use stillmap_proto::pb::{self, server_message::Msg};
+use tonic::Status;
+
+use crate::metrics::Metrics;
+use crate::queue::QueueError;
+use crate::session::{BadHello, Opened};
+
+/// Status for a frame that arrived before any hello.
+pub fn frame_before_hello(sequence: u64) -> Status {
+    Status::failed_precondition(format!(
+        "frame {sequence} arrived before the hello: the first message of a session must be a hello"
+    ))
+}
+
+/// Status for a queue that can no longer take frames.
+pub fn queue_status(e: QueueError) -> Status {
+    match e {
+        QueueError::Overloaded(_) => Status::resource_exhausted(e.to_string()),
+        QueueError::Closed => Status::unavailable("the server is shutting down"),
+    }
+}
+
+/// The status a refused hello is answered with; a full server is counted.
+pub fn refusal(e: &BadHello, metrics: &Metrics) -> Status {
+    if matches!(e, BadHello::Full { .. }) {
+        metrics.rejected("server_full");
+    }
+    e.status()
+}
+
+/// The first message on a connection: accepted (or resumed) session.
+pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::ServerMessage {
+    pb::ServerMessage {
+        msg: Some(Msg::Accepted(pb::SessionAccepted {
+            session_id: opened.session.id.clone(),
+            resumed: opened.resumed,
+            last_received_sequence: if opened.resumed { opened.session.last_received_sequence() } else { None },
+            max_message_bytes: max_message_bytes as u64,
+            server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
+        })),
+    }
+}

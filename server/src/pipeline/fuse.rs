@@ -1,0 +1,177 @@
+//! The fuse stage: what a tracked frame asks of the session's map, as a
+//! [`MapJob`] for the map lane (which runs it on the map pool, off the tracking
+//! path), and the fusion itself ([`apply`]).
+//!
+//! The [`Handoff`] remembers the keyframes the map holds for re-fusion (its
+//! `refuse_window` newest) and the poses it last sent for them: a frame makes a
+//! job only when it is a new keyframe or bundle adjustment moved one of them;
+//! other frames only collect their accelerometer sample for the next job.
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use nalgebra::{Isometry3, Vector3};
+use stillmap_mapping::DepthView;
+use stillmap_proto::codec::{ColorImage, DepthImage};
+
+use crate::map::{SharedMap, lock};
+use crate::store::KeyframeRecord;
+
+/// Accelerometer samples carried to the next map job, at most.
+const MAX_ACCEL_PER_MAP_JOB: usize = 64;
+
+/// A new keyframe: what fusion and the store need of it.
+pub struct KeyframeJob {
+    pub id: u64,
+    pub color: ColorImage,
+    pub depth: DepthImage,
+    /// Nonzero where perception keeps the pixel out of the map.
+    pub exclude: Option<Vec<u8>>,
+    /// The segmentation class per pixel.
+    pub classes: Option<Vec<u16>>,
+    /// The keyframe as the store keeps it.
+    pub record: Option<KeyframeRecord>,
+}
+
+/// Map work of one tracked frame.
+pub struct MapJob {
+    pub world_from_camera: Isometry3<f64>,
+    pub keyframe: Option<KeyframeJob>,
+    /// Current poses of the keyframes in the map's re-fusion window.
+    pub keyframe_poses: Vec<(u64, Isometry3<f64>)>,
+    /// Accelerometer samples (camera pose, specific force in the camera frame).
+    pub accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
+}
+
+/// The tracking path's side of the map lane.
+pub struct Handoff {
+    window: usize,
+    /// Keyframes the map holds for re-fusion, newest last, with the poses last sent.
+    keyframes: VecDeque<(u64, Isometry3<f64>)>,
+    accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
+}
+
+impl Handoff {
+    /// `window`: the map's `refuse_window`.
+    pub fn new(window: usize) -> Self {
+        Self { window, keyframes: VecDeque::new(), accel: Vec::new() }
+    }
+
+    /// The map job of a frame tracked at `world_from_camera`, if it needs one.
+    pub fn job(
+        &mut self,
+        world_from_camera: Isometry3<f64>,
+        accel: Option<Vector3<f64>>,
+        keyframe: Option<KeyframeJob>,
+        keyframe_pose: impl Fn(u64) -> Option<Isometry3<f64>>,
+    ) -> Option<MapJob> {
+        if let Some(a) = accel
+            && self.accel.len() < MAX_ACCEL_PER_MAP_JOB
+        {
+            self.accel.push((world_from_camera, a));
+        }
+        let mut moved = false;
+        let mut keyframe_poses = Vec::with_capacity(self.keyframes.len());
+        for (id, sent) in &mut self.keyframes {
+            if let Some(now) = keyframe_pose(*id) {
+                moved |= now != *sent;
+                *sent = now;
+                keyframe_poses.push((*id, now));
+            }
+        }
+        if keyframe.is_none() && !moved {
+            return None;
+        }
+        if let Some(k) = &keyframe {
+            self.keyframes.push_back((k.id, world_from_camera));
+            while self.keyframes.len() > self.window {
+                self.keyframes.pop_front();
+            }
+        }
+        Some(MapJob { world_from_camera, keyframe, keyframe_poses, accel: std::mem::take(&mut self.accel) })
+    }
+
+    /// The map lane could not take `job`: its keyframe is not in the map.
+    pub fn refused(&mut self, job: &MapJob) {
+        if let Some(k) = &job.keyframe {
+            self.keyframes.retain(|(id, _)| *id != k.id);
+        }
+    }
+}
+
+/// Runs a map job: accelerometer samples, re-fusion of the keyframes whose pose
+/// moved, then the new keyframe's fusion. Returns the fusion time of the new keyframe.
+pub fn apply(map: &SharedMap, job: &MapJob) -> Option<Duration> {
+    let mut m = lock(map);
+    for (pose, a) in &job.accel {
+        m.builder.observe_accel(pose, a);
+    }
+    let moved = m.builder.moved_keyframes(|id| job.keyframe_poses.iter().find(|(k, _)| *k == id).map(|(_, p)| *p));
+    if !moved.is_empty() || job.keyframe.is_some() {
+        // Evicted blocks near the camera come back before anything is fused there.
+        m.restore_near(&nalgebra::Point3::from(job.world_from_camera.translation.vector));
+    }
+    m.builder.refuse(&moved);
+    let k = job.keyframe.as_ref()?;
+    let view = DepthView { depth: &k.depth.data, rgb: &k.color.data, exclude: k.exclude.as_deref(), classes: k.classes.as_deref() };
+    match m.builder.add_keyframe(k.id, &job.world_from_camera, &view) {
+        Ok(report) => Some(report.fuse_time),
+        Err(e) => {
+            tracing::warn!(keyframe = k.id, "map fusion failed: {e}");
+            None
+        }
+    }
+}
+
+/// The map's re-fusion window (keyframes whose poses it follows).
+pub fn refuse_window(map: &SharedMap) -> usize {
+    lock(map).builder.config().refuse_window
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Translation3;
+
+    fn keyframe(id: u64) -> KeyframeJob {
+        KeyframeJob {
+            id,
+            color: ColorImage { width: 1, height: 1, data: vec![0; 3] },
+            depth: DepthImage { width: 1, height: 1, data: vec![0] },
+            exclude: None,
+            classes: None,
+            record: None,
+        }
+    }
+
+    /// Only keyframes and moved keyframes make jobs; the window keeps the newest;
+    /// accelerometer samples ride along with the next job.
+    #[test]
+    fn jobs_for_keyframes_and_moves_only() {
+        let at = |x: f64| Isometry3::from_parts(Translation3::new(x, 0.0, 0.0), nalgebra::UnitQuaternion::identity());
+        let mut h = Handoff::new(2);
+        let poses = std::cell::RefCell::new(std::collections::HashMap::<u64, Isometry3<f64>>::new());
+        let pose = |id: u64| poses.borrow().get(&id).copied();
+        let up = Some(Vector3::new(0.0, -9.8, 0.0));
+        assert!(h.job(at(0.0), up, None, pose).is_none(), "no keyframe, nothing moved");
+        poses.borrow_mut().insert(1, at(0.0));
+        let j = h.job(at(0.0), up, Some(keyframe(1)), pose).expect("keyframe job");
+        assert_eq!(j.accel.len(), 2, "the earlier frame's sample rides along");
+        assert!(h.job(at(0.1), None, None, pose).is_none());
+        poses.borrow_mut().insert(1, at(0.05)); // bundle adjustment moved keyframe 1
+        let j = h.job(at(0.1), None, None, pose).expect("re-fusion job");
+        assert_eq!(j.keyframe_poses, vec![(1, at(0.05))]);
+        assert!(h.job(at(0.1), None, None, pose).is_none(), "sent once");
+        for id in 2..=3 {
+            poses.borrow_mut().insert(id, at(id as f64));
+            h.job(at(id as f64), None, Some(keyframe(id)), pose).expect("keyframe job");
+        }
+        let ids: Vec<u64> = h.keyframes.iter().map(|k| k.0).collect();
+        assert_eq!(ids, [2, 3], "the window holds the newest two");
+        poses.borrow_mut().insert(4, at(4.0));
+        let j = h.job(at(4.0), None, Some(keyframe(4)), pose).expect("keyframe job");
+        h.refused(&j);
+        let ids: Vec<u64> = h.keyframes.iter().map(|k| k.0).collect();
+        assert_eq!(ids, [3], "a refused keyframe is not in the map's window");
+    }
+}
