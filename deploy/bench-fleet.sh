@@ -5,12 +5,14 @@
 #
 # Usage: deploy/bench-fleet.sh <bin-dir>
 # Environment (defaults are this 2-core machine's sweep; GPU=1 the GPU server's):
-#   ROBOTS="1 2 3 4"  RATES="10 30"  MODELS="320 640"  DURATION=20 (seconds per run)
+#   ROBOTS="1 2 3 4"  RATES="10 15 30"  MODELS="320 640"  DURATION=20 (seconds per run)
 #   GPU=1             segmentation on CUDA with the batching models from
 #                     deploy/make-batched-model.py, ROBOTS="1 4 8 16 32", RATES=30
 #   MODEL_DIR         where yolov8n-seg_fp32_<size>[_batch].onnx are (../shared/models;
 #                     .deps/models for the batching ones)
 #   OUT               folder for the per-run JSON reports and server logs (a temp dir)
+#   OPENCV_THREADS, PIPELINE_THREADS  session.opencv_threads / pipeline_threads
+#                     (default: the server's defaults, 1 and one per core)
 set -euo pipefail
 BIN=${1:?usage: bench-fleet.sh <bin-dir>}
 cd "$(dirname "$0")/.."
@@ -21,7 +23,7 @@ if [ -n "$GPU" ]; then
   ROBOTS=${ROBOTS:-"1 4 8 16 32"}; RATES=${RATES:-30}; MODELS=${MODELS:-"640"}
   MODEL_DIR=${MODEL_DIR:-.deps/models}; SUFFIX=_batch
 else
-  ROBOTS=${ROBOTS:-"1 2 3 4"}; RATES=${RATES:-"10 30"}; MODELS=${MODELS:-"320 640"}
+  ROBOTS=${ROBOTS:-"1 2 3 4"}; RATES=${RATES:-"10 15 30"}; MODELS=${MODELS:-"320 640"}
   MODEL_DIR=${MODEL_DIR:-$SHARED/models}; SUFFIX=
 fi
 DURATION=${DURATION:-20}
@@ -44,6 +46,8 @@ for model in $MODELS; do
       {
         echo "[session]"
         echo "max_connected = 0"
+        [ -n "${OPENCV_THREADS:-}" ] && echo "opencv_threads = $OPENCV_THREADS"
+        [ -n "${PIPELINE_THREADS:-}" ] && echo "pipeline_threads = $PIPELINE_THREADS"
         echo "[perception.segmentation]"
         if [ -n "$GPU" ]; then
           echo 'execution_provider = "cuda"'

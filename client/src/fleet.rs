@@ -47,7 +47,7 @@ impl FleetTransport {
         match self {
             Self::Grpc => "grpc",
             Self::Zenoh => "zenoh",
-            Self::Mixed if index % 2 == 0 => "grpc",
+            Self::Mixed if index.is_multiple_of(2) => "grpc",
             Self::Mixed => "zenoh",
         }
     }

@@ -3,7 +3,12 @@
 //! the paper's Table 9, then runs criterion.
 //!
 //! `cargo bench -p stillmap-perception` (needs ORT_DYLIB_PATH or .deps/ort;
-//! `STILLMAP_BENCH_NO_SEGMENTATION=1` skips the segmentation rows). The
+//! `STILLMAP_BENCH_NO_SEGMENTATION=1` skips the segmentation rows). With the
+//! batching models in .deps/models (deploy/make-batched-model.py) it also prints
+//! segmentation per batch size: `STILLMAP_BENCH_BATCHES` (default "1 4 8 16"),
+//! `STILLMAP_BENCH_PROVIDER` (cpu, cuda or tensorrt; the GPU ones need the GPU
+//! build of ONNX Runtime: `make gpu-deps`, then ORT_DYLIB_PATH and LD_LIBRARY_PATH as
+//! `make ... GPU=1` sets them). The
 //! table's flow + mask rows run the two-phase masker around the real tracker, as
 //! the server does (tracking time not included); the criterion bench runs the
 //! one-phase `process` without a tracked motion (the path after a tracking loss).
@@ -16,6 +21,7 @@ mod support;
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, criterion_group};
+use stillmap_perception::segment::RgbFrame;
 use stillmap_perception::{DynamicMasker, MaskerInput, PerceptionConfig, Segmenter, YoloSegmenter};
 use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
 use stillmap_tracking::features::Extractor;
@@ -28,6 +34,50 @@ fn stats(mut v: Vec<Duration>) -> (f64, f64, f64) {
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     let mean = v.iter().map(|d| ms(*d)).sum::<f64>() / v.len() as f64;
     (mean, ms(v[v.len() / 2]), ms(v[(v.len() * 95 / 100).min(v.len() - 1)]))
+}
+
+/// Segmentation time per batch size with the symbolic-batch models.
+fn batch_table(frames: &[tum::TumFrame]) {
+    let batches: Vec<usize> = std::env::var("STILLMAP_BENCH_BATCHES")
+        .unwrap_or_else(|_| "1 4 8 16".into())
+        .split_whitespace()
+        .filter_map(|b| b.parse().ok())
+        .filter(|&b| b > 0)
+        .collect();
+    let provider = match std::env::var("STILLMAP_BENCH_PROVIDER").as_deref() {
+        Ok("cuda") => stillmap_perception::config::ExecutionProvider::Cuda,
+        Ok("tensorrt") => stillmap_perception::config::ExecutionProvider::Tensorrt,
+        _ => stillmap_perception::config::ExecutionProvider::Cpu,
+    };
+    for size in [640, 320] {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../.deps/models/yolov8n-seg_fp32_{size}_batch.onnx"));
+        if !path.is_file() {
+            println!("(no {}: run deploy/install-deps.sh for the batch rows)", path.display());
+            return;
+        }
+        let mut config = support::segmentation_config("x");
+        config.model_path = path.display().to_string();
+        config.execution_provider = provider;
+        config.intra_threads = std::env::var("STILLMAP_BENCH_ORT_THREADS").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
+        let mut seg = YoloSegmenter::new(&config).expect("batching model");
+        println!("\nsegmentation {size} by batch size ({}); ms", seg.device());
+        println!("| batch | per batch (median) | per frame | frames/s |");
+        println!("|---|---|---|---|");
+        for &b in &batches {
+            let inputs: Vec<RgbFrame<'_>> = (0..b).map(|i| RgbFrame { rgb: &frames[i % frames.len()].rgb, width: 640, height: 480 }).collect();
+            let _ = seg.segment_batch(&inputs).expect("warm-up");
+            let runs = (32 / b).clamp(3, 10);
+            let times: Vec<Duration> = (0..runs)
+                .map(|_| {
+                    let t = Instant::now();
+                    seg.segment_batch(&inputs).expect("batch");
+                    t.elapsed()
+                })
+                .collect();
+            let (_, median, _) = stats(times);
+            println!("| {b} | {median:.1} | {:.1} | {:.0} |", median / b as f64, 1e3 * b as f64 / median);
+        }
+    }
 }
 
 fn table() {
@@ -112,6 +162,9 @@ fn table() {
         .collect();
     let (mean, median, p95) = stats(times);
     println!("| elimination (mask lookup per keypoint) | {mean:.4} | {median:.4} | {p95:.4} | 2.45 |\n");
+    if std::env::var_os("STILLMAP_BENCH_NO_SEGMENTATION").is_none() {
+        batch_table(&frames);
+    }
 }
 
 fn benches(c: &mut Criterion) {

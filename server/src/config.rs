@@ -132,6 +132,11 @@ pub struct SessionConfig {
     /// Threads that fuse keyframes into the maps and commit them to the store,
     /// shared by all sessions, off the tracking path.
     pub map_threads: usize,
+    /// Threads each OpenCV call (ORB, flow, dense odometry) may use, process-wide;
+    /// 0 = OpenCV's default (one per core). 1 by default: the pipeline pool already
+    /// runs one session per core, and OpenCV's own parallel loops on top of it
+    /// only oversubscribe the cores (README, "Fleet capacity", measures both).
+    pub opencv_threads: usize,
     /// Map jobs (keyframes, re-fusions) waiting per session; a keyframe finding the
     /// queue full is left out of the map and counted (`stillmap_map_jobs_skipped_total`),
     /// so tracking never waits for the map.
@@ -189,6 +194,7 @@ impl Default for SessionConfig {
             max_connected: 64,
             pipeline_threads: 0,
             map_threads: 1,
+            opencv_threads: 1,
             map_queue: 16,
         }
     }
@@ -215,6 +221,9 @@ impl ServerConfig {
         }
         if !(1..=MAX_POOL_THREADS).contains(&self.session.map_threads) {
             return bad(format!("session.map_threads must be in 1..={MAX_POOL_THREADS}, got {}", self.session.map_threads));
+        }
+        if self.session.opencv_threads > MAX_POOL_THREADS {
+            return bad(format!("session.opencv_threads must be at most {MAX_POOL_THREADS}, got {}", self.session.opencv_threads));
         }
         if !(1..=MAX_MAP_QUEUE).contains(&self.session.map_queue) {
             return bad(format!("session.map_queue must be in 1..={MAX_MAP_QUEUE}, got {}", self.session.map_queue));

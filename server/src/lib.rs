@@ -97,6 +97,8 @@ fn perception_service(config: &ServerConfig, metrics: &Arc<metrics::Metrics>) ->
 pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_ready: impl FnOnce(&Bound)) -> Result<(), ServerError> {
     config.validate()?;
     let metrics: Arc<metrics::Metrics> = Arc::default();
+    stillmap_tracking::set_opencv_threads(config.session.opencv_threads)
+        .map_err(|e| ServerError::Config(format!("session.opencv_threads: {e}")))?;
     let pools = session::Pools::start(&config.session).map_err(ServerError::Threads)?;
     let perception = perception_service(&config, &metrics)?;
     let store = if config.store.enabled { Some(Arc::new(store::Store::open(std::path::Path::new(&config.store.path))?)) } else { None };

@@ -197,7 +197,7 @@ impl Lane for Session {
                     let pipeline = worker.get_or_insert_with(|| self.new_pipeline());
                     let mut outcome = pipeline.process(&queued);
                     if let Some(job) = outcome.map_job.take()
-                        && let Err(job) = self.hand_to_map(job)
+                        && let Some(job) = self.hand_to_map(job)
                     {
                         pipeline.map_job_refused(&job);
                     }
@@ -413,8 +413,8 @@ impl Session {
 
     /// Queues a map job on the session's map lane; a full lane gives it back
     /// (tracking never waits for the map), counted in `/metrics`.
-    fn hand_to_map(&self, job: MapJob) -> Result<(), MapJob> {
-        let Some(lane) = &self.map_lane else { return Ok(()) };
+    fn hand_to_map(&self, job: MapJob) -> Option<MapJob> {
+        let Some(lane) = &self.map_lane else { return None };
         {
             let mut jobs = lock(&lane.jobs);
             if jobs.len() >= lane.capacity {
@@ -422,7 +422,7 @@ impl Session {
                 let keyframe = job.keyframe.as_ref().map(|k| k.id);
                 self.metrics.map_job_skipped(keyframe.is_some());
                 tracing::warn!(session = %self.id, ?keyframe, "map queue full (session.map_queue): work left out of the map");
-                return Err(job);
+                return Some(job);
             }
             jobs.push_back(job);
         }
@@ -430,7 +430,7 @@ impl Session {
         if let Some(pools) = &self.pools {
             pools.map.schedule(lane.clone());
         }
-        Ok(())
+        None
     }
 
     /// Map work of one frame, on the map pool: re-fusion of moved keyframes, the

@@ -19,6 +19,18 @@ pub use camera::Camera;
 pub use config::TrackerConfig;
 pub use tracker::{FrameInput, StageTimes, TrackOutput, Tracker, TrackingState};
 
+/// Threads OpenCV's parallel loops may use, process-wide (`cv::setNumThreads`;
+/// 0 keeps OpenCV's default, one per core). A server that already runs one
+/// session per core sets 1, so N sessions do not oversubscribe the cores.
+pub fn set_opencv_threads(threads: usize) -> Result<(), TrackingError> {
+    if threads == 0 {
+        return Ok(());
+    }
+    let n = i32::try_from(threads).map_err(|_| TrackingError::Config(format!("{threads} OpenCV threads")))?;
+    opencv::core::set_num_threads(n)?;
+    Ok(())
+}
+
 /// Errors of the tracking crate.
 #[derive(Debug, thiserror::Error)]
 pub enum TrackingError {

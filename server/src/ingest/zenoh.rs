@@ -165,7 +165,7 @@ pub async fn serve(
                         }
                     }
                     Err(e) => {
-                        let _ = sink.send(Err(refusal(&e, &metrics))).await;
+                        let _ = sink.send(Err(refusal(&e, metrics))).await;
                     }
                 }
             }
