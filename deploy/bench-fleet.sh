@@ -11,7 +11,8 @@
 #   MODEL_DIR         where yolov8n-seg_fp32_<size>[_batch].onnx are (../shared/models;
 #                     .deps/models for the batching ones)
 #   OUT               folder for the per-run JSON reports and server logs (a temp dir)
-#   OPENCV_THREADS, PIPELINE_THREADS  session.opencv_threads / pipeline_threads
+#   OPENCV_THREADS, PIPELINE_THREADS, SEG_NICE  session.opencv_threads /
+#                     pipeline_threads, perception.segmentation.worker_nice
 #                     (default: the server's defaults, 1 and one per core)
 set -euo pipefail
 BIN=${1:?usage: bench-fleet.sh <bin-dir>}
@@ -49,6 +50,7 @@ for model in $MODELS; do
         [ -n "${OPENCV_THREADS:-}" ] && echo "opencv_threads = $OPENCV_THREADS"
         [ -n "${PIPELINE_THREADS:-}" ] && echo "pipeline_threads = $PIPELINE_THREADS"
         echo "[perception.segmentation]"
+        [ -n "${SEG_NICE:-}" ] && echo "worker_nice = $SEG_NICE"
         if [ -n "$GPU" ]; then
           echo 'execution_provider = "cuda"'
           echo "max_batch = ${MAX_BATCH:-16}"

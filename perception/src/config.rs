@@ -94,6 +94,11 @@ pub struct SegmentationConfig {
     pub prior_dynamic_classes: Vec<String>,
     /// Server: segmentation worker threads shared by all sessions (each owns a model).
     pub workers: usize,
+    /// Server: niceness of the segmentation worker threads (Linux, 0..=19). On a
+    /// CPU that segments, tracking and segmentation compete for the cores; a nice
+    /// worker takes what the tracking paths leave (masks then get older and are
+    /// carried by the flow meanwhile). 0 = the same priority as tracking.
+    pub worker_nice: i32,
     /// A segmentation is carried forward through the flow for at most this many
     /// frames; older, it is dropped and flow alone decides until a new one arrives.
     pub max_mask_age_frames: u32,
@@ -251,6 +256,9 @@ impl PerceptionConfig {
         if s.workers == 0 {
             return Err("perception.segmentation.workers must be at least 1".into());
         }
+        if !(0..=19).contains(&s.worker_nice) {
+            return Err(format!("perception.segmentation.worker_nice must be in 0..=19, got {}", s.worker_nice));
+        }
         if !(1..=MAX_SEGMENTATION_BATCH).contains(&s.max_batch) {
             return Err(format!("perception.segmentation.max_batch must be in 1..={MAX_SEGMENTATION_BATCH}, got {}", s.max_batch));
         }
@@ -353,6 +361,7 @@ impl Default for SegmentationConfig {
             max_queue_delay_ms: 2,
             prior_dynamic_classes: DEFAULT_PRIOR_DYNAMIC.iter().map(|s| (*s).to_string()).collect(),
             workers: 1,
+            worker_nice: 0,
             max_mask_age_frames: 15,
             deterministic_every_frames: 0,
             deterministic_delay_frames: 0,

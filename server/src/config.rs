@@ -283,4 +283,29 @@ mod tests {
         assert_eq!(err, "invalid configuration: auth.tokens[1] has leading or trailing whitespace");
         assert_eq!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 0.0\n").unwrap().zenoh.idle_disconnect_s, 0.0);
     }
+
+    /// Pool sizes, queues and the segmentation batcher's limits are checked at start-up.
+    #[test]
+    fn fleet_limits_are_named_when_out_of_range() {
+        let err = |toml: &str| ServerConfig::from_toml(toml).unwrap_err().to_string();
+        assert_eq!(err("[session]\nmap_threads = 0\n"), "invalid configuration: session.map_threads must be in 1..=1024, got 0");
+        assert_eq!(err("[session]\npipeline_threads = 5000\n"), "invalid configuration: session.pipeline_threads must be at most 1024, got 5000");
+        assert_eq!(err("[session]\nopencv_threads = 2000\n"), "invalid configuration: session.opencv_threads must be at most 1024, got 2000");
+        assert_eq!(err("[session]\nmap_queue = 0\n"), "invalid configuration: session.map_queue must be in 1..=256, got 0");
+        assert_eq!(
+            err("[perception.segmentation]\nmax_batch = 0\n"),
+            "invalid configuration: perception.segmentation.max_batch must be in 1..=64, got 0"
+        );
+        assert_eq!(
+            err("[perception.segmentation]\nmax_queue_delay_ms = 100\n"),
+            "invalid configuration: perception.segmentation.max_queue_delay_ms must be at most 33, got 100"
+        );
+        assert_eq!(
+            err("[perception.segmentation]\nexecution_provider = \"tensorrt\"\ntensorrt_cache_dir = \"\"\n"),
+            "invalid configuration: perception.segmentation.tensorrt_cache_dir must name a folder with execution_provider = \"tensorrt\""
+        );
+        assert!(err("[perception.segmentation]\nexecution_provider = \"rocm\"\n").contains("unknown variant `rocm`"));
+        let c = ServerConfig::from_toml("[session]\npipeline_threads = 3\nmax_connected = 0\n").unwrap();
+        assert_eq!((c.session.pipeline_threads, c.session.max_connected), (3, 0));
+    }
 }
