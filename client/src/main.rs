@@ -66,6 +66,31 @@ enum RelationArg {
     Rot,
 }
 
+/// Where the camera's intrinsics come from (`stream` and `fleet`).
+#[derive(clap::Args)]
+struct CalibrationArgs {
+    /// Camera calibration file: ROS camera_info YAML, OpenCV FileStorage YAML
+    /// (camera_matrix, distortion_coefficients, image_width/height) or ORB-SLAM
+    /// settings. Its intrinsics win over --camera's and the source's own.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+    /// A camera whose calibration stillmap knows (tum-fr1, tum-fr2, tum-fr3):
+    /// intrinsics and timing. Unset for a TUM folder: the folder's own name says.
+    #[arg(long)]
+    camera: Option<KnownCamera>,
+    /// Track with nominal intrinsics when the source's calibration is not known
+    /// (a TUM folder whose name names no freiburg camera, an OpenNI2 device that
+    /// reports no field of view) instead of refusing to start.
+    #[arg(long)]
+    allow_default_intrinsics: bool,
+}
+
+impl From<CalibrationArgs> for CameraOptions {
+    fn from(a: CalibrationArgs) -> Self {
+        Self { calibration: a.calibration, camera: a.camera, allow_default_intrinsics: a.allow_default_intrinsics }
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Stream a source to the server and print a summary.
@@ -118,20 +143,8 @@ enum Command {
         /// --rolling-shutter-ms overrides the readout.
         #[arg(long, allow_negative_numbers = true)]
         exposure_offset_ms: Option<f64>,
-        /// Camera calibration file: ROS camera_info YAML, OpenCV FileStorage YAML
-        /// (camera_matrix, distortion_coefficients, image_width/height) or ORB-SLAM
-        /// settings. Its intrinsics win over --camera's and the source's own.
-        #[arg(long)]
-        calibration: Option<PathBuf>,
-        /// A camera whose calibration stillmap knows (tum-fr1, tum-fr2, tum-fr3):
-        /// intrinsics and timing. Unset for a TUM folder: the folder's own name says.
-        #[arg(long)]
-        camera: Option<KnownCamera>,
-        /// Track with nominal intrinsics when the source's calibration is not known
-        /// (a TUM folder whose name names no freiburg camera, an OpenNI2 device that
-        /// reports no field of view) instead of refusing to start.
-        #[arg(long)]
-        allow_default_intrinsics: bool,
+        #[command(flatten)]
+        calibration: CalibrationArgs,
         /// Reconnection attempts (gRPC) before giving up.
         #[arg(long, default_value_t = 10)]
         reconnect_attempts: u32,
@@ -184,12 +197,8 @@ enum Command {
         /// Frames of the recording to load (default: all).
         #[arg(long)]
         max_frames: Option<usize>,
-        #[arg(long)]
-        calibration: Option<PathBuf>,
-        #[arg(long)]
-        camera: Option<KnownCamera>,
-        #[arg(long)]
-        allow_default_intrinsics: bool,
+        #[command(flatten)]
+        calibration: CalibrationArgs,
         /// Seconds to wait for the server (connect, Zenoh hello, late results).
         #[arg(long, default_value_t = 10.0)]
         timeout: f64,
@@ -290,8 +299,6 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             rolling_shutter_ms,
             exposure_offset_ms,
             calibration,
-            camera,
-            allow_default_intrinsics,
         } => {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
             if let Some(ms) = rolling_shutter_ms
@@ -335,7 +342,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 progress: !quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
                 rolling_shutter_readout_s: rolling_shutter_ms.map(|ms| ms * 1e-3),
                 exposure_time_offset_s: exposure_offset_ms.map(|ms| ms * 1e-3),
-                camera: CameraOptions { calibration, camera, allow_default_intrinsics },
+                camera: calibration.into(),
             };
             let summary = match transport {
                 TransportArg::Grpc => {
@@ -387,8 +394,6 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             max_in_flight,
             max_frames,
             calibration,
-            camera,
-            allow_default_intrinsics,
             timeout,
             summary_json,
         } => {
@@ -404,7 +409,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             let options = FleetOptions {
                 robots,
                 tum,
-                camera: CameraOptions { calibration, camera, allow_default_intrinsics },
+                camera: calibration.into(),
                 max_frames,
                 rate,
                 duration,

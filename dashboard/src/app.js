@@ -6,7 +6,8 @@
 import { Map2D, rotate } from "./map2d.js";
 
 const SPARK_FRAMES = 60; // latency history per stage
-const SPARK_STAGES = ["total", "track", "perception_flow", "map_fuse"];
+// Stages on the tracking path (map fusion runs off it, in /metrics only).
+const SPARK_STAGES = ["total", "track", "perception_flow", "segmentation"];
 const CLOUD_REFRESH_MS = 5000; // the 3D cloud is re-fetched at most this often
 
 const state = {

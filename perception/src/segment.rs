@@ -361,21 +361,8 @@ impl Segmenter for YoloSegmenter {
     }
 
     fn segment(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<Segmentation, PerceptionError> {
-        if width == 0 || height == 0 {
-            return Err(PerceptionError::Input(format!("image size {width}x{height} is empty")));
-        }
-        let lb = Letterbox::new(width, height, self.letterbox_size);
-        let data = yolo::preprocess(rgb, width, height, &lb)?;
-        let s = self.letterbox_size as usize;
-        let input = Tensor::from_array(([1usize, 3, s, s], data)).map_err(|e| PerceptionError::Runtime(e.to_string()))?;
-        let outputs = self
-            .session
-            .run(ort::inputs![self.input_name.as_str() => input])
-            .map_err(|e| PerceptionError::Runtime(format!("inference failed: {e}")))?;
-        let (_, det) = outputs[0].try_extract_tensor::<f32>().map_err(|e| PerceptionError::Runtime(e.to_string()))?;
-        let (_, proto) = outputs[1].try_extract_tensor::<f32>().map_err(|e| PerceptionError::Runtime(e.to_string()))?;
-        let detections = yolo::decode_detections(det, self.anchors, self.classes, self.mask_dim, &self.params)?;
-        yolo::assemble(&detections, proto, self.mask_dim, self.proto_side, &lb, width, height, &self.params, &self.names)
+        let mut out = self.run_batch(&[RgbFrame { rgb, width, height }])?;
+        out.pop().ok_or_else(|| PerceptionError::Runtime("the model returned no result".into()))
     }
 
     fn class_names(&self) -> &[String] {
