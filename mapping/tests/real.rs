@@ -77,7 +77,7 @@ fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmen
         };
         let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation);
         if track.keyframe {
-            let exclude = mask.fused.mapping_mask();
+            let exclude = pipeline.masker.mapping_mask(&mask.fused, &f.depth).expect("mapping mask");
             let classes = pipeline.masker.segmentation().map(|s| s.class_map());
             let view = DepthView {
                 depth: &f.depth,

@@ -229,6 +229,15 @@ pub struct FusionConfig {
     /// or beside the flagged cells. Only the tracking mask grows (mapping labels and
     /// instance decisions do not); a depth edge stops it. 0 disables growing.
     pub tracking_mask_growth_px: u32,
+    /// The pixels kept out of the map (dynamic and prior-dynamic labels) grow over
+    /// the surfaces they lie on, in depth-continuous 4-neighbour steps, up to this
+    /// many full-size pixels: the labels miss an object's rim and its feet where
+    /// they meet the floor, and those must not be fused. 0 disables growing.
+    pub mapping_mask_growth_px: u32,
+    /// After growing, the kept-out pixels are dilated by this radius (full-size
+    /// pixels), across depth edges too: the outline of a mask is where it is least
+    /// exact. 0 disables it.
+    pub mapping_mask_dilation_px: u32,
 }
 
 impl PerceptionConfig {
@@ -312,6 +321,12 @@ impl PerceptionConfig {
         }
         if u.tracking_mask_growth_px > 256 {
             return Err(format!("perception.fusion.tracking_mask_growth_px must be at most 256, got {}", u.tracking_mask_growth_px));
+        }
+        if u.mapping_mask_growth_px > 256 {
+            return Err(format!("perception.fusion.mapping_mask_growth_px must be at most 256, got {}", u.mapping_mask_growth_px));
+        }
+        if u.mapping_mask_dilation_px > 64 {
+            return Err(format!("perception.fusion.mapping_mask_dilation_px must be at most 64, got {}", u.mapping_mask_dilation_px));
         }
         if u.tracking_mask_dilation_px > 64 {
             return Err(format!("perception.fusion.tracking_mask_dilation_px must be at most 64, got {}", u.tracking_mask_dilation_px));
@@ -408,6 +423,8 @@ impl Default for FusionConfig {
             flow_regions_in_tracking_mask: true,
             tracking_mask_dilation_px: 8,
             tracking_mask_growth_px: 12,
+            mapping_mask_growth_px: 12,
+            mapping_mask_dilation_px: 4,
         }
     }
 }

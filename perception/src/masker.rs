@@ -144,6 +144,33 @@ impl DynamicMasker {
         Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, last_ego_frames: 1, dynamic_grid: None, pending: None })
     }
 
+    /// The pixels of `fused` (a frame of depth `depth`) the map must not take:
+    /// dynamic and prior-dynamic labels, grown over the surfaces they stand on
+    /// (4-neighbour steps that continue the depth, `mapping_mask_growth_px`) and
+    /// dilated (`mapping_mask_dilation_px`), so an object's rim, its feet on the
+    /// floor and the pixels the labels miss at its outline are not fused either.
+    pub fn mapping_mask(&self, fused: &Fused, depth: &[u16]) -> Result<Vec<u8>, PerceptionError> {
+        let mask = fused.mapping_mask();
+        let (w, h) = (fused.width, fused.height);
+        if depth.len() != w * h {
+            return Err(PerceptionError::Input(format!("depth has {} pixels, the labels {}", depth.len(), w * h)));
+        }
+        if !mask.contains(&1) {
+            return Ok(mask);
+        }
+        let f = &self.config.fusion;
+        let mask = if f.mapping_mask_growth_px > 0 {
+            let scale = (1.0 / self.camera.depth_units_per_metre) as f32;
+            let depth_m: Vec<f32> = depth.iter().map(|&d| f32::from(d) * scale).collect();
+            let mut inside: Vec<bool> = mask.iter().map(|&m| m != 0).collect();
+            grow_over_depth(&mut inside, &depth_m, w, h, f.region_depth_ratio, f.mapping_mask_growth_px as usize, |_| true);
+            inside.into_iter().map(u8::from).collect()
+        } else {
+            mask
+        };
+        dilate(mask, w, h, f.mapping_mask_dilation_px)
+    }
+
     /// The segmentation in the current frame's coordinates, if any.
     pub fn segmentation(&self) -> Option<&Segmentation> {
         self.carried.as_ref().map(|c| &c.segmentation)
@@ -577,5 +604,43 @@ mod tests {
         assert_eq!(scaled(&m, 1.0), m);
         let half = scaled(&m, 0.5);
         assert!((half.rotation.angle() - 0.015).abs() < 1e-12);
+    }
+
+    /// The map's kept-out pixels grow over the surface they stand on (a person's
+    /// feet onto the floor), never across a depth edge, then dilate by a few pixels.
+    #[test]
+    fn the_mapping_mask_grows_over_its_surface_and_dilates() {
+        let (w, h) = (80usize, 40usize);
+        let camera = Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 40.0,
+            cy: 20.0,
+            distortion: None,
+            depth_units_per_metre: 1000.0,
+            readout_s: 0.0,
+        };
+        let mut config = PerceptionConfig::default();
+        config.fusion.mapping_mask_growth_px = 10;
+        config.fusion.mapping_mask_dilation_px = 2;
+        let masker = DynamicMasker::new(camera, config, &[]).expect("masker");
+        // Left half: one surface at 2 m (a floor, say); right half: a wall at 4 m.
+        let depth: Vec<u16> = (0..w * h).map(|i| if i % w < 40 { 2000 } else { 4000 }).collect();
+        // A dynamic block at columns 20..30, rows 10..20.
+        let labels: Vec<u8> = (0..w * h)
+            .map(|i| if (20..30).contains(&(i % w)) && (10..20).contains(&(i / w)) { PixelLabel::Dynamic as u8 } else { PixelLabel::Static as u8 })
+            .collect();
+        let fused = Fused { width: w, height: h, labels, instances: vec![], flow_regions: 0, rejected_regions: 0 };
+        let mask = masker.mapping_mask(&fused, &depth).expect("mask");
+        let at = |x: usize, y: usize| mask[y * w + x] != 0;
+        assert!(at(25, 15) && at(19, 15), "the block and its neighbour");
+        assert!(at(10, 15) && !at(7, 15), "grown 10 px over the surface, dilated by 2");
+        assert!(at(39, 15) && at(41, 15), "reached the depth edge; the dilation crosses it by 2 px");
+        assert!(!at(43, 15), "the wall behind is never grown into");
+        let nothing = Fused { labels: vec![PixelLabel::Static as u8; w * h], ..fused };
+        assert!(masker.mapping_mask(&nothing, &depth).expect("mask").iter().all(|&m| m == 0));
+        assert!(matches!(masker.mapping_mask(&nothing, &depth[1..]), Err(PerceptionError::Input(_))));
     }
 }

@@ -164,10 +164,16 @@ impl SessionPerception {
         Some(outcome)
     }
 
-    /// Pixels of the last finished frame that must stay out of the map (nonzero):
-    /// dynamic and prior-dynamic. `None` when perception failed on it.
-    pub fn map_exclusion(&self) -> Option<Vec<u8>> {
-        self.fused.as_ref().map(Fused::mapping_mask)
+    /// Pixels of the last finished frame (of depth `depth`) that must stay out of
+    /// the map (nonzero): dynamic and prior-dynamic, grown over their surfaces and
+    /// dilated (`DynamicMasker::mapping_mask`). `None` when perception failed on it.
+    pub fn map_exclusion(&self, depth: &DepthImage) -> Option<Vec<u8>> {
+        let fused = self.fused.as_ref()?;
+        self.masker
+            .mapping_mask(fused, &depth.data)
+            .map_err(|e| tracing::warn!("mapping mask failed, the keyframe's labels are used as they are: {e}"))
+            .ok()
+            .or_else(|| Some(fused.mapping_mask()))
     }
 
     /// The segmentation class per pixel in the current frame (fresh or warped), if any.

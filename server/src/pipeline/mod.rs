@@ -162,7 +162,7 @@ impl SessionPipeline {
                 id,
                 color: decoded.color.clone(),
                 depth: decoded.depth.clone(),
-                exclude: self.perception.as_ref().and_then(SessionPerception::map_exclusion),
+                exclude: self.perception.as_ref().and_then(|p| p.map_exclusion(&decoded.depth)),
                 classes: self.perception.as_ref().and_then(SessionPerception::class_map),
                 record: tracker.keyframe_record(id),
             });
