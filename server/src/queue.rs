@@ -1,4 +1,5 @@
-//! The bounded per-session frame queue between ingest and the pipeline worker.
+//! The bounded per-session frame queue between ingest and the session's pipeline
+//! (run by the pipeline pool, which takes work with `try_pop` and never waits here).
 //!
 //! At most `capacity` frames wait. When a frame finds the queue full the
 //! [`OverloadPolicy`] picks a victim, whose payload is freed at once and whose
@@ -8,7 +9,7 @@
 //! [`QueueError::Overloaded`] instead of growing memory.
 
 use std::collections::VecDeque;
-use std::sync::{Condvar, Mutex, MutexGuard};
+use std::sync::{Mutex, MutexGuard};
 use std::time::Instant;
 
 use stillmap_proto::pb;
@@ -53,7 +54,6 @@ pub struct FrameQueue {
     max_notices: usize,
     policy: OverloadPolicy,
     inner: Mutex<Inner>,
-    ready: Condvar,
 }
 
 #[derive(Default)]
@@ -65,7 +65,7 @@ struct Inner {
 
 impl FrameQueue {
     pub fn new(capacity: usize, max_notices: usize, policy: OverloadPolicy) -> Self {
-        Self { capacity: capacity.max(1), max_notices, policy, inner: Mutex::default(), ready: Condvar::new() }
+        Self { capacity: capacity.max(1), max_notices, policy, inner: Mutex::default() }
     }
 
     fn lock(&self) -> MutexGuard<'_, Inner> {
@@ -116,26 +116,7 @@ impl FrameQueue {
                 }
             }
         };
-        drop(inner);
-        self.ready.notify_one();
         Ok(outcome)
-    }
-
-    /// Blocks until work is available; `None` once closed and empty.
-    pub fn pop(&self) -> Option<Work> {
-        let mut inner = self.lock();
-        loop {
-            if let Some(work) = inner.items.pop_front() {
-                if matches!(work, Work::Frame(_)) {
-                    inner.frames -= 1;
-                }
-                return Some(work);
-            }
-            if inner.closed {
-                return None;
-            }
-            inner = self.ready.wait(inner).unwrap_or_else(|poisoned| poisoned.into_inner());
-        }
     }
 
     /// The next work without waiting (the pool's pipeline slices).
@@ -162,10 +143,9 @@ impl FrameQueue {
         self.len() == 0
     }
 
-    /// Stops accepting frames; the worker drains what is queued and then stops.
+    /// Stops accepting frames; the pipeline still drains what is queued.
     pub fn close(&self) {
         self.lock().closed = true;
-        self.ready.notify_all();
     }
 }
 
@@ -182,7 +162,7 @@ mod tests {
 
     fn drain(q: &FrameQueue) -> Vec<String> {
         q.close();
-        std::iter::from_fn(|| q.pop())
+        std::iter::from_fn(|| q.try_pop())
             .map(|w| match w {
                 Work::Frame(f) => format!("F{}", f.frame.sequence),
                 Work::Dropped { sequence, .. } => format!("D{sequence}"),
@@ -218,15 +198,5 @@ mod tests {
         assert_eq!(q.push(frame(4)).unwrap_err(), QueueError::Overloaded(2));
         assert_eq!(drain(&q), ["D1", "D2", "F3"]);
         assert_eq!(q.push(frame(5)).unwrap_err(), QueueError::Closed);
-    }
-
-    #[test]
-    fn pop_blocks_until_push() {
-        let q = std::sync::Arc::new(FrameQueue::new(4, 4, OverloadPolicy::DropOldest));
-        let q2 = q.clone();
-        let t = std::thread::spawn(move || q2.pop().map(|w| matches!(w, Work::Frame(_))));
-        std::thread::sleep(std::time::Duration::from_millis(20));
-        q.push(frame(9)).unwrap();
-        assert_eq!(t.join().unwrap(), Some(true));
     }
 }
