@@ -43,7 +43,7 @@ pub enum ServerError {
     Http(std::io::Error),
     #[error("zenoh: {0}")]
     Zenoh(String),
-    /// Displayed by its source (`anyhow`'s chain prints "perception: <problem>").
+    /// Displayed by its source (`anyhow`'s chain prints `perception: <problem>`).
     #[error("perception")]
     Perception(#[from] stillmap_perception::PerceptionError),
     #[error("{0}")]
