@@ -100,6 +100,21 @@ async fn a_fleet_of_three_keeps_every_session_apart() {
     let decode = stages.iter().find(|s| s["stage"] == "decode_depth").expect("decode_depth stage");
     assert_eq!(count(decode, "frames"), count(total, "frames_answered"));
     assert!(stages.iter().any(|s| s["stage"] == "track"), "{stages:#?}");
+    // Keyframes were fused on the map pool, off the tracking path, and none was
+    // left out: the map lanes kept up.
+    let fused = stages.iter().find(|s| s["stage"] == "map_fuse").expect("map_fuse stage in /metrics");
+    assert!(count(fused, "frames") >= 3, "{fused}");
+    // The map lanes may still be fusing the last keyframes: their backlog drains.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    let metrics = loop {
+        let metrics = server.get_text("/metrics").await;
+        if metrics.contains("stillmap_map_backlog 0") || std::time::Instant::now() > deadline {
+            break metrics;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    };
+    assert!(metrics.contains("stillmap_map_backlog 0"), "{metrics}");
+    assert!(!metrics.contains("stillmap_map_jobs_skipped_total{"), "{metrics}");
 }
 
 #[tokio::test(flavor = "multi_thread")]
