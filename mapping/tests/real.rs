@@ -11,6 +11,8 @@ mod tum;
 mod support;
 #[path = "../../perception/tests/support/composite_run.rs"]
 mod composite_run;
+#[path = "support/map_run.rs"]
+mod map_run;
 
 use std::sync::OnceLock;
 
@@ -18,7 +20,8 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use stillmap_mapping::export::{cloud, objects, to_ply};
 use stillmap_mapping::tiles::{OccupancyGrid, TopDown};
 use stillmap_mapping::{DepthView, MapBuilder, MappingConfig, NO_CLASS};
-use stillmap_perception::composite::{TexturedPlane, interpolate_pose, paste};
+use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
+use stillmap_perception::composite::{interpolate_pose, paste};
 use stillmap_perception::{Segmenter, YoloSegmenter};
 
 struct Clip {
@@ -36,75 +39,6 @@ fn clip() -> &'static Clip {
         Clip { frames, poses }
     })
 }
-
-/// A frame as the pipeline sees it, and the board's world pose when one is pasted in.
-struct Frame {
-    timestamp_ns: u64,
-    rgb: Vec<u8>,
-    depth: Vec<u16>,
-}
-
-#[derive(Clone, Copy, PartialEq)]
-enum Masking {
-    /// The fused dynamic/static mask keeps pixels out of the map (the pipeline).
-    Perception,
-    /// Every pixel is fused (the control: shows what the mask prevents).
-    None,
-}
-
-struct Fused {
-    builder: MapBuilder,
-    keyframes: Vec<usize>,
-    /// Occupied-voxel snapshots after the given frames.
-    snapshots: Vec<(usize, Vec<Point3<f64>>)>,
-}
-
-/// Runs perception and tracking over `frames`, fusing the tracker's keyframes at
-/// the ground-truth poses. `segment_every`: frames k with k % n == 0 are segmented
-/// (their result arrives for that frame; the masker warps it forward until the next).
-fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmenter: Option<(&mut YoloSegmenter, usize)>, snapshot_at: &[usize]) -> Fused {
-    let camera = tum::fr1_camera();
-    let names: Vec<String> = segmenter.as_ref().map(|(s, _)| s.class_names().to_vec()).unwrap_or_default();
-    let mut pipeline = composite_run::MaskedTracking::new(&names);
-    let mut builder = MapBuilder::new(&camera, MappingConfig::default()).expect("builder");
-    let (mut keyframes, mut snapshots) = (Vec::new(), Vec::new());
-    for (k, (f, gt_pose)) in frames.iter().zip(poses).enumerate() {
-        // Gravity from the ground truth's up (+z), as an accelerometer at rest reports it.
-        builder.observe_accel(gt_pose, &(gt_pose.rotation.inverse() * Vector3::z() * 9.81));
-        let segmentation = match segmenter.as_mut() {
-            Some((s, every)) if k % *every == 0 => Some((k as u64, s.segment(&f.rgb, 640, 480).expect("segment"))),
-            _ => None,
-        };
-        let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation);
-        if track.keyframe {
-            let exclude = pipeline.masker.mapping_mask(&mask.fused, &f.depth).expect("mapping mask");
-            let classes = pipeline.masker.segmentation().map(|s| s.class_map());
-            let view = DepthView {
-                depth: &f.depth,
-                rgb: &f.rgb,
-                exclude: (masking == Masking::Perception).then_some(exclude.as_slice()),
-                classes: classes.as_deref(),
-            };
-            builder.add_keyframe(k as u64, gt_pose, &view).expect("fuse");
-            keyframes.push(k);
-        }
-        if snapshot_at.contains(&k) {
-            snapshots.push((k, builder.map().occupied().map(|(_, c, _)| c).collect()));
-        }
-    }
-    Fused { builder, keyframes, snapshots }
-}
-
-/// Distance from `p` to the board rectangle at `world_from_plane`.
-fn distance_to_board(p: &Point3<f64>, world_from_plane: &Isometry3<f64>, plane: &TexturedPlane) -> f64 {
-    let q = world_from_plane.inverse() * p;
-    let dx = (q.x.abs() - plane.width_m / 2.0).max(0.0);
-    let dy = (q.y.abs() - plane.height_m / 2.0).max(0.0);
-    (dx * dx + dy * dy + q.z * q.z).sqrt()
-}
-
-/// A voxel "is the board" when its centre lies within 1.5 voxels of the board at some frame.
-const ON_BOARD_M: f64 = 0.03;
 
 #[test]
 fn a_moving_object_stays_out_of_the_map_while_the_camera_moves() {

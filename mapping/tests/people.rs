@@ -1,0 +1,234 @@
+//! Moving people in the static map (issue 19's scene, built from the public clips):
+//! two people cut out of `bus.jpg` by the segmenter's own masks, 1.7 m billboards
+//! standing on the floor, walk, stand still for 1 s and walk on, one behind the desk
+//! (the desk hides his legs: depth test against the real frames), one coming within
+//! 1.3 m of the camera beside it; a textured box of no COCO class slides on the desk,
+//! rests for 1 s and leaves. Both public clips.
+//!
+//! Ghosts are scored exactly: voxels of the map with the objects that the map of the
+//! same clip without them does not have, within 3 cm of where an object was at some
+//! frame (its swept volume). Keyframes are fused at their ground-truth poses (as in
+//! `real.rs`), so what is scored is the map. Run with `--nocapture` for the numbers.
+
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
+#[path = "../../perception/tests/support/mod.rs"]
+mod support;
+#[path = "../../perception/tests/support/composite_run.rs"]
+mod composite_run;
+#[path = "support/map_run.rs"]
+mod map_run;
+
+use std::collections::HashSet;
+use std::path::Path;
+
+use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
+use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
+use stillmap_perception::composite::{StopAndGo, TexturedPlane, interpolate_pose, paste};
+use stillmap_perception::{Segmenter, YoloSegmenter};
+
+/// A person's height, and the floor of the TUM freiburg1 room (the motion-capture
+/// frame's z = 0; the clips' lowest depth points lie at −3 to 0 cm).
+const PERSON_HEIGHT_M: f64 = 1.7;
+const FLOOR_Z_M: f64 = 0.0;
+/// The desk top (the clips' points cluster at 0.75–0.80 m).
+const DESK_Z_M: f64 = 0.76;
+/// Segmentation runs on every n-th frame and arrives with it (deterministic).
+const SEGMENT_EVERY: usize = 2;
+
+struct Actor {
+    name: &'static str,
+    plane: TexturedPlane,
+    motion: StopAndGo,
+}
+
+/// Positions in the scene as (metres ahead of the clip's mean camera position along
+/// its mean horizontal viewing direction, metres to the side, height of the centre).
+struct Stage {
+    origin: Point3<f64>,
+    ahead: Vector3<f64>,
+    side: Vector3<f64>,
+    /// world_from_plane's rotation of an object facing the camera, upright.
+    facing: UnitQuaternion<f64>,
+}
+
+impl Stage {
+    fn new(poses: &[Isometry3<f64>]) -> Self {
+        let n = poses.len() as f64;
+        let origin = Point3::from(poses.iter().map(|p| p.translation.vector).sum::<Vector3<f64>>() / n);
+        let view = poses.iter().map(|p| p.rotation * Vector3::z()).sum::<Vector3<f64>>();
+        let ahead = Vector3::new(view.x, view.y, 0.0).normalize();
+        let side = Vector3::z().cross(&ahead);
+        Self { origin, ahead, side, facing: UnitQuaternion::face_towards(&-ahead, &Vector3::z()) }
+    }
+
+    fn at(&self, ahead_m: f64, side_m: f64, z_m: f64) -> Point3<f64> {
+        let p = self.origin + self.ahead * ahead_m + self.side * side_m;
+        Point3::new(p.x, p.y, z_m)
+    }
+}
+
+/// The two largest people of `bus.jpg`, cut out along the segmenter's masks.
+fn people() -> Vec<TexturedPlane> {
+    let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
+    let (rgb, w, h) = support::photo("bus.jpg");
+    let out = seg.segment(&rgb, w, h).expect("segment");
+    let mut persons: Vec<_> = out.instances.iter().filter(|i| i.class_name == "person").collect();
+    persons.sort_by_key(|i| std::cmp::Reverse(i.pixels));
+    persons.iter().take(2).map(|i| TexturedPlane::cutout(&rgb, w, h, &out, i.id, PERSON_HEIGHT_M).expect("cut-out")).collect()
+}
+
+fn actors(poses: &[Isometry3<f64>]) -> Vec<Actor> {
+    let s = Stage::new(poses);
+    let centre = FLOOR_Z_M + PERSON_HEIGHT_M / 2.0;
+    let mut cutouts = people().into_iter();
+    let (behind, beside) = (cutouts.next().expect("a person"), cutouts.next().expect("a second person"));
+    vec![
+        // Behind the desk, 2.1 m ahead: walks 0.8 m across at 0.53 m/s, stands 1 s, walks on.
+        Actor {
+            name: "person behind the desk",
+            plane: behind,
+            motion: StopAndGo {
+                waypoints: vec![(0.0, s.at(2.1, 0.8, centre)), (1.5, s.at(2.1, 0.0, centre)), (2.5, s.at(2.1, 0.0, centre)), (4.0, s.at(2.1, -0.8, centre))],
+                rotation: s.facing,
+            },
+        },
+        // Beside the desk: comes from 2.0 m to 1.3 m at 0.58 m/s, stands 1 s, goes back.
+        Actor {
+            name: "person beside the desk",
+            plane: beside,
+            motion: StopAndGo {
+                waypoints: vec![(0.0, s.at(2.0, -0.55, centre)), (1.2, s.at(1.3, -0.55, centre)), (2.2, s.at(1.3, -0.55, centre)), (3.7, s.at(2.0, -0.55, centre))],
+                rotation: s.facing,
+            },
+        },
+        // A 25 × 20 cm box face on the desk: slides, rests 1 s, slides away out of the scene.
+        Actor {
+            name: "box on the desk",
+            plane: TexturedPlane::noise(11, 256, 256, 0.25, 0.20),
+            motion: StopAndGo {
+                waypoints: vec![(0.0, s.at(0.7, -0.2, DESK_Z_M + 0.10)), (1.0, s.at(0.7, 0.1, DESK_Z_M + 0.10)), (2.0, s.at(0.7, 0.1, DESK_Z_M + 0.10)), (3.5, s.at(0.7, 1.6, DESK_Z_M + 0.10))],
+                rotation: s.facing,
+            },
+        },
+    ]
+}
+
+/// A voxel centre as an integer key on the map's grid.
+fn key(p: &Point3<f64>, voxel_m: f64) -> [i64; 3] {
+    [(p.x / voxel_m).floor() as i64, (p.y / voxel_m).floor() as i64, (p.z / voxel_m).floor() as i64]
+}
+
+struct Score {
+    voxels: usize,
+    ghosts: usize,
+    /// The same without the mask (every pixel fused): what the mask prevents.
+    control_ghosts: usize,
+    ghosts_per_actor: Vec<usize>,
+    /// Voxels at a standing person's place at the end of the stand, and at the end.
+    standing: Vec<(usize, usize)>,
+}
+
+fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
+    let frames = tum::load(dir, 150);
+    let gt = tum::groundtruth(dir);
+    let poses: Vec<Isometry3<f64>> = frames.iter().map(|f| interpolate_pose(&gt, f.timestamp_ns).expect("ground truth")).collect();
+    let camera = tum::fr1_camera();
+    let actors = actors(&poses);
+    let t0 = frames[0].timestamp_ns;
+    let time = |k: usize| (frames[k].timestamp_ns - t0) as f64 * 1e-9;
+    let clean: Vec<Frame> = frames.iter().map(|f| Frame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone() }).collect();
+    let with_people: Vec<Frame> = frames
+        .iter()
+        .zip(&poses)
+        .enumerate()
+        .map(|(k, (f, world_from_camera))| {
+            let (mut rgb, mut depth) = (f.rgb.clone(), f.depth.clone());
+            // Farthest first, so nearer objects cover farther ones.
+            let mut order: Vec<&Actor> = actors.iter().collect();
+            order.sort_by(|a, b| {
+                let d = |x: &Actor| (x.motion.world_from_plane(time(k)).translation.vector - world_from_camera.translation.vector).norm();
+                d(b).total_cmp(&d(a))
+            });
+            for a in order {
+                paste(&camera, &a.plane, &(world_from_camera.inverse() * a.motion.world_from_plane(time(k))), &mut rgb, &mut depth);
+            }
+            Frame { timestamp_ns: f.timestamp_ns, rgb, depth }
+        })
+        .collect();
+    // STILLMAP_PEOPLE_DUMP=<dir>: a few composite frames as PPM images, to look at the scene.
+    if let Some(out) = std::env::var_os("STILLMAP_PEOPLE_DUMP") {
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        for k in [0, 30, 60, 90, 120] {
+            let mut ppm = format!("P6\n{} {}\n255\n", camera.width, camera.height).into_bytes();
+            ppm.extend_from_slice(&with_people[k].rgb);
+            std::fs::write(Path::new(&out).join(format!("{name}-{k}.ppm")), ppm).expect("dump");
+        }
+    }
+    // The frame each person's stand ends at.
+    let stand_end: Vec<usize> = actors[..2].iter().map(|a| (0..frames.len()).rev().find(|&k| a.motion.standing(time(k))).expect("a stand")).collect();
+    let without = fuse(&clean, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &[]);
+    let with = fuse(&with_people, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &stand_end);
+    let control = fuse(&with_people, &poses, Masking::None, Some((&mut *segmenter, SEGMENT_EVERY)), &[]);
+    let voxel_m = with.builder.config().voxel_size_m;
+    let background: HashSet<[i64; 3]> = without.builder.map().occupied().map(|(_, p, _)| key(&p, voxel_m)).collect();
+    let new: Vec<Point3<f64>> = with.builder.map().occupied().map(|(_, p, _)| p).filter(|p| !background.contains(&key(p, voxel_m))).collect();
+    let swept = |a: &Actor, p: &Point3<f64>| (0..frames.len()).any(|k| distance_to_board(p, &a.motion.world_from_plane(time(k)), &a.plane) <= ON_BOARD_M);
+    let ghosts_per_actor: Vec<usize> = actors.iter().map(|a| new.iter().filter(|p| swept(a, p)).count()).collect();
+    let ghosts = new.iter().filter(|p| actors.iter().any(|a| swept(a, p))).count();
+    let control_ghosts = control
+        .builder
+        .map()
+        .occupied()
+        .map(|(_, p, _)| p)
+        .filter(|p| !background.contains(&key(p, voxel_m)) && actors.iter().any(|a| swept(a, p)))
+        .count();
+    let standing = actors[..2]
+        .iter()
+        .zip(&stand_end)
+        .map(|(a, &k)| {
+            let place = a.motion.world_from_plane(time(k));
+            let snapshot = &with.snapshots.iter().find(|(at, _)| *at == k).expect("snapshot").1;
+            let near = |p: &&Point3<f64>| distance_to_board(p, &place, &a.plane) <= ON_BOARD_M && !background.contains(&key(p, voxel_m));
+            (snapshot.iter().filter(near).count(), new.iter().filter(near).count())
+        })
+        .collect();
+    let voxels = with.builder.map().stats().occupied_voxels;
+    for (a, g) in actors.iter().zip(&ghosts_per_actor) {
+        eprintln!("  {}: {g} ghost voxels", a.name);
+    }
+    Score { voxels, ghosts, control_ghosts, ghosts_per_actor, standing }
+}
+
+/// Ghost ratio bounds per clip: measured 1.33 % (rpy) and 2.72 % (rpy_b) on
+/// 2026-12-03 (deterministic: fixed textures, segmentation on a fixed schedule),
+/// with a margin. Issue 19's goal is 0.5 %; the people standing for 1 s are still
+/// mapped (about 200–350 voxels at their place at the end): that is issue 19's work,
+/// and these bounds only keep it from getting worse meanwhile.
+const GHOST_BOUNDS: [(&str, f64); 2] = [("rgbd_dataset_freiburg1_rpy", 0.020), ("rgbd_dataset_freiburg1_rpy_b", 0.035)];
+
+/// The scene on both public clips: ghosts, and the standing people.
+#[test]
+fn moving_people_stay_out_of_the_map() {
+    let mut segmenter = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_320.onnx")).expect("model");
+    let dirs = [tum::fr1_rpy_dir(), tum::fr1_rpy_dir().with_file_name("rgbd_dataset_freiburg1_rpy_b")];
+    for dir in &dirs {
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let s = score_clip(dir, &mut segmenter);
+        eprintln!(
+            "{name}: {} ghost voxels of {} ({:.3} %; without the mask {}); per object {:?}; standing people: (at the end of the stand, at the end) {:?}",
+            s.ghosts,
+            s.voxels,
+            100.0 * s.ghosts as f64 / s.voxels as f64,
+            s.control_ghosts,
+            s.ghosts_per_actor,
+            s.standing
+        );
+        assert!(s.voxels > 20_000, "{name}: the desk scene is mapped: {} voxels", s.voxels);
+        let bound = GHOST_BOUNDS.iter().find(|(clip, _)| *clip == name).map(|b| b.1).expect("a bound for the clip");
+        assert!((s.ghosts as f64) <= bound * s.voxels as f64, "{name}: {} ghost voxels of {}", s.ghosts, s.voxels);
+        // The control proves the check can fail: unmasked, the people smear into the
+        // map (measured 2.7× and 2.1× the masked ghosts).
+        assert!(2 * s.control_ghosts >= 3 * s.ghosts.max(1), "{name}: control {} vs {}", s.control_ghosts, s.ghosts);
+    }
+}
