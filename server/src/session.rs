@@ -226,7 +226,6 @@ impl Session {
         let sequence = frame.sequence;
         self.metrics.frame_received(transport, encoded_len);
         let outcome = self.queue.push(QueuedFrame { frame, received_at: Instant::now() })?;
-        self.schedule();
         self.counters.received.fetch_add(1, Ordering::Relaxed);
         self.counters.bytes.fetch_add(encoded_len as u64, Ordering::Relaxed);
         {
@@ -237,6 +236,8 @@ impl Session {
             self.counters.dropped.fetch_add(1, Ordering::Relaxed);
             self.metrics.frame_dropped(transport);
         }
+        // Counted first, so the frame is never answered before it was received.
+        self.schedule();
         Ok(())
     }
 
