@@ -66,6 +66,20 @@ enum RelationArg {
     Rot,
 }
 
+/// Where the server is (`stream` and `fleet`).
+#[derive(clap::Args)]
+struct EndpointArgs {
+    /// gRPC server address.
+    #[arg(long, env = "STILLMAP_SERVER", default_value = "http://127.0.0.1:50051")]
+    server: String,
+    /// Zenoh endpoints to connect to (the server's, or a router's).
+    #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
+    zenoh_connect: Vec<String>,
+    /// Zenoh mode: peer or client.
+    #[arg(long, default_value = "peer")]
+    zenoh_mode: String,
+}
+
 /// Where the camera's intrinsics come from (`stream` and `fleet`).
 #[derive(clap::Args)]
 struct CalibrationArgs {
@@ -100,15 +114,8 @@ enum Command {
         source: SourceSpec,
         #[arg(long, value_enum, default_value = "grpc")]
         transport: TransportArg,
-        /// gRPC server address.
-        #[arg(long, env = "STILLMAP_SERVER", default_value = "http://127.0.0.1:50051")]
-        server: String,
-        /// Zenoh endpoints to connect to (the server's, or a router's).
-        #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
-        zenoh_connect: Vec<String>,
-        /// Zenoh mode: peer or client.
-        #[arg(long, default_value = "peer")]
-        zenoh_mode: String,
+        #[command(flatten)]
+        endpoints: EndpointArgs,
         #[arg(long, env = "STILLMAP_ROBOT_ID", default_value = "robot1")]
         robot_id: String,
         #[arg(long, env = "STILLMAP_TOKEN", default_value = "")]
@@ -165,6 +172,7 @@ enum Command {
     /// replaying a TUM recording in a ping-pong loop from its own offset; prints a
     /// table per robot, the totals and the server's time per stage.
     Fleet {
+        /// Robots to run, each its own session, link and robot id.
         #[arg(long, default_value_t = 3)]
         robots: usize,
         /// tum:<dir>, read and encoded once.
@@ -176,22 +184,21 @@ enum Command {
         /// Seconds every robot sends frames (then the last results are awaited).
         #[arg(long, default_value_t = 20.0)]
         duration: f64,
+        /// How the robots reach the server.
         #[arg(long, value_enum, default_value = "grpc")]
         transport: FleetTransportArg,
-        #[arg(long, env = "STILLMAP_SERVER", default_value = "http://127.0.0.1:50051")]
-        server: String,
-        #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
-        zenoh_connect: Vec<String>,
-        #[arg(long, default_value = "peer")]
-        zenoh_mode: String,
+        #[command(flatten)]
+        endpoints: EndpointArgs,
         /// The server's HTTP address, for its per-stage times from /metrics ("" skips them).
         #[arg(long, env = "STILLMAP_HTTP", default_value = "http://127.0.0.1:8080")]
         http: String,
         /// Robot ids are <prefix>-01, <prefix>-02, ...
         #[arg(long, default_value = "fleet")]
         robot_prefix: String,
+        /// The bearer token every robot's hello carries.
         #[arg(long, env = "STILLMAP_TOKEN", default_value = "")]
         token: String,
+        /// Frames sent but not yet answered, per robot, at most.
         #[arg(long, default_value_t = 8)]
         max_in_flight: usize,
         /// Frames of the recording to load (default: all).
@@ -280,9 +287,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Stream {
             source,
             transport,
-            server,
-            zenoh_connect,
-            zenoh_mode,
+            endpoints: EndpointArgs { server, zenoh_connect, zenoh_mode },
             robot_id,
             token,
             rate,
@@ -385,9 +390,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             rate,
             duration,
             transport,
-            server,
-            zenoh_connect,
-            zenoh_mode,
+            endpoints: EndpointArgs { server, zenoh_connect, zenoh_mode },
             http,
             robot_prefix,
             token,
