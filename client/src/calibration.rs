@@ -153,6 +153,23 @@ pub struct FileCalibration {
     pub format: &'static str,
 }
 
+impl FileCalibration {
+    /// The file's intrinsics and distortion as the contract carries them.
+    fn camera_info(&self) -> pb::CameraInfo {
+        pb::CameraInfo {
+            width: self.width,
+            height: self.height,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            distortion_model: if self.plumb_bob.is_some() { DistortionModel::PlumbBob } else { DistortionModel::None } as i32,
+            distortion_coeffs: self.plumb_bob.map(|c| c.to_vec()).unwrap_or_default(),
+            ..Default::default()
+        }
+    }
+}
+
 /// Applies the user's options to what the source knows; the result carries its
 /// `calibration_source`. Fails, naming the way out, when nothing is known.
 pub fn resolve(source: SourceCamera, options: &CameraOptions) -> Result<pb::CameraInfo, ClientError> {
@@ -187,12 +204,7 @@ pub fn resolve(source: SourceCamera, options: &CameraOptions) -> Result<pb::Came
                 info.height
             )));
         }
-        info.fx = file.fx;
-        info.fy = file.fy;
-        info.cx = file.cx;
-        info.cy = file.cy;
-        info.distortion_model = if file.plumb_bob.is_some() { DistortionModel::PlumbBob } else { DistortionModel::None } as i32;
-        info.distortion_coeffs = file.plumb_bob.map(|c| c.to_vec()).unwrap_or_default();
+        set_intrinsics(&mut info, &file.camera_info());
         origin = Some(format!("file:{} ({})", path.display(), file.format));
     }
     info.calibration_source = match origin {

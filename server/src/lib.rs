@@ -19,6 +19,13 @@ pub mod session;
 pub mod store;
 
 use std::net::SocketAddr;
+use std::sync::{Mutex, MutexGuard};
+
+/// Locks `m`, recovering a lock poisoned by a panicking thread: every structure the
+/// server keeps behind a mutex stays consistent between its single-step updates.
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 use std::sync::Arc;
 use std::time::Duration;
 

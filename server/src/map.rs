@@ -8,7 +8,7 @@
 //! and shared) and render outside the lock.
 
 use std::borrow::Cow;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 
 use rustc_hash::FxHashSet;
 use stillmap_mapping::VoxelMap;
@@ -20,11 +20,9 @@ use stillmap_mapping::{MapBuilder, MappingConfig, MappingError, UpSource};
 use stillmap_proto::pb;
 
 use crate::convert::camera_of;
+use crate::lock;
 use crate::store::{Commit, KeyframeRecord, SessionMeta, Store, StoreError};
 
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
-}
 
 pub struct SessionMap {
     pub(crate) builder: MapBuilder,

@@ -11,7 +11,9 @@
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex};
+
+use crate::lock;
 
 /// Work of one session that must run in order.
 pub trait Lane: Send + Sync + 'static {
@@ -34,9 +36,6 @@ struct Shared {
     wake: Condvar,
 }
 
-fn lock(m: &Mutex<State>) -> MutexGuard<'_, State> {
-    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
-}
 
 pub struct Pool {
     shared: Arc<Shared>,
@@ -75,7 +74,7 @@ impl Pool {
     pub fn close(&self) {
         lock(&self.shared.state).closed = true;
         self.shared.wake.notify_all();
-        let threads = std::mem::take(&mut *self.threads.lock().unwrap_or_else(|p| p.into_inner()));
+        let threads = std::mem::take(&mut *lock(&self.threads));
         for t in threads {
             if t.join().is_err() {
                 tracing::error!("a pool thread panicked");

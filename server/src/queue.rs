@@ -71,7 +71,7 @@ impl FrameQueue {
     fn lock(&self) -> MutexGuard<'_, Inner> {
         // A worker that panicked mid-push leaves consistent data (every update is a
         // single VecDeque operation), so a poisoned lock is still usable.
-        self.inner.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+        crate::lock(&self.inner)
     }
 
     /// Queues a frame, applying the overload policy when full. Never blocks.

@@ -27,6 +27,7 @@ use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
 use crate::config::SessionConfig;
+use crate::lock;
 use crate::convert::pose_of;
 use crate::map::{SessionMap, SharedMap};
 use crate::metrics::Metrics;
@@ -215,9 +216,6 @@ impl Lane for Session {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
-}
 
 impl Session {
     /// Queues a received frame. Dropped frames are counted here and answered by the worker.

@@ -8,7 +8,8 @@ use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
 use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, class_color, encode_png_rgba};
 use stillmap_mapping::NO_CLASS;
 
-use crate::map::{SharedMap, lock};
+use crate::lock;
+use crate::map::SharedMap;
 
 /// Bad query parameters (HTTP 400 / INVALID_ARGUMENT).
 #[derive(Debug, thiserror::Error)]

@@ -14,7 +14,8 @@ use nalgebra::{Isometry3, Vector3};
 use stillmap_mapping::DepthView;
 use stillmap_proto::codec::{ColorImage, DepthImage};
 
-use crate::map::{SharedMap, lock};
+use crate::lock;
+use crate::map::SharedMap;
 use crate::store::KeyframeRecord;
 
 /// Accelerometer samples carried to the next map job, at most.

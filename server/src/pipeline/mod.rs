@@ -158,13 +158,17 @@ impl SessionPipeline {
         }
         if let (Some(handoff), Some(pose)) = (self.handoff.as_mut(), track.world_from_camera) {
             let accel = frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
-            let keyframe = track.new_keyframe.map(|id| fuse::KeyframeJob {
-                id,
-                color: decoded.color.clone(),
-                depth: decoded.depth.clone(),
-                exclude: self.perception.as_ref().and_then(|p| p.map_exclusion(&decoded.depth)),
-                classes: self.perception.as_ref().and_then(SessionPerception::class_map),
-                record: tracker.keyframe_record(id),
+            // The decoded images are not needed after this: a keyframe takes them.
+            let keyframe = track.new_keyframe.map(|id| {
+                let exclude = self.perception.as_ref().and_then(|p| p.map_exclusion(&decoded.depth));
+                fuse::KeyframeJob {
+                    id,
+                    color: decoded.color,
+                    depth: decoded.depth,
+                    exclude,
+                    classes: self.perception.as_ref().and_then(SessionPerception::class_map),
+                    record: tracker.keyframe_record(id),
+                }
             });
             outcome.map_job = handoff.job(pose, accel, keyframe, |id| tracker.keyframe_pose(id));
         }

@@ -16,18 +16,16 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use stillmap_perception::segment::RgbFrame;
 use stillmap_perception::{PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};
 use stillmap_proto::codec::ColorImage;
 
+use crate::lock;
 use crate::metrics::Metrics;
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
-}
 
 /// A finished segmentation: the frame it was computed on, the result, the inference time.
 pub(crate) type Finished = (u64, Segmentation, Duration);
