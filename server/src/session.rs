@@ -28,7 +28,6 @@ use tonic::Status;
 
 use crate::config::SessionConfig;
 use crate::lock;
-use crate::convert::pose_of;
 use crate::map::{SessionMap, SharedMap};
 use crate::metrics::Metrics;
 use crate::pipeline::decode::validate_camera;
@@ -324,9 +323,9 @@ impl Session {
     }
 
     /// Publishes a tracked frame's state and pose to the query APIs and subscribers.
-    fn record_pose(&self, result: &pb::FrameResult, pose: Option<pb::Pose>) {
+    fn record_pose(&self, result: &pb::FrameResult) {
         let state = result.tracking_state();
-        let stamped = pose.map(|p| pb::PoseStamped {
+        let stamped = result.world_from_camera.map(|p| pb::PoseStamped {
             sequence: result.sequence,
             capture_time_ns: result.capture_time_ns,
             world_from_camera: Some(p),
@@ -390,8 +389,8 @@ impl Session {
     /// returns its result.
     fn account(&self, outcome: &FrameOutcome) -> pb::FrameResult {
         let result = pb::FrameResult::from(outcome);
-        if let Some(track) = &outcome.track {
-            self.record_pose(&result, track.world_from_camera.as_ref().map(pose_of));
+        if outcome.track.is_some() {
+            self.record_pose(&result);
         }
         if let Some(mask) = &outcome.mask {
             self.metrics.perception(mask.label(), mask.dynamic_features);
