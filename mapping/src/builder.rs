@@ -45,6 +45,7 @@ pub struct MapBuilder {
     window: VecDeque<Fused>,
     keyframes: u64,
     refused: u64,
+    retracted: u64,
     /// Evict beyond the block budget (only when something stores what is evicted).
     eviction: bool,
     evicted: Vec<(BlockKey, Block)>,
@@ -56,7 +57,7 @@ impl MapBuilder {
             return Err(MappingError::Input(format!("camera of {}x{} pixels", camera.width, camera.height)));
         }
         let gravity = Gravity::new(config.fallback_up_in_camera);
-        Ok(Self { rays: CameraRays::new(camera), map: VoxelMap::new(config)?, gravity, window: VecDeque::new(), keyframes: 0, refused: 0, eviction: false, evicted: Vec::new() })
+        Ok(Self { rays: CameraRays::new(camera), map: VoxelMap::new(config)?, gravity, window: VecDeque::new(), keyframes: 0, refused: 0, retracted: 0, eviction: false, evicted: Vec::new() })
     }
 
     pub fn map(&self) -> &VoxelMap {
@@ -65,6 +66,11 @@ impl MapBuilder {
 
     pub fn config(&self) -> &MappingConfig {
         self.map.config()
+    }
+
+    /// The camera's image width (pixels).
+    pub fn camera_width(&self) -> u32 {
+        self.rays.camera.width
     }
 
     /// An accelerometer sample of a tracked frame (used until the first keyframe).
@@ -185,6 +191,28 @@ impl MapBuilder {
         n
     }
 
+    /// Takes keyframe `id`'s samples at the pixels `covered` says (row-major index)
+    /// back out of the map, for good (a re-fusion does not bring them back): they
+    /// showed something later seen moving. Returns the samples taken out; 0 when
+    /// the keyframe is no longer in the window.
+    pub fn retract(&mut self, id: u64, covered: impl Fn(u32) -> bool) -> usize {
+        let Some(f) = self.window.iter_mut().find(|f| f.id == id) else { return 0 };
+        let (taken, kept): (Vec<_>, Vec<_>) = std::mem::take(&mut f.input.samples).into_iter().partition(|s| covered(s.pixel));
+        f.input.samples = kept;
+        if taken.is_empty() {
+            return 0;
+        }
+        let pose = f.world_from_camera;
+        self.map.deintegrate_samples(&taken, &pose);
+        self.retracted += taken.len() as u64;
+        taken.len()
+    }
+
+    /// Samples taken back out by [`retract`](Self::retract) so far.
+    pub fn retracted(&self) -> u64 {
+        self.retracted
+    }
+
     /// [`moved_keyframes`](Self::moved_keyframes) then [`refuse`](Self::refuse).
     pub fn follow(&mut self, current_pose: impl FnMut(u64) -> Option<Isometry3<f64>>) -> usize {
         let moved = self.moved_keyframes(current_pose);
@@ -216,5 +244,32 @@ mod tests {
         assert!((z_of(&b) - 2.3).abs() < 0.02, "{}", z_of(&b));
         assert_eq!(b.refused(), 1);
         assert_eq!(b.follow(|_| Some(moved)), 0, "already at its pose");
+    }
+
+    /// Samples a keyframe took from something later found moving leave the map,
+    /// and a re-fusion of that keyframe does not bring them back.
+    #[test]
+    fn retracted_samples_leave_the_map_for_good() {
+        let cam = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0);
+        let mut b = MapBuilder::new(&cam, MappingConfig::default()).unwrap();
+        // A wall at 2 m; the left half of the image also shows a box at 1 m.
+        let depth: Vec<u16> = (0..160 * 120).map(|i| if i % 160 < 80 { 1000 } else { 2000 }).collect();
+        let rgb = vec![100u8; 160 * 120 * 3];
+        let view = DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None };
+        b.add_keyframe(3, &Isometry3::identity(), &view).unwrap();
+        let near = |b: &MapBuilder| b.map().occupied().filter(|(_, c, _)| c.z < 1.5).count();
+        let before = (near(&b), b.map().stats().occupied_voxels);
+        assert!(before.0 > 100);
+        // The box moved off: its pixels (left half) are taken back.
+        let taken = b.retract(3, |pixel| pixel % 160 < 80);
+        assert_eq!(taken, 40 * 60, "every second pixel and row of the left half (stride 2)");
+        assert_eq!(near(&b), 0, "the box is gone");
+        assert_eq!(b.map().stats().occupied_voxels, before.1 - before.0, "the wall stays");
+        assert_eq!(b.retract(3, |pixel| pixel % 160 < 80), 0, "taken once");
+        assert_eq!(b.retract(9, |_| true), 0, "unknown keyframe");
+        assert_eq!(b.retracted(), 40 * 60);
+        let moved = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.3), UnitQuaternion::identity());
+        assert_eq!(b.follow(|_| Some(moved)), 1);
+        assert_eq!(near(&b), 0, "re-fused without the box");
     }
 }

@@ -74,6 +74,8 @@ pub struct SurfaceSample {
     pub rgb: [u8; 3],
     /// `None` when the frame had no segmentation.
     pub class: Option<u16>,
+    /// The pixel it was taken from (row-major index).
+    pub pixel: u32,
 }
 
 /// A keyframe reduced to what fusing it needs: surface samples (static pixels
@@ -203,6 +205,7 @@ impl VoxelMap {
                     point_in_camera: [rx * z, ry * z, z],
                     rgb: [view.rgb[3 * i], view.rgb[3 * i + 1], view.rgb[3 * i + 2]],
                     class: view.classes.map(|c| c[i]),
+                    pixel: i as u32,
                 });
             }
         }
@@ -228,7 +231,7 @@ impl VoxelMap {
     pub fn integrate(&mut self, rays: &CameraRays, input: &FusionInput, world_from_camera: &Isometry3<f64>) -> FuseStats {
         self.keyframes_fused += 1;
         let voxels_carved = self.carve(rays, input, &world_from_camera.inverse());
-        let mut stats = self.apply_hits(input, world_from_camera, 1);
+        let mut stats = self.apply_hits(&input.samples, world_from_camera, 1);
         stats.voxels_carved = voxels_carved;
         stats.excluded_pixels = input.excluded_pixels;
         self.version += 1;
@@ -238,18 +241,23 @@ impl VoxelMap {
     /// Takes a keyframe's hits back out (its pose is about to be corrected). Misses
     /// it carved stay: carving is only ever evidence of free space.
     pub fn deintegrate(&mut self, input: &FusionInput, world_from_camera: &Isometry3<f64>) {
+        self.deintegrate_samples(&input.samples, world_from_camera);
+    }
+
+    /// Takes some of a keyframe's hits back out (samples of a thing found to move).
+    pub fn deintegrate_samples(&mut self, samples: &[SurfaceSample], world_from_camera: &Isometry3<f64>) {
         // A change stamp of its own, so that the blocks it touches count as changed.
         self.keyframes_fused += 1;
-        self.apply_hits(input, world_from_camera, -1);
+        self.apply_hits(samples, world_from_camera, -1);
         self.version += 1;
     }
 
     /// Groups the samples per voxel and applies one hit (sign +1) or removes one (−1).
-    fn apply_hits(&mut self, input: &FusionInput, world_from_camera: &Isometry3<f64>, sign: i32) -> FuseStats {
+    fn apply_hits(&mut self, samples: &[SurfaceSample], world_from_camera: &Isometry3<f64>, sign: i32) -> FuseStats {
         let res = self.config.voxel_size_m;
         let pose = world_from_camera.cast::<f64>();
-        let mut keyed: Vec<(u64, u32)> = Vec::with_capacity(input.samples.len());
-        for (i, s) in input.samples.iter().enumerate() {
+        let mut keyed: Vec<(u64, u32)> = Vec::with_capacity(samples.len());
+        for (i, s) in samples.iter().enumerate() {
             let [x, y, z] = s.point_in_camera;
             let p = pose * Point3::new(f64::from(x), f64::from(y), f64::from(z));
             if let Some(k) = pack(voxel_key(&p, res)) {
@@ -257,7 +265,7 @@ impl VoxelMap {
             }
         }
         keyed.sort_unstable();
-        let mut stats = FuseStats { samples: input.samples.len(), ..FuseStats::default() };
+        let mut stats = FuseStats { samples: samples.len(), ..FuseStats::default() };
         let cfg = &self.config;
         let stamp = self.keyframes_fused;
         let mut start = 0;
@@ -267,14 +275,14 @@ impl VoxelMap {
             let end = start + keyed[start..].iter().take_while(|e| e.0 == key).count();
             let group = &keyed[start..end];
             start = end;
-            let first = &input.samples[group[0].1 as usize];
+            let first = &samples[group[0].1 as usize];
             let [x, y, z] = first.point_in_camera;
             let vkey = voxel_key(&(pose * Point3::new(f64::from(x), f64::from(y), f64::from(z))), res);
             let mut sum = [0u32; 3];
             classes.clear();
             let mut labelled = false;
             for &(_, i) in group {
-                let s = &input.samples[i as usize];
+                let s = &samples[i as usize];
                 for (total, channel) in sum.iter_mut().zip(s.rgb) {
                     *total += u32::from(channel);
                 }

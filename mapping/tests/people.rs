@@ -138,6 +138,7 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
     let t0 = frames[0].timestamp_ns;
     let time = |k: usize| (frames[k].timestamp_ns - t0) as f64 * 1e-9;
     let clean: Vec<Frame> = frames.iter().map(|f| Frame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone() }).collect();
+    let mut truth: Vec<Vec<u8>> = Vec::new();
     let with_people: Vec<Frame> = frames
         .iter()
         .zip(&poses)
@@ -150,9 +151,12 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
                 let d = |x: &Actor| (x.motion.world_from_plane(time(k)).translation.vector - world_from_camera.translation.vector).norm();
                 d(b).total_cmp(&d(a))
             });
+            let mut t = vec![0u8; depth.len()];
             for a in order {
-                paste(&camera, &a.plane, &(world_from_camera.inverse() * a.motion.world_from_plane(time(k))), &mut rgb, &mut depth);
+                let m = paste(&camera, &a.plane, &(world_from_camera.inverse() * a.motion.world_from_plane(time(k))), &mut rgb, &mut depth);
+                for (t, m) in t.iter_mut().zip(m) { *t |= m; }
             }
+            truth.push(t);
             Frame { timestamp_ns: f.timestamp_ns, rgb, depth }
         })
         .collect();
@@ -166,11 +170,17 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
         }
     }
     // The frame each person's stand ends at.
-    let stand_end: Vec<usize> = actors[..2].iter().map(|a| (0..frames.len()).rev().find(|&k| a.motion.standing(time(k))).expect("a stand")).collect();
+    let stand_end: Vec<usize> = actors[..2]
+        .iter()
+        .map(|a| (0..frames.len() - 1).find(|&k| a.motion.standing(time(k)) && !a.motion.standing(time(k + 1))).expect("a stand"))
+        .collect();
     let without = fuse(&clean, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &[]);
-    let with = fuse(&with_people, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &stand_end);
+    let debug = std::env::var_os("STILLMAP_PEOPLE_DEBUG").is_some();
+    let with = map_run::fuse_debug(&with_people, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &stand_end, debug.then_some(truth.as_slice()));
+    eprintln!("stand ends at {stand_end:?}");
     let control = fuse(&with_people, &poses, Masking::None, Some((&mut *segmenter, SEGMENT_EVERY)), &[]);
     let voxel_m = with.builder.config().voxel_size_m;
+    eprintln!("clean map: {} voxels, {} samples retracted; with people: {} retracted", without.builder.map().stats().occupied_voxels, without.builder.retracted(), with.builder.retracted());
     let background: HashSet<[i64; 3]> = without.builder.map().occupied().map(|(_, p, _)| key(&p, voxel_m)).collect();
     let new: Vec<Point3<f64>> = with.builder.map().occupied().map(|(_, p, _)| p).filter(|p| !background.contains(&key(p, voxel_m))).collect();
     let swept = |a: &Actor, p: &Point3<f64>| (0..frames.len()).any(|k| distance_to_board(p, &a.motion.world_from_plane(time(k)), &a.plane) <= ON_BOARD_M);

@@ -102,6 +102,12 @@ pub struct SegmentationConfig {
     /// A segmentation is carried forward through the flow for at most this many
     /// frames; older, it is dropped and flow alone decides until a new one arrives.
     pub max_mask_age_frames: u32,
+    /// A prior-dynamic instance (a person) the segmenter stops finding is kept,
+    /// carried by the flow, for up to this many frames after its last detection:
+    /// detectors miss a partly hidden or unusual person for many frames in a row,
+    /// and a missed person must neither be mapped nor feed the camera's motion.
+    /// A new detection overlapping it takes over. 0 disables it.
+    pub track_coast_frames: u32,
     /// Server: 0 (default) runs segmentation beside the pipeline, its results used
     /// whenever they are ready — the real-time mode, whose masks (and so poses)
     /// depend on thread timing. n > 0 makes a session reproducible: every n-th
@@ -238,6 +244,14 @@ pub struct FusionConfig {
     /// pixels), across depth edges too: the outline of a mask is where it is least
     /// exact. 0 disables it.
     pub mapping_mask_dilation_px: u32,
+    /// Recent keyframes whose pixels are followed through the flow: when a pixel
+    /// that a keyframe fused is later seen moving (a person the segmenter missed or
+    /// found late, a box that rested and moves on), that keyframe's samples there
+    /// leave the map. At most this many keyframes (the map's `refuse_window` keeps
+    /// the samples; a keyframe it no longer holds is skipped). 0 disables it.
+    pub retract_keyframes: usize,
+    /// A keyframe is followed for at most this many frames after it was made.
+    pub retract_horizon_frames: u32,
 }
 
 impl PerceptionConfig {
@@ -378,6 +392,7 @@ impl Default for SegmentationConfig {
             workers: 1,
             worker_nice: 0,
             max_mask_age_frames: 15,
+            track_coast_frames: 60,
             deterministic_every_frames: 0,
             deterministic_delay_frames: 0,
         }
@@ -425,6 +440,8 @@ impl Default for FusionConfig {
             tracking_mask_growth_px: 12,
             mapping_mask_growth_px: 12,
             mapping_mask_dilation_px: 4,
+            retract_keyframes: 12,
+            retract_horizon_frames: 90,
         }
     }
 }

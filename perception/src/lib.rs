@@ -8,6 +8,7 @@
 //! - [`fusion`]: the paper's four cases with the 3×3 neighbourhood test, per pixel and per instance.
 //! - [`warp`]: carrying a late segmentation forward through the flow.
 //! - [`masker`]: the per-session state machine tying them together.
+//! - [`origins`]: recent keyframes' pixels followed through the flow, to take moving things back out of the map.
 //! - [`composite`]: pastes a moving textured plane into real RGB-D frames with exact masks (tests, benches).
 
 pub mod composite;
@@ -16,6 +17,7 @@ pub mod ego;
 pub mod flow;
 pub mod fusion;
 pub mod masker;
+pub mod origins;
 pub mod segment;
 pub mod warp;
 pub mod yolo;
@@ -23,6 +25,7 @@ pub mod yolo;
 pub use config::PerceptionConfig;
 pub use fusion::{Fused, InstanceState, PixelLabel};
 pub use masker::{DynamicMasker, MaskOutput, MaskSource, MaskerInput};
+pub use origins::Retraction;
 pub use segment::{Instance, Segmentation, Segmenter, YoloSegmenter};
 
 /// Errors of the perception crate.

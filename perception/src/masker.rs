@@ -18,6 +18,7 @@ use crate::config::{PerceptionConfig, PriorDynamicTracking};
 use crate::ego::{EgoMotion, EgoResult};
 use crate::flow::{FlowField, SmallGray, farneback};
 use crate::fusion::{Fused, PixelLabel, cell_centres, dynamic_fraction, fuse, grow_over_depth};
+use crate::origins::{KeyframeOrigins, Retraction};
 use crate::segment::Segmentation;
 use crate::warp::{warp_grid, warp_segmentation};
 
@@ -70,6 +71,8 @@ pub struct MaskOutput {
     pub ego: Option<EgoSummary>,
     /// Fraction of valid-depth pixels that are dynamic or prior-dynamic.
     pub dynamic_fraction: f32,
+    /// Cells of recent keyframes that show moving things in this frame (see [`crate::origins`]).
+    pub retractions: Vec<Retraction>,
     pub times: MaskTimes,
 }
 
@@ -98,6 +101,18 @@ struct Carried {
     segmentation: Segmentation,
     source_sequence: u64,
     at_sequence: u64,
+    /// The prior-dynamic instances (see `track_coast_frames`).
+    tracks: Vec<Track>,
+}
+
+/// A prior-dynamic instance over time.
+#[derive(Debug, Clone, Copy)]
+struct Track {
+    id: u16,
+    /// The frame it was last detected on (a coasting instance keeps its detection's).
+    detected_at: u64,
+    /// Median depth of its pixels, metres.
+    depth_m: Option<f32>,
 }
 
 /// Per-camera perception state.
@@ -116,6 +131,8 @@ pub struct DynamicMasker {
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
     pending: Option<Pending>,
+    /// Recent keyframes' pixels, followed through the flow.
+    origins: KeyframeOrigins,
 }
 
 struct Pending {
@@ -127,6 +144,8 @@ struct Pending {
     /// Compensation, labels and their dynamic flow-grid cells computed before
     /// tracking (`ego_motion.before_tracking`).
     early: Option<(EgoResult, Fused, Vec<u8>)>,
+    /// The previous frame's dynamic flow-grid cells carried into this frame.
+    carried_cells: Option<Vec<u8>>,
     times: MaskTimes,
 }
 
@@ -141,7 +160,30 @@ impl DynamicMasker {
         }
         let prior_dynamic = class_names.iter().map(|n| config.segmentation.prior_dynamic_classes.iter().any(|p| p == n)).collect();
         let ego = EgoMotion::new(camera.clone(), config.ego_motion.clone(), config.flow.subsample);
-        Ok(Self { camera, config, ego, prior_dynamic, previous: None, flows: VecDeque::new(), carried: None, last_ego: None, last_ego_frames: 1, dynamic_grid: None, pending: None })
+        let origins = KeyframeOrigins::new(config.fusion.retract_keyframes, u64::from(config.fusion.retract_horizon_frames));
+        Ok(Self {
+            camera,
+            config,
+            ego,
+            prior_dynamic,
+            previous: None,
+            flows: VecDeque::new(),
+            carried: None,
+            last_ego: None,
+            last_ego_frames: 1,
+            dynamic_grid: None,
+            pending: None,
+            origins,
+        })
+    }
+
+    /// The last finished frame is keyframe `id` (the caller's id, as the map knows
+    /// it): its pixels are followed from now on (see [`crate::origins`]).
+    pub fn note_keyframe(&mut self, id: u64) {
+        if let Some((sequence, _)) = &self.previous {
+            let (gw, gh) = self.ego.grid_size();
+            self.origins.note(id, *sequence, gw * gh);
+        }
     }
 
     /// The pixels of `fused` (a frame of depth `depth`) the map must not take:
@@ -253,6 +295,10 @@ impl DynamicMasker {
                 self.carried = None;
             }
         }
+        match &flow {
+            Some(step) => self.origins.advance(step.from, step.to, &step.flow),
+            None => self.origins.clear(),
+        }
         if let Some(step) = flow {
             self.flows.push_back(step);
             while self.flows.len() > max_age as usize {
@@ -262,7 +308,9 @@ impl DynamicMasker {
         if let Some((k, seg)) = input.segmentation {
             let newer = self.carried.as_ref().is_none_or(|c| c.source_sequence < k);
             if newer && let Some(seg) = self.carry_to(k, seg, input.sequence) {
-                self.carried = Some(Carried { segmentation: seg, source_sequence: k, at_sequence: input.sequence });
+                let previous = self.carried.as_ref().filter(|c| c.at_sequence == input.sequence);
+                let (segmentation, tracks) = self.keep_coasting(seg, k, previous, input.sequence, input.depth);
+                self.carried = Some(Carried { segmentation, source_sequence: k, at_sequence: input.sequence, tracks });
             }
         }
         self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
@@ -298,6 +346,7 @@ impl DynamicMasker {
         // the prediction when it beat one in the vote) labels pixels for tracking:
         // an unchecked prediction (no refinement held: a sudden acceleration,
         // motion blur) can call most of the scene moving and starve the tracker.
+        let persistent = carried_cells.clone();
         let seeds = match (&early, carried_cells) {
             (Some((ego, _, cells)), carried) if ego.confirmed => Some(match carried {
                 Some(c) => cells.iter().zip(&c).map(|(&a, &b)| a | b).collect(),
@@ -353,7 +402,7 @@ impl DynamicMasker {
         }
         times.fusion += t.elapsed();
         times.total = started.elapsed();
-        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, early, times });
+        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, early, carried_cells: persistent, times });
         Ok(mask)
     }
 
@@ -364,7 +413,7 @@ impl DynamicMasker {
     /// when tracking failed: the flow refines identity then), and fusion into this
     /// frame's labels. `depth` is the frame's, as given to `prepare`.
     pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
-        let Some(Pending { sequence, small, previous, exclude, early, mut times }) = self.pending.take() else {
+        let Some(Pending { sequence, small, previous, exclude, early, carried_cells, mut times }) = self.pending.take() else {
             return Err(PerceptionError::Input("finish called without prepare".into()));
         };
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
@@ -408,6 +457,33 @@ impl DynamicMasker {
         };
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
         self.dynamic_grid = Some((sequence, cells));
+        let retractions = if self.origins.is_empty() {
+            Vec::new()
+        } else {
+            // Prior-dynamic cells, and dynamic cells that were dynamic in the previous
+            // frame too (one frame's false motion must not take a keyframe's samples
+            // out for good), dilated by one cell.
+            let (gw, gh) = self.ego.grid_size();
+            let kept_out: Vec<bool> = self
+                .cell_centres()
+                .enumerate()
+                .map(|(g, i)| match fused.labels[i] {
+                    l if l == PixelLabel::PriorDynamic as u8 => true,
+                    l if l == PixelLabel::Dynamic as u8 => carried_cells.as_ref().is_some_and(|c| c[g] != 0),
+                    _ => false,
+                })
+                .collect();
+            let mut moving = kept_out.clone();
+            for (g, _) in kept_out.iter().enumerate().filter(|(_, k)| **k) {
+                let (x, y) = (g % gw, g / gw);
+                for ny in y.saturating_sub(1)..=(y + 1).min(gh - 1) {
+                    for nx in x.saturating_sub(1)..=(x + 1).min(gw - 1) {
+                        moving[ny * gw + nx] = true;
+                    }
+                }
+            }
+            self.origins.retractions(sequence, &moving, gw, s)
+        };
         times.fusion += t.elapsed();
 
         let source = match &self.carried {
@@ -432,6 +508,7 @@ impl DynamicMasker {
             segmentation_sequence: self.carried.as_ref().map(|c| c.source_sequence),
             ego: summary,
             dynamic_fraction,
+            retractions,
             times,
         })
     }
@@ -460,6 +537,89 @@ impl DynamicMasker {
 
     fn is_prior_dynamic(&self, seg: &Segmentation, id: u16) -> bool {
         seg.instance(id).is_some_and(|i| self.prior_dynamic.get(usize::from(i.class_id)).copied().unwrap_or(false))
+    }
+
+    /// A new segmentation (of frame `k`, carried to frame `now`, whose depth is
+    /// `depth`) with the previous one's prior-dynamic instances it missed: each such
+    /// instance detected within `track_coast_frames` of `now` that no new
+    /// prior-dynamic instance covers for at least [`COAST_MATCH_FRACTION`] of its
+    /// pixels keeps its carried pixels (those no new prior-dynamic instance claims)
+    /// under a fresh id. Only its pixels near its own depth stay (within
+    /// [`COAST_DEPTH_GATE`] of the median of the last ones; pixels without depth
+    /// stay too): where the flow leaves part of a mask on the background as the
+    /// instance walks off, that part does not follow it. Returns the merged
+    /// segmentation and the prior-dynamic instances' tracks.
+    fn keep_coasting(&self, mut seg: Segmentation, k: u64, previous: Option<&Carried>, now: u64, depth: &[u16]) -> (Segmentation, Vec<Track>) {
+        let w = seg.width as usize;
+        let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
+        let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
+        let mut tracks: Vec<Track> = seg
+            .instances
+            .iter()
+            .filter(|i| self.is_prior_dynamic(&seg, i.id))
+            .map(|i| {
+                let mut d: Vec<f32> = bbox_pixels(&i.bbox, w, seg.height as usize).filter(|&p| seg.instance_map[p] == i.id).filter_map(depth_of).collect();
+                Track { id: i.id, detected_at: k, depth_m: median(&mut d) }
+            })
+            .collect();
+        let limit = u64::from(self.config.segmentation.track_coast_frames);
+        let Some(prev) = previous.filter(|_| limit > 0) else { return (seg, tracks) };
+        let claimed: Vec<bool> = {
+            let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
+            let mut v = vec![false; max + 1];
+            for t in &tracks {
+                v[usize::from(t.id)] = true;
+            }
+            v
+        };
+        let claimed = |id: u16| claimed.get(usize::from(id)).copied().unwrap_or(false);
+        let mut next_id = seg.instances.iter().map(|i| i.id).max().unwrap_or(0);
+        for old in &prev.segmentation.instances {
+            let Some(track) = prev.tracks.iter().find(|t| t.id == old.id) else { continue };
+            if now.saturating_sub(track.detected_at) > limit {
+                continue;
+            }
+            let pixels: Vec<usize> = bbox_pixels(&old.bbox, w, seg.height as usize).filter(|&i| prev.segmentation.instance_map[i] == old.id).collect();
+            let covered = pixels.iter().filter(|&&i| claimed(seg.instance_map[i])).count();
+            if pixels.is_empty() || covered as f64 >= COAST_MATCH_FRACTION * pixels.len() as f64 {
+                continue; // gone, or found again: the new detection takes over
+            }
+            let near = |i: usize| match (track.depth_m, depth_of(i)) {
+                (Some(reference), Some(d)) => (d - reference).abs() <= COAST_DEPTH_GATE * reference,
+                _ => true,
+            };
+            let kept: Vec<usize> = pixels.into_iter().filter(|&i| !claimed(seg.instance_map[i]) && near(i)).collect();
+            let mut depths: Vec<f32> = kept.iter().filter_map(|&i| depth_of(i)).collect();
+            let depth_m = median(&mut depths);
+            if kept.is_empty() || (track.depth_m.is_some() && depth_m.is_none()) {
+                continue;
+            }
+            let Some(id) = next_id.checked_add(1) else { break };
+            next_id = id;
+            let mut bbox = [f32::MAX, f32::MAX, f32::MIN, f32::MIN];
+            for &i in &kept {
+                seg.instance_map[i] = id;
+                let (x, y) = ((i % w) as f32, (i / w) as f32);
+                bbox = [bbox[0].min(x), bbox[1].min(y), bbox[2].max(x + 1.0), bbox[3].max(y + 1.0)];
+            }
+            seg.instances.push(crate::segment::Instance { id, pixels: kept.len() as u32, bbox, ..old.clone() });
+            tracks.push(Track { id, detected_at: track.detected_at, depth_m });
+        }
+        // Instances a coasting one took every pixel from are gone.
+        let mut counts = std::collections::HashMap::<u16, u32>::new();
+        for &id in &seg.instance_map {
+            if id != 0 {
+                *counts.entry(id).or_default() += 1;
+            }
+        }
+        seg.instances.retain_mut(|i| match counts.get(&i.id) {
+            Some(&n) => {
+                i.pixels = n;
+                true
+            }
+            None => false,
+        });
+        (seg, tracks)
     }
 
     /// Warps a segmentation of frame `k` through the stored flows up to frame `to`;
@@ -518,6 +678,29 @@ impl DynamicMasker {
             })
             .collect()
     }
+}
+
+/// A new prior-dynamic detection covering at least this fraction of a carried
+/// prior-dynamic instance is that instance found again (it then replaces it).
+const COAST_MATCH_FRACTION: f64 = 0.3;
+/// A coasting instance keeps the pixels within this fraction of its median depth.
+const COAST_DEPTH_GATE: f32 = 0.15;
+
+/// Row-major pixel indices inside a box (x0, y0, x1, y1; ends exclusive), clipped to the image.
+fn bbox_pixels(bbox: &[f32; 4], width: usize, height: usize) -> impl Iterator<Item = usize> {
+    let (x0, y0) = ((bbox[0].max(0.0) as usize).min(width), (bbox[1].max(0.0) as usize).min(height));
+    let (x1, y1) = ((bbox[2].max(0.0).ceil() as usize).min(width), (bbox[3].max(0.0).ceil() as usize).min(height));
+    (y0..y1).flat_map(move |y| (x0..x1).map(move |x| y * width + x))
+}
+
+/// The median of `values` (reordered), `None` when empty.
+fn median(values: &mut [f32]) -> Option<f32> {
+    if values.is_empty() {
+        return None;
+    }
+    let mid = values.len() / 2;
+    let (_, m, _) = values.select_nth_unstable_by(mid, f32::total_cmp);
+    Some(*m)
 }
 
 /// A motion scaled along its screw, approximately: the rotation's angle and the
@@ -604,6 +787,60 @@ mod tests {
         assert_eq!(scaled(&m, 1.0), m);
         let half = scaled(&m, 0.5);
         assert!((half.rotation.angle() - 0.015).abs() < 1e-12);
+    }
+
+    /// A person the segmenter stops finding stays a person, carried by the flow,
+    /// for `track_coast_frames` after the last detection; only the pixels near
+    /// his depth stay; a keyframe fused before he was found gets his cells back.
+    #[test]
+    fn a_missed_person_coasts_near_his_depth_and_is_taken_out_of_earlier_keyframes() {
+        let (w, h) = (96usize, 72usize);
+        let camera = Camera { width: w as u32, height: h as u32, fx: 80.0, fy: 80.0, cx: 48.0, cy: 36.0, distortion: None, depth_units_per_metre: 1000.0, readout_s: 0.0 };
+        let mut config = PerceptionConfig::default();
+        config.segmentation.track_coast_frames = 4;
+        let mut masker = DynamicMasker::new(camera, config, &["person".to_string()]).expect("masker");
+        // A still, textured scene: a wall at 3 m, a person at 1 m over columns 30..50.
+        let rgb: Vec<u8> = (0..w * h).flat_map(|i| {
+            let v = ((i % w) * 37 + (i / w) * 91 + (i % 7) * 53) as u8;
+            [v, v.wrapping_mul(3), v ^ 0x5a]
+        }).collect();
+        let depth: Vec<u16> = (0..w * h).map(|i| if (30..50).contains(&(i % w)) { 1000 } else { 3000 }).collect();
+        // The detection's mask spills 6 columns onto the wall (30..56), rows 10..60.
+        let mut detection = Segmentation::empty(w as u32, h as u32);
+        for y in 10..60 {
+            for x in 30..56 {
+                detection.instance_map[y * w + x] = 1;
+            }
+        }
+        detection.instances.push(crate::segment::Instance { id: 1, class_id: 0, class_name: "person".into(), score: 0.9, bbox: [30.0, 10.0, 56.0, 60.0], pixels: 26 * 50 });
+        let person_pixels = |m: &DynamicMasker| m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>());
+        let mut step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
+            m.prepare(MaskerInput { sequence: k, rgb: &rgb, depth: &depth, segmentation: seg.map(|s| (k, s)), motion_prior: None }).expect("prepare");
+            m.finish(&depth, Some(Isometry3::identity())).expect("finish")
+        };
+        // Frame 0 has no person detected and becomes keyframe 100: the person is fused.
+        step(&mut masker, 0, Some(Segmentation::empty(w as u32, h as u32)));
+        masker.note_keyframe(100);
+        assert_eq!(person_pixels(&masker), 0);
+        // Frame 1: found. The keyframe's cells on him come back (subsample 3: his
+        // 20 × 50 px are about 7 × 17 cells, and the one-cell rim).
+        let out = step(&mut masker, 1, Some(detection.clone()));
+        assert_eq!(person_pixels(&masker), 26 * 50);
+        assert_eq!(out.retractions.len(), 1);
+        let r = &out.retractions[0];
+        assert_eq!(r.keyframe, 100);
+        let test = r.pixel_test(w as u32);
+        assert!(test((30 * w + 40) as u32) && !test((30 * w + 5) as u32) && !test((65 * w + 40) as u32));
+        assert!(step(&mut masker, 2, None).retractions.is_empty(), "each cell once");
+        // Frames 3 and 5: the segmenter misses him; he coasts, his wall pixels dropped.
+        step(&mut masker, 3, Some(Segmentation::empty(w as u32, h as u32)));
+        assert_eq!(person_pixels(&masker), 20 * 50, "only the pixels at his depth");
+        step(&mut masker, 4, None);
+        step(&mut masker, 5, Some(Segmentation::empty(w as u32, h as u32)));
+        assert_eq!(person_pixels(&masker), 20 * 50, "4 frames after the detection: still coasting");
+        step(&mut masker, 6, None);
+        step(&mut masker, 7, Some(Segmentation::empty(w as u32, h as u32)));
+        assert_eq!(person_pixels(&masker), 0, "6 frames after: gone");
     }
 
     /// The map's kept-out pixels grow over the surface they stand on (a person's

@@ -36,6 +36,10 @@ pub struct Fused {
 /// the ground-truth poses. `segment_every`: frames k with k % n == 0 are segmented
 /// (their result arrives for that frame; the masker warps it forward until the next).
 pub fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmenter: Option<(&mut YoloSegmenter, usize)>, snapshot_at: &[usize]) -> Fused {
+    fuse_debug(frames, poses, masking, segmenter.take(), snapshot_at, None)
+}
+
+pub fn fuse_debug(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmenter: Option<(&mut YoloSegmenter, usize)>, snapshot_at: &[usize], debug_truth: Option<&[Vec<u8>]>) -> Fused {
     let camera = tum::fr1_camera();
     let names: Vec<String> = segmenter.as_ref().map(|(s, _)| s.class_names().to_vec()).unwrap_or_default();
     let mut pipeline = composite_run::MaskedTracking::new(&names);
@@ -49,8 +53,22 @@ pub fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut se
             _ => None,
         };
         let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation);
+        if masking == Masking::Perception && std::env::var_os("STILLMAP_NO_RETRACT").is_none() {
+            for r in &mask.retractions {
+                let n = builder.retract(r.keyframe, r.pixel_test(camera.width));
+                if debug_truth.is_some() {
+                    eprintln!("frame {k}: keyframe {} cells {} samples {n}", r.keyframe, r.cells.len());
+                }
+            }
+        }
         if track.keyframe {
             let exclude = pipeline.masker.mapping_mask(&mask.fused, &f.depth).expect("mapping mask");
+            if let Some(truth) = debug_truth.and_then(|t| t.get(k)) {
+                let n = truth.iter().filter(|&&t| t != 0).count();
+                let kept = truth.iter().zip(&exclude).filter(|&(&t, &e)| t != 0 && e == 0 && true).count();
+                let persons: Vec<_> = mask.fused.instances.iter().map(|i| (i.class_name.clone(), i.pixels, i.moving)).collect();
+                eprintln!("kf {k:3}: truth {n} px, not excluded {kept}; source {:?}; instances {persons:?}", mask.source);
+            }
             let classes = pipeline.masker.segmentation().map(|s| s.class_map());
             let view = DepthView {
                 depth: &f.depth,
@@ -59,6 +77,7 @@ pub fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut se
                 classes: classes.as_deref(),
             };
             builder.add_keyframe(k as u64, gt_pose, &view).expect("fuse");
+            pipeline.masker.note_keyframe(k as u64);
             keyframes.push(k);
         }
         if snapshot_at.contains(&k) {

@@ -12,6 +12,7 @@ use std::time::Duration;
 
 use nalgebra::{Isometry3, Vector3};
 use stillmap_mapping::DepthView;
+use stillmap_perception::Retraction;
 use stillmap_proto::codec::{ColorImage, DepthImage};
 
 use crate::lock;
@@ -42,6 +43,9 @@ pub struct MapJob {
     pub keyframe_poses: Vec<(u64, Isometry3<f64>)>,
     /// Accelerometer samples (camera pose, specific force in the camera frame).
     pub accel: Vec<(Isometry3<f64>, Vector3<f64>)>,
+    /// Cells of keyframes in the window that perception found moving since: their
+    /// samples leave the map.
+    pub retractions: Vec<Retraction>,
 }
 
 /// The tracking path's side of the map lane.
@@ -64,6 +68,7 @@ impl Handoff {
         world_from_camera: Isometry3<f64>,
         accel: Option<Vector3<f64>>,
         keyframe: Option<KeyframeJob>,
+        mut retractions: Vec<Retraction>,
         keyframe_pose: impl Fn(u64) -> Option<Isometry3<f64>>,
     ) -> Option<MapJob> {
         if let Some(a) = accel
@@ -80,7 +85,8 @@ impl Handoff {
                 keyframe_poses.push((*id, now));
             }
         }
-        if keyframe.is_none() && !moved {
+        retractions.retain(|r| self.keyframes.iter().any(|(id, _)| *id == r.keyframe));
+        if keyframe.is_none() && !moved && retractions.is_empty() {
             return None;
         }
         if let Some(k) = &keyframe {
@@ -89,7 +95,7 @@ impl Handoff {
                 self.keyframes.pop_front();
             }
         }
-        Some(MapJob { world_from_camera, keyframe, keyframe_poses, accel: std::mem::take(&mut self.accel) })
+        Some(MapJob { world_from_camera, keyframe, keyframe_poses, accel: std::mem::take(&mut self.accel), retractions })
     }
 
     /// The map lane could not take `job`: its keyframe is not in the map.
@@ -111,6 +117,12 @@ pub fn apply(map: &SharedMap, job: &MapJob) -> Option<Duration> {
     if !moved.is_empty() || job.keyframe.is_some() {
         // Evicted blocks near the camera come back before anything is fused there.
         m.restore_near(&nalgebra::Point3::from(job.world_from_camera.translation.vector));
+    }
+    // Samples of things found moving leave at the pose they were fused at, before
+    // a corrected keyframe is fused again without them.
+    let width = m.builder.camera_width();
+    for r in &job.retractions {
+        m.builder.retract(r.keyframe, r.pixel_test(width));
     }
     m.builder.refuse(&moved);
     let k = job.keyframe.as_ref()?;
@@ -154,25 +166,30 @@ mod tests {
         let poses = std::cell::RefCell::new(std::collections::HashMap::<u64, Isometry3<f64>>::new());
         let pose = |id: u64| poses.borrow().get(&id).copied();
         let up = Some(Vector3::new(0.0, -9.8, 0.0));
-        assert!(h.job(at(0.0), up, None, pose).is_none(), "no keyframe, nothing moved");
+        assert!(h.job(at(0.0), up, None, Vec::new(), pose).is_none(), "no keyframe, nothing moved");
         poses.borrow_mut().insert(1, at(0.0));
-        let j = h.job(at(0.0), up, Some(keyframe(1)), pose).expect("keyframe job");
+        let j = h.job(at(0.0), up, Some(keyframe(1)), Vec::new(), pose).expect("keyframe job");
         assert_eq!(j.accel.len(), 2, "the earlier frame's sample rides along");
-        assert!(h.job(at(0.1), None, None, pose).is_none());
+        assert!(h.job(at(0.1), None, None, Vec::new(), pose).is_none());
         poses.borrow_mut().insert(1, at(0.05)); // bundle adjustment moved keyframe 1
-        let j = h.job(at(0.1), None, None, pose).expect("re-fusion job");
+        let j = h.job(at(0.1), None, None, Vec::new(), pose).expect("re-fusion job");
         assert_eq!(j.keyframe_poses, vec![(1, at(0.05))]);
-        assert!(h.job(at(0.1), None, None, pose).is_none(), "sent once");
+        assert!(h.job(at(0.1), None, None, Vec::new(), pose).is_none(), "sent once");
         for id in 2..=3 {
             poses.borrow_mut().insert(id, at(id as f64));
-            h.job(at(id as f64), None, Some(keyframe(id)), pose).expect("keyframe job");
+            h.job(at(id as f64), None, Some(keyframe(id)), Vec::new(), pose).expect("keyframe job");
         }
         let ids: Vec<u64> = h.keyframes.iter().map(|k| k.0).collect();
         assert_eq!(ids, [2, 3], "the window holds the newest two");
         poses.borrow_mut().insert(4, at(4.0));
-        let j = h.job(at(4.0), None, Some(keyframe(4)), pose).expect("keyframe job");
+        let j = h.job(at(4.0), None, Some(keyframe(4)), Vec::new(), pose).expect("keyframe job");
         h.refused(&j);
         let ids: Vec<u64> = h.keyframes.iter().map(|k| k.0).collect();
         assert_eq!(ids, [3], "a refused keyframe is not in the map's window");
+        // Found-moving cells make a job for keyframes in the window only.
+        let cells = |keyframe: u64| Retraction { keyframe, cells: vec![0], grid_width: 1, grid_height: 1, subsample: 1 };
+        assert!(h.job(at(4.0), None, None, vec![cells(2), cells(4)], pose).is_none(), "2 left the window, 4 was refused");
+        let j = h.job(at(4.0), None, None, vec![cells(2), cells(3)], pose).expect("retraction job");
+        assert_eq!(j.retractions, vec![cells(3)]);
     }
 }

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use nalgebra::Isometry3;
 use stillmap_perception::masker::MaskTimes;
-use stillmap_perception::{DynamicMasker, Fused, InstanceState, MaskSource, MaskerInput, PerceptionConfig, PerceptionError};
+use stillmap_perception::{DynamicMasker, Fused, InstanceState, MaskSource, MaskerInput, PerceptionConfig, PerceptionError, Retraction};
 use stillmap_proto::codec::{ColorImage, DepthImage};
 use stillmap_proto::pb;
 
@@ -66,6 +66,8 @@ pub struct SessionPerception {
     segmentation_time: Option<Duration>,
     /// The last finished frame's fused mask.
     fused: Option<Fused>,
+    /// The last finished frame's keyframe cells showing moving things (for the map).
+    retractions: Vec<Retraction>,
     /// Deterministic mode: (every, delay), the frames seen, and results held back
     /// until their release frame.
     deterministic: Option<(u32, u32)>,
@@ -85,6 +87,7 @@ impl SessionPerception {
             policy_mask: None,
             segmentation_time: None,
             fused: None,
+            retractions: Vec::new(),
             deterministic,
             frames: 0,
             held: VecDeque::new(),
@@ -161,7 +164,18 @@ impl SessionPerception {
             segmentation_time: self.segmentation_time.take(),
         };
         self.fused = Some(out.fused);
+        self.retractions = out.retractions;
         Some(outcome)
+    }
+
+    /// What the last finished frame found moving in recent keyframes (taken once).
+    pub fn take_retractions(&mut self) -> Vec<Retraction> {
+        std::mem::take(&mut self.retractions)
+    }
+
+    /// The last finished frame became keyframe `id`: perception follows its pixels.
+    pub fn note_keyframe(&mut self, id: u64) {
+        self.masker.note_keyframe(id);
     }
 
     /// Pixels of the last finished frame (of depth `depth`) that must stay out of

@@ -159,8 +159,12 @@ impl SessionPipeline {
         if let (Some(handoff), Some(pose)) = (self.handoff.as_mut(), track.world_from_camera) {
             let accel = frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
             // The decoded images are not needed after this: a keyframe takes them.
+            let retractions = self.perception.as_mut().map(SessionPerception::take_retractions).unwrap_or_default();
             let keyframe = track.new_keyframe.map(|id| {
-                let exclude = self.perception.as_ref().and_then(|p| p.map_exclusion(&decoded.depth));
+                let exclude = self.perception.as_mut().and_then(|p| {
+                    p.note_keyframe(id);
+                    p.map_exclusion(&decoded.depth)
+                });
                 fuse::KeyframeJob {
                     id,
                     color: decoded.color,
@@ -170,7 +174,7 @@ impl SessionPipeline {
                     record: tracker.keyframe_record(id),
                 }
             });
-            outcome.map_job = handoff.job(pose, accel, keyframe, |id| tracker.keyframe_pose(id));
+            outcome.map_job = handoff.job(pose, accel, keyframe, retractions, |id| tracker.keyframe_pose(id));
         }
         outcome.track = Some(track);
         outcome
