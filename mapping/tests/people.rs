@@ -125,8 +125,15 @@ struct Score {
     /// The same without the mask (every pixel fused): what the mask prevents.
     control_ghosts: usize,
     ghosts_per_actor: Vec<usize>,
-    /// Voxels at a standing person's place at the end of the stand, and at the end.
+    /// Voxels at each object's resting place (both people and the box) at the end
+    /// of its rest, and at the end of the clip.
     standing: Vec<(usize, usize)>,
+    /// Tracking ATE (metres) with the objects and on the same frames without them.
+    ate_m: (f64, f64),
+    /// Fusion and retraction time per keyframe (with the objects).
+    fuse_ms_per_keyframe: (f64, f64),
+    /// Voxels of the object-free map, and samples taken back out there (false alarms).
+    clean: (usize, u64),
 }
 
 fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
@@ -169,18 +176,16 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
             std::fs::write(Path::new(&out).join(format!("{name}-{k}.ppm")), ppm).expect("dump");
         }
     }
-    // The frame each person's stand ends at.
-    let stand_end: Vec<usize> = actors[..2]
+    // The frame each object's (first) rest ends at.
+    let stand_end: Vec<usize> = actors
         .iter()
         .map(|a| (0..frames.len() - 1).find(|&k| a.motion.standing(time(k)) && !a.motion.standing(time(k + 1))).expect("a stand"))
         .collect();
     let without = fuse(&clean, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &[]);
     let debug = std::env::var_os("STILLMAP_PEOPLE_DEBUG").is_some();
     let with = map_run::fuse_debug(&with_people, &poses, Masking::Perception, Some((&mut *segmenter, SEGMENT_EVERY)), &stand_end, debug.then_some(truth.as_slice()));
-    eprintln!("stand ends at {stand_end:?}");
     let control = fuse(&with_people, &poses, Masking::None, Some((&mut *segmenter, SEGMENT_EVERY)), &[]);
     let voxel_m = with.builder.config().voxel_size_m;
-    eprintln!("clean map: {} voxels, {} samples retracted; with people: {} retracted", without.builder.map().stats().occupied_voxels, without.builder.retracted(), with.builder.retracted());
     let background: HashSet<[i64; 3]> = without.builder.map().occupied().map(|(_, p, _)| key(&p, voxel_m)).collect();
     let new: Vec<Point3<f64>> = with.builder.map().occupied().map(|(_, p, _)| p).filter(|p| !background.contains(&key(p, voxel_m))).collect();
     let swept = |a: &Actor, p: &Point3<f64>| (0..frames.len()).any(|k| distance_to_board(p, &a.motion.world_from_plane(time(k)), &a.plane) <= ON_BOARD_M);
@@ -193,7 +198,7 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
         .map(|(_, p, _)| p)
         .filter(|p| !background.contains(&key(p, voxel_m)) && actors.iter().any(|a| swept(a, p)))
         .count();
-    let standing = actors[..2]
+    let standing = actors
         .iter()
         .zip(&stand_end)
         .map(|(a, &k)| {
@@ -203,42 +208,91 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
             (snapshot.iter().filter(near).count(), new.iter().filter(near).count())
         })
         .collect();
+    if std::env::var_os("STILLMAP_PEOPLE_DEBUG").is_some() {
+        // Where the standing ghosts at the end were seen from the later keyframes.
+        for (a, &k) in actors.iter().zip(&stand_end) {
+            let place = a.motion.world_from_plane(time(k));
+            let ghosts: Vec<&Point3<f64>> = new.iter().filter(|p| distance_to_board(p, &place, &a.plane) <= ON_BOARD_M).collect();
+            let mut counts = [0usize; 5];
+            for &kf in with.keyframes.iter().filter(|&&kf| kf > k) {
+                let camera_from_world = poses[kf].inverse();
+                for p in &ghosts {
+                    let q = camera_from_world * **p;
+                    let class = match camera.project(&q).map(|i| camera.distort(&i)) {
+                        Some(r) if r.x >= 0.0 && r.y >= 0.0 && r.x < 640.0 && r.y < 480.0 => {
+                            let d = f64::from(with_people[kf].depth[r.y as usize * 640 + r.x as usize]) / 5000.0;
+                            if d == 0.0 { 1 } else if d < q.z - 0.05 { 2 } else if d > q.z + 0.05 { 3 } else { 4 }
+                        }
+                        _ => 0,
+                    };
+                    counts[class] += 1;
+                }
+            }
+            eprintln!("{}: {} standing ghosts; over later keyframes: out of view {}, no depth {}, occluded {}, seen through {}, at the surface {}", a.name, ghosts.len(), counts[0], counts[1], counts[2], counts[3], counts[4]);
+        }
+    }
     let voxels = with.builder.map().stats().occupied_voxels;
     for (a, g) in actors.iter().zip(&ghosts_per_actor) {
         eprintln!("  {}: {g} ghost voxels", a.name);
     }
-    Score { voxels, ghosts, control_ghosts, ghosts_per_actor, standing }
+    let ate_m = (tum::score(&gt, &with.trajectory).ate_m, tum::score(&gt, &without.trajectory).ate_m);
+    let keyframes = with.keyframes.len().max(1) as f64;
+    let fuse_ms_per_keyframe = (with.fuse_time.as_secs_f64() * 1e3 / keyframes, with.retract_time.as_secs_f64() * 1e3 / keyframes);
+    let clean = (without.builder.map().stats().occupied_voxels, without.builder.retracted());
+    Score { voxels, ghosts, control_ghosts, ghosts_per_actor, standing, ate_m, fuse_ms_per_keyframe, clean }
 }
 
-/// Ghost ratio bounds per clip: measured 1.33 % (rpy) and 2.72 % (rpy_b) on
-/// 2026-12-03 (deterministic: fixed textures, segmentation on a fixed schedule),
-/// with a margin. Issue 19's goal is 0.5 %; the people standing for 1 s are still
-/// mapped (about 200–350 voxels at their place at the end): that is issue 19's work,
-/// and these bounds only keep it from getting worse meanwhile.
-const GHOST_BOUNDS: [(&str, f64); 2] = [("rgbd_dataset_freiburg1_rpy", 0.020), ("rgbd_dataset_freiburg1_rpy_b", 0.035)];
+/// Bounds per clip, measured on 2026-12-03 (deterministic: fixed textures,
+/// segmentation with the server's default 640 model on a fixed schedule), with a
+/// margin: (clip, ghost ratio, voxels left at the people's resting places at the
+/// end of their stands). Issue 19's goals are 0.5 % and no standing person; see
+/// docs/people.md for what is left and why.
+const BOUNDS: [(&str, f64, [usize; 2]); 2] = [("rgbd_dataset_freiburg1_rpy", GHOSTS_RPY, STANDING_RPY), ("rgbd_dataset_freiburg1_rpy_b", GHOSTS_RPY_B, STANDING_RPY_B)];
+const GHOSTS_RPY: f64 = 0.006;
+const GHOSTS_RPY_B: f64 = 0.024;
+const STANDING_RPY: [usize; 2] = [200, 20];
+const STANDING_RPY_B: [usize; 2] = [560, 650];
 
-/// The scene on both public clips: ghosts, and the standing people.
+/// The scene on both public clips: ghosts, the standing people, the resting box,
+/// and tracking.
 #[test]
 fn moving_people_stay_out_of_the_map() {
-    let mut segmenter = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_320.onnx")).expect("model");
+    let mut segmenter = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     let dirs = [tum::fr1_rpy_dir(), tum::fr1_rpy_dir().with_file_name("rgbd_dataset_freiburg1_rpy_b")];
     for dir in &dirs {
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let s = score_clip(dir, &mut segmenter);
         eprintln!(
-            "{name}: {} ghost voxels of {} ({:.3} %; without the mask {}); per object {:?}; standing people: (at the end of the stand, at the end) {:?}",
+            "{name}: {} ghost voxels of {} ({:.3} %; without the mask {}); per object {:?}; at the resting places (end of the rest, end of the clip) {:?}; \
+             ATE {:.2} cm vs {:.2} cm without the objects; fusion {:.1} ms + retraction {:.2} ms per keyframe; object-free map {} voxels, {} samples retracted",
             s.ghosts,
             s.voxels,
             100.0 * s.ghosts as f64 / s.voxels as f64,
             s.control_ghosts,
             s.ghosts_per_actor,
-            s.standing
+            s.standing,
+            100.0 * s.ate_m.0,
+            100.0 * s.ate_m.1,
+            s.fuse_ms_per_keyframe.0,
+            s.fuse_ms_per_keyframe.1,
+            s.clean.0,
+            s.clean.1,
         );
         assert!(s.voxels > 20_000, "{name}: the desk scene is mapped: {} voxels", s.voxels);
-        let bound = GHOST_BOUNDS.iter().find(|(clip, _)| *clip == name).map(|b| b.1).expect("a bound for the clip");
-        assert!((s.ghosts as f64) <= bound * s.voxels as f64, "{name}: {} ghost voxels of {}", s.ghosts, s.voxels);
-        // The control proves the check can fail: unmasked, the people smear into the
-        // map (measured 2.7× and 2.1× the masked ghosts).
-        assert!(2 * s.control_ghosts >= 3 * s.ghosts.max(1), "{name}: control {} vs {}", s.control_ghosts, s.ghosts);
+        let (_, ghost_bound, standing_bound) = BOUNDS.iter().find(|(clip, _, _)| *clip == name).copied().expect("bounds for the clip");
+        assert!((s.ghosts as f64) <= ghost_bound * s.voxels as f64, "{name}: {} ghost voxels of {}", s.ghosts, s.voxels);
+        for (i, bound) in standing_bound.iter().enumerate() {
+            assert!(s.standing[i].0 <= *bound, "{name}: person {i} at the end of his stand: {} voxels", s.standing[i].0);
+        }
+        // The box rested for 1 s on the desk and slid away: nothing of it is left there.
+        assert!(s.standing[2].1 <= BOX_LEFT_VOXELS, "{name}: {} voxels left where the box rested", s.standing[2].1);
+        // Tracking holds with the people in view (issue 19: within 20 % of the object-free run).
+        assert!(s.ate_m.0 <= 1.2 * s.ate_m.1, "{name}: ATE {:.4} m with the objects, {:.4} m without", s.ate_m.0, s.ate_m.1);
+        // The control proves the check can fail: unmasked, the people smear into the map.
+        assert!(s.control_ghosts >= 2 * s.ghosts.max(1), "{name}: control {} vs {}", s.control_ghosts, s.ghosts);
     }
 }
+
+/// Voxels left at the box's resting place at the end, at most (measured 28 and 51
+/// of about 60–90 there when it left; a 25 × 20 cm face is 125 voxels).
+const BOX_LEFT_VOXELS: usize = 70;

@@ -106,13 +106,38 @@ struct Carried {
 }
 
 /// A prior-dynamic instance over time.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct Track {
+    /// Its id in the carried segmentation.
     id: u16,
     /// The frame it was last detected on (a coasting instance keeps its detection's).
     detected_at: u64,
     /// Median depth of its pixels, metres.
     depth_m: Option<f32>,
+    class_id: u16,
+    score: f32,
+    /// Where it was last seen, in the pose chain's frame.
+    points: Option<TrackPoints>,
+}
+
+#[derive(Debug, Clone)]
+struct TrackPoints {
+    /// The pose chain's epoch the points are expressed in.
+    epoch: u32,
+    /// Pixel spacing of the grid they were sampled on.
+    spacing_px: u32,
+    points: Vec<[f32; 3]>,
+}
+
+/// The camera's pose chained from the tracked motions: `anchor_from_camera` at
+/// frame `sequence`, the last per-frame motion, and an epoch that changes
+/// whenever the chain breaks (tracking lost).
+#[derive(Debug, Clone, Copy)]
+struct PoseChain {
+    sequence: u64,
+    anchor_from_camera: Isometry3<f64>,
+    motion: Isometry3<f64>,
+    epoch: u32,
 }
 
 /// Per-camera perception state.
@@ -133,6 +158,11 @@ pub struct DynamicMasker {
     pending: Option<Pending>,
     /// Recent keyframes' pixels, followed through the flow.
     origins: KeyframeOrigins,
+    class_names: Vec<String>,
+    /// Prior-dynamic tracks out of view (see `track_coast_frames`).
+    offscreen: Vec<Track>,
+    chain: Option<PoseChain>,
+    epochs: u32,
 }
 
 struct Pending {
@@ -174,6 +204,10 @@ impl DynamicMasker {
             dynamic_grid: None,
             pending: None,
             origins,
+            class_names: class_names.to_vec(),
+            offscreen: Vec::new(),
+            chain: None,
+            epochs: 0,
         })
     }
 
@@ -308,8 +342,7 @@ impl DynamicMasker {
         if let Some((k, seg)) = input.segmentation {
             let newer = self.carried.as_ref().is_none_or(|c| c.source_sequence < k);
             if newer && let Some(seg) = self.carry_to(k, seg, input.sequence) {
-                let previous = self.carried.as_ref().filter(|c| c.at_sequence == input.sequence);
-                let (segmentation, tracks) = self.keep_coasting(seg, k, previous, input.sequence, input.depth);
+                let (segmentation, tracks) = self.keep_coasting(seg, k, input.sequence, input.depth);
                 self.carried = Some(Carried { segmentation, source_sequence: k, at_sequence: input.sequence, tracks });
             }
         }
@@ -444,6 +477,18 @@ impl DynamicMasker {
             }
         };
         self.previous = Some((sequence, small));
+        // The pose chain: broken (a new epoch) when tracking gave no motion.
+        self.chain = match (self.chain.take(), previous_from_current) {
+            (Some(c), Some(m)) if c.sequence < sequence => {
+                let motion = scaled(&m, 1.0 / (sequence - c.sequence) as f64);
+                Some(PoseChain { sequence, anchor_from_camera: c.anchor_from_camera * m, motion, ..c })
+            }
+            _ => {
+                self.offscreen.clear();
+                self.epochs = self.epochs.wrapping_add(1);
+                Some(PoseChain { sequence, anchor_from_camera: Isometry3::identity(), motion: Isometry3::identity(), epoch: self.epochs })
+            }
+        };
 
         let t = Instant::now();
         let (fused, cells) = match fused {
@@ -540,30 +585,50 @@ impl DynamicMasker {
     }
 
     /// A new segmentation (of frame `k`, carried to frame `now`, whose depth is
-    /// `depth`) with the previous one's prior-dynamic instances it missed: each such
-    /// instance detected within `track_coast_frames` of `now` that no new
-    /// prior-dynamic instance covers for at least [`COAST_MATCH_FRACTION`] of its
-    /// pixels keeps its carried pixels (those no new prior-dynamic instance claims)
-    /// under a fresh id. Only its pixels near its own depth stay (within
-    /// [`COAST_DEPTH_GATE`] of the median of the last ones; pixels without depth
-    /// stay too): where the flow leaves part of a mask on the background as the
-    /// instance walks off, that part does not follow it. Returns the merged
-    /// segmentation and the prior-dynamic instances' tracks.
-    fn keep_coasting(&self, mut seg: Segmentation, k: u64, previous: Option<&Carried>, now: u64, depth: &[u16]) -> (Segmentation, Vec<Track>) {
-        let w = seg.width as usize;
-        let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
-        let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
-        let mut tracks: Vec<Track> = seg
-            .instances
-            .iter()
-            .filter(|i| self.is_prior_dynamic(&seg, i.id))
-            .map(|i| {
-                let mut d: Vec<f32> = bbox_pixels(&i.bbox, w, seg.height as usize).filter(|&p| seg.instance_map[p] == i.id).filter_map(depth_of).collect();
-                Track { id: i.id, detected_at: k, depth_m: median(&mut d) }
-            })
-            .collect();
+    /// `depth`) with the prior-dynamic instances it missed. A track detected within
+    /// `track_coast_frames` of `now` that no new prior-dynamic instance covers for at
+    /// least [`COAST_MATCH_FRACTION`] of its pixels keeps its pixels (those no new
+    /// prior-dynamic instance claims) under a fresh id: the previous segmentation's
+    /// pixels carried by the flow, or, for a track that left the view, its last 3D
+    /// points projected at the predicted camera pose (a person the camera turned away
+    /// from is still there when it turns back). Only pixels near the track's depth
+    /// stay (within [`COAST_DEPTH_GATE`] of the median of its last ones; pixels
+    /// without depth stay too): where the flow leaves part of a mask on the
+    /// background as the instance walks off, that part does not follow it. Returns
+    /// the merged segmentation and its prior-dynamic tracks; tracks with no pixel
+    /// now stay in `self.offscreen`.
+    fn keep_coasting(&mut self, mut seg: Segmentation, k: u64, now: u64, depth: &[u16]) -> (Segmentation, Vec<Track>) {
+        let (w, h) = (seg.width as usize, seg.height as usize);
         let limit = u64::from(self.config.segmentation.track_coast_frames);
-        let Some(prev) = previous.filter(|_| limit > 0) else { return (seg, tracks) };
+        let pose = self.predicted_pose(now);
+        let mut tracks: Vec<Track> = Vec::new();
+        for i in &seg.instances {
+            if self.is_prior_dynamic(&seg, i.id) {
+                let pixels: Vec<usize> = bbox_pixels(&i.bbox, w, h).filter(|&p| seg.instance_map[p] == i.id).collect();
+                tracks.push(self.track_from(i.id, (i.class_id, i.score), k, &pixels, depth, pose.as_ref(), None));
+            }
+        }
+        let offscreen = std::mem::take(&mut self.offscreen);
+        if limit == 0 {
+            return (seg, tracks);
+        }
+        // Candidates: the previous segmentation's tracks with their carried pixels
+        // (none when they left the view), and tracks already out of view, projected.
+        let mut candidates: Vec<(Track, Vec<usize>)> = Vec::new();
+        if let Some(prev) = self.carried.as_ref().filter(|c| c.at_sequence == now) {
+            for t in &prev.tracks {
+                let pixels = prev
+                    .segmentation
+                    .instance(t.id)
+                    .map(|i| bbox_pixels(&i.bbox, w, h).filter(|&p| prev.segmentation.instance_map[p] == t.id).collect())
+                    .unwrap_or_default();
+                candidates.push((t.clone(), pixels));
+            }
+        }
+        for t in offscreen {
+            let pixels = pose.as_ref().map(|p| self.project_track(&t, p, w, h)).unwrap_or_default();
+            candidates.push((t, pixels));
+        }
         let claimed: Vec<bool> = {
             let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
             let mut v = vec![false; max + 1];
@@ -573,25 +638,28 @@ impl DynamicMasker {
             v
         };
         let claimed = |id: u16| claimed.get(usize::from(id)).copied().unwrap_or(false);
+        let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
+        let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
         let mut next_id = seg.instances.iter().map(|i| i.id).max().unwrap_or(0);
-        for old in &prev.segmentation.instances {
-            let Some(track) = prev.tracks.iter().find(|t| t.id == old.id) else { continue };
+        for (track, pixels) in candidates {
             if now.saturating_sub(track.detected_at) > limit {
                 continue;
             }
-            let pixels: Vec<usize> = bbox_pixels(&old.bbox, w, seg.height as usize).filter(|&i| prev.segmentation.instance_map[i] == old.id).collect();
             let covered = pixels.iter().filter(|&&i| claimed(seg.instance_map[i])).count();
-            if pixels.is_empty() || covered as f64 >= COAST_MATCH_FRACTION * pixels.len() as f64 {
-                continue; // gone, or found again: the new detection takes over
+            if !pixels.is_empty() && covered as f64 >= COAST_MATCH_FRACTION * pixels.len() as f64 {
+                continue; // found again: the new detection takes over
             }
             let near = |i: usize| match (track.depth_m, depth_of(i)) {
                 (Some(reference), Some(d)) => (d - reference).abs() <= COAST_DEPTH_GATE * reference,
                 _ => true,
             };
             let kept: Vec<usize> = pixels.into_iter().filter(|&i| !claimed(seg.instance_map[i]) && near(i)).collect();
-            let mut depths: Vec<f32> = kept.iter().filter_map(|&i| depth_of(i)).collect();
-            let depth_m = median(&mut depths);
-            if kept.is_empty() || (track.depth_m.is_some() && depth_m.is_none()) {
+            let with_depth = kept.iter().filter(|&&i| depth_of(i).is_some()).count();
+            if kept.len() < MIN_COAST_PX || (track.depth_m.is_some() && with_depth == 0) {
+                // Out of view (or nothing of it left): remembered by its points.
+                if track.points.is_some() && self.offscreen.len() < MAX_OFFSCREEN_TRACKS {
+                    self.offscreen.push(track);
+                }
                 continue;
             }
             let Some(id) = next_id.checked_add(1) else { break };
@@ -602,8 +670,9 @@ impl DynamicMasker {
                 let (x, y) = ((i % w) as f32, (i / w) as f32);
                 bbox = [bbox[0].min(x), bbox[1].min(y), bbox[2].max(x + 1.0), bbox[3].max(y + 1.0)];
             }
-            seg.instances.push(crate::segment::Instance { id, pixels: kept.len() as u32, bbox, ..old.clone() });
-            tracks.push(Track { id, detected_at: track.detected_at, depth_m });
+            let class_name = self.class_names.get(usize::from(track.class_id)).cloned().unwrap_or_default();
+            seg.instances.push(crate::segment::Instance { id, class_id: track.class_id, class_name, score: track.score, bbox, pixels: kept.len() as u32 });
+            tracks.push(self.track_from(id, (track.class_id, track.score), track.detected_at, &kept, depth, pose.as_ref(), track.points.as_ref()));
         }
         // Instances a coasting one took every pixel from are gone.
         let mut counts = std::collections::HashMap::<u16, u32>::new();
@@ -620,6 +689,94 @@ impl DynamicMasker {
             None => false,
         });
         (seg, tracks)
+    }
+
+    /// A track of instance `id` (class and score) with these pixels of the current
+    /// frame: its median depth, and 3D points (a grid sample of at most
+    /// [`MAX_TRACK_POINTS`]) in the pose chain's frame when the camera pose is known,
+    /// plus the `previous` points that lie out of the current view (the part of a
+    /// person the camera does not see now is remembered, not forgotten).
+    #[allow(clippy::too_many_arguments)]
+    fn track_from(
+        &self,
+        id: u16,
+        (class_id, score): (u16, f32),
+        detected_at: u64,
+        pixels: &[usize],
+        depth: &[u16],
+        pose: Option<&(u32, Isometry3<f64>)>,
+        previous: Option<&TrackPoints>,
+    ) -> Track {
+        let w = self.camera.width as usize;
+        let metres = 1.0 / self.camera.depth_units_per_metre;
+        let valid: Vec<usize> = pixels.iter().copied().filter(|&i| depth.get(i).is_some_and(|&d| d != 0)).collect();
+        let mut d: Vec<f32> = valid.iter().map(|&i| (f64::from(depth[i]) * metres) as f32).collect();
+        let depth_m = median(&mut d);
+        let spacing = ((valid.len() as f64 / MAX_TRACK_POINTS as f64).sqrt().ceil() as usize).max(1);
+        let points = pose.map(|(epoch, anchor_from_camera)| {
+            let points = valid
+                .iter()
+                .filter(|&&i| (i % w).is_multiple_of(spacing) && (i / w).is_multiple_of(spacing))
+                .map(|&i| {
+                    let ideal = self.camera.undistort(&nalgebra::Point2::new((i % w) as f64, (i / w) as f64));
+                    let z = f64::from(depth[i]) * metres;
+                    let p = anchor_from_camera * nalgebra::Point3::new((ideal.x - self.camera.cx) / self.camera.fx * z, (ideal.y - self.camera.cy) / self.camera.fy * z, z);
+                    [p.x as f32, p.y as f32, p.z as f32]
+                })
+                .collect();
+            let mut tp = TrackPoints { epoch: *epoch, spacing_px: spacing as u32, points };
+            if let Some(prev) = previous.filter(|p| p.epoch == *epoch) {
+                let camera_from_anchor = anchor_from_camera.inverse();
+                let (wf, hf) = (f64::from(self.camera.width), f64::from(self.camera.height));
+                let out_of_view = |p: &&[f32; 3]| {
+                    let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                    self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)).is_none_or(|r| r.x < 0.0 || r.y < 0.0 || r.x >= wf || r.y >= hf)
+                };
+                tp.points.extend(prev.points.iter().filter(out_of_view));
+                tp.spacing_px = tp.spacing_px.max(prev.spacing_px);
+                if tp.points.len() > 2 * MAX_TRACK_POINTS {
+                    let keep = tp.points.len().div_ceil(2 * MAX_TRACK_POINTS);
+                    tp.points = tp.points.into_iter().step_by(keep).collect();
+                }
+            }
+            tp
+        });
+        Track { id, detected_at, depth_m, class_id, score, points }
+    }
+
+    /// The pixels where a track's 3D points land at the camera pose
+    /// `anchor_from_camera` (each point covers the pixels around it).
+    fn project_track(&self, track: &Track, pose: &(u32, Isometry3<f64>), w: usize, h: usize) -> Vec<usize> {
+        let Some(tp) = &track.points else { return Vec::new() };
+        if tp.epoch != pose.0 {
+            return Vec::new();
+        }
+        let camera_from_anchor = pose.1.inverse();
+        let mut hit = vec![false; w * h];
+        let r = i64::from(tp.spacing_px);
+        for p in &tp.points {
+            let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let Some(ideal) = self.camera.project(&q) else { continue };
+            let raw = self.camera.distort(&ideal);
+            let margin = f64::from(tp.spacing_px);
+            if !(raw.x >= -margin && raw.y >= -margin && raw.x < w as f64 + margin && raw.y < h as f64 + margin) {
+                continue;
+            }
+            let (x, y) = (raw.x.round() as i64, raw.y.round() as i64);
+            for yy in (y - r).max(0)..=(y + r).min(h as i64 - 1) {
+                for xx in (x - r).max(0)..=(x + r).min(w as i64 - 1) {
+                    hit[yy as usize * w + xx as usize] = true;
+                }
+            }
+        }
+        hit.iter().enumerate().filter(|(_, h)| **h).map(|(i, _)| i).collect()
+    }
+
+    /// The camera pose at frame `now` predicted from the chain (constant velocity), with its epoch.
+    fn predicted_pose(&self, now: u64) -> Option<(u32, Isometry3<f64>)> {
+        let c = self.chain.as_ref()?;
+        let frames = now.checked_sub(c.sequence)?;
+        Some((c.epoch, c.anchor_from_camera * scaled(&c.motion, frames as f64)))
     }
 
     /// Warps a segmentation of frame `k` through the stored flows up to frame `to`;
@@ -685,6 +842,12 @@ impl DynamicMasker {
 const COAST_MATCH_FRACTION: f64 = 0.3;
 /// A coasting instance keeps the pixels within this fraction of its median depth.
 const COAST_DEPTH_GATE: f32 = 0.15;
+/// A coasting track with fewer pixels than this is out of view.
+const MIN_COAST_PX: usize = 100;
+/// Tracks remembered out of view, at most (per session).
+const MAX_OFFSCREEN_TRACKS: usize = 16;
+/// 3D points kept per track, at most.
+const MAX_TRACK_POINTS: usize = 1500;
 
 /// Row-major pixel indices inside a box (x0, y0, x1, y1; ends exclusive), clipped to the image.
 fn bbox_pixels(bbox: &[f32; 4], width: usize, height: usize) -> impl Iterator<Item = usize> {
@@ -814,7 +977,7 @@ mod tests {
         }
         detection.instances.push(crate::segment::Instance { id: 1, class_id: 0, class_name: "person".into(), score: 0.9, bbox: [30.0, 10.0, 56.0, 60.0], pixels: 26 * 50 });
         let person_pixels = |m: &DynamicMasker| m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>());
-        let mut step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
+        let step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
             m.prepare(MaskerInput { sequence: k, rgb: &rgb, depth: &depth, segmentation: seg.map(|s| (k, s)), motion_prior: None }).expect("prepare");
             m.finish(&depth, Some(Isometry3::identity())).expect("finish")
         };

@@ -28,6 +28,11 @@ pub enum Masking {
 pub struct Fused {
     pub builder: MapBuilder,
     pub keyframes: Vec<usize>,
+    /// The tracker's poses (stamped at the ground truth's time base).
+    pub trajectory: Vec<(u64, Isometry3<f64>)>,
+    /// Time spent fusing keyframes, and taking samples back out.
+    pub fuse_time: std::time::Duration,
+    pub retract_time: std::time::Duration,
     /// Occupied-voxel snapshots after the given frames.
     pub snapshots: Vec<(usize, Vec<Point3<f64>>)>,
 }
@@ -44,7 +49,8 @@ pub fn fuse_debug(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, 
     let names: Vec<String> = segmenter.as_ref().map(|(s, _)| s.class_names().to_vec()).unwrap_or_default();
     let mut pipeline = composite_run::MaskedTracking::new(&names);
     let mut builder = MapBuilder::new(&camera, MappingConfig::default()).expect("builder");
-    let (mut keyframes, mut snapshots) = (Vec::new(), Vec::new());
+    let (mut keyframes, mut snapshots, mut trajectory) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut fuse_time, mut retract_time) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
     for (k, (f, gt_pose)) in frames.iter().zip(poses).enumerate() {
         // Gravity from the ground truth's up (+z), as an accelerometer at rest reports it.
         builder.observe_accel(gt_pose, &(gt_pose.rotation.inverse() * Vector3::z() * 9.81));
@@ -53,19 +59,21 @@ pub fn fuse_debug(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, 
             _ => None,
         };
         let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation);
-        if masking == Masking::Perception && std::env::var_os("STILLMAP_NO_RETRACT").is_none() {
+        if let Some(p) = track.world_from_camera {
+            trajectory.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
+        }
+        if masking == Masking::Perception {
+            let t = std::time::Instant::now();
             for r in &mask.retractions {
-                let n = builder.retract(r.keyframe, r.pixel_test(camera.width));
-                if debug_truth.is_some() {
-                    eprintln!("frame {k}: keyframe {} cells {} samples {n}", r.keyframe, r.cells.len());
-                }
+                builder.retract(r.keyframe, r.pixel_test(camera.width));
             }
+            retract_time += t.elapsed();
         }
         if track.keyframe {
             let exclude = pipeline.masker.mapping_mask(&mask.fused, &f.depth).expect("mapping mask");
             if let Some(truth) = debug_truth.and_then(|t| t.get(k)) {
                 let n = truth.iter().filter(|&&t| t != 0).count();
-                let kept = truth.iter().zip(&exclude).filter(|&(&t, &e)| t != 0 && e == 0 && true).count();
+                let kept = truth.iter().zip(&exclude).filter(|&(&t, &e)| t != 0 && e == 0).count();
                 let persons: Vec<_> = mask.fused.instances.iter().map(|i| (i.class_name.clone(), i.pixels, i.moving)).collect();
                 eprintln!("kf {k:3}: truth {n} px, not excluded {kept}; source {:?}; instances {persons:?}", mask.source);
             }
@@ -76,7 +84,7 @@ pub fn fuse_debug(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, 
                 exclude: (masking == Masking::Perception).then_some(exclude.as_slice()),
                 classes: classes.as_deref(),
             };
-            builder.add_keyframe(k as u64, gt_pose, &view).expect("fuse");
+            fuse_time += builder.add_keyframe(k as u64, gt_pose, &view).expect("fuse").fuse_time;
             pipeline.masker.note_keyframe(k as u64);
             keyframes.push(k);
         }
@@ -84,7 +92,7 @@ pub fn fuse_debug(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, 
             snapshots.push((k, builder.map().occupied().map(|(_, c, _)| c).collect()));
         }
     }
-    Fused { builder, keyframes, snapshots }
+    Fused { builder, keyframes, trajectory, fuse_time, retract_time, snapshots }
 }
 
 /// Distance from `p` to the board rectangle at `world_from_plane`.
