@@ -22,8 +22,9 @@ mod map_run;
 use std::collections::HashSet;
 use std::path::Path;
 
+use composite_run::Stage;
 use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
-use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3};
 use stillmap_perception::composite::{StopAndGo, TexturedPlane, interpolate_pose, paste};
 use stillmap_perception::{Segmenter, YoloSegmenter};
 
@@ -40,32 +41,6 @@ struct Actor {
     name: &'static str,
     plane: TexturedPlane,
     motion: StopAndGo,
-}
-
-/// Positions in the scene as (metres ahead of the clip's mean camera position along
-/// its mean horizontal viewing direction, metres to the side, height of the centre).
-struct Stage {
-    origin: Point3<f64>,
-    ahead: Vector3<f64>,
-    side: Vector3<f64>,
-    /// world_from_plane's rotation of an object facing the camera, upright.
-    facing: UnitQuaternion<f64>,
-}
-
-impl Stage {
-    fn new(poses: &[Isometry3<f64>]) -> Self {
-        let n = poses.len() as f64;
-        let origin = Point3::from(poses.iter().map(|p| p.translation.vector).sum::<Vector3<f64>>() / n);
-        let view = poses.iter().map(|p| p.rotation * Vector3::z()).sum::<Vector3<f64>>();
-        let ahead = Vector3::new(view.x, view.y, 0.0).normalize();
-        let side = Vector3::z().cross(&ahead);
-        Self { origin, ahead, side, facing: UnitQuaternion::face_towards(&-ahead, &Vector3::z()) }
-    }
-
-    fn at(&self, ahead_m: f64, side_m: f64, z_m: f64) -> Point3<f64> {
-        let p = self.origin + self.ahead * ahead_m + self.side * side_m;
-        Point3::new(p.x, p.y, z_m)
-    }
 }
 
 /// The two largest people of `bus.jpg`, cut out along the segmenter's masks.

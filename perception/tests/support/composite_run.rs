@@ -3,7 +3,7 @@
 //! against the plane's exact mask. Shared by the tests and the bench.
 #![allow(dead_code)]
 
-use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use stillmap_perception::composite::{CircularMotion, TexturedPlane, interpolate_pose, paste};
 use stillmap_perception::{DynamicMasker, MaskOutput, MaskSource, MaskerInput, PerceptionConfig, PixelLabel, Segmentation, Segmenter};
 use stillmap_tracking::features::Extractor;
@@ -71,6 +71,32 @@ pub fn without_object(frames: &[tum::TumFrame]) -> Vec<CompositeFrame> {
         .iter()
         .map(|f| CompositeFrame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone(), object_mask: vec![0; f.depth.len()] })
         .collect()
+}
+
+/// Positions in the scene as (metres ahead of the clip's mean camera position along
+/// its mean horizontal viewing direction, metres to the side, height of the centre).
+pub struct Stage {
+    pub origin: Point3<f64>,
+    pub ahead: Vector3<f64>,
+    pub side: Vector3<f64>,
+    /// world_from_plane's rotation of an object facing the camera, upright.
+    pub facing: UnitQuaternion<f64>,
+}
+
+impl Stage {
+    pub fn new(poses: &[Isometry3<f64>]) -> Self {
+        let n = poses.len() as f64;
+        let origin = Point3::from(poses.iter().map(|p| p.translation.vector).sum::<Vector3<f64>>() / n);
+        let view = poses.iter().map(|p| p.rotation * Vector3::z()).sum::<Vector3<f64>>();
+        let ahead = Vector3::new(view.x, view.y, 0.0).normalize();
+        let side = Vector3::z().cross(&ahead);
+        Self { origin, ahead, side, facing: UnitQuaternion::face_towards(&-ahead, &Vector3::z()) }
+    }
+
+    pub fn at(&self, ahead_m: f64, side_m: f64, z_m: f64) -> Point3<f64> {
+        let p = self.origin + self.ahead * ahead_m + self.side * side_m;
+        Point3::new(p.x, p.y, z_m)
+    }
 }
 
 /// When segmentation results become available to the masker.
