@@ -34,23 +34,23 @@ fn boards(poses: &[Isometry3<f64>]) -> Vec<Board> {
         TexturedPlane::from_image(rgb, pw as usize, ph as usize, w, h)
     };
     vec![
-        // Standing 0.8 m ahead in the first frame; carried off to the right after 1.5 s.
+        // Standing 0.7 m ahead in the first frame; carried off to the right after 1.5 s.
         Board {
             plane: photo("bus.jpg", 0.7, 0.5),
-            motion: StopAndGo { waypoints: vec![(0.0, s.at(0.8, 0.1, z)), (1.5, s.at(0.8, 0.1, z)), (3.0, s.at(0.8, 1.4, z))], rotation: s.facing },
+            motion: StopAndGo { waypoints: vec![(0.0, s.at(0.7, 0.1, z)), (1.5, s.at(0.7, 0.1, z)), (3.0, s.at(0.7, 1.3, z))], rotation: s.facing },
         },
         // Carried in from the left, set down for 1.5 s, carried on to the right.
         Board {
             plane: photo("astronaut.png", 0.7, 0.5),
             motion: StopAndGo {
-                waypoints: vec![(0.0, s.at(0.95, -1.4, z)), (1.5, s.at(0.95, -0.3, z)), (3.0, s.at(0.95, -0.3, z)), (4.5, s.at(0.95, 0.5, z))],
+                waypoints: vec![(0.0, s.at(0.8, -1.2, z)), (1.5, s.at(0.8, -0.25, z)), (3.0, s.at(0.8, -0.25, z)), (4.5, s.at(0.8, 0.5, z))],
                 rotation: s.facing,
             },
         },
         // A smaller board carried across at a walking pace, nearer.
         Board {
             plane: photo("bus.jpg", 0.5, 0.35),
-            motion: StopAndGo { waypoints: vec![(0.0, s.at(0.7, 1.1, z - 0.1)), (5.0, s.at(0.7, -1.1, z - 0.1))], rotation: s.facing },
+            motion: StopAndGo { waypoints: vec![(0.0, s.at(0.6, 0.9, z - 0.1)), (5.0, s.at(0.6, -0.9, z - 0.1))], rotation: s.facing },
         },
     ]
 }
@@ -104,7 +104,7 @@ fn boards_carried_through_the_view() {
         let cover: Vec<f64> = composite.iter().map(|f| f.object_mask.iter().filter(|&&m| m != 0).count() as f64 / f.object_mask.len() as f64).collect();
         let schedule = Schedule::Late { every: 2, delay: 0 };
         let free = composite_run::run(&composite_run::without_object(&frames), Some(&mut seg), schedule, false);
-        let masked = composite_run::run(&composite, Some(&mut seg), schedule, false);
+        let masked = composite_run::run(&composite, Some(&mut seg), schedule, std::env::var_os("STILLMAP_VERBOSE").is_some());
         let unmasked = track_unmasked(&composite);
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let ate = |t: &[(u64, Isometry3<f64>)]| if t.len() > 2 { format!("{:.2} cm", 100.0 * tum::score(&gt, t).ate_m) } else { "–".into() };
