@@ -53,6 +53,8 @@ pub struct MapInfo {
     pub voxel_size_m: f64,
     pub keyframes: u64,
     pub refused_keyframes: u64,
+    /// Keyframe samples taken back out because perception later found them moving.
+    pub retracted_samples: u64,
     pub blocks: usize,
     pub occupied_voxels: usize,
     pub bytes: usize,
@@ -248,6 +250,7 @@ impl SessionMap {
             voxel_size_m: self.builder.map().voxel_size(),
             keyframes: self.builder.keyframes(),
             refused_keyframes: self.builder.refused(),
+            retracted_samples: self.builder.retracted(),
             blocks: stats.blocks,
             occupied_voxels: stats.occupied_voxels,
             bytes: stats.bytes,

@@ -36,6 +36,7 @@ async fn the_streamed_clip_is_mapped_and_served() {
     let keyframes = info["keyframes"].as_u64().expect("keyframes");
     assert!(keyframes >= 20, "{info}");
     assert!(info["occupied_voxels"].as_u64().expect("voxels") > 20_000, "{info}");
+    assert!(info["retracted_samples"].is_u64(), "{info}");
     // TUM's accelerometer gives the up direction.
     assert_eq!(info["up_source"], "accelerometer", "{info}");
     let bounds: Vec<f64> = info["bounds_xy"].as_array().expect("bounds").iter().map(|v| v.as_f64().expect("number")).collect();

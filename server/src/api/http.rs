@@ -230,6 +230,7 @@ async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>)
         "voxel_size_m": info.voxel_size_m,
         "keyframes": info.keyframes,
         "refused_keyframes": info.refused_keyframes,
+        "retracted_samples": info.retracted_samples,
         "blocks": info.blocks,
         "evicted_blocks": info.evicted_blocks,
         "occupied_voxels": info.occupied_voxels,
