@@ -42,6 +42,8 @@ impl ExecutionProvider {
     }
 }
 
+/// Keyframes followed for retraction, at most (each costs 5 bytes per flow cell).
+pub const MAX_RETRACT_KEYFRAMES: usize = 64;
 /// Largest `perception.segmentation.max_batch`.
 pub const MAX_SEGMENTATION_BATCH: usize = 64;
 /// Largest `perception.segmentation.max_queue_delay_ms`: a batch waits at most a frame interval.
@@ -341,6 +343,9 @@ impl PerceptionConfig {
         }
         if u.mapping_mask_dilation_px > 64 {
             return Err(format!("perception.fusion.mapping_mask_dilation_px must be at most 64, got {}", u.mapping_mask_dilation_px));
+        }
+        if u.retract_keyframes > MAX_RETRACT_KEYFRAMES {
+            return Err(format!("perception.fusion.retract_keyframes must be at most {MAX_RETRACT_KEYFRAMES}, got {}", u.retract_keyframes));
         }
         if u.tracking_mask_dilation_px > 64 {
             return Err(format!("perception.fusion.tracking_mask_dilation_px must be at most 64, got {}", u.tracking_mask_dilation_px));

@@ -1006,6 +1006,34 @@ mod tests {
         assert_eq!(person_pixels(&masker), 0, "6 frames after: gone");
     }
 
+    /// A track's 3D points: projected back where they were seen; the part out of
+    /// view is kept when the visible part is refreshed, so a person the camera
+    /// turned away from is found again when it turns back.
+    #[test]
+    fn a_track_out_of_view_is_remembered_by_its_points() {
+        let (w, h) = (96usize, 72usize);
+        let camera = Camera { width: w as u32, height: h as u32, fx: 80.0, fy: 80.0, cx: 48.0, cy: 36.0, distortion: None, depth_units_per_metre: 1000.0, readout_s: 0.0 };
+        let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        let depth = vec![1000u16; w * h];
+        // A person over columns 40..56, rows 20..60, seen at the identity pose.
+        let pixels: Vec<usize> = (20..60).flat_map(|y| (40..56).map(move |x| y * w + x)).collect();
+        let here = (1u32, Isometry3::identity());
+        let track = masker.track_from(1, (0, 0.9), 5, &pixels, &depth, Some(&here), None);
+        assert_eq!(track.depth_m, Some(1.0));
+        let back = masker.project_track(&track, &here, w, h);
+        assert!(pixels.iter().all(|p| back.contains(p)), "every pixel of the person is covered again");
+        assert!(back.len() < pixels.len() + 2 * (16 + 40) * 2 + 16, "and little around it: {} pixels", back.len());
+        // The camera turns 60° away: nothing of him is in view, and refreshing the
+        // track with no visible pixels keeps every point.
+        let away = (1u32, Isometry3::rotation(nalgebra::Vector3::y() * 60f64.to_radians()));
+        assert!(masker.project_track(&track, &away, w, h).is_empty());
+        let kept = masker.track_from(1, (0, 0.9), 5, &[], &depth, Some(&away), track.points.as_ref());
+        assert_eq!(kept.points.as_ref().map(|p| p.points.len()), track.points.as_ref().map(|p| p.points.len()));
+        // Turning back finds him where he was; another epoch (tracking was lost) does not.
+        assert_eq!(masker.project_track(&kept, &here, w, h), back);
+        assert!(masker.project_track(&kept, &(2, Isometry3::identity()), w, h).is_empty());
+    }
+
     /// The map's kept-out pixels grow over the surface they stand on (a person's
     /// feet onto the floor), never across a depth edge, then dilate by a few pixels.
     #[test]

@@ -293,6 +293,10 @@ mod tests {
         assert_eq!(err("[session]\nopencv_threads = 2000\n"), "invalid configuration: session.opencv_threads must be at most 1024, got 2000");
         assert_eq!(err("[session]\nmap_queue = 0\n"), "invalid configuration: session.map_queue must be in 1..=256, got 0");
         assert_eq!(
+            err("[perception.fusion]\nretract_keyframes = 1000\n"),
+            "invalid configuration: perception.fusion.retract_keyframes must be at most 64, got 1000"
+        );
+        assert_eq!(
             err("[perception.segmentation]\nmax_batch = 0\n"),
             "invalid configuration: perception.segmentation.max_batch must be in 1..=64, got 0"
         );
