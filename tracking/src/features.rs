@@ -63,6 +63,9 @@ pub struct Extractor {
 const ORB_EDGE_THRESHOLD: i32 = 19;
 /// ORB's descriptor patch size.
 const ORB_PATCH_SIZE: i32 = 31;
+/// When at least 1/n of the detected candidates fall in the dynamic mask, the
+/// static pixels are searched again on their own.
+const REDETECT_MASKED_SHARE: usize = 4;
 
 impl Extractor {
     pub fn new(config: &TrackerConfig) -> Result<Self, TrackingError> {
@@ -110,6 +113,25 @@ impl Extractor {
                 continue;
             }
             cells[(y / cell) * gw + x / cell].push(kp);
+        }
+        // A large textured moving thing (a poster, a board) takes most of the
+        // detector's candidates, and masking them leaves the static scene starved:
+        // detect again within the static pixels only, so the candidates are spent
+        // there. `masked_out` still counts the first detection's masked keypoints.
+        if let Some(m) = dynamic
+            && masked_out * REDETECT_MASKED_SHARE >= detected.len().max(1)
+        {
+            let static_pixels: Vec<u8> = m.iter().map(|&v| if v == 0 { 255 } else { 0 }).collect();
+            let static_mask = Mat::new_rows_cols_with_data(h as i32, w as i32, &static_pixels)?;
+            let mut again = Vector::<KeyPoint>::new();
+            self.orb.detect(&image, &mut again, &static_mask)?;
+            cells.iter_mut().for_each(Vec::clear);
+            for kp in again.iter() {
+                let (x, y) = (kp.pt().x.round() as usize, kp.pt().y.round() as usize);
+                if x < w && y < h && m[y * w + x] == 0 {
+                    cells[(y / cell) * gw + x / cell].push(kp);
+                }
+            }
         }
         for c in &mut cells {
             c.sort_by(|a, b| b.response().total_cmp(&a.response()));
