@@ -197,8 +197,14 @@ impl MapBuilder {
     /// the keyframe is no longer in the window.
     pub fn retract(&mut self, id: u64, covered: impl Fn(u32) -> bool) -> usize {
         let Some(f) = self.window.iter_mut().find(|f| f.id == id) else { return 0 };
-        let (taken, kept): (Vec<_>, Vec<_>) = std::mem::take(&mut f.input.samples).into_iter().partition(|s| covered(s.pixel));
-        f.input.samples = kept;
+        let mut taken = Vec::new();
+        f.input.samples.retain(|s| {
+            let out = covered(s.pixel);
+            if out {
+                taken.push(*s);
+            }
+            !out
+        });
         if taken.is_empty() {
             return 0;
         }

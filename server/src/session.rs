@@ -12,9 +12,7 @@
 //! adjustment moved) become a job on the session's map lane, run by the map pool
 //! (`session.map_threads`): fusion and the store commit never hold up tracking. The
 //! map lane is bounded (`session.map_queue`); a keyframe finding it full is left
-//! out of the map and counted (`stillmap_map_jobs_skipped_total`). Work without a
-//! keyframe (moved poses, samples perception found moving) folds into the last
-//! queued job, so a lane that falls behind holds one job per keyframe.
+//! out of the map and counted (`stillmap_map_jobs_skipped_total`).
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -417,13 +415,6 @@ impl Session {
         let Some(lane) = &self.map_lane else { return None };
         {
             let mut jobs = lock(&lane.jobs);
-            // Behind: a job without a keyframe folds into the last queued one.
-            if job.keyframe.is_none()
-                && let Some(back) = jobs.back_mut()
-            {
-                back.absorb(job);
-                return None;
-            }
             if jobs.len() >= lane.capacity {
                 drop(jobs);
                 let keyframe = job.keyframe.as_ref().map(|k| k.id);

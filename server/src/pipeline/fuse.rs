@@ -48,26 +48,6 @@ pub struct MapJob {
     pub retractions: Vec<Retraction>,
 }
 
-impl MapJob {
-    /// Takes a later job without a keyframe into this queued one (the map lane is
-    /// behind): newer keyframe poses replace older ones, found-moving cells and
-    /// accelerometer samples add up (the samples within their bound). A map lane
-    /// that falls behind so gets one job per keyframe, not one per frame.
-    pub fn absorb(&mut self, later: MapJob) {
-        debug_assert!(later.keyframe.is_none(), "a keyframe job is queued, not absorbed");
-        self.world_from_camera = later.world_from_camera;
-        for (id, pose) in later.keyframe_poses {
-            match self.keyframe_poses.iter_mut().find(|(k, _)| *k == id) {
-                Some(entry) => entry.1 = pose,
-                None => self.keyframe_poses.push((id, pose)),
-            }
-        }
-        self.retractions.extend(later.retractions);
-        let room = MAX_ACCEL_PER_MAP_JOB.saturating_sub(self.accel.len());
-        self.accel.extend(later.accel.into_iter().take(room));
-    }
-}
-
 /// The tracking path's side of the map lane.
 pub struct Handoff {
     window: usize,
@@ -128,9 +108,8 @@ impl Handoff {
 
 /// Runs a map job: accelerometer samples, re-fusion of the keyframes whose pose
 /// moved, the new keyframe's fusion, then the samples perception found moving
-/// taken back out (each at the pose its keyframe is fused at now, so the order
-/// does not matter; last, so a job that absorbed later ones can retract from its
-/// own keyframe). Returns the fusion time of the new keyframe.
+/// taken back out (each at the pose its keyframe is fused at now). Returns the
+/// fusion time of the new keyframe.
 pub fn apply(map: &SharedMap, job: &MapJob) -> Option<Duration> {
     let mut m = lock(map);
     for (pose, a) in &job.accel {
@@ -214,22 +193,5 @@ mod tests {
         assert!(h.job(at(4.0), None, None, vec![cells(2), cells(4)], pose).is_none(), "2 left the window, 4 was refused");
         let j = h.job(at(4.0), None, None, vec![cells(2), cells(3)], pose).expect("retraction job");
         assert_eq!(j.retractions, vec![cells(3)]);
-    }
-
-    /// A keyframe-less job folds into the queued one: newer poses win, cells and
-    /// accelerometer samples add up within their bound.
-    #[test]
-    fn a_later_update_folds_into_the_queued_job() {
-        let at = |x: f64| Isometry3::from_parts(Translation3::new(x, 0.0, 0.0), nalgebra::UnitQuaternion::identity());
-        let cells = |keyframe: u64| Retraction { keyframe, cells: vec![0], grid_width: 1, grid_height: 1, subsample: 1 };
-        let g = Vector3::new(0.0, -9.8, 0.0);
-        let mut queued = MapJob { world_from_camera: at(0.0), keyframe: Some(keyframe(7)), keyframe_poses: vec![(5, at(5.0)), (6, at(6.0))], accel: vec![(at(0.0), g); 60], retractions: vec![cells(5)] };
-        let later = MapJob { world_from_camera: at(1.0), keyframe: None, keyframe_poses: vec![(6, at(6.5)), (7, at(7.0))], accel: vec![(at(1.0), g); 10], retractions: vec![cells(7)] };
-        queued.absorb(later);
-        assert_eq!(queued.world_from_camera, at(1.0));
-        assert_eq!(queued.keyframe.as_ref().map(|k| k.id), Some(7), "its keyframe stays");
-        assert_eq!(queued.keyframe_poses, vec![(5, at(5.0)), (6, at(6.5)), (7, at(7.0))]);
-        assert_eq!(queued.retractions, vec![cells(5), cells(7)]);
-        assert_eq!(queued.accel.len(), MAX_ACCEL_PER_MAP_JOB);
     }
 }
