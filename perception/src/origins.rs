@@ -45,8 +45,11 @@ impl Retraction {
         }
         let (s, gw, gh) = (self.subsample.max(1), self.grid_width, self.grid_height);
         move |pixel: u32| {
+            if width == 0 || grid.is_empty() {
+                return false;
+            }
             let (x, y) = (((pixel % width) / s).min(gw.saturating_sub(1)), ((pixel / width) / s).min(gh.saturating_sub(1)));
-            grid[(y * gw + x) as usize]
+            grid.get((y * gw + x) as usize).copied().unwrap_or(false)
         }
     }
 }
@@ -179,6 +182,9 @@ mod tests {
         assert_eq!(o.len(), 2, "at most two keyframes");
         o.advance(11, 15, &shift(w, h, 0.0));
         assert!(o.is_empty(), "15 − 11 frames is past a 3-frame horizon");
+        // A degenerate report covers nothing (and does not panic).
+        let empty = Retraction { keyframe: 1, cells: vec![0], grid_width: 0, grid_height: 0, subsample: 0 };
+        assert!(!empty.pixel_test(12)(5) && !r[0].pixel_test(0)(5));
         let mut off = KeyframeOrigins::new(0, 3);
         off.note(1, 1, w * h);
         assert!(off.is_empty());
