@@ -109,7 +109,11 @@ fn table() {
         let (mean, median, p95) = stats(times);
         println!("| segmentation {} ({}) | {mean:.1} | {median:.1} | {p95:.1} | {paper} |", seg.input_size(), seg.device());
     }
-    let config = PerceptionConfig::default();
+    let mut config = PerceptionConfig::default();
+    // STILLMAP_BENCH_NO_RETRACT=1: without following keyframes' pixels (its cost).
+    if std::env::var_os("STILLMAP_BENCH_NO_RETRACT").is_some() {
+        config.fusion.retract_keyframes = 0;
+    }
     let flow_label = format!("flow (Farneback {}x{})", 640 / config.flow.subsample, 480 / config.flow.subsample);
     let mut masker = DynamicMasker::new(camera.clone(), config, &[]).expect("masker");
     let (mut flow, mut ego, mut warp, mut fusion, mut total) = (vec![], vec![], vec![], vec![], vec![]);
@@ -127,6 +131,9 @@ fn table() {
         let motion = last_pose.zip(track.world_from_camera).map(|(a, b)| a.inverse() * b);
         last_pose = track.world_from_camera;
         let out = masker.finish(&f.depth, motion).expect("finish");
+        if track.keyframe {
+            masker.note_keyframe(k as u64);
+        }
         if k > 0 {
             let t = out.times;
             flow.push(t.flow);

@@ -71,12 +71,15 @@ pub struct KeyframeOrigins {
     max_keyframes: usize,
     horizon_frames: u64,
     followed: Vec<Followed>,
+    /// Per current cell, the previous frame's cell it shows (reused buffers).
+    source: Vec<u32>,
+    scratch: Vec<u32>,
 }
 
 impl KeyframeOrigins {
     /// Off when `max_keyframes` or `horizon_frames` is 0.
     pub fn new(max_keyframes: usize, horizon_frames: u64) -> Self {
-        Self { max_keyframes, horizon_frames, followed: Vec::new() }
+        Self { max_keyframes, horizon_frames, followed: Vec::new(), source: Vec::new(), scratch: Vec::new() }
     }
 
     /// Starts following keyframe `keyframe`, made on frame `sequence`, on a grid of `cells` cells.
@@ -96,16 +99,20 @@ impl KeyframeOrigins {
     pub fn advance(&mut self, from: u64, to: u64, flow: &FlowField) {
         let horizon = self.horizon_frames;
         self.followed.retain(|f| f.at == from && to.saturating_sub(f.made_at) <= horizon && f.origin.len() == flow.data.len());
+        if self.followed.is_empty() {
+            return;
+        }
+        // Where each current cell comes from, once for all keyframes.
         let (w, h) = (flow.width, flow.height);
+        self.source.clear();
+        self.source.extend(flow.data.iter().enumerate().map(|(i, d)| {
+            let (sx, sy) = (((i % w) as f32 + d[0]).round(), ((i / w) as f32 + d[1]).round());
+            if sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h { sy as u32 * w as u32 + sx as u32 } else { NONE }
+        }));
         for f in &mut self.followed {
-            let mut next = vec![NONE; w * h];
-            for (i, d) in flow.data.iter().enumerate() {
-                let (sx, sy) = (((i % w) as f32 + d[0]).round(), ((i / w) as f32 + d[1]).round());
-                if sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h {
-                    next[i] = f.origin[sy as usize * w + sx as usize];
-                }
-            }
-            f.origin = next;
+            self.scratch.clear();
+            self.scratch.extend(self.source.iter().map(|&src| if src == NONE { NONE } else { f.origin[src as usize] }));
+            std::mem::swap(&mut f.origin, &mut self.scratch);
             f.at = to;
         }
     }
@@ -120,10 +127,15 @@ impl KeyframeOrigins {
     pub fn retractions(&mut self, sequence: u64, moving: &[bool], grid_width: usize, subsample: u32) -> Vec<Retraction> {
         let mut out = Vec::new();
         let grid_height = moving.len() / grid_width.max(1);
+        let moving_cells: Vec<usize> = moving.iter().enumerate().filter(|(_, m)| **m).map(|(i, _)| i).collect();
+        if moving_cells.is_empty() {
+            return out;
+        }
         for f in self.followed.iter_mut().filter(|f| f.at == sequence && f.origin.len() == moving.len()) {
             let mut cells = Vec::new();
-            for (&m, &o) in moving.iter().zip(&f.origin) {
-                if m && o != NONE && !std::mem::replace(&mut f.reported[o as usize], true) {
+            for &i in &moving_cells {
+                let o = f.origin[i];
+                if o != NONE && !std::mem::replace(&mut f.reported[o as usize], true) {
                     cells.push(o);
                 }
             }
