@@ -641,6 +641,7 @@ impl DynamicMasker {
         let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
         let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
         let mut next_id = seg.instances.iter().map(|i| i.id).max().unwrap_or(0);
+        let mut coasted = false;
         for (track, pixels) in candidates {
             if now.saturating_sub(track.detected_at) > limit {
                 continue;
@@ -673,8 +674,12 @@ impl DynamicMasker {
             let class_name = self.class_names.get(usize::from(track.class_id)).cloned().unwrap_or_default();
             seg.instances.push(crate::segment::Instance { id, class_id: track.class_id, class_name, score: track.score, bbox, pixels: kept.len() as u32 });
             tracks.push(self.track_from(id, (track.class_id, track.score), track.detected_at, &kept, depth, pose.as_ref(), track.points.as_ref()));
+            coasted = true;
         }
-        // Instances a coasting one took every pixel from are gone.
+        if !coasted {
+            return (seg, tracks);
+        }
+        // Coasting pixels may have been taken from static instances: count again.
         let mut counts = std::collections::HashMap::<u16, u32>::new();
         for &id in &seg.instance_map {
             if id != 0 {

@@ -18,7 +18,6 @@ use composite_run::{CompositeFrame, Schedule, Stage};
 use nalgebra::Isometry3;
 use stillmap_perception::YoloSegmenter;
 use stillmap_perception::composite::{StopAndGo, TexturedPlane, interpolate_pose, paste};
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
 
 struct Board {
     plane: TexturedPlane,
@@ -53,18 +52,6 @@ fn boards(poses: &[Isometry3<f64>]) -> Vec<Board> {
             motion: StopAndGo { waypoints: vec![(0.0, s.at(0.6, 0.9, z - 0.1)), (5.0, s.at(0.6, -0.9, z - 0.1))], rotation: s.facing },
         },
     ]
-}
-
-/// Tracker alone (no mask) over composite frames: stamped poses.
-fn track_unmasked(frames: &[CompositeFrame]) -> Vec<(u64, Isometry3<f64>)> {
-    let mut tracker = Tracker::new(tum::fr1_camera(), TrackerConfig::default()).expect("tracker");
-    frames
-        .iter()
-        .filter_map(|f| {
-            let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).ok()?;
-            out.world_from_camera.map(|p| (tum::fr1_pose_time_ns(f.timestamp_ns), p))
-        })
-        .collect()
 }
 
 #[test]
@@ -105,7 +92,7 @@ fn boards_carried_through_the_view() {
         let schedule = Schedule::Late { every: 2, delay: 0 };
         let free = composite_run::run(&composite_run::without_object(&frames), Some(&mut seg), schedule, false);
         let masked = composite_run::run(&composite, Some(&mut seg), schedule, std::env::var_os("STILLMAP_VERBOSE").is_some());
-        let unmasked = track_unmasked(&composite);
+        let unmasked = composite_run::track_unmasked(&composite);
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let ate = |t: &[(u64, Isometry3<f64>)]| if t.len() > 2 { format!("{:.2} cm", 100.0 * tum::score(&gt, t).ate_m) } else { "–".into() };
         println!(

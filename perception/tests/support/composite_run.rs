@@ -292,12 +292,21 @@ pub fn track_plain(frames: &[tum::TumFrame]) -> Vec<(u64, Isometry3<f64>)> {
 
 /// [`track_plain`] with the given tracking configuration.
 pub fn track_plain_with(frames: &[tum::TumFrame], config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
+    track_images(frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice())), config)
+}
+
+/// The tracker alone (no mask) over composite frames: stamped poses.
+pub fn track_unmasked(frames: &[CompositeFrame]) -> Vec<(u64, Isometry3<f64>)> {
+    track_images(frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice())), TrackerConfig::default())
+}
+
+/// Tracks (timestamp, colour, depth) frames without a mask; poses stamped at the ground truth's time base.
+fn track_images<'a>(frames: impl Iterator<Item = (u64, &'a [u8], &'a [u16])>, config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
     let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
     frames
-        .iter()
-        .filter_map(|f| {
-            let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).ok()?;
-            out.world_from_camera.map(|p| (tum::fr1_pose_time_ns(f.timestamp_ns), p))
+        .filter_map(|(timestamp_ns, rgb, depth)| {
+            let out = tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: None }).ok()?;
+            out.world_from_camera.map(|p| (tum::fr1_pose_time_ns(timestamp_ns), p))
         })
         .collect()
 }
