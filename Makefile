@@ -20,7 +20,7 @@ export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet clean
+.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet vocabulary clean
 
 deps:
 	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
@@ -57,6 +57,11 @@ bench-codecs: deps
 bench-transport: deps
 	$(CARGO) build --release --workspace --bins
 	deploy/bench-transport.sh target/release
+
+# The shipped place-recognition vocabulary, trained from the public clip (deterministic:
+# places/tests/vocabulary.rs checks the committed file is this step's output).
+vocabulary: deps
+	$(CARGO) run --release -p stillmap-places --example train_vocabulary
 
 clean:
 	$(CARGO) clean

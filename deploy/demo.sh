@@ -42,6 +42,25 @@ curl -fsS "http://$HTTP/api/v1/maps/$id/objects" | python3 -c 'import json,sys; 
 curl -fsS -o "$work/map.ply" "http://$HTTP/api/v1/maps/$id/cloud.ply"
 curl -fsS -o "$work/occupancy.pgm" "http://$HTTP/api/v1/maps/$id/occupancy.pgm"
 echo "saved $work/map.ply ($(stat -c %s "$work/map.ply") bytes) and $work/occupancy.pgm"
+echo; echo "== server: the default fleet (the Zenoh robot saw the same room: place recognition merged it into the gRPC robot's frame)"
+for _ in $(seq 300); do
+  curl -fsS "http://$HTTP/api/v1/fleets" | python3 -c 'import json,sys; sys.exit(0 if json.load(sys.stdin)["place_recognition_backlog"] == 0 else 1)' && break
+  sleep 0.1
+done
+curl -fsS "http://$HTTP/api/v1/fleets/default" | python3 <(cat <<'PY'
+import json, sys
+fleet = json.load(sys.stdin)
+for m in fleet["sessions"]:
+    frame = m["fleet_from_session"]
+    if frame is None:
+        how = "not merged"
+    elif frame["anchor"]:
+        how = "anchors the fleet's frame"
+    else:
+        how = "merged %.1f s into its keyframes (%d agreeing), fleet_from_session translation %s" % (frame["merged_after_s"], frame["support"], [round(v, 3) for v in frame["translation"]])
+    print("%-12s %-28s %s" % (m["robot_id"], m["session_id"], how))
+PY
+)
 echo "dashboard: http://$HTTP/ (while the server runs; STILLMAP_DEMO_KEEP=1 keeps it running)"
 if [ -n "${STILLMAP_DEMO_KEEP:-}" ]; then
   echo "press Ctrl-C to stop the server"

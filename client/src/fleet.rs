@@ -220,6 +220,7 @@ pub async fn run(options: &FleetOptions) -> Result<FleetReport, ClientError> {
         let transport = options.transport.for_robot(index);
         let stream_options = StreamOptions {
             robot_id: robot_id.clone(),
+            fleet: String::new(),
             auth_token: options.token.clone(),
             source: SourceSpec::Tum(options.tum.clone()),
             max_frames: None,

@@ -118,6 +118,9 @@ enum Command {
         endpoints: EndpointArgs,
         #[arg(long, env = "STILLMAP_ROBOT_ID", default_value = "robot1")]
         robot_id: String,
+        /// The fleet to map with (one shared world frame); default: the server's default fleet.
+        #[arg(long, env = "STILLMAP_FLEET")]
+        fleet: Option<String>,
         #[arg(long, env = "STILLMAP_TOKEN", default_value = "")]
         token: String,
         /// realtime, max, or a rate in Hz.
@@ -289,6 +292,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             transport,
             endpoints: EndpointArgs { server, zenoh_connect, zenoh_mode },
             robot_id,
+            fleet,
             token,
             rate,
             max_frames,
@@ -306,6 +310,9 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             calibration,
         } => {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
+            if let Some(f) = &fleet {
+                stillmap_proto::validate_fleet(f).map_err(ClientError::Usage)?;
+            }
             if let Some(ms) = rolling_shutter_ms
                 && !(0.0..=stillmap_proto::MAX_ROLLING_SHUTTER_READOUT_S * 1e3).contains(&ms)
             {
@@ -328,6 +335,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 .map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
             let options = StreamOptions {
                 robot_id,
+                fleet: fleet.unwrap_or_default(),
                 auth_token: token,
                 source,
                 max_frames,

@@ -48,6 +48,8 @@ impl std::str::FromStr for Rate {
 #[derive(Debug, Clone)]
 pub struct StreamOptions {
     pub robot_id: String,
+    /// The hello's fleet (empty: the server's default).
+    pub fleet: String,
     pub auth_token: String,
     pub source: SourceSpec,
     pub max_frames: Option<usize>,
@@ -244,6 +246,7 @@ pub async fn stream(
         camera: Some(camera),
         resume_session_id: String::new(),
         client_version: concat!("stillmap-client ", env!("CARGO_PKG_VERSION")).into(),
+        fleet: options.fleet.clone(),
     };
     let Link { frames, mut events, task } = connect(hello);
     let mut frames = Some(frames);

@@ -1,4 +1,4 @@
-// stillmap dashboard: sessions table, 2D semantic map, 3D point cloud.
+// stillmap dashboard: sessions table, fleets, 2D semantic map, 3D point cloud.
 // Live data comes from the server's event stream (/api/v1/events, Server-Sent
 // Events): a sessions snapshot twice a second and every new pose. Map tiles and
 // the cloud are fetched again only when a session's map version changes.
@@ -186,11 +186,152 @@ function update3dTrajectory() {
   view3d.setTrajectory((state.trajectories.get(id) || []).map((p) => (q ? rotate(q, p.t) : p.t)));
 }
 
+// ---------------------------------------------------------------- fleets
+// Every merged robot of each fleet on one top-down view: its trajectory moved by
+// its fleet_from_session, then into the anchor's map frame (z up); unmerged robots
+// listed apart. The fleets are polled; the poses come from the event stream.
+const FLEET_REFRESH_MS = 2000;
+const ROBOT_COLOURS = ["#e6194b", "#3cb44b", "#4363d8", "#f58231", "#911eb4", "#42d4f4", "#f032e6", "#bfef45"];
+state.fleets = [];
+window.__stillmap.fleets = 0;
+window.__stillmap.fleetRobots = 0;
+window.__stillmap.fleetPoints = 0;
+window.__stillmap.fleetTilesDrawn = 0;
+// The fleet map (its tiles) under the trails: refreshed at most this often, since
+// each change of a member's map rebuilds the fleet map on the server.
+const FLEET_TILES_REFRESH_MS = 10000;
+state.fleetTiles = new Map(); // fleet -> { bounds, loadedAt, images: Map(url -> Image) }
+
+function escapeHtml(text) {
+  return String(text).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+}
+
+async function refreshFleets() {
+  try {
+    const list = await getJson("/api/v1/fleets");
+    state.fleets = await Promise.all(list.fleets.map((f) => getJson(`/api/v1/fleets/${encodeURIComponent(f.fleet)}`)));
+    for (const f of state.fleets) {
+      for (const m of f.sessions) if (m.merged) await loadTrajectory(m.session_id);
+      const anchor = f.sessions.find((m) => m.fleet_from_session?.anchor);
+      if (anchor && !state.mapInfo.has(anchor.session_id)) {
+        try { state.mapInfo.set(anchor.session_id, await getJson(`/api/v1/maps/${encodeURIComponent(anchor.session_id)}`)); } catch (e) { /* no map: world frame */ }
+      }
+      await refreshFleetTiles(f);
+    }
+    renderFleets();
+  } catch (e) {
+    console.warn(e);
+  }
+  setTimeout(refreshFleets, FLEET_REFRESH_MS);
+}
+
+async function refreshFleetTiles(f) {
+  const prev = state.fleetTiles.get(f.fleet);
+  if (prev && Date.now() - prev.loadedAt < FLEET_TILES_REFRESH_MS) return;
+  try {
+    const legend = await getJson(f.tiles.legend);
+    state.fleetTiles.set(f.fleet, { bounds: legend.bounds_xy, loadedAt: Date.now(), images: new Map() });
+  } catch (e) { /* no fleet map yet */ }
+}
+
+// The fleet's tiles under the view: the coarsest zoom whose pixels are no larger
+// than the canvas's, every tile the view covers.
+function drawFleetTiles(ctx, f, anchorInfo, x0, y0, x1, y1, scale, px) {
+  const tiles = state.fleetTiles.get(f.fleet);
+  const zooms = anchorInfo?.tiles?.zooms;
+  if (!tiles || !zooms) return 0;
+  const fine = zooms.filter((z) => z.metres_per_pixel <= 1 / scale);
+  const zoom = fine.length ? fine[0] : zooms.at(-1);
+  const span = 256 * zoom.metres_per_pixel;
+  let drawn = 0;
+  for (let tx = Math.floor(x0 / span); tx <= Math.floor(x1 / span); tx++) {
+    for (let ty = Math.floor(-y1 / span); ty <= Math.floor(-y0 / span); ty++) {
+      const url = f.tiles.url.replace("{z}", zoom.zoom).replace("{x}", tx).replace("{y}", ty) + `?v=${tiles.loadedAt}`;
+      let img = tiles.images.get(url);
+      if (!img) {
+        img = new Image();
+        img.onload = scheduleDraw;
+        img.src = url;
+        tiles.images.set(url, img);
+      }
+      if (!img.complete || !img.naturalWidth) continue;
+      const [u, v] = px([tx * span, -ty * span]);
+      ctx.drawImage(img, u, v, span * scale, span * scale);
+      drawn++;
+    }
+  }
+  return drawn;
+}
+
+function renderFleets() {
+  const el = $("#fleets");
+  if (!state.fleets.length) return;
+  el.className = "fleets";
+  el.innerHTML = state.fleets.map((f) => {
+    const merged = f.sessions.filter((m) => m.merged);
+    const unmerged = f.sessions.filter((m) => !m.merged);
+    const robots = merged.map((m, i) => `<span><span class="swatch" style="background:${ROBOT_COLOURS[i % ROBOT_COLOURS.length]}"></span>${escapeHtml(m.robot_id)}${m.fleet_from_session?.anchor ? ' <span class="muted">(anchor)</span>' : ""}</span>`).join("");
+    const apart = unmerged.length ? `<div class="muted">not merged yet: ${unmerged.map((m) => escapeHtml(m.robot_id)).join(", ")}</div>` : "";
+    return `<div class="fleet"><h3>${escapeHtml(f.fleet)} <span class="muted">${merged.length} merged · ${f.indexed_keyframes} keyframes indexed</span></h3>
+      <canvas data-fleet="${escapeHtml(f.fleet)}" width="480" height="320"></canvas><div class="robots">${robots}</div>${apart}</div>`;
+  }).join("");
+  drawFleets();
+}
+
+function drawFleets() {
+  let robots = 0, points = 0, tilesDrawn = 0;
+  for (const f of state.fleets) {
+    const canvas = [...document.querySelectorAll("#fleets canvas")].find((c) => c.dataset.fleet === f.fleet);
+    if (!canvas) continue;
+    const anchor = f.sessions.find((m) => m.fleet_from_session?.anchor);
+    const up = anchor ? state.mapInfo.get(anchor.session_id)?.map_from_world_xyzw : null;
+    const tracks = f.sessions.filter((m) => m.merged).map((m, i) => {
+      const t = m.fleet_from_session;
+      const poses = (state.trajectories.get(m.session_id) || []).map((p) => {
+        const inFleet = rotate(t.rotation_xyzw, p.t).map((v, k) => v + t.translation[k]);
+        return up ? rotate(up, inFleet) : inFleet;
+      });
+      return { colour: ROBOT_COLOURS[i % ROBOT_COLOURS.length], poses };
+    });
+    const all = tracks.flatMap((t) => t.poses);
+    const ctx = canvas.getContext("2d");
+    ctx.fillStyle = "#0c1014";
+    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    if (!all.length) continue;
+    const xs = all.map((p) => p[0]), ys = all.map((p) => p[1]);
+    const b = state.fleetTiles.get(f.fleet)?.bounds;
+    if (b) { xs.push(b[0], b[2]); ys.push(b[1], b[3]); }
+    const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+    const scale = Math.min((canvas.width - 40) / Math.max(x1 - x0, 0.2), (canvas.height - 40) / Math.max(y1 - y0, 0.2));
+    const px = (p) => [20 + (p[0] - x0) * scale, canvas.height - 20 - (p[1] - y0) * scale];
+    tilesDrawn += drawFleetTiles(ctx, f, anchor && state.mapInfo.get(anchor.session_id), x0, y0, x1, y1, scale, px);
+    for (const t of tracks) {
+      if (!t.poses.length) continue;
+      robots++;
+      points += t.poses.length;
+      ctx.strokeStyle = t.colour;
+      ctx.lineWidth = 1.5;
+      ctx.beginPath();
+      t.poses.forEach((p, k) => { const [u, v] = px(p); if (k) ctx.lineTo(u, v); else ctx.moveTo(u, v); });
+      ctx.stroke();
+      const [u, v] = px(t.poses.at(-1));
+      ctx.fillStyle = t.colour;
+      ctx.beginPath();
+      ctx.arc(u, v, 5, 0, 2 * Math.PI);
+      ctx.fill();
+    }
+  }
+  window.__stillmap.fleets = state.fleets.length;
+  window.__stillmap.fleetRobots = robots;
+  window.__stillmap.fleetPoints = points;
+  window.__stillmap.fleetTilesDrawn = tilesDrawn;
+}
+
 let drawPending = false;
 function scheduleDraw() {
   if (drawPending) return;
   drawPending = true;
-  requestAnimationFrame(() => { drawPending = false; drawMap(); update3dTrajectory(); });
+  requestAnimationFrame(() => { drawPending = false; drawMap(); update3dTrajectory(); drawFleets(); });
 }
 
 map2d.onChange = scheduleDraw;
@@ -232,9 +373,10 @@ function connect() {
     const list = state.trajectories.get(p.session_id) || [];
     list.push({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw });
     state.trajectories.set(p.session_id, list);
-    if (p.session_id === state.selected) scheduleDraw();
+    if (p.session_id === state.selected || state.fleets.length) scheduleDraw();
   });
 }
 
 connect();
 renderTable();
+refreshFleets();

@@ -499,6 +499,25 @@ impl VoxelMap {
         Self { config: self.config.clone(), blocks: all, version: self.version, keyframes_fused: self.keyframes_fused }
     }
 
+    /// Adds `other`'s surfaces, moved by `self_from_other` (another robot's map
+    /// in this map's world): each occupied voxel of `other` lands in the cell its
+    /// centre falls in here, and takes it when the cell holds no surface yet or a
+    /// less observed one (fewer hits). Carving is not carried over: a fleet map of
+    /// merged maps, not one fused from every keyframe.
+    pub fn merge_map(&mut self, other: &VoxelMap, self_from_other: &Isometry3<f64>) {
+        let res = self.config.voxel_size_m;
+        let threshold = self.config.occupied_log_odds;
+        for (_, centre, v) in other.occupied() {
+            let key = voxel_key(&(self_from_other * centre), res);
+            let (b, i) = block_of(key);
+            let here = &mut self.blocks.entry(b).or_default().voxels[i];
+            if !here.is_occupied(threshold) || here.hits < v.hits {
+                *here = *v;
+            }
+        }
+        self.version += 1;
+    }
+
     /// Continues the change stamps of a restored map.
     pub fn set_change_stamp(&mut self, stamp: u64) {
         self.keyframes_fused = self.keyframes_fused.max(stamp);
@@ -520,6 +539,37 @@ impl VoxelMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A map with one surface voxel at each key, seen `hits` times.
+    fn surfaces(keys: &[(VoxelKey, u8)]) -> VoxelMap {
+        let mut map = VoxelMap::new(MappingConfig::default()).unwrap();
+        for &(key, hits) in keys {
+            let (b, i) = block_of(key);
+            map.blocks.entry(b).or_default().voxels[i] = Voxel { log_odds: 2.0, hits, color: [hits, 0, 0], ..Voxel::default() };
+        }
+        map
+    }
+
+    /// Another robot's map, one voxel over in its own world: moved back, its
+    /// surfaces land on ours, the better observed voxel keeps a shared cell, and
+    /// the others are added.
+    #[test]
+    fn a_merged_map_lands_on_ours_and_keeps_the_better_observed_voxel() {
+        let mut ours = surfaces(&[([0, 0, 0], 5), ([1, 0, 0], 1)]);
+        let theirs = surfaces(&[([1, 0, 0], 1), ([2, 0, 0], 9), ([3, 0, 0], 2)]);
+        let res = ours.voxel_size();
+        let ours_from_theirs = Isometry3::translation(-res, 0.0, 0.0);
+        let version = ours.version();
+        ours.merge_map(&theirs, &ours_from_theirs);
+        let merged: Vec<(VoxelKey, u8)> = {
+            let mut v: Vec<_> = ours.occupied().map(|(k, _, v)| (k, v.hits)).collect();
+            v.sort_unstable();
+            v
+        };
+        // Theirs [1] → [0] (5 hits here stay), [2] → [1] (9 beats 1), [3] → [2] (new).
+        assert_eq!(merged, [([0, 0, 0], 5), ([1, 0, 0], 9), ([2, 0, 0], 2)]);
+        assert!(ours.version() > version);
+    }
     use nalgebra::{Translation3, UnitQuaternion};
 
     fn camera() -> Camera {

@@ -56,14 +56,20 @@ pub const MAX_ROBOT_ID_LEN: usize = 64;
 
 /// Checks a robot id: 1–64 characters of `[A-Za-z0-9_-]` (it becomes a Zenoh key segment).
 pub fn validate_robot_id(robot_id: &str) -> Result<(), String> {
-    if robot_id.is_empty() || robot_id.len() > MAX_ROBOT_ID_LEN {
-        return Err(format!(
-            "robot_id must be 1-{MAX_ROBOT_ID_LEN} characters, got {}",
-            robot_id.len()
-        ));
+    validate_name("robot_id", robot_id)
+}
+
+/// A fleet name follows the robot id's rules (it is a key segment too).
+pub fn validate_fleet(fleet: &str) -> Result<(), String> {
+    validate_name("fleet", fleet)
+}
+
+fn validate_name(what: &str, name: &str) -> Result<(), String> {
+    if name.is_empty() || name.len() > MAX_ROBOT_ID_LEN {
+        return Err(format!("{what} must be 1-{MAX_ROBOT_ID_LEN} characters, got {}", name.len()));
     }
-    if let Some(c) = robot_id.chars().find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-')) {
-        return Err(format!("robot_id {robot_id:?} contains {c:?}; allowed are A-Z a-z 0-9 _ -"));
+    if let Some(c) = name.chars().find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-')) {
+        return Err(format!("{what} {name:?} contains {c:?}; allowed are A-Z a-z 0-9 _ -"));
     }
     Ok(())
 }

@@ -25,12 +25,68 @@ pub struct ServerConfig {
     pub mapping: stillmap_mapping::MappingConfig,
     pub store: StoreConfig,
     pub auth: AuthConfig,
+    pub fleet: FleetConfig,
+}
+
+/// Fleets: one world frame per fleet; sessions join it by place recognition.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FleetConfig {
+    /// Place recognition and merging (off: every session keeps only its own world).
+    pub enabled: bool,
+    /// The fleet of a robot whose hello names none.
+    pub default_fleet: String,
+    /// A vocabulary file (`make vocabulary` writes one); empty: the one built in.
+    pub vocabulary_path: String,
+    /// Stored keyframes verified per looked-up keyframe (the best place-recognition scores).
+    pub candidates: usize,
+    /// Keyframes waiting for place recognition; a keyframe finding it full is left out (logged).
+    pub queue: usize,
+    /// Keyframes indexed per fleet (about 60 KB each); the oldest are forgotten first.
+    pub max_places: usize,
+    /// An unmerged session's latest keyframes kept in the index (looked up again as
+    /// merged sessions' keyframes arrive).
+    pub pending_keyframes: usize,
+    /// Verified keyframes of a session that must agree on its `fleet_from_session` to merge it …
+    pub consistent_matches: usize,
+    /// … within this distance (metres) and angle (degrees) of each other.
+    pub agreement_m: f64,
+    pub agreement_deg: f64,
+    /// A merge is refined by later keyframes of either side (their proposals join
+    /// the mean) until this many proposals have been heard.
+    pub refine_support: usize,
+    /// Inliers a candidate needs after PnP-RANSAC and pose optimisation.
+    pub min_inliers: usize,
+}
+
+impl Default for FleetConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            default_fleet: "default".into(),
+            vocabulary_path: String::new(),
+            candidates: 3,
+            queue: 256,
+            max_places: 5000,
+            pending_keyframes: 64,
+            consistent_matches: 3,
+            agreement_m: 0.05,
+            agreement_deg: 2.0,
+            refine_support: 32,
+            min_inliers: 60,
+        }
+    }
 }
 
 /// Largest `session.pipeline_threads` and `session.map_threads`.
 const MAX_POOL_THREADS: usize = 1024;
 /// Largest `session.map_queue` (each job holds a keyframe's images, about 1.5 MB).
 const MAX_MAP_QUEUE: usize = 256;
+
+/// Largest `fleet.candidates` (each costs a verification, about 3 ms).
+const MAX_FLEET_CANDIDATES: usize = 32;
+/// Largest `fleet.queue` and `fleet.pending_keyframes` (a keyframe holds about 50 KB).
+const MAX_FLEET_QUEUE: usize = 4096;
 
 /// Largest `zenoh.idle_disconnect_s`: a day.
 const MAX_IDLE_DISCONNECT_S: f64 = 86_400.0;
@@ -249,6 +305,20 @@ impl ServerConfig {
         if let Some(i) = self.auth.tokens.iter().position(|t| t.trim() != t) {
             return bad(format!("auth.tokens[{i}] has leading or trailing whitespace"));
         }
+        let f = &self.fleet;
+        stillmap_proto::validate_fleet(&f.default_fleet).map_err(|e| ServerError::Config(format!("fleet.default_fleet: {e}")))?;
+        if !(1..=MAX_FLEET_CANDIDATES).contains(&f.candidates) || !(1..=MAX_FLEET_QUEUE).contains(&f.queue) || f.max_places == 0 {
+            return bad(format!("fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE} and fleet.max_places at least 1"));
+        }
+        if !(1..=MAX_FLEET_QUEUE).contains(&f.pending_keyframes) || !(1..=16).contains(&f.consistent_matches) || f.min_inliers < 6 {
+            return bad(format!("fleet.pending_keyframes must be in 1..={MAX_FLEET_QUEUE}, fleet.consistent_matches in 1..=16 and fleet.min_inliers at least 6"));
+        }
+        if !(f.consistent_matches..=64).contains(&f.refine_support) {
+            return bad(format!("fleet.refine_support must be in fleet.consistent_matches..=64, got {}", f.refine_support));
+        }
+        if !(f.agreement_m > 0.0 && f.agreement_m <= 1.0 && f.agreement_deg > 0.0 && f.agreement_deg <= 45.0) {
+            return bad(format!("fleet.agreement_m must be in (0, 1] and fleet.agreement_deg in (0, 45], got {} and {}", f.agreement_m, f.agreement_deg));
+        }
         if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s <= MAX_IDLE_DISCONNECT_S) {
             return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.zenoh.idle_disconnect_s));
         }
@@ -292,6 +362,9 @@ mod tests {
         assert_eq!(err("[session]\npipeline_threads = 5000\n"), "invalid configuration: session.pipeline_threads must be at most 1024, got 5000");
         assert_eq!(err("[session]\nopencv_threads = 2000\n"), "invalid configuration: session.opencv_threads must be at most 1024, got 2000");
         assert_eq!(err("[session]\nmap_queue = 0\n"), "invalid configuration: session.map_queue must be in 1..=256, got 0");
+        assert_eq!(err("[fleet]\ndefault_fleet = \"a b\"\n"), "invalid configuration: fleet.default_fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -");
+        assert!(err("[fleet]\ncandidates = 0\n").contains("fleet.candidates must be in 1..=32"));
+        assert!(err("[fleet]\nagreement_m = -1.0\n").contains("fleet.agreement_m must be in (0, 1]"));
         assert_eq!(
             err("[perception.fusion]\nretract_keyframes = 1000\n"),
             "invalid configuration: perception.fusion.retract_keyframes must be at most 64, got 1000"

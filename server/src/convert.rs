@@ -35,6 +35,19 @@ pub fn pose_of(world_from_camera: &Isometry3<f64>) -> pb::Pose {
     pb::Pose::from_parts([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
 }
 
+/// A protobuf pose as an isometry (missing parts: identity).
+pub fn isometry_of(pose: &pb::Pose) -> Isometry3<f64> {
+    let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
+    let rotation = nalgebra::UnitQuaternion::try_new(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z), 1e-12).unwrap_or_else(nalgebra::UnitQuaternion::identity);
+    Isometry3::from_parts(nalgebra::Translation3::new(t.x, t.y, t.z), rotation)
+}
+
+/// `p` with its pose moved by `target_from_world` (a session's pose in its fleet's frame, say).
+pub fn pose_in(p: &pb::PoseStamped, target_from_world: &Isometry3<f64>) -> pb::PoseStamped {
+    let world_from_camera = p.world_from_camera.map(|w| pose_of(&(target_from_world * isometry_of(&w))));
+    pb::PoseStamped { world_from_camera, ..*p }
+}
+
 pub fn state_of(s: stillmap_tracking::TrackingState) -> TrackingState {
     match s {
         stillmap_tracking::TrackingState::Initializing => TrackingState::Initializing,

@@ -9,6 +9,7 @@ pub mod api;
 pub mod auth;
 pub mod config;
 pub mod convert;
+pub mod fleet;
 pub mod ingest;
 pub mod map;
 pub mod metrics;
@@ -57,6 +58,8 @@ pub enum ServerError {
     Store(#[from] store::StoreError),
     #[error("cannot start the worker pools: {0}")]
     Threads(std::io::Error),
+    #[error("{0}")]
+    Fleet(#[from] fleet::FleetError),
 }
 
 /// Where the server ended up listening (ports resolved when 0 was asked for).
@@ -113,7 +116,14 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         Some(s) => s.load_all()?,
         None => Vec::new(),
     };
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools));
+    if config.fleet.enabled && !config.mapping.enabled {
+        tracing::warn!("fleet.enabled needs mapping.enabled: place recognition looks at the keyframes the map lane commits, so no session will merge");
+    }
+    let fleets = if config.fleet.enabled { Some(fleet::FleetService::start(&config.fleet, store.clone())?) } else { None };
+    if let Some(f) = &fleets {
+        f.restore(&stored);
+    }
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets));
     let tokens = Arc::new(auth::Tokens::new(&config.auth.tokens));
     if !tokens.required() {
         tracing::info!("auth.tokens is empty: every robot's hello is accepted");

@@ -88,6 +88,8 @@ pub struct TrackState {
 pub struct Session {
     pub id: String,
     pub robot_id: String,
+    /// The fleet the hello named (or the default one).
+    pub fleet_name: String,
     pub transport: Transport,
     pub camera: pb::CameraInfo,
     pub started_unix_ns: u64,
@@ -109,6 +111,8 @@ pub struct Session {
     map: Option<SharedMap>,
     /// Restored from the store after a restart: queries only, no worker.
     archived: bool,
+    /// Place recognition, fed each committed keyframe (`None`: fleets off).
+    fleets: Option<Arc<crate::fleet::FleetService>>,
     /// The pools this session's work runs on (`None`: archived).
     pools: Option<Pools>,
     /// The pipeline state, built on the first frame (the pool runs one slice of a
@@ -438,7 +442,17 @@ impl Session {
         if let Some(spent) = fuse::apply(map, &job) {
             self.metrics.keyframe_fused();
             self.metrics.stage(stage::MAP_FUSE, micros(spent));
-            self.persist(map, job.keyframe.and_then(|k| k.record));
+            let record = job.keyframe.and_then(|k| k.record);
+            if let (Some(fleets), Some(keyframe)) = (&self.fleets, &record) {
+                fleets.submit(crate::fleet::FleetJob {
+                    fleet: self.fleet_name.clone(),
+                    session_id: self.id.clone(),
+                    robot_id: self.robot_id.clone(),
+                    camera: crate::convert::camera_of(&self.camera),
+                    keyframe: keyframe.clone(),
+                });
+            }
+            self.persist(map, record);
         }
     }
 
@@ -537,6 +551,10 @@ pub struct Registry {
     store: Option<Arc<Store>>,
     metrics: Arc<Metrics>,
     fleet: broadcast::Sender<FleetPose>,
+    /// Fleets and place recognition (`None`: `fleet.enabled` is off).
+    fleets: Option<Arc<crate::fleet::FleetService>>,
+    /// The fleet maps' top-down views (tiles and legends), kept between requests.
+    fleet_tops: crate::api::map_queries::FleetTops,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
     /// The worker pools every live session's work runs on.
     pools: Pools,
@@ -552,6 +570,7 @@ pub struct Registry {
 struct SessionParts {
     id: String,
     robot_id: String,
+    fleet_name: String,
     transport: Transport,
     camera: pb::CameraInfo,
     started_unix_ns: u64,
@@ -581,7 +600,22 @@ impl Registry {
         pools: Pools,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, pools, sessions: RwLock::default(), next_id: AtomicU64::new(1), admission: Mutex::new(()), epoch }
+        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, fleets: None, fleet_tops: Default::default(), pools, sessions: RwLock::default(), next_id: AtomicU64::new(1), admission: Mutex::new(()), epoch }
+    }
+
+    /// The registry with fleets and place recognition (before any session opens).
+    pub fn with_fleets(self, fleets: Option<Arc<crate::fleet::FleetService>>) -> Self {
+        Self { fleets, ..self }
+    }
+
+    /// Fleets and place recognition (`None`: off).
+    pub fn fleets(&self) -> Option<&Arc<crate::fleet::FleetService>> {
+        self.fleets.as_ref()
+    }
+
+    /// The fleet maps' top-down views.
+    pub fn fleet_tops(&self) -> &crate::api::map_queries::FleetTops {
+        &self.fleet_tops
     }
 
     pub fn metrics(&self) -> &Arc<Metrics> {
@@ -624,6 +658,13 @@ impl Registry {
             return Ok(Opened { session, resumed: true });
         }
         let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello::Invalid)?.clone();
+        if !hello.fleet.is_empty() {
+            stillmap_proto::validate_fleet(&hello.fleet).map_err(BadHello::Invalid)?;
+        }
+        let fleet_name = match &self.fleets {
+            Some(f) => f.fleet_for(&hello.fleet),
+            None => hello.fleet.clone(),
+        };
         self.check_capacity()?;
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
@@ -642,6 +683,7 @@ impl Registry {
                 up_source: None,
                 keyframes: 0,
                 map_stamp: 0,
+                fleet: fleet_name.clone(),
             };
             let map = SessionMap::new(&camera, self.mapping.clone(), names)
                 .map_err(|e| tracing::error!(session = %id, "mapping unavailable for this session: {e}"))
@@ -656,9 +698,13 @@ impl Registry {
         } else {
             None
         };
+        if let Some(f) = &self.fleets {
+            f.join(&fleet_name, &id, &hello.robot_id);
+        }
         let session = Arc::new_cyclic(|me| self.session(me, SessionParts {
             id: id.clone(),
             robot_id: hello.robot_id.clone(),
+            fleet_name,
             transport,
             camera,
             started_unix_ns,
@@ -724,9 +770,14 @@ impl Registry {
             let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
             let queue = FrameQueue::new(1, 1, self.config.overload_policy);
             queue.close();
+            let fleet_name = match &self.fleets {
+                Some(f) => f.fleet_for(&s.meta.fleet),
+                None => s.meta.fleet.clone(),
+            };
             let session = Arc::new_cyclic(|me| self.session(me, SessionParts {
                 id: id.clone(),
                 robot_id: s.meta.robot_id.clone(),
+                fleet_name,
                 transport,
                 camera: s.camera,
                 started_unix_ns: s.meta.started_unix_ns,
@@ -781,6 +832,8 @@ impl Registry {
             me: me.clone(),
             id: p.id,
             robot_id: p.robot_id,
+            fleet_name: p.fleet_name,
+            fleets: if p.archived { None } else { self.fleets.clone() },
             transport: p.transport,
             camera: p.camera,
             started_unix_ns: p.started_unix_ns,
@@ -812,6 +865,10 @@ impl Registry {
         }
         if let Some((_, Some(service))) = &self.perception {
             service.close();
+        }
+        // After the map pool: its last keyframes reach place recognition first.
+        if let Some(fleets) = &self.fleets {
+            fleets.close();
         }
     }
 

@@ -27,6 +27,8 @@ const CAMERAS: TableDefinition<&str, &[u8]> = TableDefinition::new("cameras");
 const POSES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("poses");
 const KEYFRAMES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("keyframes");
 const BLOCKS: TableDefinition<(&str, i32, i32, i32), &[u8]> = TableDefinition::new("map_blocks");
+/// Session id → its frame in its fleet (JSON [`FleetFrame`]), once anchored or merged.
+const FLEET_FRAMES: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_frames");
 
 /// zstd level for map blocks: most voxels are empty, level 1 already gives ~10×.
 const BLOCK_ZSTD_LEVEL: i32 = 1;
@@ -55,6 +57,31 @@ pub struct SessionMeta {
     pub keyframes: u64,
     /// The map's keyframe stamp at the last commit.
     pub map_stamp: u64,
+    /// The fleet the robot's hello named (empty in stores older than fleets: the default fleet).
+    #[serde(default)]
+    pub fleet: String,
+}
+
+/// A session's frame in its fleet: the anchor's is the identity; a merged
+/// session's comes from place recognition.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FleetFrame {
+    pub fleet: String,
+    /// tx, ty, tz, qx, qy, qz, qw of `fleet_from_session`.
+    pub fleet_from_session: [f64; 7],
+    /// The session whose frame is the fleet's.
+    pub anchor: bool,
+    /// Agreeing verified keyframes behind the merge, and the chosen one's inliers (0 for the anchor).
+    pub support: usize,
+    pub inliers: usize,
+    /// When the frame was last set (a merge or a refinement of it).
+    pub merged_unix_ns: u64,
+    /// When the session was first merged, and how far into its keyframes (capture
+    /// time since its first keyframe) that was (0 for the anchor).
+    #[serde(default)]
+    pub first_merged_unix_ns: u64,
+    #[serde(default)]
+    pub merged_after_ns: u64,
 }
 
 /// A keyframe as stored: pose, keypoints and descriptors (for relocalization
@@ -159,6 +186,7 @@ impl Store {
             tx.open_table(POSES).map_err(|e| err(&e))?;
             tx.open_table(KEYFRAMES).map_err(|e| err(&e))?;
             tx.open_table(BLOCKS).map_err(|e| err(&e))?;
+            tx.open_table(FLEET_FRAMES).map_err(|e| err(&e))?;
         }
         tx.commit().map_err(|e| err(&e))?;
         Ok(Self { db, path: path.to_path_buf() })
@@ -181,6 +209,29 @@ impl Store {
             tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
         }
         tx.commit().map_err(|e| self.err(e))
+    }
+
+    /// Records a session's frame in its fleet (its anchoring or its merge).
+    pub fn put_fleet_frame(&self, id: &str, frame: &FleetFrame) -> Result<(), StoreError> {
+        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        {
+            let json = serde_json::to_vec(frame).map_err(|e| self.err(e))?;
+            tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
+        }
+        tx.commit().map_err(|e| self.err(e))
+    }
+
+    /// Every session's fleet frame.
+    pub fn fleet_frames(&self) -> Result<std::collections::HashMap<String, FleetFrame>, StoreError> {
+        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let table = tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?;
+        let mut out = std::collections::HashMap::new();
+        for entry in table.iter().map_err(|e| self.err(e))? {
+            let (k, v) = entry.map_err(|e| self.err(e))?;
+            let frame: FleetFrame = serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("fleet frame of {}: {e}", k.value())))?;
+            out.insert(k.value().to_string(), frame);
+        }
+        Ok(out)
     }
 
     /// One keyframe's worth of state, atomically.
@@ -400,6 +451,7 @@ mod tests {
             up_source: Some("config".into()),
             keyframes: 1,
             map_stamp: 1,
+            fleet: "lab".into(),
         };
         let camera = pb::CameraInfo {
             width: 640,
@@ -436,6 +488,9 @@ mod tests {
         assert_eq!(s.blocks[0], ([1, -2, 3], block.clone()));
         assert_eq!(store.block("s1", [9, 9, 9]).unwrap(), Some(block));
         assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
+        let frame = FleetFrame { fleet: "lab".into(), fleet_from_session: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0], anchor: false, support: 3, inliers: 120, merged_unix_ns: 7, first_merged_unix_ns: 5, merged_after_ns: 200_000_000 };
+        store.put_fleet_frame("s1", &frame).unwrap();
+        assert_eq!(store.fleet_frames().unwrap().get("s1"), Some(&frame));
         // The one-file export round-trips exactly, and bad files are named.
         let file = export(s).unwrap();
         let back = import_file(&file).unwrap();

@@ -77,11 +77,17 @@ try {
     return n;
   });
   if (drawn < 2000) fail(`only ${drawn} map pixels differ from the background`);
+  // The default fleet: its anchor (the first robot) drawn with its whole trajectory
+  // over the fleet map's tiles.
+  await page.waitForFunction(() => window.__stillmap.fleets >= 1 && window.__stillmap.fleetRobots >= 1 && window.__stillmap.fleetPoints >= 100 && window.__stillmap.fleetTilesDrawn >= 1, null, { timeout: 30000 });
+  const fleetText = await page.textContent("#fleets");
+  if (!fleetText.includes("default") || !fleetText.includes("(anchor)")) fail(`fleet view says ${JSON.stringify(fleetText)}`);
   const legend = await page.$$eval("#legend label", (ls) => ls.map((l) => l.textContent.trim()));
   if (!legend.some((l) => l.startsWith("unlabelled"))) fail(`legend ${JSON.stringify(legend)}`);
   await page.screenshot({ path: screenshot, fullPage: true });
   if (errors.length) fail(`page errors: ${errors.join("; ")}`);
-  console.log(JSON.stringify({ ok: true, drawn, legend: legend.length, sessions: [a.session_id, b.session_id], screenshot }));
+  const fleet = await page.evaluate(() => ({ robots: window.__stillmap.fleetRobots, points: window.__stillmap.fleetPoints, tiles: window.__stillmap.fleetTilesDrawn }));
+  console.log(JSON.stringify({ ok: true, drawn, legend: legend.length, fleet, sessions: [a.session_id, b.session_id], screenshot }));
 } finally {
   await browser.close();
 }

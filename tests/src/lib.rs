@@ -238,3 +238,23 @@ pub async fn eventually(timeout: Duration, what: &str, mut f: impl AsyncFnMut() 
 pub fn model_path() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/models/yolov8n-seg_fp32_640.onnx")
 }
+
+/// GET `path` from `server`'s HTTP port, with an `If-None-Match` when given.
+pub async fn http_get(server: &Server, path: &str, if_none_match: Option<&str>) -> reqwest::Response {
+    let mut r = reqwest::Client::new().get(format!("http://{}{path}", server.http));
+    if let Some(tag) = if_none_match {
+        r = r.header("If-None-Match", tag);
+    }
+    r.send().await.expect("HTTP GET")
+}
+
+/// An RGBA PNG (a map tile): width, height and pixels.
+pub fn decode_png(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
+    let decoder = png::Decoder::new(std::io::Cursor::new(bytes.to_vec()));
+    let mut reader = decoder.read_info().expect("valid PNG");
+    let mut buf = vec![0; reader.output_buffer_size().expect("size")];
+    let info = reader.next_frame(&mut buf).expect("PNG frame");
+    assert_eq!(info.color_type, png::ColorType::Rgba);
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}

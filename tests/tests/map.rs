@@ -2,27 +2,9 @@
 //! clip: tiles, legend, occupancy grid, PLY, objects over HTTP and gRPC, and the
 //! errors for bad coordinates and unknown sessions.
 
-use stillmap_e2e::{Server, run_client, tum_dir};
+use stillmap_e2e::{Server, decode_png, http_get as get, run_client, tum_dir};
 use stillmap_proto::pb;
 use stillmap_proto::pb::query_client::QueryClient;
-
-async fn get(server: &Server, path: &str, if_none_match: Option<&str>) -> reqwest::Response {
-    let mut r = reqwest::Client::new().get(format!("http://{}{path}", server.http));
-    if let Some(tag) = if_none_match {
-        r = r.header("If-None-Match", tag);
-    }
-    r.send().await.expect("HTTP GET")
-}
-
-fn decode_png(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
-    let decoder = png::Decoder::new(std::io::Cursor::new(bytes.to_vec()));
-    let mut reader = decoder.read_info().expect("valid PNG");
-    let mut buf = vec![0; reader.output_buffer_size().expect("size")];
-    let info = reader.next_frame(&mut buf).expect("PNG frame");
-    assert_eq!(info.color_type, png::ColorType::Rgba);
-    buf.truncate(info.buffer_size());
-    (info.width, info.height, buf)
-}
 
 #[tokio::test(flavor = "multi_thread")]
 async fn the_streamed_clip_is_mapped_and_served() {

@@ -46,9 +46,44 @@ pub fn align_origin(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>]) -
     Some(reference.first()? * estimate.first()?.inverse())
 }
 
+/// The rigid transform taking `estimate` onto `reference` with its rotation from
+/// the orientations (the chordal mean of `R_ref · R_estᵀ`) and its translation from
+/// the mean positions: for trajectories that barely translate (a camera turning on
+/// the spot), where a position-only fit leaves the rotation ill-conditioned.
+/// `None` when the lists are empty or differ in length.
+pub fn align_orientations(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>]) -> Option<Isometry3<f64>> {
+    if reference.len() != estimate.len() || reference.is_empty() {
+        return None;
+    }
+    let m: Matrix3<f64> = reference.iter().zip(estimate).map(|(r, e)| r.rotation.to_rotation_matrix().into_inner() * e.rotation.to_rotation_matrix().into_inner().transpose()).sum();
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let mut s = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        s[(2, 2)] = -1.0;
+    }
+    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(u * s * v_t));
+    let n = reference.len() as f64;
+    let t = reference.iter().zip(estimate).map(|(r, e)| r.translation.vector - rotation * e.translation.vector).sum::<Vector3<f64>>() / n;
+    Some(Isometry3::from_parts(Translation3::from(t), rotation))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Poses turning on the spot (2 mm of translation): the orientations give the
+    /// alignment back exactly.
+    #[test]
+    fn orientation_alignment_recovers_a_known_transform() {
+        let truth = known();
+        let estimate: Vec<Isometry3<f64>> = (0..30).map(|i| Isometry3::new(Vector3::new(0.002 * (i as f64).sin(), 0.0, 0.001), Vector3::new(0.1 * i as f64, 0.05, -0.02 * i as f64))).collect();
+        let reference: Vec<Isometry3<f64>> = estimate.iter().map(|e| truth * e).collect();
+        let found = align_orientations(&reference, &estimate).expect("aligned");
+        let error = truth.inverse() * found;
+        assert!(error.translation.vector.norm() < 1e-9 && error.rotation.angle() < 1e-9, "{error:?}");
+        assert!(align_orientations(&reference[..2], &estimate).is_none());
+    }
 
     fn known() -> Isometry3<f64> {
         Isometry3::new(Vector3::new(0.5, -1.25, 2.0), Vector3::new(0.3, -0.7, 1.1))

@@ -292,20 +292,25 @@ pub fn track_plain(frames: &[tum::TumFrame]) -> Vec<(u64, Isometry3<f64>)> {
 
 /// [`track_plain`] with the given tracking configuration.
 pub fn track_plain_with(frames: &[tum::TumFrame], config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
-    track_images(frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice())), config)
+    track_images(frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), None)), config)
 }
 
 /// The tracker alone (no mask) over composite frames: stamped poses.
 pub fn track_unmasked(frames: &[CompositeFrame]) -> Vec<(u64, Isometry3<f64>)> {
-    track_images(frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice())), TrackerConfig::default())
+    track_images(frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), None)), TrackerConfig::default())
 }
 
-/// Tracks (timestamp, colour, depth) frames without a mask; poses stamped at the ground truth's time base.
-fn track_images<'a>(frames: impl Iterator<Item = (u64, &'a [u8], &'a [u16])>, config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
+/// The tracker alone with the given per-frame masks (exact ones, for the headroom): stamped poses.
+pub fn track_masked(frames: &[CompositeFrame], masks: &[Vec<u8>]) -> Vec<(u64, Isometry3<f64>)> {
+    track_images(frames.iter().zip(masks).map(|(f, m)| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), Some(m.as_slice()))), TrackerConfig::default())
+}
+
+/// Tracks (timestamp, colour, depth, mask) frames; poses stamped at the ground truth's time base.
+fn track_images<'a>(frames: impl Iterator<Item = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>)>, config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
     let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
     frames
-        .filter_map(|(timestamp_ns, rgb, depth)| {
-            let out = tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: None }).ok()?;
+        .filter_map(|(timestamp_ns, rgb, depth, dynamic_mask)| {
+            let out = tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask }).ok()?;
             out.world_from_camera.map(|p| (tum::fr1_pose_time_ns(timestamp_ns), p))
         })
         .collect()

@@ -28,6 +28,14 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/sessions/{id}", get(get_session))
         .route("/api/v1/sessions/{id}/pose", get(get_pose))
         .route("/api/v1/sessions/{id}/trajectory", get(get_trajectory))
+        .route("/api/v1/fleets", get(list_fleets))
+        .route("/api/v1/fleets/{fleet}", get(get_fleet))
+        .route("/api/v1/fleets/{fleet}/cloud.ply", get(fleet_cloud))
+        .route("/api/v1/fleets/{fleet}/occupancy.pgm", get(fleet_occupancy_pgm))
+        .route("/api/v1/fleets/{fleet}/occupancy.yaml", get(fleet_occupancy_yaml))
+        .route("/api/v1/fleets/{fleet}/objects", get(fleet_objects))
+        .route("/api/v1/fleets/{fleet}/tiles/{z}/{x}/{y}", get(fleet_tile))
+        .route("/api/v1/fleets/{fleet}/legend", get(fleet_legend))
         .route("/api/v1/maps/{id}", get(map_info))
         .route("/api/v1/maps/{id}/tiles/{z}/{x}/{y}", get(map_tile))
         .route("/api/v1/maps/{id}/legend", get(map_legend))
@@ -75,6 +83,7 @@ fn session_json(s: &Session, detail: bool) -> Value {
         "transport": sum.transport,
         "connected": sum.connected,
         "archived": s.is_archived(),
+        "fleet": s.fleet_name,
         "tracking_state": enum_name(sum.tracking_state, |t: pb::TrackingState| t.as_str_name()),
         "started_unix_ns": sum.started_unix_ns,
         "counters": {
@@ -121,43 +130,81 @@ fn pose_json(p: &pb::PoseStamped) -> Value {
 /// What the pose endpoints say about the frame of reference.
 const WORLD_FRAME: &str = "world = the camera frame of the session's first tracked frame (x right, y down, z forward); poses are world_from_camera";
 
-async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+/// What the pose endpoints say about the fleet frame.
+const FLEET_FRAME: &str = "fleet = the world of the session that anchors the fleet; poses are fleet_from_camera";
+
+#[derive(serde::Deserialize)]
+struct FrameQuery {
+    /// `world` (the session's own, the default) or `fleet`.
+    frame: Option<String>,
+    format: Option<String>,
+}
+
+/// The transform taking this session's poses into the asked frame, and that frame's description.
+/// `fleet_from_world` (none for the session's own world) and the frame's description.
+type Frame = (Option<nalgebra::Isometry3<f64>>, &'static str);
+
+fn frame_of(registry: &Registry, s: &Session, frame: Option<&str>) -> Result<Frame, (StatusCode, String)> {
+    match frame {
+        None | Some("world") => Ok((None, WORLD_FRAME)),
+        Some("fleet") => {
+            let Some(fleets) = registry.fleets() else {
+                return Err((StatusCode::CONFLICT, "fleets are off on this server (fleet.enabled)".into()));
+            };
+            match fleets.fleet_from_session(&s.fleet_name, &s.id) {
+                Some(t) => Ok((Some(t), FLEET_FRAME)),
+                None => Err((StatusCode::CONFLICT, format!("session {} is not merged into fleet {:?} yet", s.id, s.fleet_name))),
+            }
+        }
+        Some(other) => Err((StatusCode::BAD_REQUEST, format!("unknown frame {other:?}; use world or fleet"))),
+    }
+}
+
+/// `p` expressed through `fleet_from_world` when given.
+fn in_frame(p: &pb::PoseStamped, fleet_from_world: Option<&nalgebra::Isometry3<f64>>) -> pb::PoseStamped {
+    fleet_from_world.map_or(*p, |t| crate::convert::pose_in(p, t))
+}
+
+async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<FrameQuery>) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    };
+    let (transform, frame) = match frame_of(&registry, &s, q.frame.as_deref()) {
+        Ok(f) => f,
+        Err((code, message)) => return error(code, message),
     };
     let track = s.tracking();
     Json(json!({
         "session_id": s.id,
         "tracking_state": track.state.as_str_name(),
-        "frame": WORLD_FRAME,
-        "pose": track.latest.as_ref().map(pose_json),
+        "frame": frame,
+        "pose": track.latest.as_ref().map(|p| pose_json(&in_frame(p, transform.as_ref()))),
     }))
     .into_response()
-}
-
-#[derive(serde::Deserialize)]
-struct TrajectoryQuery {
-    format: Option<String>,
 }
 
 async fn get_trajectory(
     State(registry): State<Arc<Registry>>,
     Path(id): Path<String>,
-    Query(q): Query<TrajectoryQuery>,
+    Query(q): Query<FrameQuery>,
 ) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     };
-    let poses = s.tracking().trajectory.clone();
+    let (transform, frame) = match frame_of(&registry, &s, q.frame.as_deref()) {
+        Ok(f) => f,
+        Err((code, message)) => return error(code, message),
+    };
+    let poses: Vec<pb::PoseStamped> = s.tracking().trajectory.iter().map(|p| in_frame(p, transform.as_ref())).collect();
     match q.format.as_deref() {
         None | Some("json") => Json(json!({
             "session_id": s.id,
-            "frame": WORLD_FRAME,
+            "frame": frame,
             "poses": poses.iter().map(pose_json).collect::<Vec<_>>(),
         }))
         .into_response(),
         Some("tum") => {
-            let mut text = String::from("# timestamp tx ty tz qx qy qz qw (stillmap world_from_camera; timestamp = pose_time_ns)\n");
+            let mut text = format!("# timestamp tx ty tz qx qy qz qw ({frame}; timestamp = pose_time_ns)\n");
             for p in &poses {
                 let pose = p.world_from_camera.unwrap_or_default();
                 let (t, r) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
@@ -178,6 +225,214 @@ async fn get_trajectory(
             ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response()
         }
         Some(other) => error(StatusCode::BAD_REQUEST, format!("unknown trajectory format {other:?}; use json or tum")),
+    }
+}
+
+fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
+    let anchor = f.members.iter().find(|m| m.frame.as_ref().is_some_and(|fr| fr.anchor)).map(|m| m.session_id.clone());
+    let merged = f.members.iter().filter(|m| m.frame.is_some()).count();
+    let mut v = json!({
+        "fleet": f.name,
+        "anchor_session_id": anchor,
+        "sessions": f.members.len(),
+        "merged": merged,
+        "indexed_keyframes": f.indexed_keyframes,
+    });
+    if detail {
+        v["sessions"] = f
+            .members
+            .iter()
+            .map(|m| {
+                let frame = m.frame.as_ref().map(|fr| {
+                    let p = &fr.fleet_from_session;
+                    json!({
+                        "translation": [p[0], p[1], p[2]],
+                        "rotation_xyzw": [p[3], p[4], p[5], p[6]],
+                        "anchor": fr.anchor,
+                        "support": fr.support,
+                        "inliers": fr.inliers,
+                        "merged_unix_ns": fr.merged_unix_ns,
+                        "first_merged_unix_ns": fr.first_merged_unix_ns,
+                        "merged_after_s": fr.merged_after_ns as f64 * 1e-9,
+                    })
+                });
+                json!({ "session_id": m.session_id, "robot_id": m.robot_id, "merged": m.frame.is_some(), "fleet_from_session": frame })
+            })
+            .collect::<Vec<_>>()
+            .into();
+        // Pose-graph corrections are not built yet: merges are the only changes.
+        v["last_correction"] = Value::Null;
+        v["tiles"] = json!({
+            "url": format!("/api/v1/fleets/{}/tiles/{{z}}/{{x}}/{{y}}.png", f.name),
+            "legend": format!("/api/v1/fleets/{}/legend", f.name),
+            "tile_px": stillmap_mapping::tiles::TILE_PX,
+            "min_zoom": 0,
+            "max_zoom": stillmap_mapping::tiles::MAX_ZOOM,
+            "scheme": "as a session map's tiles (see /api/v1/maps/{id}), in the fleet's map frame",
+        });
+    }
+    v
+}
+
+async fn list_fleets(State(registry): State<Arc<Registry>>) -> Response {
+    let Some(fleets) = registry.fleets() else {
+        return Json(json!({ "fleets": [] })).into_response();
+    };
+    Json(json!({
+        "fleets": fleets.list().iter().map(|f| fleet_json(f, false)).collect::<Vec<_>>(),
+        "place_recognition_backlog": fleets.backlog(),
+    }))
+    .into_response()
+}
+
+/// The fleet's merged sessions' maps, the anchor's first (the error is the finished
+/// HTTP response, as for `session_map`).
+#[allow(clippy::result_large_err)]
+fn fleet_parts(registry: &Registry, name: &str) -> Result<Vec<(crate::map::SharedMap, nalgebra::Isometry3<f64>)>, Response> {
+    let Some(fleet) = registry.fleets().and_then(|f| f.get(name)) else {
+        return Err(error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")));
+    };
+    let mut members: Vec<_> = fleet.members.iter().filter_map(|m| m.frame.as_ref().map(|fr| (fr.anchor, m.session_id.clone(), crate::fleet::isometry(&fr.fleet_from_session)))).collect();
+    members.sort_by_key(|(anchor, _, _)| !anchor);
+    let anchor_has_map = members.first().is_some_and(|(anchor, id, _)| *anchor && registry.get(id).is_some_and(|s| s.map().is_some()));
+    if !anchor_has_map {
+        return Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no anchor map yet")));
+    }
+    Ok(members.iter().filter_map(|(_, id, t)| Some((registry.get(id)?.map()?.clone(), *t))).collect())
+}
+
+/// Builds the fleet map off the runtime.
+async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap, usize), Response> {
+    let parts = fleet_parts(registry, name)?;
+    let n = parts.len();
+    match blocking(move || mapping::fleet_map(&parts)).await? {
+        Some(m) => Ok((m, n)),
+        None => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
+    }
+}
+
+/// The fleet's merged sessions' maps as one PLY in the fleet's map frame.
+async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+    let (fleet, n) = match fleet_map(&registry, &name).await {
+        Ok(f) => f,
+        Err(r) => return r,
+    };
+    let fleet_name = name.clone();
+    match blocking(move || mapping::fleet_ply(&fleet, &fleet_name, n)).await {
+        Ok(ply) => ([(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, format!("attachment; filename=\"fleet-{name}.ply\""))], ply).into_response(),
+        Err(r) => r,
+    }
+}
+
+async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
+    let (fleet, _) = fleet_map(registry, name).await?;
+    blocking(move || mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution)).await?.map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
+}
+
+async fn fleet_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(name): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+    match fleet_occupancy(&registry, &name, q).await {
+        Ok(grid) => ([(header::CONTENT_TYPE, "image/x-portable-graymap")], grid.to_pgm()).into_response(),
+        Err(r) => r,
+    }
+}
+
+async fn fleet_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(name): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+    match fleet_occupancy(&registry, &name, q).await {
+        Ok(grid) => ([(header::CONTENT_TYPE, "application/yaml")], grid.to_yaml("occupancy.pgm")).into_response(),
+        Err(r) => r,
+    }
+}
+
+async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+    let (fleet, _) = match fleet_map(&registry, &name).await {
+        Ok(f) => f,
+        Err(r) => return r,
+    };
+    match blocking(move || (stillmap_mapping::export::objects(&fleet.map, &fleet.map_from_fleet), fleet.class_names)).await {
+        Ok((objects, names)) => Json(json!({ "fleet": name, "frame": FLEET_MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response(),
+        Err(r) => r,
+    }
+}
+
+/// The fleet map's top-down view (cached per fleet until a part changes).
+async fn fleet_top(registry: Arc<Registry>, name: &str) -> Result<Arc<mapping::FleetTop>, Response> {
+    let parts = fleet_parts(&registry, name)?;
+    let fleet = name.to_string();
+    let registry2 = registry.clone();
+    blocking(move || registry2.fleet_tops().get(&fleet, &parts)).await?.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet")))
+}
+
+/// A tile of the fleet map: the session tiles' scheme, in the fleet's map frame.
+async fn fleet_tile(State(registry): State<Arc<Registry>>, Path((name, z, x, y)): Path<(String, String, String, String)>, headers: HeaderMap) -> Response {
+    let (z, x, y) = match tile_coordinates(&z, &x, &y) {
+        Ok(c) => c,
+        Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
+    };
+    let parts = match fleet_parts(&registry, &name) {
+        Ok(p) => p,
+        Err(r) => return r,
+    };
+    let tag_parts = parts.clone();
+    let etag = match blocking(move || mapping::fleet_tile_etag(mapping::fleet_tag(&tag_parts), z, x, y)).await {
+        Ok(e) => e,
+        Err(r) => return r,
+    };
+    if headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| v.split(',').any(|t| t.trim() == etag)) {
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response();
+    }
+    let top = match fleet_top(registry, &name).await {
+        Ok(t) => t,
+        Err(r) => return r,
+    };
+    match blocking(move || mapping::fleet_tile(&top, z, x, y)).await {
+        Ok(Ok(tile)) => (
+            [(header::CONTENT_TYPE, "image/png".to_string()), (header::ETAG, tile.etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())],
+            tile.png,
+        )
+            .into_response(),
+        Ok(Err(e)) => error(StatusCode::BAD_REQUEST, e.0),
+        Err(r) => r,
+    }
+}
+
+/// The fleet map's legend, with the extent its tiles cover.
+async fn fleet_legend(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+    let top = match fleet_top(registry, &name).await {
+        Ok(t) => t,
+        Err(r) => return r,
+    };
+    let entries = mapping::legend_of(&top.top, &top.class_names);
+    Json(json!({
+        "fleet": name,
+        "frame": FLEET_MAP_FRAME,
+        "bounds_xy": top.top.bounds(),
+        "classes": legend_json(&entries),
+    }))
+    .into_response()
+}
+
+/// Legend entries as the API lists them.
+fn legend_json(entries: &[mapping::LegendEntry]) -> Vec<Value> {
+    entries
+        .iter()
+        .map(|e| {
+            json!({
+                "class_id": if e.class == stillmap_mapping::NO_CLASS { Value::Null } else { json!(e.class) },
+                "name": e.name,
+                "color": format!("#{:02x}{:02x}{:02x}", e.color[0], e.color[1], e.color[2]),
+                "cells": e.cells,
+            })
+        })
+        .collect()
+}
+
+/// The fleet map's frame.
+const FLEET_MAP_FRAME: &str = "the fleet's map frame = the anchor session's map frame (its world rotated so that +z is up; origin at its first camera's centre); metres";
+
+async fn get_fleet(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+    match registry.fleets().and_then(|f| f.get(&name)) {
+        Some(f) => Json(fleet_json(&f, true)).into_response(),
+        None => error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")),
     }
 }
 
@@ -294,12 +549,7 @@ async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String
     match blocking(move || mapping::legend(&map)).await {
         Ok(entries) => Json(json!({
             "session_id": id,
-            "classes": entries.iter().map(|e| json!({
-                "class_id": if e.class == stillmap_mapping::NO_CLASS { Value::Null } else { json!(e.class) },
-                "name": e.name,
-                "color": format!("#{:02x}{:02x}{:02x}", e.color[0], e.color[1], e.color[2]),
-                "cells": e.cells,
-            })).collect::<Vec<_>>(),
+            "classes": legend_json(&entries),
         }))
         .into_response(),
         Err(r) => r,
@@ -353,16 +603,11 @@ async fn map_cloud(State(registry): State<Arc<Registry>>, Path(id): Path<String>
     }
 }
 
-async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
-    let map = match session_map(&registry, &id) {
-        Ok(m) => m,
-        Err(r) => return r,
-    };
-    match blocking(move || mapping::map_objects(&map)).await {
-        Ok((objects, names)) => Json(json!({
-            "session_id": id,
-            "frame": MAP_FRAME,
-            "objects": objects.iter().map(|o| json!({
+fn objects_json(objects: &[stillmap_mapping::export::MapObject], names: &[String]) -> Vec<Value> {
+    objects
+        .iter()
+        .map(|o| {
+            json!({
                 "class_id": o.class,
                 "class_name": names.get(usize::from(o.class)).cloned().unwrap_or_else(|| format!("class {}", o.class)),
                 "centroid": o.centroid,
@@ -370,9 +615,18 @@ async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
                 "bbox_max": o.bbox.max,
                 "voxels": o.voxels,
                 "confidence": o.confidence,
-            })).collect::<Vec<_>>(),
-        }))
-        .into_response(),
+            })
+        })
+        .collect()
+}
+
+async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    let map = match session_map(&registry, &id) {
+        Ok(m) => m,
+        Err(r) => return r,
+    };
+    match blocking(move || mapping::map_objects(&map)).await {
+        Ok((objects, names)) => Json(json!({ "session_id": id, "frame": MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response(),
         Err(r) => r,
     }
 }

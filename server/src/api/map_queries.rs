@@ -5,7 +5,12 @@
 
 use stillmap_mapping::MappingError;
 use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
-use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, class_color, encode_png_rgba};
+use std::collections::HashMap;
+use std::hash::{Hash, Hasher};
+use std::sync::{Arc, Mutex};
+
+use nalgebra::Isometry3;
+use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, TopDown, class_color, encode_png_rgba};
 use stillmap_mapping::NO_CLASS;
 
 use crate::lock;
@@ -58,6 +63,11 @@ pub struct LegendEntry {
 pub fn legend(map: &SharedMap) -> Vec<LegendEntry> {
     let mut m = lock(map);
     let top = m.top_down();
+    legend_of(&top, &m.class_names)
+}
+
+/// The legend of a top-down view whose classes are named by `class_names`.
+pub fn legend_of(top: &TopDown, class_names: &[String]) -> Vec<LegendEntry> {
     top.class_counts
         .iter()
         .map(|&(class, cells)| LegendEntry {
@@ -65,7 +75,7 @@ pub fn legend(map: &SharedMap) -> Vec<LegendEntry> {
             name: if class == NO_CLASS {
                 "unlabelled".into()
             } else {
-                m.class_names.get(usize::from(class)).cloned().unwrap_or_else(|| format!("class {class}"))
+                class_names.get(usize::from(class)).cloned().unwrap_or_else(|| format!("class {class}"))
             },
             // Unlabelled surfaces are grey, shaded by height; the legend shows the middle grey.
             color: if class == NO_CLASS { [145, 145, 145] } else { class_color(class) },
@@ -112,6 +122,119 @@ pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
         q.x, q.y, q.z, q.w
     );
     to_ply(&points, &m.class_names, &comment)
+}
+
+/// A fleet's map: the anchor session's map with every other merged session's
+/// surfaces moved into it by its `fleet_from_session` (the fleet's world is the
+/// anchor's; see `VoxelMap::merge_map`), and the anchor's map frame.
+pub struct FleetMap {
+    pub map: stillmap_mapping::VoxelMap,
+    pub map_from_fleet: nalgebra::UnitQuaternion<f64>,
+    pub class_names: Vec<String>,
+    /// The anchor's occupancy defaults: lowest and highest height, resolution.
+    pub occupancy: (f64, f64, f64),
+}
+
+/// Builds the fleet map from (map, `fleet_from_session`), the anchor's first.
+pub fn fleet_map(parts: &[(SharedMap, nalgebra::Isometry3<f64>)]) -> Option<FleetMap> {
+    let (anchor, _) = parts.first()?;
+    let mut fleet = {
+        let m = lock(anchor);
+        let cfg = m.builder.config();
+        FleetMap {
+            map: m.full_map().into_owned(),
+            map_from_fleet: m.map_from_world(),
+            class_names: m.class_names.clone(),
+            occupancy: (cfg.occupancy_min_height_m, cfg.occupancy_max_height_m, cfg.occupancy_resolution_m),
+        }
+    };
+    for (map, fleet_from_session) in &parts[1..] {
+        let other = lock(map).full_map().into_owned();
+        fleet.map.merge_map(&other, fleet_from_session);
+    }
+    Some(fleet)
+}
+
+/// The fleet map as one PLY in the anchor's map frame.
+pub fn fleet_ply(fleet: &FleetMap, name: &str, sessions: usize) -> Vec<u8> {
+    let points = cloud(&fleet.map, &fleet.map_from_fleet, None);
+    let q = fleet.map_from_fleet.coords;
+    let comment = format!(
+        "stillmap fleet map {name}: {sessions} sessions merged\nmap frame: the anchor session's (z up, origin at its first camera); map_from_fleet rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
+        q.x, q.y, q.z, q.w
+    );
+    to_ply(&points, &fleet.class_names, &comment)
+}
+
+/// The fleet map's occupancy grid (the anchor's defaults where a parameter is absent).
+pub fn fleet_occupancy(fleet: &FleetMap, min_height: Option<f64>, max_height: Option<f64>, resolution: Option<f64>) -> Result<OccupancyGrid, BadQuery> {
+    let (lo, hi, res) = fleet.occupancy;
+    Ok(OccupancyGrid::build(&fleet.map, &fleet.map_from_fleet, min_height.unwrap_or(lo), max_height.unwrap_or(hi), resolution.unwrap_or(res))?)
+}
+
+/// A fleet map's top-down view (tiles and legend), in the anchor's map frame.
+pub struct FleetTop {
+    pub top: TopDown,
+    pub class_names: Vec<String>,
+    /// What it was built from ([`fleet_tag`]): the tiles' ETag.
+    pub tag: u64,
+}
+
+/// The latest top-down view of each fleet, rebuilt when one of its parts changed
+/// (a map fused a keyframe, a merge moved, the anchor's up changed); one build at
+/// a time, so a browser asking for a screenful of tiles builds the fleet map once.
+#[derive(Default)]
+pub struct FleetTops {
+    built: Mutex<HashMap<String, Arc<FleetTop>>>,
+    building: Mutex<()>,
+}
+
+/// Identifies the state a fleet map is built from: each part's map (which one, its
+/// version and up direction) and its `fleet_from_session`.
+pub fn fleet_tag(parts: &[(SharedMap, Isometry3<f64>)]) -> u64 {
+    let mut h = std::hash::DefaultHasher::new();
+    for (map, fleet_from_session) in parts {
+        (Arc::as_ptr(map) as usize).hash(&mut h);
+        let (version, up) = {
+            let m = lock(map);
+            (m.builder.map().version(), m.map_from_world())
+        };
+        version.hash(&mut h);
+        up.coords.iter().chain(fleet_from_session.to_homogeneous().iter()).for_each(|v| v.to_bits().hash(&mut h));
+    }
+    h.finish()
+}
+
+impl FleetTops {
+    /// Fleet `name`'s top-down view of `parts` (see [`fleet_map`]), from the cache when
+    /// nothing changed since it was built; `None` when there is no anchor map.
+    pub fn get(&self, name: &str, parts: &[(SharedMap, Isometry3<f64>)]) -> Option<Arc<FleetTop>> {
+        let tag = fleet_tag(parts);
+        let cached = || lock(&self.built).get(name).filter(|t| t.tag == tag).cloned();
+        if let Some(top) = cached() {
+            return Some(top);
+        }
+        let _one_build = lock(&self.building);
+        if let Some(top) = cached() {
+            return Some(top);
+        }
+        let fleet = fleet_map(parts)?;
+        let top = Arc::new(FleetTop { top: TopDown::build(&fleet.map, &fleet.map_from_fleet), class_names: fleet.class_names, tag });
+        lock(&self.built).insert(name.to_string(), top.clone());
+        Some(top)
+    }
+}
+
+/// The ETag of a fleet tile.
+pub fn fleet_tile_etag(tag: u64, z: u8, x: i64, y: i64) -> String {
+    format!("\"f{tag:016x}-{z}-{x}-{y}\"")
+}
+
+/// Renders a fleet tile (same scheme as a session's, in the anchor's map frame).
+pub fn fleet_tile(top: &FleetTop, z: u8, x: i64, y: i64) -> Result<Tile, BadQuery> {
+    let rgba = top.top.render(z, x, y)?;
+    let png = encode_png_rgba(&rgba, TILE_PX as u32, TILE_PX as u32).map_err(|e| BadQuery(e.to_string()))?;
+    Ok(Tile { png, etag: fleet_tile_etag(top.tag, z, x, y) })
 }
 
 pub fn points(map: &SharedMap, bbox: Option<&Aabb>) -> (Vec<stillmap_mapping::export::CloudPoint>, Vec<String>) {

@@ -23,6 +23,12 @@ impl QueryService {
         self.registry.get(id).ok_or_else(|| Status::not_found(format!("unknown session {id:?}")))
     }
 
+    fn fleet(&self, name: &str) -> Result<(Arc<crate::fleet::FleetService>, crate::fleet::FleetView), Status> {
+        let fleets = self.registry.fleets().ok_or_else(|| Status::not_found("fleets are off on this server (fleet.enabled)"))?;
+        let fleet = fleets.get(name).ok_or_else(|| Status::not_found(format!("unknown fleet {name:?}")))?;
+        Ok((fleets.clone(), fleet))
+    }
+
     fn map(&self, id: &str) -> Result<crate::map::SharedMap, Status> {
         self.session(id)?.map().cloned().ok_or_else(|| Status::not_found(format!("session {id:?} has no map (mapping is disabled)")))
     }
@@ -32,6 +38,38 @@ impl QueryService {
 impl Query for QueryService {
     type SubscribePosesStream = BoxStream<pb::PoseStamped>;
     type GetMapCloudStream = BoxStream<pb::MapCloudChunk>;
+    type SubscribeFleetPosesStream = BoxStream<pb::FleetPose>;
+
+    async fn get_fleet_poses(&self, request: Request<pb::FleetRef>) -> Result<Response<pb::FleetPoses>, Status> {
+        let (fleets, fleet) = self.fleet(&request.get_ref().fleet)?;
+        let mut out = pb::FleetPoses::default();
+        for m in &fleet.members {
+            let Some(fleet_from_session) = fleets.fleet_from_session(&fleet.name, &m.session_id) else {
+                out.unmerged_session_ids.push(m.session_id.clone());
+                continue;
+            };
+            let Some(session) = self.registry.get(&m.session_id) else { continue };
+            let latest = session.tracking().latest;
+            if let Some(p) = latest {
+                out.poses.push(pb::FleetPose { session_id: m.session_id.clone(), robot_id: m.robot_id.clone(), pose: Some(crate::convert::pose_in(&p, &fleet_from_session)) });
+            }
+        }
+        Ok(Response::new(out))
+    }
+
+    async fn subscribe_fleet_poses(&self, request: Request<pb::FleetRef>) -> Result<Response<Self::SubscribeFleetPosesStream>, Status> {
+        let (fleets, fleet) = self.fleet(&request.get_ref().fleet)?;
+        let registry = self.registry.clone();
+        let name = fleet.name;
+        // A lagging subscriber skips poses rather than holding the pipeline.
+        let stream = BroadcastStream::new(self.registry.subscribe_fleet()).filter_map(move |r| {
+            let (session_id, pose) = r.ok()?;
+            let session = registry.get(&session_id).filter(|s| s.fleet_name == name)?;
+            let fleet_from_session = fleets.fleet_from_session(&name, &session_id)?;
+            Some(Ok(pb::FleetPose { session_id: session_id.to_string(), robot_id: session.robot_id.clone(), pose: Some(crate::convert::pose_in(&pose, &fleet_from_session)) }))
+        });
+        Ok(Response::new(Box::pin(stream)))
+    }
 
     async fn list_sessions(&self, _: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
         let sessions = self.registry.list().iter().map(|s| summary(s)).collect();
