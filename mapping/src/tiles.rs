@@ -23,6 +23,8 @@ pub const TILE_PX: usize = 256;
 pub const MAX_ZOOM: u8 = 5;
 /// Cells per chunk edge of the top-down index.
 const CHUNK: i32 = 64;
+/// Largest occupancy grid built, in cells (64 MiB: a 2 km square at 25 cm, 160 m at 2 cm).
+pub const MAX_GRID_CELLS: usize = 1 << 26;
 /// Tile indices beyond this are refused (±2²⁰ tiles is far beyond any building).
 const MAX_TILE_INDEX: i64 = 1 << 20;
 
@@ -234,7 +236,15 @@ impl OccupancyGrid {
         for k in cells.keys() {
             (x0, y0, x1, y1) = (x0.min(k[0]), y0.min(k[1]), x1.max(k[0]), y1.max(k[1]));
         }
-        let (width, height) = ((x1 - x0 + 1) as usize, (y1 - y0 + 1) as usize);
+        let (width, height) = (x1 - x0 + 1, y1 - y0 + 1);
+        // Sized from the map's extent, so checked before allocating (a map spread
+        // over kilometres must not take the process down).
+        if width.saturating_mul(height) > MAX_GRID_CELLS as i64 {
+            return Err(MappingError::Input(format!(
+                "an occupancy grid of {width}x{height} cells at {resolution_m} m is over the limit of {MAX_GRID_CELLS} cells: ask for a coarser resolution"
+            )));
+        }
+        let (width, height) = (width as usize, height as usize);
         let mut out = vec![PGM_UNKNOWN; width * height];
         for (k, s) in cells {
             let (col, row) = ((k[0] - x0) as usize, (y1 - k[1]) as usize);
@@ -269,5 +279,20 @@ mod tests {
         for c in 0..80u16 {
             assert!(seen.insert(class_color(c)), "class {c} repeats a colour");
         }
+    }
+
+    #[test]
+    fn an_occupancy_grid_over_the_cell_limit_is_refused_before_allocating() {
+        let mut map = VoxelMap::new(crate::MappingConfig::default()).unwrap();
+        let mut block = crate::voxel::Block::default();
+        block.voxels[0].log_odds = 3.0;
+        block.voxels[0].hits = 5;
+        // Two surfaces 2 × 2¹⁹ blocks (2 × 84 km) apart, both at floor height.
+        let far = crate::voxel::MAX_BLOCK_INDEX / 2;
+        map.restore([-far, -far, 0], block.clone());
+        map.restore([far, far, 0], block);
+        let up = UnitQuaternion::identity();
+        let e = OccupancyGrid::build(&map, &up, -1.0, 1.0, 1.0).unwrap_err().to_string();
+        assert!(e.contains("cells at 1 m is over the limit of 67108864 cells: ask for a coarser resolution"), "{e}");
     }
 }

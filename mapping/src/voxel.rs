@@ -16,6 +16,17 @@ pub const CLASS_SLOTS: usize = 3;
 
 /// Integer voxel coordinates in the world frame (`floor(point / voxel_size)`).
 pub type VoxelKey = [i32; 3];
+/// Largest block coordinate a map holds (either sign): ±2²⁰ blocks of 8 voxels is
+/// ±168 km at 2 cm voxels, far beyond any building, and keeps every voxel
+/// coordinate (block × 8 + 7) well inside `i32`. Stored and imported blocks
+/// beyond it are refused.
+pub const MAX_BLOCK_INDEX: i32 = 1 << 20;
+
+/// Whether a block key is within ±[`MAX_BLOCK_INDEX`].
+pub fn block_in_range(key: BlockKey) -> bool {
+    key.iter().all(|v| v.unsigned_abs() <= MAX_BLOCK_INDEX as u32)
+}
+
 /// Integer block coordinates (`voxel.div_euclid(BLOCK_EDGE)`).
 pub type BlockKey = [i32; 3];
 

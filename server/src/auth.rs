@@ -1,6 +1,7 @@
 //! Robot authentication: the bearer token of a hello (`Hello.auth_token`) checked
 //! against `auth.tokens`. Both ingest shells (gRPC, Zenoh) ask [`Tokens::check`]
 //! before a session is opened or resumed; a refusal is `UNAUTHENTICATED`.
+//! Whole-map import and export over HTTP ask [`Admin::check`] (`auth.admin_tokens`).
 
 use stillmap_proto::pb;
 use tonic::Status;
@@ -27,11 +28,56 @@ impl Tokens {
         if hello.auth_token.is_empty() {
             return Err(Status::unauthenticated("this server requires an auth token in the hello (stillmap-client --token)"));
         }
-        let given = hello.auth_token.as_bytes();
-        // Every configured token is compared in full, whatever matches, so the time
-        // taken does not tell how much of a guess was right.
-        let matched = self.0.iter().fold(false, |found, token| found | constant_time_eq(token, given));
-        if matched { Ok(()) } else { Err(Status::unauthenticated("unknown auth token")) }
+        if self.matches(hello.auth_token.as_bytes()) { Ok(()) } else { Err(Status::unauthenticated("unknown auth token")) }
+    }
+
+    /// Whether `given` is one of the tokens. Every configured token is compared in
+    /// full, whatever matches, so the time taken does not tell how much of a guess
+    /// was right.
+    fn matches(&self, given: &[u8]) -> bool {
+        self.0.iter().fold(false, |found, token| found | constant_time_eq(token, given))
+    }
+}
+
+/// Who may move whole maps in and out (`POST /api/v1/maps/import`,
+/// `GET /api/v1/maps/{id}/export`): an `Authorization: Bearer` header with one of
+/// `auth.admin_tokens`, whenever any token is configured.
+#[derive(Debug, Default)]
+pub struct Admin {
+    admins: Tokens,
+    robots: Tokens,
+}
+
+/// Why an admin request was refused (HTTP 401 / 403).
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
+pub enum AdminRefusal {
+    #[error("this needs an admin token: Authorization: Bearer <token> (auth.admin_tokens)")]
+    Missing,
+    #[error("unknown token")]
+    Unknown,
+    #[error("a robot token cannot import or export maps (auth.admin_tokens)")]
+    RobotToken,
+}
+
+impl Admin {
+    pub fn new(admin_tokens: &[String], robot_tokens: &[String]) -> Self {
+        Self { admins: Tokens::new(admin_tokens), robots: Tokens::new(robot_tokens) }
+    }
+
+    /// `Ok` when no token is configured at all, or `authorization` (the header's
+    /// value) carries an admin token.
+    pub fn check(&self, authorization: Option<&[u8]>) -> Result<(), AdminRefusal> {
+        if !self.admins.required() && !self.robots.required() {
+            return Ok(());
+        }
+        let token = authorization.and_then(|v| v.strip_prefix(b"Bearer ")).ok_or(AdminRefusal::Missing)?;
+        if self.admins.matches(token) {
+            Ok(())
+        } else if self.robots.matches(token) {
+            Err(AdminRefusal::RobotToken)
+        } else {
+            Err(AdminRefusal::Unknown)
+        }
     }
 }
 
@@ -65,5 +111,20 @@ mod tests {
             let e = tokens.check(&hello(wrong)).unwrap_err();
             assert_eq!((e.code(), e.message()), (tonic::Code::Unauthenticated, "unknown auth token"), "{wrong:?}");
         }
+    }
+
+    #[test]
+    fn import_and_export_need_an_admin_token_once_any_token_is_configured() {
+        let open = Admin::new(&[], &[]);
+        assert_eq!(open.check(None), Ok(()));
+        let robots_only = Admin::new(&[], &["robot-1".into()]);
+        assert_eq!(robots_only.check(None), Err(AdminRefusal::Missing));
+        assert_eq!(robots_only.check(Some(b"Bearer robot-1")), Err(AdminRefusal::RobotToken));
+        let admin = Admin::new(&["root-9".into()], &["robot-1".into()]);
+        assert_eq!(admin.check(Some(b"Bearer root-9")), Ok(()));
+        assert_eq!(admin.check(Some(b"root-9")), Err(AdminRefusal::Missing));
+        assert_eq!(admin.check(Some(b"Bearer root-")), Err(AdminRefusal::Unknown));
+        assert_eq!(admin.check(Some(b"Bearer robot-1")), Err(AdminRefusal::RobotToken));
+        assert_eq!(Admin::new(&["root-9".into()], &[]).check(None), Err(AdminRefusal::Missing));
     }
 }

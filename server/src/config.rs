@@ -98,10 +98,16 @@ pub struct AuthConfig {
     /// Bearer tokens a robot's hello must carry (`Hello.auth_token`, `stillmap-client
     /// --token`) on gRPC and Zenoh; a hello without one of them is refused with
     /// UNAUTHENTICATED. Empty (the default): every hello is accepted, for a server on
-    /// a trusted network. Not covered: the query APIs (HTTP, gRPC `Query`), the HTTP
-    /// map import, and Zenoh frames after an accepted hello (anyone who can publish
-    /// on a robot's key speaks for it: use Zenoh's access control and TLS there).
+    /// a trusted network. Not covered: the query APIs (HTTP, gRPC `Query`) and
+    /// Zenoh frames after an accepted hello (anyone who can publish on a robot's key
+    /// speaks for it: use Zenoh's access control and TLS there).
     pub tokens: Vec<String>,
+    /// Bearer tokens for the HTTP map import and export (`Authorization: Bearer
+    /// <token>`): whole maps in and out of the store. When any token is configured,
+    /// here or in `tokens`, import and export need one of these (a robot token is
+    /// refused with 403). None configured at all (the default): they are open, like
+    /// everything else on a trusted network.
+    pub admin_tokens: Vec<String>,
 }
 
 /// The embedded store (redb): sessions, trajectories, keyframes and map blocks
@@ -112,11 +118,16 @@ pub struct StoreConfig {
     pub enabled: bool,
     /// The store file (its folder is created).
     pub path: String,
+    /// Largest map file body `POST /api/v1/maps/import` decompresses, in bytes
+    /// (default 256 MiB; 60 frames of the public clip export as 4.1 MB uncompressed).
+    /// A body that declares more is refused before decoding, and decoding stops
+    /// here whatever it declared.
+    pub import_max_bytes: usize,
 }
 
 impl Default for StoreConfig {
     fn default() -> Self {
-        Self { enabled: true, path: "stillmap-data/stillmap.redb".into() }
+        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20 }
     }
 }
 
@@ -299,11 +310,19 @@ impl ServerConfig {
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }
-        if let Some(i) = self.auth.tokens.iter().position(|t| t.trim().is_empty()) {
-            return bad(format!("auth.tokens[{i}] is empty"));
+        for (name, tokens) in [("tokens", &self.auth.tokens), ("admin_tokens", &self.auth.admin_tokens)] {
+            if let Some(i) = tokens.iter().position(|t| t.trim().is_empty()) {
+                return bad(format!("auth.{name}[{i}] is empty"));
+            }
+            if let Some(i) = tokens.iter().position(|t| t.trim() != t) {
+                return bad(format!("auth.{name}[{i}] has leading or trailing whitespace"));
+            }
         }
-        if let Some(i) = self.auth.tokens.iter().position(|t| t.trim() != t) {
-            return bad(format!("auth.tokens[{i}] has leading or trailing whitespace"));
+        if self.auth.admin_tokens.iter().any(|t| self.auth.tokens.contains(t)) {
+            return bad("a token is in both auth.tokens and auth.admin_tokens: give admins tokens of their own".into());
+        }
+        if self.store.import_max_bytes < 1024 {
+            return bad(format!("store.import_max_bytes {} is below 1024", self.store.import_max_bytes));
         }
         let f = &self.fleet;
         stillmap_proto::validate_fleet(&f.default_fleet).map_err(|e| ServerError::Config(format!("fleet.default_fleet: {e}")))?;

@@ -53,6 +53,9 @@ struct Args {
     /// Bearer token a robot's hello must carry, repeatable (adds to auth.tokens).
     #[arg(long = "auth-token", env = "STILLMAP_AUTH_TOKENS", value_delimiter = ',', hide_env_values = true)]
     auth_tokens: Vec<String>,
+    /// Bearer token for the HTTP map import and export, repeatable (adds to auth.admin_tokens).
+    #[arg(long = "admin-token", env = "STILLMAP_ADMIN_TOKENS", value_delimiter = ',', hide_env_values = true)]
+    admin_tokens: Vec<String>,
     /// Where segmentation runs: cpu, cuda or tensorrt (perception.segmentation.execution_provider).
     #[arg(long, env = "STILLMAP_EXECUTION_PROVIDER", value_parser = parse_provider)]
     execution_provider: Option<ExecutionProvider>,
@@ -127,6 +130,7 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     }
     // "a, b" in STILLMAP_AUTH_TOKENS means the tokens "a" and "b".
     c.auth.tokens.extend(args.auth_tokens.iter().map(|t| t.trim().to_string()));
+    c.auth.admin_tokens.extend(args.admin_tokens.iter().map(|t| t.trim().to_string()));
     c.validate()?;
     Ok(c)
 }
@@ -160,7 +164,7 @@ async fn real_main() -> anyhow::Result<()> {
     let config = effective_config(&args)?;
     if args.print_config {
         let mut shown = config.clone();
-        shown.auth.tokens.iter_mut().for_each(|t| *t = "<redacted>".into());
+        shown.auth.tokens.iter_mut().chain(shown.auth.admin_tokens.iter_mut()).for_each(|t| *t = "<redacted>".into());
         print!("{}", toml::to_string_pretty(&shown)?);
         return Ok(());
     }

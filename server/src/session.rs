@@ -666,8 +666,14 @@ impl Registry {
             None => hello.fleet.clone(),
         };
         self.check_capacity()?;
-        let n = self.next_id.fetch_add(1, Ordering::Relaxed);
-        let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
+        // An imported map may hold the id this run would give next: skip it.
+        let id = loop {
+            let n = self.next_id.fetch_add(1, Ordering::Relaxed);
+            let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
+            if !self.taken(&id) {
+                break id;
+            }
+        };
         let started_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
         let map = if self.mapping.enabled {
             let names = match &self.perception {
@@ -802,6 +808,8 @@ impl Registry {
     /// and to the registry, read-only.
     pub fn import(&self, stored: StoredSession) -> Result<String, ImportError> {
         let store = self.store.as_ref().ok_or(ImportError::NoStore)?;
+        // Under the admission lock, so a hello cannot take the same id meanwhile.
+        let _admission = lock(&self.admission);
         if self.get(&stored.id).is_some() || store.contains(&stored.id).map_err(ImportError::Store)? {
             return Err(ImportError::Exists(stored.id));
         }
@@ -809,6 +817,12 @@ impl Registry {
         let id = stored.id.clone();
         self.restore(vec![stored]);
         Ok(id)
+    }
+
+    /// Whether a session `id` exists, live, restored or only in the store (a store
+    /// that cannot be read counts it as free: committing to it fails anyway).
+    fn taken(&self, id: &str) -> bool {
+        self.get(id).is_some() || self.store.as_ref().is_some_and(|s| s.contains(id).unwrap_or(false))
     }
 
     /// A session from what differs between a live and a restored one.

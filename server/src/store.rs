@@ -399,10 +399,32 @@ impl<'a> Reader<'a> {
     }
 }
 
-/// Reads a file [`export`] wrote; every problem is named.
-pub fn import_file(bytes: &[u8]) -> Result<StoredSession, StoreError> {
+/// The body of an export, decompressed without ever holding more than
+/// `max_bytes`: a size the frame declares beyond it is refused before decoding,
+/// and the streaming decoder stops one byte past it whatever the frame declared.
+fn decompress_capped(body: &[u8], max_bytes: usize) -> Result<Vec<u8>, StoreError> {
+    use std::io::Read;
+    let over = |what: String| file_error(format!("{what}; imports are limited to {max_bytes} bytes uncompressed (store.import_max_bytes)"));
+    if let Ok(Some(declared)) = zstd::zstd_safe::get_frame_content_size(body)
+        && declared > max_bytes as u64
+    {
+        return Err(over(format!("the body declares {declared} bytes uncompressed")));
+    }
+    let decoder = zstd::stream::read::Decoder::new(body).map_err(|e| file_error(format!("compressed body: {e}")))?;
+    let mut out = Vec::new();
+    decoder.take(max_bytes as u64 + 1).read_to_end(&mut out).map_err(|e| file_error(format!("compressed body: {e}")))?;
+    if out.len() > max_bytes {
+        return Err(over("the body decompresses to more".into()));
+    }
+    Ok(out)
+}
+
+/// Reads a file [`export`] wrote, decompressing at most `max_bytes`; every problem
+/// is named, and block keys outside the map's range
+/// ([`MAX_BLOCK_INDEX`](stillmap_mapping::voxel::MAX_BLOCK_INDEX)) are refused.
+pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, StoreError> {
     let body = bytes.strip_prefix(EXPORT_MAGIC).ok_or_else(|| file_error("not a stillmap map file (bad magic)"))?;
-    let body = zstd::stream::decode_all(body).map_err(|e| file_error(format!("compressed body: {e}")))?;
+    let body = decompress_capped(body, max_bytes)?;
     let mut r = Reader { body: &body, at: 0 };
     let header: serde_json::Value = serde_json::from_slice(r.section()?).map_err(|e| file_error(format!("header: {e}")))?;
     let id = header["session_id"].as_str().ok_or_else(|| file_error("header has no session_id"))?.to_string();
@@ -421,6 +443,9 @@ pub fn import_file(bytes: &[u8]) -> Result<StoredSession, StoreError> {
     let mut blocks = Vec::new();
     for _ in 0..r.u32()? {
         let key = [r.u32()? as i32, r.u32()? as i32, r.u32()? as i32];
+        if !stillmap_mapping::voxel::block_in_range(key) {
+            return Err(file_error(format!("map block {key:?} is outside the map's range of ±{} blocks", stillmap_mapping::voxel::MAX_BLOCK_INDEX)));
+        }
         blocks.push((key, Block::from_bytes(r.section()?).map_err(file_error)?));
     }
     if r.at != body.len() {
@@ -493,15 +518,66 @@ mod tests {
         assert_eq!(store.fleet_frames().unwrap().get("s1"), Some(&frame));
         // The one-file export round-trips exactly, and bad files are named.
         let file = export(s).unwrap();
-        let back = import_file(&file).unwrap();
+        let back = import_file(&file, 1 << 20).unwrap();
         // (A NaN depth makes `==` on keyframes false: compare the re-export's bytes.)
         assert!(back.blocks == s.blocks && back.poses == s.poses && back.meta == s.meta && back.camera == s.camera, "import differs");
         assert!(export(&back).unwrap() == file, "re-export differs");
-        assert_eq!(import_file(b"PK\x03\x04").unwrap_err().to_string(), "bad map file: not a stillmap map file (bad magic)");
+        assert_eq!(import_file(b"PK\x03\x04", 1 << 20).unwrap_err().to_string(), "bad map file: not a stillmap map file (bad magic)");
         let mut cut = file.clone();
         cut.truncate(cut.len() - 5);
-        assert!(import_file(&cut).unwrap_err().to_string().starts_with("bad map file: "));
+        assert!(import_file(&cut, 1 << 20).unwrap_err().to_string().starts_with("bad map file: "));
         drop(store);
         let _ = std::fs::remove_file(&path);
+    }
+
+    /// A map file whose body is `body`, compressed declaring its size or not.
+    fn map_file(body: &[u8], declare_size: bool) -> Vec<u8> {
+        let mut out = EXPORT_MAGIC.to_vec();
+        if declare_size {
+            out.extend(zstd::bulk::compress(body, 3).unwrap());
+        } else {
+            let mut e = zstd::stream::write::Encoder::new(Vec::new(), 3).unwrap();
+            std::io::Write::write_all(&mut e, body).unwrap();
+            out.extend(e.finish().unwrap());
+        }
+        out
+    }
+
+    #[test]
+    fn a_decompression_bomb_is_refused_without_being_decompressed() {
+        // 64 MiB of zeros compress to a few KB.
+        let zeros = vec![0u8; 64 << 20];
+        let declared = map_file(&zeros, true);
+        assert!(declared.len() < 64 << 10, "{} bytes", declared.len());
+        assert_eq!(
+            import_file(&declared, 1 << 20).unwrap_err().to_string(),
+            "bad map file: the body declares 67108864 bytes uncompressed; imports are limited to 1048576 bytes uncompressed (store.import_max_bytes)"
+        );
+        // Without a declared size the streaming decoder stops at the cap.
+        let undeclared = map_file(&zeros, false);
+        assert_eq!(zstd::zstd_safe::get_frame_content_size(&undeclared[EXPORT_MAGIC.len()..]).unwrap(), None);
+        assert_eq!(
+            import_file(&undeclared, 1 << 20).unwrap_err().to_string(),
+            "bad map file: the body decompresses to more; imports are limited to 1048576 bytes uncompressed (store.import_max_bytes)"
+        );
+    }
+
+    #[test]
+    fn a_map_block_beyond_the_maps_range_is_refused() {
+        let s = StoredSession {
+            id: "far".into(),
+            meta: SessionMeta { robot_id: "far".into(), transport: "grpc".into(), started_unix_ns: 5, class_names: Vec::new(), up_in_world: None, up_source: None, keyframes: 0, map_stamp: 0, fleet: String::new() },
+            camera: pb::CameraInfo { width: 640, height: 480, fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5, depth_units_per_metre: 5000.0, color_encoding: pb::ColorEncoding::Jpeg as i32, depth_encoding: pb::DepthEncoding::Zstd as i32, ..Default::default() },
+            poses: Vec::new(),
+            keyframes: Vec::new(),
+            blocks: vec![([1 << 27, 0, -(1 << 27)], Block::default())],
+        };
+        let file = export(&s).unwrap();
+        assert_eq!(
+            import_file(&file, 1 << 20).unwrap_err().to_string(),
+            format!("bad map file: map block [134217728, 0, -134217728] is outside the map's range of ±{} blocks", stillmap_mapping::voxel::MAX_BLOCK_INDEX)
+        );
+        let near = StoredSession { blocks: vec![([3, 0, -2], Block::default())], ..s };
+        assert_eq!(import_file(&export(&near).unwrap(), 1 << 20).unwrap().blocks.len(), 1);
     }
 }

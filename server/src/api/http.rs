@@ -6,6 +6,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::extract::DefaultBodyLimit;
+use axum::Extension;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::{Value, json};
@@ -15,7 +16,14 @@ use crate::api::map_queries::{self as mapping, BadQuery};
 use crate::map::SharedMap;
 use crate::session::{Registry, Session, summary};
 
-pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>) -> Router {
+/// What whole-map import and export need besides the registry.
+pub struct MapTransfer {
+    pub admin: crate::auth::Admin,
+    /// `store.import_max_bytes`.
+    pub import_max_bytes: usize,
+}
+
+pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, transfer: Arc<MapTransfer>) -> Router {
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir };
     let ui = Router::new()
         .route("/", get(crate::api::dashboard::index))
@@ -43,8 +51,8 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/maps/{id}/occupancy.yaml", get(map_occupancy_yaml))
         .route("/api/v1/maps/{id}/cloud.ply", get(map_cloud))
         .route("/api/v1/maps/{id}/objects", get(map_objects))
-        .route("/api/v1/maps/{id}/export", get(map_export))
-        .route("/api/v1/maps/import", post(map_import).layer(DefaultBodyLimit::max(MAX_IMPORT_BYTES)))
+        .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(transfer.clone())))
+        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(transfer))))
         .route("/metrics", get(metrics))
         .with_state(registry)
         .merge(ui)
@@ -634,8 +642,23 @@ async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
 /// Largest map file `POST /api/v1/maps/import` accepts.
 const MAX_IMPORT_BYTES: usize = 1 << 30;
 
+/// 401 / 403 unless the request carries an admin token (when any is configured).
+#[allow(clippy::result_large_err)]
+fn admin_only(transfer: &MapTransfer, headers: &HeaderMap) -> Result<(), Response> {
+    transfer.admin.check(headers.get(header::AUTHORIZATION).map(|v| v.as_bytes())).map_err(|refusal| {
+        let status = match refusal {
+            crate::auth::AdminRefusal::RobotToken => StatusCode::FORBIDDEN,
+            _ => StatusCode::UNAUTHORIZED,
+        };
+        error(status, refusal.to_string())
+    })
+}
+
 /// The session as one file (everything committed to the store: up to its last keyframe).
-async fn map_export(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+async fn map_export(State(registry): State<Arc<Registry>>, Extension(transfer): Extension<Arc<MapTransfer>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
+    if let Err(r) = admin_only(&transfer, &headers) {
+        return r;
+    }
     if registry.get(&id).is_none() {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     }
@@ -657,8 +680,12 @@ async fn map_export(State(registry): State<Arc<Registry>>, Path(id): Path<String
 }
 
 /// Adds a map file as a new (read-only) session: 201 with its id.
-async fn map_import(State(registry): State<Arc<Registry>>, body: axum::body::Bytes) -> Response {
-    let parsed = match blocking(move || crate::store::import_file(&body)).await {
+async fn map_import(State(registry): State<Arc<Registry>>, Extension(transfer): Extension<Arc<MapTransfer>>, headers: HeaderMap, body: axum::body::Bytes) -> Response {
+    if let Err(r) = admin_only(&transfer, &headers) {
+        return r;
+    }
+    let max_bytes = transfer.import_max_bytes;
+    let parsed = match blocking(move || crate::store::import_file(&body, max_bytes)).await {
         Ok(p) => p,
         Err(r) => return r,
     };
