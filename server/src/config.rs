@@ -123,11 +123,15 @@ pub struct StoreConfig {
     /// A body that declares more is refused before decoding, and decoding stops
     /// here whatever it declared.
     pub import_max_bytes: usize,
+    /// Longest wait between write attempts while the store fails (a full disk):
+    /// the wait starts at 1 s and doubles up to this (seconds; default 60). While
+    /// failing, `/healthz` answers 503 and the maps stay in memory.
+    pub retry_max_s: f64,
 }
 
 impl Default for StoreConfig {
     fn default() -> Self {
-        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20 }
+        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20, retry_max_s: 60.0 }
     }
 }
 
@@ -320,6 +324,9 @@ impl ServerConfig {
         }
         if self.auth.admin_tokens.iter().any(|t| self.auth.tokens.contains(t)) {
             return bad("a token is in both auth.tokens and auth.admin_tokens: give admins tokens of their own".into());
+        }
+        if !(0.1..=3600.0).contains(&self.store.retry_max_s) {
+            return bad(format!("store.retry_max_s must be within 0.1..=3600, got {}", self.store.retry_max_s));
         }
         if self.store.import_max_bytes < 1024 {
             return bad(format!("store.import_max_bytes {} is below 1024", self.store.import_max_bytes));

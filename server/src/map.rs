@@ -42,7 +42,15 @@ struct Persistence {
     committed_stamp: u64,
     /// Blocks evicted to the store (not in memory).
     cold: FxHashSet<BlockKey>,
+    /// Keyframes whose commit failed, for the next one (the newest
+    /// `MAX_PENDING_KEYFRAMES`; older ones lose only their place-recognition record).
+    pending: Vec<KeyframeRecord>,
+    /// The session's camera while the store has not recorded the session yet.
+    unrecorded_camera: Option<pb::CameraInfo>,
 }
+
+/// Keyframe records kept for the next commit while the store fails (about 45 KB each).
+const MAX_PENDING_KEYFRAMES: usize = 256;
 
 /// A session's map, shared by its worker and the queries.
 pub type SharedMap = Arc<Mutex<SessionMap>>;
@@ -78,7 +86,25 @@ impl SessionMap {
     /// go there too). `meta` describes the session.
     pub fn attach_store(&mut self, store: Arc<Store>, session_id: &str, meta: SessionMeta) {
         self.builder.enable_eviction();
-        self.persistence = Some(Persistence { store, session_id: session_id.to_string(), meta, committed_poses: 0, committed_stamp: 0, cold: FxHashSet::default() });
+        self.persistence = Some(Persistence {
+            store,
+            session_id: session_id.to_string(),
+            meta,
+            committed_poses: 0,
+            committed_stamp: 0,
+            cold: FxHashSet::default(),
+            pending: Vec::new(),
+            unrecorded_camera: None,
+        });
+    }
+
+    /// As [`attach_store`](Self::attach_store) for a session the store failed to
+    /// record: the first commit that goes through records it (its camera with it).
+    pub fn attach_store_unrecorded(&mut self, store: Arc<Store>, session_id: &str, meta: SessionMeta, camera: pb::CameraInfo) {
+        self.attach_store(store, session_id, meta);
+        if let Some(p) = &mut self.persistence {
+            p.unrecorded_camera = Some(camera);
+        }
     }
 
     /// A map restored from the store: its blocks, keyframe count and map frame.
@@ -133,25 +159,38 @@ impl SessionMap {
                 block.merge_older(&stored, min, max);
             }
         }
-        p.meta.keyframes = self.builder.keyframes();
-        p.meta.map_stamp = self.builder.map().change_stamp();
+        // What this commit would make true; `p.meta` keeps what the store holds
+        // until it has (committed_keyframes must not count a failed commit's).
+        let mut meta = p.meta.clone();
+        meta.keyframes = self.builder.keyframes();
+        meta.map_stamp = self.builder.map().change_stamp();
         if let Some((up, source)) = self.builder.up_in_world() {
-            p.meta.up_in_world = Some([up.x, up.y, up.z]);
-            p.meta.up_source = Some(source.label().to_string());
+            meta.up_in_world = Some([up.x, up.y, up.z]);
+            meta.up_source = Some(source.label().to_string());
+        }
+        p.pending.extend(keyframe);
+        if p.pending.len() > MAX_PENDING_KEYFRAMES {
+            let dropped = p.pending.len() - MAX_PENDING_KEYFRAMES;
+            p.pending.drain(..dropped);
+            tracing::warn!(session = %p.session_id, dropped, "the store keeps failing: the oldest uncommitted keyframe records are dropped (their map data stays)");
         }
         let since = p.committed_stamp;
         let commit = Commit {
             session_id: &p.session_id,
-            meta: &p.meta,
+            meta: &meta,
             poses: poses.get(p.committed_poses..).unwrap_or_default(),
-            keyframe,
+            keyframes: &p.pending,
+            camera: p.unrecorded_camera.as_ref(),
             blocks: self.builder.map().changed_since(since).map(|(k, b)| (*k, b)).collect(),
             evicted: &evicted,
         };
         match p.store.commit(&commit) {
             Ok(()) => {
                 p.committed_poses = poses.len();
-                p.committed_stamp = p.meta.map_stamp;
+                p.committed_stamp = meta.map_stamp;
+                p.meta = meta;
+                p.pending.clear();
+                p.unrecorded_camera = None;
                 p.cold.extend(evicted.into_iter().map(|(k, _)| k));
                 Ok(true)
             }

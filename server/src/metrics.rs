@@ -37,6 +37,7 @@ pub struct Metrics {
     segmentation_replaced: Counter,
     map_backlog: Gauge,
     map_jobs_skipped: Family<Labels, Counter>,
+    store_errors: Counter,
 }
 
 impl Default for Metrics {
@@ -86,6 +87,8 @@ impl Default for Metrics {
             "Map jobs left out because their session's map queue was full (kind: keyframe, refuse)",
             map_jobs_skipped.clone(),
         );
+        let store_errors = Counter::default();
+        registry.register("store_errors", "Store operations that failed (a full disk, an I/O error); /healthz says 503 while writes fail", store_errors.clone());
         Self {
             registry,
             frames_received,
@@ -104,7 +107,15 @@ impl Default for Metrics {
             segmentation_replaced,
             map_backlog,
             map_jobs_skipped,
+            store_errors,
         }
+    }
+}
+
+impl Metrics {
+    /// The counter the store counts its errors in.
+    pub fn store_errors(&self) -> Counter {
+        self.store_errors.clone()
     }
 }
 

@@ -697,7 +697,10 @@ impl Registry {
             if let (Some(map), Some(store)) = (&map, &self.store) {
                 match store.put_session(&id, &meta, &camera) {
                     Ok(()) => lock(map).attach_store(store.clone(), &id, meta),
-                    Err(e) => tracing::error!(session = %id, "session not persisted (the store failed): {e}"),
+                    Err(e) => {
+                        tracing::error!(session = %id, "session not recorded yet (the store failed; its first commit that goes through records it): {e}");
+                        lock(map).attach_store_unrecorded(store.clone(), &id, meta, camera.clone());
+                    }
                 }
             }
             map

@@ -15,6 +15,8 @@
 //! camera returning) always sees its latest version.
 
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use prost::Message;
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
@@ -149,7 +151,10 @@ pub struct Commit<'a> {
     pub session_id: &'a str,
     pub meta: &'a SessionMeta,
     pub poses: &'a [pb::PoseStamped],
-    pub keyframe: Option<KeyframeRecord>,
+    /// Keyframes not committed yet (a failed commit's come again with the next).
+    pub keyframes: &'a [KeyframeRecord],
+    /// The session's camera, when the session was not recorded yet.
+    pub camera: Option<&'a pb::CameraInfo>,
     pub blocks: Vec<(BlockKey, &'a Block)>,
     pub evicted: &'a [(BlockKey, Block)],
 }
@@ -165,9 +170,41 @@ pub struct StoredSession {
     pub blocks: Vec<(BlockKey, Block)>,
 }
 
+/// The store: a redb file. A failed write (a full disk, an I/O error) marks it
+/// failing until a write succeeds again: [`Store::failing`] says since when and
+/// why (`/healthz` answers 503), every failure is counted
+/// (`stillmap_store_errors_total`), and writes are retried with backoff, the
+/// file reopened first (redb refuses every operation after an I/O error until it
+/// is). What a failed commit held stays in memory and goes with the next one.
 pub struct Store {
-    db: Database,
+    db: RwLock<Option<Arc<Database>>>,
     path: PathBuf,
+    health: Mutex<Health>,
+    errors: prometheus_client::metrics::counter::Counter,
+    /// Longest backoff between write attempts while failing.
+    retry_max: Duration,
+    /// Opens the database (the file; a test's failing backend).
+    opener: Box<dyn Fn() -> Result<Database, String> + Send + Sync>,
+}
+
+/// Backoff between reopening attempts after a failed write: doubling from
+/// `STORE_RETRY_MIN` up to `store.retry_max_s`.
+const STORE_RETRY_MIN: Duration = Duration::from_secs(1);
+
+#[derive(Debug, Default)]
+struct Health {
+    /// Since when writes fail, and the latest error.
+    failing: Option<(u64, String)>,
+    /// When the next write may try again (reopening the file first).
+    retry_at: Option<Instant>,
+    backoff: Duration,
+}
+
+/// Why the store is failing, for `/healthz`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Failing {
+    pub since_unix_ns: u64,
+    pub error: String,
 }
 
 impl Store {
@@ -177,7 +214,14 @@ impl Store {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|e| err(&e))?;
         }
-        let db = Database::create(path).map_err(|e| err(&e))?;
+        let file = path.to_path_buf();
+        Self::with_opener(path, Box::new(move || Database::create(&file).map_err(|e| e.to_string())))
+    }
+
+    /// A store whose database `opener` opens (again after a failure).
+    fn with_opener(path: &Path, opener: Box<dyn Fn() -> Result<Database, String> + Send + Sync>) -> Result<Self, StoreError> {
+        let err = |e: &dyn std::fmt::Display| StoreError::Db { path: path.display().to_string(), message: e.to_string() };
+        let db = opener().map_err(|e| err(&e))?;
         // Create the tables so that reads of an empty store find them.
         let tx = db.begin_write().map_err(|e| err(&e))?;
         {
@@ -189,41 +233,133 @@ impl Store {
             tx.open_table(FLEET_FRAMES).map_err(|e| err(&e))?;
         }
         tx.commit().map_err(|e| err(&e))?;
-        Ok(Self { db, path: path.to_path_buf() })
+        Ok(Self {
+            db: RwLock::new(Some(Arc::new(db))),
+            path: path.to_path_buf(),
+            health: Mutex::default(),
+            errors: Default::default(),
+            retry_max: Duration::from_secs(60),
+            opener,
+        })
+    }
+
+    /// Counts store errors in `counter` (the server's `stillmap_store_errors_total`).
+    pub fn count_errors_in(self, counter: prometheus_client::metrics::counter::Counter) -> Self {
+        Self { errors: counter, ..self }
+    }
+
+    /// Sets the longest backoff between write attempts while failing (`store.retry_max_s`).
+    pub fn retry_at_most_every(self, retry_max: Duration) -> Self {
+        Self { retry_max, ..self }
+    }
+
+    /// Since when and why writes fail; `None` while the store is healthy.
+    pub fn failing(&self) -> Option<Failing> {
+        crate::lock(&self.health).failing.as_ref().map(|(since, error)| Failing { since_unix_ns: *since, error: error.clone() })
+    }
+
+    /// Store errors so far.
+    pub fn errors(&self) -> u64 {
+        self.errors.get()
+    }
+
+    /// The database for a read.
+    fn db(&self) -> Result<Arc<Database>, StoreError> {
+        self.db.read().unwrap_or_else(|p| p.into_inner()).clone().ok_or_else(|| self.err("closed after an error; reopening"))
+    }
+
+    /// The database for a write: while failing, refused until the backoff has
+    /// passed, then reopened (a database that saw an I/O error refuses everything).
+    fn db_for_write(&self) -> Result<Arc<Database>, StoreError> {
+        let retry = {
+            let h = crate::lock(&self.health);
+            match (&h.failing, h.retry_at) {
+                (Some((_, error)), Some(at)) if Instant::now() < at => {
+                    return Err(StoreError::Db { path: self.path.display().to_string(), message: format!("failing, next try in {:.1} s: {error}", at.saturating_duration_since(Instant::now()).as_secs_f64()) });
+                }
+                (Some(_), _) => true,
+                (None, _) => false,
+            }
+        };
+        if retry {
+            let mut slot = self.db.write().unwrap_or_else(|p| p.into_inner());
+            // Ours must be dropped before the file can be opened again (readers
+            // still holding it make the reopening fail, and the backoff retries).
+            slot.take();
+            match (self.opener)() {
+                Ok(db) => *slot = Some(Arc::new(db)),
+                Err(e) => {
+                    drop(slot);
+                    return Err(self.err(format!("reopening: {e}")));
+                }
+            }
+        }
+        self.db()
+    }
+
+    /// Notes a write that went through: the store is healthy again.
+    fn wrote(&self) {
+        let mut h = crate::lock(&self.health);
+        if h.failing.take().is_some() {
+            tracing::info!(path = %self.path.display(), "the store takes writes again");
+        }
+        *h = Health::default();
+    }
+
+    /// A write transaction's outcome: counted and noted when it failed.
+    fn written(&self, outcome: Result<(), StoreError>) -> Result<(), StoreError> {
+        if outcome.is_ok() {
+            self.wrote();
+        }
+        outcome
     }
 
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// A database error: counted, and the store marked failing until a write succeeds.
     fn err(&self, e: impl std::fmt::Display) -> StoreError {
-        StoreError::Db { path: self.path.display().to_string(), message: e.to_string() }
+        let message = e.to_string();
+        self.errors.inc();
+        let mut h = crate::lock(&self.health);
+        let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        let since = h.failing.as_ref().map_or(now, |(since, _)| *since);
+        if h.failing.is_none() {
+            tracing::error!(path = %self.path.display(), "the store fails: {message}");
+        }
+        h.failing = Some((since, message.clone()));
+        h.backoff = if h.backoff.is_zero() { STORE_RETRY_MIN.min(self.retry_max) } else { (h.backoff * 2).min(self.retry_max) };
+        h.retry_at = Some(Instant::now() + h.backoff);
+        StoreError::Db { path: self.path.display().to_string(), message }
     }
 
     /// Records a new session (before any frame).
     pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo) -> Result<(), StoreError> {
-        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        let db = self.db_for_write()?;
+        let tx = db.begin_write().map_err(|e| self.err(e))?;
         {
             let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
             tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
             tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
         }
-        tx.commit().map_err(|e| self.err(e))
+        self.written(tx.commit().map_err(|e| self.err(e)))
     }
 
     /// Records a session's frame in its fleet (its anchoring or its merge).
     pub fn put_fleet_frame(&self, id: &str, frame: &FleetFrame) -> Result<(), StoreError> {
-        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        let db = self.db_for_write()?;
+        let tx = db.begin_write().map_err(|e| self.err(e))?;
         {
             let json = serde_json::to_vec(frame).map_err(|e| self.err(e))?;
             tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
         }
-        tx.commit().map_err(|e| self.err(e))
+        self.written(tx.commit().map_err(|e| self.err(e)))
     }
 
     /// Every session's fleet frame.
     pub fn fleet_frames(&self) -> Result<std::collections::HashMap<String, FleetFrame>, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let table = tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?;
         let mut out = std::collections::HashMap::new();
         for entry in table.iter().map_err(|e| self.err(e))? {
@@ -236,20 +372,27 @@ impl Store {
 
     /// One keyframe's worth of state, atomically.
     pub fn commit(&self, c: &Commit<'_>) -> Result<(), StoreError> {
-        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        let db = self.db_for_write()?;
+        let tx = db.begin_write().map_err(|e| self.err(e))?;
         self.write(&tx, c)?;
-        tx.commit().map_err(|e| self.err(e))
+        self.written(tx.commit().map_err(|e| self.err(e)))
     }
 
     fn write(&self, tx: &redb::WriteTransaction, c: &Commit<'_>) -> Result<(), StoreError> {
         let json = serde_json::to_vec(c.meta).map_err(|e| self.err(e))?;
         tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json.as_slice()).map_err(|e| self.err(e))?;
+        if let Some(camera) = c.camera {
+            tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(c.session_id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+        }
         let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
         for p in c.poses {
             poses.insert((c.session_id, p.sequence), p.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
         }
-        if let Some(k) = &c.keyframe {
-            tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?.insert((c.session_id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+        if !c.keyframes.is_empty() {
+            let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+            for k in c.keyframes {
+                table.insert((c.session_id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+            }
         }
         let mut blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
         for (key, block) in c.blocks.iter().map(|(k, b)| (k, *b)).chain(c.evicted.iter().map(|(k, b)| (k, b))) {
@@ -261,7 +404,7 @@ impl Store {
 
     /// One stored block (an evicted block coming back).
     pub fn block(&self, session_id: &str, key: BlockKey) -> Result<Option<Block>, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let table = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
         let Some(v) = table.get((session_id, key[0], key[1], key[2])).map_err(|e| self.err(e))? else {
             return Ok(None);
@@ -272,7 +415,7 @@ impl Store {
     /// Every stored session, with its trajectory, keyframes and map blocks.
     pub fn load_all(&self) -> Result<Vec<StoredSession>, StoreError> {
         let ids: Vec<String> = {
-            let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+            let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
             let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
             let mut ids = Vec::new();
             for entry in sessions.iter().map_err(|e| self.err(e))? {
@@ -285,7 +428,7 @@ impl Store {
 
     /// One stored session, everything committed about it.
     pub fn load(&self, id: &str) -> Result<Option<StoredSession>, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
         let Some(meta) = sessions.get(id).map_err(|e| self.err(e))? else { return Ok(None) };
         let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
@@ -314,13 +457,14 @@ impl Store {
     }
 
     pub fn contains(&self, id: &str) -> Result<bool, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         Ok(tx.open_table(SESSIONS).map_err(|e| self.err(e))?.get(id).map_err(|e| self.err(e))?.is_some())
     }
 
     /// Writes a whole session (an imported map file) in one transaction.
     pub fn import(&self, s: &StoredSession) -> Result<(), StoreError> {
-        let tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        let db = self.db_for_write()?;
+        let tx = db.begin_write().map_err(|e| self.err(e))?;
         tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(s.id.as_str(), s.camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
         {
             let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
@@ -328,9 +472,9 @@ impl Store {
                 table.insert((s.id.as_str(), k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
             }
         }
-        let commit = Commit { session_id: &s.id, meta: &s.meta, poses: &s.poses, keyframe: None, blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(), evicted: &[] };
+        let commit = Commit { session_id: &s.id, meta: &s.meta, poses: &s.poses, keyframes: &[], camera: None, blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(), evicted: &[] };
         self.write(&tx, &commit)?;
-        tx.commit().map_err(|e| self.err(e))
+        self.written(tx.commit().map_err(|e| self.err(e)))
     }
 }
 
@@ -499,7 +643,7 @@ mod tests {
             let store = Store::open(&path).unwrap();
             store.put_session("s1", &meta, &camera).unwrap();
             store
-                .commit(&Commit { session_id: "s1", meta: &meta, poses: &[pose], keyframe: Some(kf.clone()), blocks: vec![([1, -2, 3], &block)], evicted: &[([9, 9, 9], block.clone())] })
+                .commit(&Commit { session_id: "s1", meta: &meta, poses: &[pose], keyframes: std::slice::from_ref(&kf), camera: None, blocks: vec![([1, -2, 3], &block)], evicted: &[([9, 9, 9], block.clone())] })
                 .unwrap();
         }
         let store = Store::open(&path).unwrap();
@@ -528,6 +672,81 @@ mod tests {
         assert!(import_file(&cut, 1 << 20).unwrap_err().to_string().starts_with("bad map file: "));
         drop(store);
         let _ = std::fs::remove_file(&path);
+    }
+
+    /// A disk in memory that can be full: every write fails with ENOSPC while it is.
+    #[derive(Debug, Default, Clone)]
+    struct Disk {
+        bytes: Arc<RwLock<Vec<u8>>>,
+        full: Arc<std::sync::atomic::AtomicBool>,
+    }
+
+    impl Disk {
+        fn check(&self) -> std::io::Result<()> {
+            if self.full.load(std::sync::atomic::Ordering::SeqCst) { Err(std::io::Error::from_raw_os_error(28)) } else { Ok(()) }
+        }
+    }
+
+    impl redb::StorageBackend for Disk {
+        fn len(&self) -> std::io::Result<u64> {
+            Ok(self.bytes.read().unwrap().len() as u64)
+        }
+        fn read(&self, offset: u64, out: &mut [u8]) -> std::io::Result<()> {
+            let bytes = self.bytes.read().unwrap();
+            let at = offset as usize;
+            out.copy_from_slice(bytes.get(at..at + out.len()).ok_or_else(|| std::io::Error::other("read beyond the end"))?);
+            Ok(())
+        }
+        fn set_len(&self, len: u64) -> std::io::Result<()> {
+            self.check()?;
+            self.bytes.write().unwrap().resize(len as usize, 0);
+            Ok(())
+        }
+        fn sync_data(&self) -> std::io::Result<()> {
+            self.check()
+        }
+        fn write(&self, offset: u64, data: &[u8]) -> std::io::Result<()> {
+            self.check()?;
+            let mut bytes = self.bytes.write().unwrap();
+            let at = offset as usize;
+            if bytes.len() < at + data.len() {
+                bytes.resize(at + data.len(), 0);
+            }
+            bytes[at..at + data.len()].copy_from_slice(data);
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_full_disk_marks_the_store_failing_until_a_retried_write_goes_through() {
+        let disk = Disk::default();
+        let backend = disk.clone();
+        let store = Store::with_opener(Path::new("memory"), Box::new(move || redb::Builder::new().create_with_backend(backend.clone()).map_err(|e| e.to_string()))).unwrap();
+        let meta = SessionMeta { robot_id: "r".into(), transport: "grpc".into(), started_unix_ns: 1, class_names: Vec::new(), up_in_world: None, up_source: None, keyframes: 1, map_stamp: 1, fleet: String::new() };
+        let camera = pb::CameraInfo { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5, ..Default::default() };
+        store.put_session("s", &meta, &camera).unwrap();
+        assert_eq!((store.failing(), store.errors()), (None, 0));
+        let kf = KeyframeRecord { id: 4, timestamp_ns: 9, world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], features: Vec::new() };
+        let pose = pb::PoseStamped { sequence: 7, ..Default::default() };
+        let commit = Commit { session_id: "s", meta: &meta, poses: std::slice::from_ref(&pose), keyframes: std::slice::from_ref(&kf), camera: None, blocks: Vec::new(), evicted: &[] };
+
+        disk.full.store(true, std::sync::atomic::Ordering::SeqCst);
+        let e = store.commit(&commit).unwrap_err().to_string();
+        assert!(e.contains("No space left on device"), "{e}");
+        let failing = store.failing().expect("failing");
+        assert!(failing.error.contains("No space left on device") && failing.since_unix_ns > 0, "{failing:?}");
+        assert!(store.errors() >= 1);
+        // Within the backoff a write is refused at once, naming the cause.
+        let e = store.commit(&commit).unwrap_err().to_string();
+        assert!(e.contains("failing, next try in") && e.contains("No space left on device"), "{e}");
+        assert_eq!(store.failing().map(|f| f.since_unix_ns), Some(failing.since_unix_ns));
+        // Space again: after the backoff the store is reopened and the write goes through.
+        disk.full.store(false, std::sync::atomic::Ordering::SeqCst);
+        std::thread::sleep(STORE_RETRY_MIN * 2);
+        store.commit(&commit).unwrap();
+        assert_eq!(store.failing(), None);
+        let back = store.load("s").unwrap().expect("session");
+        assert_eq!((back.poses, back.keyframes.len()), (vec![pose], 1));
     }
 
     /// A map file whose body is `body`, compressed declaring its size or not.

@@ -31,7 +31,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/events", get(crate::api::dashboard::events))
         .with_state(dashboard);
     Router::new()
-        .route("/healthz", get(|| async { Json(json!({ "status": "ok" })) }))
+        .route("/healthz", get(healthz))
         .route("/api/v1/sessions", get(list_sessions))
         .route("/api/v1/sessions/{id}", get(get_session))
         .route("/api/v1/sessions/{id}/pose", get(get_pose))
@@ -441,6 +441,22 @@ async fn get_fleet(State(registry): State<Arc<Registry>>, Path(name): Path<Strin
     match registry.fleets().and_then(|f| f.get(&name)) {
         Some(f) => Json(fleet_json(&f, true)).into_response(),
         None => error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")),
+    }
+}
+
+/// 200 `{"status": "ok"}`; 503 with the reason while the store fails to write
+/// (the server goes on serving from memory).
+async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
+    match registry.store().and_then(|s| s.failing().map(|f| (f, s.errors()))) {
+        None => Json(json!({ "status": "ok" })).into_response(),
+        Some((f, errors)) => (
+            StatusCode::SERVICE_UNAVAILABLE,
+            Json(json!({
+                "status": "unhealthy",
+                "store": { "error": f.error, "failing_since_unix_ns": f.since_unix_ns, "errors_total": errors },
+            })),
+        )
+            .into_response(),
     }
 }
 
