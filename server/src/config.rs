@@ -212,6 +212,19 @@ pub struct SessionConfig {
     /// queue full is left out of the map and counted (`stillmap_map_jobs_skipped_total`),
     /// so tracking never waits for the map.
     pub map_queue: usize,
+    /// Largest camera a hello may declare, in pixels (width × height; default
+    /// 2,097,152 = 2 MP, a 1920×1080 camera fits). A session's buffers grow with
+    /// it (about 8 bytes of camera rays per pixel before any frame), so a larger
+    /// hello is refused with RESOURCE_EXHAUSTED naming this key.
+    pub max_camera_pixels: u64,
+    /// A frame whose sequence number is more than this past the session's previous
+    /// frame is rejected (counted as `order`) and does not move the session on:
+    /// one forged or corrupt frame (sequence 2⁶⁴−1) cannot make every later frame
+    /// of the robot look old. Default 1,000,000 (nine hours at 30 Hz).
+    pub max_sequence_jump: u64,
+    /// The same for capture time: a frame more than this many seconds after the
+    /// previous one is rejected (default 86,400 s, a day).
+    pub max_capture_gap_s: f64,
 }
 
 /// Overload policy of a session's frame queue. Every dropped frame is counted in
@@ -267,6 +280,9 @@ impl Default for SessionConfig {
             map_threads: 1,
             opencv_threads: 1,
             map_queue: 16,
+            max_camera_pixels: 1 << 21,
+            max_sequence_jump: 1_000_000,
+            max_capture_gap_s: 86_400.0,
         }
     }
 }
@@ -324,6 +340,9 @@ impl ServerConfig {
         }
         if self.auth.admin_tokens.iter().any(|t| self.auth.tokens.contains(t)) {
             return bad("a token is in both auth.tokens and auth.admin_tokens: give admins tokens of their own".into());
+        }
+        if self.session.max_camera_pixels == 0 || self.session.max_sequence_jump == 0 || !(self.session.max_capture_gap_s > 0.0 && self.session.max_capture_gap_s.is_finite()) {
+            return bad("session.max_camera_pixels, max_sequence_jump and max_capture_gap_s must be positive".into());
         }
         if !(0.1..=3600.0).contains(&self.store.retry_max_s) {
             return bad(format!("store.retry_max_s must be within 0.1..=3600, got {}", self.store.retry_max_s));

@@ -56,7 +56,7 @@ impl Default for Metrics {
         registry.register("frames_dropped", "Frames dropped by the overload policy, by transport", frames_dropped.clone());
         registry.register(
             "frames_rejected",
-            "Frames or messages rejected, by reason (order, color, depth, oversized, no_hello, malformed)",
+            "Frames, messages or hellos rejected, by reason (order, color, depth, oversized, no_hello, malformed, unauthenticated, server_full, too_large)",
             frames_rejected.clone(),
         );
         registry.register("bytes_received", "Frame payload bytes received, by transport", bytes_received.clone());

@@ -106,6 +106,8 @@ pub struct Session {
     answered_tx: watch::Sender<u64>,
     metrics: Arc<Metrics>,
     tracker_config: TrackerConfig,
+    /// How far a frame may jump past the previous one (`session.max_sequence_jump`, …).
+    order_window: crate::pipeline::decode::OrderWindow,
     perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
     /// The static semantic map (`None`: mapping off, or it could not start).
     map: Option<SharedMap>,
@@ -230,8 +232,12 @@ impl Session {
         self.counters.received.fetch_add(1, Ordering::Relaxed);
         self.counters.bytes.fetch_add(encoded_len as u64, Ordering::Relaxed);
         {
+            // A frame jumping absurdly far (forged, corrupt) is rejected when decoded,
+            // and must not tell a resuming robot it was received.
             let mut last = lock(&self.last_received_sequence);
-            *last = Some(last.map_or(sequence, |l| l.max(sequence)));
+            if self.order_window.sequence_fits(*last, sequence) {
+                *last = Some(last.map_or(sequence, |l| l.max(sequence)));
+            }
         }
         if outcome != PushOutcome::Queued {
             self.counters.dropped.fetch_add(1, Ordering::Relaxed);
@@ -386,7 +392,7 @@ impl Session {
     }
 
     fn new_pipeline(&self) -> SessionPipeline {
-        SessionPipeline::new(&self.id, &self.camera, &self.tracker_config, self.perception.as_ref(), self.map.as_ref().map(fuse::refuse_window))
+        SessionPipeline::new(&self.id, &self.camera, &self.tracker_config, self.perception.as_ref(), self.map.as_ref().map(fuse::refuse_window), self.order_window)
     }
 
     /// Publishes what a processed frame changed (pose, counters, metrics) and
@@ -524,6 +530,9 @@ pub enum BadHello {
     /// `session.max_connected` robots stream already (RESOURCE_EXHAUSTED).
     #[error("server full: {connected} robots connected, session.max_connected = {limit}")]
     Full { connected: usize, limit: usize },
+    /// The hello asks for more than a limit allows (RESOURCE_EXHAUSTED, naming it).
+    #[error("{0}")]
+    TooLarge(String),
     /// The server could not start the session (INTERNAL).
     #[error("{0}")]
     Internal(String),
@@ -534,7 +543,7 @@ impl BadHello {
     pub fn status(&self) -> tonic::Status {
         let code = match self {
             Self::Invalid(_) => tonic::Code::InvalidArgument,
-            Self::Full { .. } => tonic::Code::ResourceExhausted,
+            Self::Full { .. } | Self::TooLarge(_) => tonic::Code::ResourceExhausted,
             Self::Internal(_) => tonic::Code::Internal,
         };
         tonic::Status::new(code, self.to_string())
@@ -658,6 +667,13 @@ impl Registry {
             return Ok(Opened { session, resumed: true });
         }
         let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello::Invalid)?.clone();
+        let pixels = u64::from(camera.width) * u64::from(camera.height);
+        if pixels > self.config.max_camera_pixels {
+            return Err(BadHello::TooLarge(format!(
+                "camera of {}x{} = {pixels} pixels is over session.max_camera_pixels = {}",
+                camera.width, camera.height, self.config.max_camera_pixels
+            )));
+        }
         if !hello.fleet.is_empty() {
             stillmap_proto::validate_fleet(&hello.fleet).map_err(BadHello::Invalid)?;
         }
@@ -866,6 +882,10 @@ impl Registry {
             answered_tx: watch::channel(0).0,
             metrics: self.metrics.clone(),
             tracker_config: self.tracking.clone(),
+            order_window: crate::pipeline::decode::OrderWindow {
+                max_sequence_jump: self.config.max_sequence_jump,
+                max_capture_gap_ns: (self.config.max_capture_gap_s * 1e9) as u64,
+            },
             perception: p.perception,
             map: p.map,
             archived: p.archived,

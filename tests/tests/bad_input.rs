@@ -151,6 +151,48 @@ async fn bad_frames_are_rejected_by_name_and_the_session_goes_on() {
     }
 }
 
+#[tokio::test(flavor = "multi_thread")]
+async fn a_forged_frame_far_ahead_is_rejected_and_the_robots_frames_go_on() {
+    let server = Server::start(&["--no-perception"]);
+    let (mut s, accepted) = Stream::hello(&server, tum_hello("forged")).await;
+    s.send(ClientMsg::Frame(tum_frame(1, 1_000))).await;
+    assert_eq!(s.result().await.status(), FrameStatus::Ok);
+    // Someone else's frame on the robot's stream: sequence 2^64 - 1.
+    s.send(ClientMsg::Frame(tum_frame(u64::MAX, 2_000))).await;
+    assert_eq!(
+        rejected(&s.result().await),
+        (
+            Code::InvalidArgument,
+            "frame sequence 18446744073709551615 jumps more than session.max_sequence_jump = 1000000 past the previous frame's 1: not taken as this robot's next frame".into()
+        )
+    );
+    // The robot's next frames are taken, and a resuming robot is not told the forged one arrived.
+    s.send(ClientMsg::Frame(tum_frame(2, 3_000))).await;
+    assert_eq!(s.result().await.status(), FrameStatus::Ok);
+    let (_, detail) = server.get_json(&format!("/api/v1/sessions/{}", accepted.session_id)).await;
+    assert_eq!(detail["counters"]["last_received_sequence"], 2, "{detail}");
+    assert_eq!(detail["counters"]["frames_processed"], 2);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_hello_declaring_a_huge_camera_is_resource_exhausted() {
+    let server = Server::start(&["--no-perception"]);
+    let mut hello = tum_hello("huge");
+    if let Some(c) = hello.camera.as_mut() {
+        (c.width, c.height) = (8192, 8192);
+    }
+    let mut s = Stream::open(&server).await;
+    s.send(ClientMsg::Hello(hello)).await;
+    let status = s.next().await.expect_err("refused");
+    assert_eq!(
+        (status.code(), status.message()),
+        (Code::ResourceExhausted, "camera of 8192x8192 = 67108864 pixels is over session.max_camera_pixels = 2097152")
+    );
+    assert!(server.get_text("/metrics").await.contains("stillmap_frames_rejected_total{reason=\"too_large\"} 1"));
+    let (_, sessions) = server.get_json("/api/v1/sessions").await;
+    assert_eq!(sessions["sessions"].as_array().map(Vec::len), Some(0), "no session was opened");
+}
+
 fn zstd_compress(bytes: &[u8]) -> Vec<u8> {
     zstd::bulk::compress(bytes, codec::DEPTH_ZSTD_LEVEL).expect("zstd")
 }

@@ -30,8 +30,10 @@ pub fn queue_status(e: QueueError) -> Status {
 
 /// The status a refused hello is answered with; a full server is counted.
 pub fn refusal(e: &BadHello, metrics: &Metrics) -> Status {
-    if matches!(e, BadHello::Full { .. }) {
-        metrics.rejected("server_full");
+    match e {
+        BadHello::Full { .. } => metrics.rejected("server_full"),
+        BadHello::TooLarge(_) => metrics.rejected("too_large"),
+        _ => {}
     }
     e.status()
 }

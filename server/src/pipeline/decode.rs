@@ -49,17 +49,40 @@ pub struct Decoder {
     camera: pb::CameraInfo,
     color_encoding: ColorEncoding,
     depth_encoding: DepthEncoding,
+    window: OrderWindow,
     last_sequence: Option<u64>,
     last_capture_time_ns: Option<u64>,
 }
 
+/// How far a frame may jump past the previous one and still be taken as the
+/// session's next (`session.max_sequence_jump`, `session.max_capture_gap_s`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OrderWindow {
+    pub max_sequence_jump: u64,
+    pub max_capture_gap_ns: u64,
+}
+
+impl Default for OrderWindow {
+    fn default() -> Self {
+        Self { max_sequence_jump: 1_000_000, max_capture_gap_ns: 86_400_000_000_000 }
+    }
+}
+
+impl OrderWindow {
+    /// Whether sequence `next` is plausible after `last` (no previous frame: any).
+    pub fn sequence_fits(&self, last: Option<u64>, next: u64) -> bool {
+        last.is_none_or(|l| next.saturating_sub(l) <= self.max_sequence_jump)
+    }
+}
+
 impl Decoder {
     /// `camera` must have passed [`validate_camera`].
-    pub fn new(camera: pb::CameraInfo) -> Self {
+    pub fn new(camera: pb::CameraInfo, window: OrderWindow) -> Self {
         Self {
             color_encoding: camera.color_encoding(),
             depth_encoding: camera.depth_encoding(),
             camera,
+            window,
             last_sequence: None,
             last_capture_time_ns: None,
         }
@@ -74,6 +97,30 @@ impl Decoder {
             && frame.sequence <= last
         {
             return Err(reject(RejectReason::Order, format!("frame sequence {} is not after the previous frame's {last}", frame.sequence)));
+        }
+        if !self.window.sequence_fits(self.last_sequence, frame.sequence) {
+            return Err(reject(
+                RejectReason::Order,
+                format!(
+                    "frame sequence {} jumps more than session.max_sequence_jump = {} past the previous frame's {}: not taken as this robot's next frame",
+                    frame.sequence,
+                    self.window.max_sequence_jump,
+                    self.last_sequence.unwrap_or_default()
+                ),
+            ));
+        }
+        if let Some(last) = self.last_capture_time_ns
+            && frame.capture_time_ns.saturating_sub(last) > self.window.max_capture_gap_ns
+        {
+            return Err(reject(
+                RejectReason::Order,
+                format!(
+                    "frame {} captured {} s after the previous frame, more than session.max_capture_gap_s = {}: not taken as this robot's next frame",
+                    frame.sequence,
+                    (frame.capture_time_ns - last) as f64 * 1e-9,
+                    self.window.max_capture_gap_ns as f64 * 1e-9
+                ),
+            ));
         }
         if let Some(last) = self.last_capture_time_ns
             && frame.capture_time_ns <= last
@@ -199,7 +246,7 @@ mod tests {
 
     #[test]
     fn good_frame_is_decoded() {
-        let mut p = Decoder::new(camera());
+        let mut p = Decoder::new(camera(), OrderWindow::default());
         let out = p.decode(&frame(1, 100)).expect("decoded");
         let depth = DepthImage { width: 8, height: 4, data: (0..32).collect() };
         assert_eq!(out.depth, depth);
@@ -208,8 +255,27 @@ mod tests {
     }
 
     #[test]
+    fn a_frame_jumping_absurdly_far_is_rejected_and_the_robots_next_frames_go_on() {
+        let mut p = Decoder::new(camera(), OrderWindow { max_sequence_jump: 1000, max_capture_gap_ns: 1_000_000_000 });
+        assert!(p.decode(&frame(5, 500)).is_ok());
+        assert_eq!(
+            error_of(p.decode(&frame(u64::MAX, 600))).1,
+            "frame sequence 18446744073709551615 jumps more than session.max_sequence_jump = 1000 past the previous frame's 5: not taken as this robot's next frame"
+        );
+        assert_eq!(
+            error_of(p.decode(&frame(6, u64::MAX))).1,
+            "frame 6 captured 18446744073.709553 s after the previous frame, more than session.max_capture_gap_s = 1: not taken as this robot's next frame"
+        );
+        // Neither moved the session on: the robot's real next frames are taken.
+        assert!(p.decode(&frame(6, 700)).is_ok());
+        assert!(p.decode(&frame(1006, 1_000_000_700)).is_ok(), "a jump of exactly the window fits");
+        let w = OrderWindow::default();
+        assert!(w.sequence_fits(None, u64::MAX) && w.sequence_fits(Some(7), 3) && !w.sequence_fits(Some(7), 1_000_008));
+    }
+
+    #[test]
     fn order_problems_are_rejected_and_the_session_goes_on() {
-        let mut p = Decoder::new(camera());
+        let mut p = Decoder::new(camera(), OrderWindow::default());
         assert!(p.decode(&frame(5, 500)).is_ok());
         assert_eq!(
             error_of(p.decode(&frame(6, 400))),
@@ -224,7 +290,7 @@ mod tests {
 
     #[test]
     fn bad_images_name_the_problem() {
-        let mut p = Decoder::new(camera());
+        let mut p = Decoder::new(camera(), OrderWindow::default());
         let mut f = frame(1, 1);
         f.color.truncate(5);
         assert_eq!(error_of(p.decode(&f)).1, "frame 1: raw RGB8 colour holds 5 bytes, expected 96 (8x4x3)");

@@ -106,6 +106,7 @@ impl SessionPipeline {
         tracking: &TrackerConfig,
         perception: Option<&(PerceptionConfig, Option<Arc<SegmentationService>>)>,
         map_refuse_window: Option<usize>,
+        order: decode::OrderWindow,
     ) -> Self {
         let tracker = SessionTracker::new(camera, tracking)
             .map_err(|e| tracing::error!(session = %session_id, "tracking unavailable for this session: {e}"))
@@ -115,7 +116,7 @@ impl SessionPipeline {
                 .map_err(|e| tracing::error!(session = %session_id, "perception unavailable for this session: {e}"))
                 .ok()
         });
-        Self { decoder: Decoder::new(camera.clone()), tracker, perception, handoff: map_refuse_window.map(Handoff::new) }
+        Self { decoder: Decoder::new(camera.clone(), order), tracker, perception, handoff: map_refuse_window.map(Handoff::new) }
     }
 
     /// Runs one frame through the stages.
@@ -233,7 +234,7 @@ mod tests {
     /// built once from the outcome.
     #[test]
     fn a_frame_passes_the_stages_in_order() {
-        let mut p = SessionPipeline::new("s", &camera(), &TrackerConfig::default(), None, Some(12));
+        let mut p = SessionPipeline::new("s", &camera(), &TrackerConfig::default(), None, Some(12), decode::OrderWindow::default());
         let out = p.process(&queued(1));
         assert!(out.rejection.is_none());
         let names: Vec<&str> = out.stages.iter().map(|s| s.0).collect();
