@@ -39,6 +39,10 @@ pub struct GrpcOptions {
     pub max_backoff: Duration,
     /// Consecutive failed attempts before giving up.
     pub max_attempts: u32,
+    /// No result for this long while frames wait for theirs: the stream is taken
+    /// as dead (a server that stopped answering, or the session's results going
+    /// elsewhere) and the link reconnects, resuming the session.
+    pub result_timeout: Duration,
 }
 
 /// Zenoh link settings.
@@ -176,10 +180,19 @@ async fn run_grpc(
         }
         // Dropping the sender half-closes the stream: the server answers what it has, then ends it.
         let mut sender = (!input_done).then_some(out);
+        // Since when frames have waited for a result with none arriving.
+        let mut waiting_since = (!unacked.is_empty()).then(tokio::time::Instant::now);
         let broke = loop {
+            let deadline = waiting_since.map(|t| t + options.result_timeout);
             tokio::select! {
+                _ = tokio::time::sleep_until(deadline.unwrap_or_else(tokio::time::Instant::now)), if deadline.is_some() => {
+                    break Broke::Transient(format!("no result for {:.1} s while {} frames wait (--result-timeout)", options.result_timeout.as_secs_f64(), unacked.len()));
+                }
                 frame = frames_rx.recv(), if sender.is_some() => match (frame, &sender) {
                     (Some(frame), Some(out)) => {
+                        if unacked.is_empty() {
+                            waiting_since = Some(tokio::time::Instant::now());
+                        }
                         unacked.push_back(frame.clone());
                         if out.send(frame_message(frame)).await.is_err() {
                             break Broke::Transient("outbound stream closed".into());
@@ -195,6 +208,7 @@ async fn run_grpc(
                         while unacked.front().is_some_and(|f| f.sequence <= r.sequence) {
                             unacked.pop_front();
                         }
+                        waiting_since = (!unacked.is_empty()).then(tokio::time::Instant::now);
                         let _ = events.send(LinkEvent::Result(r)).await;
                     }
                     Ok(Some(_)) => {}

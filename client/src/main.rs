@@ -158,6 +158,10 @@ enum Command {
         /// Reconnection attempts (gRPC) before giving up.
         #[arg(long, default_value_t = 10)]
         reconnect_attempts: u32,
+        /// Seconds without any result while frames wait for theirs before the gRPC
+        /// link gives up on the stream and reconnects (resuming the session).
+        #[arg(long, default_value_t = 15.0)]
+        result_timeout: f64,
         /// Seconds to wait for the server (Zenoh hello, late results; gRPC connect).
         #[arg(long, default_value_t = 10.0)]
         timeout: f64,
@@ -301,6 +305,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             depth_codec,
             max_in_flight,
             reconnect_attempts,
+            result_timeout,
             timeout,
             trajectory,
             summary_json,
@@ -366,6 +371,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                         initial_backoff: Duration::from_millis(100),
                         max_backoff: Duration::from_secs(5),
                         max_attempts: reconnect_attempts,
+                        result_timeout: positive_seconds("--result-timeout", result_timeout)?,
                     };
                     streamer::run(&options, "grpc", |hello| link::start_grpc(hello, grpc)).await?
                 }
@@ -411,10 +417,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             let SourceSpec::Tum(tum) = source else {
                 return Err(ClientError::Usage("fleet replays a recording: --source tum:<dir>".into()).into());
             };
-            let duration = Duration::try_from_secs_f64(duration)
-                .ok()
-                .filter(|d| !d.is_zero())
-                .ok_or_else(|| ClientError::Usage(format!("--duration {duration} is not a positive number of seconds")))?;
+            let duration = positive_seconds("--duration", duration)?;
             let timeout = Duration::try_from_secs_f64(timeout)
                 .map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
             let options = FleetOptions {
@@ -436,6 +439,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     initial_backoff: Duration::from_millis(100),
                     max_backoff: Duration::from_secs(5),
                     max_attempts: 10,
+                    result_timeout: Duration::from_secs(15),
                 },
                 zenoh: ZenohOptions { connect: zenoh_connect, mode: zenoh_mode, timeout },
                 http: (!http.is_empty()).then_some(http),
@@ -487,4 +491,12 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// `seconds` as a positive duration, or the usage error naming `flag`.
+fn positive_seconds(flag: &str, seconds: f64) -> Result<Duration, ClientError> {
+    Duration::try_from_secs_f64(seconds)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .ok_or_else(|| ClientError::Usage(format!("{flag} {seconds} is not a positive number of seconds")))
 }

@@ -91,3 +91,76 @@ async fn client_reconnects_and_resumes_the_session() {
     assert_eq!(list[0]["counters"]["frames_received"], 150);
     assert_eq!(list[0]["counters"]["frames_processed"], 150);
 }
+
+/// Bytes the first connection carries back to the client before its answers stop
+/// (the accept and a few results); the connection stays open.
+const ANSWER_BYTES: usize = 2_000;
+
+/// A proxy whose first connection stops answering: the client's frames still reach
+/// the server, its results no longer come back (as when another party took the
+/// session's results, or the server stalled).
+async fn silent_proxy(listener: TcpListener, upstream: String) {
+    let connections = Arc::new(AtomicUsize::new(0));
+    while let Ok((mut client, _)) = listener.accept().await {
+        let n = connections.fetch_add(1, Ordering::Relaxed);
+        let upstream = upstream.clone();
+        tokio::spawn(async move {
+            let Ok(mut server) = TcpStream::connect(&upstream).await else { return };
+            if n > 0 {
+                let _ = tokio::io::copy_bidirectional(&mut client, &mut server).await;
+                return;
+            }
+            let (mut cr, mut cw) = client.split();
+            let (mut sr, mut sw) = server.split();
+            let up = tokio::io::copy(&mut cr, &mut sw);
+            let down = async {
+                let mut buf = vec![0u8; 64 * 1024];
+                let mut passed = 0;
+                loop {
+                    let Ok(k) = sr.read(&mut buf).await else { break };
+                    if k == 0 {
+                        break;
+                    }
+                    let pass = k.min(ANSWER_BYTES.saturating_sub(passed));
+                    if pass > 0 && cw.write_all(&buf[..pass]).await.is_err() {
+                        break;
+                    }
+                    passed += pass;
+                }
+            };
+            tokio::select! {
+                _ = up => {}
+                _ = down => {}
+            }
+        });
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_client_whose_results_stop_times_out_and_resumes() {
+    let server = Server::start(&["--no-perception", "--queue-capacity", "64"]);
+    let listener = TcpListener::bind(("127.0.0.1", 0)).await.expect("proxy bind");
+    let port = listener.local_addr().expect("proxy address").port();
+    tokio::spawn(silent_proxy(listener, server.grpc.clone()));
+    let src = format!("tum:{}", tum_dir().display());
+    let url = format!("http://127.0.0.1:{port}");
+    let started = std::time::Instant::now();
+    let (out, summary) = tokio::task::spawn_blocking(move || {
+        run_client(&["--source", &src, "--server", &url, "--rate", "max", "--max-frames", "60", "--result-timeout", "2"])
+    })
+    .await
+    .expect("client thread");
+    let took = started.elapsed();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "client failed ({}): {stderr}", out.status);
+    assert!(stderr.contains("while 8 frames wait (--result-timeout)); reconnecting"), "{stderr}");
+    let s = summary.expect("summary");
+    assert!(s["reconnects"].as_u64() >= Some(1), "{s:#}");
+    let acked = s["frames_acknowledged"].as_u64().expect("acked");
+    let unanswered = s["frames_unanswered"].as_u64().expect("unanswered");
+    assert_eq!(acked + unanswered, 60, "{s:#}");
+    // The link's keepalive alone would notice the silent stream only after 30 s (10 s
+    // pings, 20 s to answer); the result timeout gets there in 2 s.
+    eprintln!("finished in {:.1} s with {} reconnects, {unanswered} results lost", took.as_secs_f64(), s["reconnects"]);
+    assert!(took < std::time::Duration::from_secs(25), "took {took:?}");
+}
