@@ -116,8 +116,7 @@ async fn silent_proxy(listener: TcpListener, upstream: String) {
             let down = async {
                 let mut buf = vec![0u8; 64 * 1024];
                 let mut passed = 0;
-                loop {
-                    let Ok(k) = sr.read(&mut buf).await else { break };
+                while let Ok(k) = sr.read(&mut buf).await {
                     if k == 0 {
                         break;
                     }
