@@ -157,6 +157,10 @@ pub struct HttpConfig {
     /// `node_modules` from `make dashboard`). Empty: `dashboard/` beside the
     /// working directory, else two levels above the server binary (`target/<profile>/`).
     pub dashboard_dir: String,
+    /// Dashboard event streams (`/api/v1/events`) at once; one more is answered 503.
+    /// Every viewer shares one snapshot per 500 ms and one serialisation per pose,
+    /// so a viewer costs a connection and a copy of the text (default 1024).
+    pub max_event_viewers: usize,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -251,7 +255,7 @@ impl Default for GrpcConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new() }
+        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024 }
     }
 }
 

@@ -29,6 +29,8 @@ pub struct SessionMap {
     pub(crate) class_names: Vec<String>,
     top: Option<Arc<TopDown>>,
     persistence: Option<Persistence>,
+    /// Occupied voxels in memory at a map version (the dashboard's summary).
+    occupied_cache: Option<(u64, usize)>,
 }
 
 /// Where the map is committed, and what the last commit covered.
@@ -79,7 +81,7 @@ pub struct MapInfo {
 impl SessionMap {
     pub fn new(camera: &pb::CameraInfo, config: MappingConfig, class_names: Vec<String>) -> Result<SharedMap, MappingError> {
         let builder = MapBuilder::new(&camera_of(camera), config)?;
-        Ok(Arc::new(Mutex::new(Self { builder, class_names, top: None, persistence: None })))
+        Ok(Arc::new(Mutex::new(Self { builder, class_names, top: None, persistence: None, occupied_cache: None })))
     }
 
     /// Commits this map to `store` from now on (blocks beyond the memory budget
@@ -309,7 +311,17 @@ pub fn lock_info(map: &SharedMap) -> MapInfo {
 /// What the dashboard's snapshot needs, without building the top-down index:
 /// (version, keyframes, occupied voxels in memory).
 pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
-    let m = lock(map);
-    (m.builder.map().version(), m.builder.keyframes(), m.builder.map().stats().occupied_voxels)
+    let mut m = lock(map);
+    let version = m.builder.map().version();
+    // Counting occupied voxels scans the map: once per map version.
+    let occupied = match m.occupied_cache {
+        Some((v, n)) if v == version => n,
+        _ => {
+            let n = m.builder.map().stats().occupied_voxels;
+            m.occupied_cache = Some((version, n));
+            n
+        }
+    };
+    (version, m.builder.keyframes(), occupied)
 }
 

@@ -6,17 +6,18 @@ use std::collections::HashMap;
 use std::convert::Infallible;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use axum::extract::{Path as UrlPath, State};
 use axum::http::{StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{Html, IntoResponse, Response};
-use futures_util::Stream;
 use serde_json::{Value, json};
 use stillmap_proto::pb;
 use tokio_stream::StreamExt;
-use tokio_stream::wrappers::{BroadcastStream, IntervalStream};
+use tokio::sync::{broadcast, watch};
+use tokio_stream::wrappers::{BroadcastStream, WatchStream};
 
 use crate::session::Registry;
 
@@ -44,6 +45,7 @@ pub fn locate(configured: &str) -> Option<PathBuf> {
 pub struct DashboardState {
     pub registry: Arc<Registry>,
     pub dir: Option<PathBuf>,
+    pub feed: Arc<EventFeed>,
 }
 
 pub async fn index(State(state): State<DashboardState>) -> Response {
@@ -123,46 +125,129 @@ fn session_json(s: &crate::session::Session, fps: f64) -> Value {
     })
 }
 
-enum Tick {
-    Snapshot,
-    Pose(crate::session::FleetPose),
+/// Pose events buffered for viewers; one that falls further behind skips poses
+/// (it redraws from the next ones).
+const POSE_EVENTS_BUFFER: usize = 1024;
+
+/// The dashboard's event stream, built once for every viewer: the sessions
+/// snapshot every 500 ms (on a blocking thread, not the runtime that serves the
+/// robots) and each pose serialised once; a viewer only copies text out. Started
+/// by the first viewer; the snapshot is skipped while nobody watches.
+pub struct EventFeed {
+    registry: Arc<Registry>,
+    snapshot: watch::Sender<Arc<str>>,
+    poses: broadcast::Sender<Arc<str>>,
+    started: std::sync::Once,
+    viewers: Arc<AtomicUsize>,
+    max_viewers: usize,
+}
+
+impl EventFeed {
+    pub fn new(registry: Arc<Registry>, max_viewers: usize) -> Arc<Self> {
+        Arc::new(Self {
+            registry,
+            snapshot: watch::channel(Arc::from("{\"sessions\":[]}")).0,
+            poses: broadcast::channel(POSE_EVENTS_BUFFER).0,
+            started: std::sync::Once::new(),
+            viewers: Arc::default(),
+            max_viewers,
+        })
+    }
+
+    /// Viewers connected now.
+    pub fn viewers(&self) -> usize {
+        self.viewers.load(Ordering::SeqCst)
+    }
+
+    /// Starts the two producer tasks (on the caller's runtime), once.
+    fn start(self: &Arc<Self>) {
+        self.started.call_once(|| {
+            let feed = self.clone();
+            tokio::spawn(async move {
+                let mut previous: HashMap<String, (u64, Instant)> = HashMap::new();
+                let mut interval = tokio::time::interval(SNAPSHOT_INTERVAL);
+                interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+                loop {
+                    interval.tick().await;
+                    if feed.snapshot.receiver_count() == 0 {
+                        continue;
+                    }
+                    let registry = feed.registry.clone();
+                    let Ok((text, seen)) = tokio::task::spawn_blocking(move || snapshot(&registry, previous)).await else { break };
+                    previous = seen;
+                    feed.snapshot.send_replace(text);
+                }
+            });
+            let feed = self.clone();
+            let mut poses = feed.registry.subscribe_fleet();
+            tokio::spawn(async move {
+                loop {
+                    match poses.recv().await {
+                        Ok((id, p)) => {
+                            let pose = p.world_from_camera.unwrap_or_default();
+                            let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
+                            let text = json!({ "session_id": &*id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] }).to_string();
+                            let _ = feed.poses.send(Arc::from(text));
+                        }
+                        Err(broadcast::error::RecvError::Lagged(_)) => {}
+                        Err(broadcast::error::RecvError::Closed) => break,
+                    }
+                }
+            });
+        });
+    }
+}
+
+/// The sessions event's data, and each session's processed count and time (for
+/// the next snapshot's frames/s).
+fn snapshot(registry: &Registry, mut previous: HashMap<String, (u64, Instant)>) -> (Arc<str>, HashMap<String, (u64, Instant)>) {
+    let now = Instant::now();
+    let list = registry.list();
+    let mut seen = HashMap::with_capacity(list.len());
+    let sessions: Vec<Value> = list
+        .iter()
+        .map(|s| {
+            let processed = s.counters.processed.load(Ordering::Relaxed);
+            let fps = match previous.remove(&s.id) {
+                Some((p, t)) if now > t => (processed.saturating_sub(p)) as f64 / (now - t).as_secs_f64(),
+                _ => 0.0,
+            };
+            seen.insert(s.id.clone(), (processed, now));
+            session_json(s, fps)
+        })
+        .collect();
+    (Arc::from(json!({ "sessions": sessions }).to_string()), seen)
+}
+
+/// Counts a viewer for as long as its stream lives.
+struct Viewer(Arc<AtomicUsize>);
+
+impl Drop for Viewer {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 /// `GET /api/v1/events`: `sessions` every 500 ms (the table, frames/s, latencies,
-/// map versions) and `pose` for every new pose of any session.
-pub async fn events(State(state): State<DashboardState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
-    let registry = state.registry.clone();
-    let ticks = IntervalStream::new(tokio::time::interval(SNAPSHOT_INTERVAL)).map(|_| Tick::Snapshot);
-    // A dashboard that falls behind skips poses (it redraws from the next ones).
-    let poses = BroadcastStream::new(registry.subscribe_fleet()).filter_map(|p| p.ok().map(Tick::Pose));
-    let mut previous: HashMap<String, (u64, Instant)> = HashMap::new();
-    let stream = ticks.merge(poses).map(move |tick| {
-        let event = match tick {
-            Tick::Snapshot => {
-                let now = Instant::now();
-                let sessions: Vec<Value> = registry
-                    .list()
-                    .iter()
-                    .map(|s| {
-                        let processed = s.counters.processed.load(std::sync::atomic::Ordering::Relaxed);
-                        let fps = match previous.insert(s.id.clone(), (processed, now)) {
-                            Some((p, t)) if now > t => (processed.saturating_sub(p)) as f64 / (now - t).as_secs_f64(),
-                            _ => 0.0,
-                        };
-                        session_json(s, fps)
-                    })
-                    .collect();
-                Event::default().event("sessions").data(json!({ "sessions": sessions }).to_string())
-            }
-            Tick::Pose((id, p)) => {
-                let pose = p.world_from_camera.unwrap_or_default();
-                let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
-                Event::default().event("pose").data(
-                    json!({ "session_id": &*id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] }).to_string(),
-                )
-            }
-        };
-        Ok(event)
+/// map versions) and `pose` for every new pose of any session. Beyond
+/// `http.max_event_viewers` at once: 503.
+pub async fn events(State(state): State<DashboardState>) -> Response {
+    let feed = state.feed.clone();
+    if feed.viewers.fetch_add(1, Ordering::SeqCst) >= feed.max_viewers {
+        feed.viewers.fetch_sub(1, Ordering::SeqCst);
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            axum::Json(json!({ "error": format!("too many dashboard viewers: http.max_event_viewers = {}", feed.max_viewers) })),
+        )
+            .into_response();
+    }
+    let viewer = Viewer(feed.viewers.clone());
+    feed.start();
+    let sessions = WatchStream::new(feed.snapshot.subscribe()).map(|text| Event::default().event("sessions").data(&*text));
+    let poses = BroadcastStream::new(feed.poses.subscribe()).filter_map(|p| p.ok().map(|text| Event::default().event("pose").data(&*text)));
+    let stream = sessions.merge(poses).map(move |event| {
+        let _counted = &viewer;
+        Ok::<_, Infallible>(event)
     });
-    Sse::new(stream).keep_alive(KeepAlive::default())
+    Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
 }

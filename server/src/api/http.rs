@@ -16,15 +16,19 @@ use crate::api::map_queries::{self as mapping, BadQuery};
 use crate::map::SharedMap;
 use crate::session::{Registry, Session, summary};
 
-/// What whole-map import and export need besides the registry.
+/// What the HTTP shell needs besides the registry: whole-map import and export's
+/// settings, the dashboard's viewer limit.
 pub struct MapTransfer {
     pub admin: crate::auth::Admin,
     /// `store.import_max_bytes`.
     pub import_max_bytes: usize,
+    /// `http.max_event_viewers`.
+    pub max_event_viewers: usize,
 }
 
 pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, transfer: Arc<MapTransfer>) -> Router {
-    let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir };
+    let feed = crate::api::dashboard::EventFeed::new(registry.clone(), transfer.max_event_viewers);
+    let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
     let ui = Router::new()
         .route("/", get(crate::api::dashboard::index))
         .route("/assets/{*path}", get(crate::api::dashboard::asset))
