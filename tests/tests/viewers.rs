@@ -47,14 +47,14 @@ async fn viewers_beyond_the_limit_are_refused_and_a_freed_place_is_taken() {
 }
 
 /// Benchmark (release): a robot streaming the clip at full rate with 0 and 500
-/// dashboard viewers connected, twice each, on a fresh server per run; prints
+/// dashboard viewers connected, three times each, on a fresh server per run; prints
 /// frames/s. `cargo build --release --workspace --bins && cargo test --release -p
 /// stillmap-e2e --test viewers -- --ignored --nocapture`.
 #[tokio::test(flavor = "multi_thread")]
 #[ignore = "benchmark: prints the frame rate with and without dashboard viewers (run in release)"]
 async fn viewers_do_not_slow_a_streaming_robot() {
     let mut rows = Vec::new();
-    for run in 0..2 {
+    for run in 0..3 {
         for viewers in [0usize, 500] {
             let server = Server::start(&["--no-zenoh"]);
             let mut handles = Vec::new();
