@@ -105,11 +105,11 @@ struct Connected {
 }
 
 /// Connects, sends the hello (resuming `session_id` when set) and waits for the accept.
-async fn connect_once(endpoint: &tonic::transport::Endpoint, hello: &pb::Hello, session_id: &str) -> Result<Connected, Broke> {
+async fn connect_once(endpoint: &tonic::transport::Endpoint, hello: &pb::Hello, session_id: &str, resume_secret: &str) -> Result<Connected, Broke> {
     let channel = endpoint.connect().await.map_err(|e| Broke::Transient(e.to_string()))?;
     let mut client = IngestClient::new(channel);
     let (out, out_rx) = mpsc::channel(LINK_BUFFER);
-    let hello = pb::Hello { resume_session_id: session_id.to_string(), ..hello.clone() };
+    let hello = pb::Hello { resume_session_id: session_id.to_string(), resume_secret: resume_secret.to_string(), ..hello.clone() };
     out.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) })
         .await
         .map_err(|_| Broke::Transient("outbound stream closed".into()))?;
@@ -136,6 +136,7 @@ async fn run_grpc(
     // Frames sent whose result has not come back: resent after a reconnect.
     let mut unacked: VecDeque<pb::Frame> = VecDeque::new();
     let mut session_id = String::new();
+    let mut resume_secret = String::new();
     let mut input_done = false;
     let mut failures = 0u32;
     let mut backoff = options.initial_backoff;
@@ -147,7 +148,7 @@ async fn run_grpc(
             tokio::time::sleep(backoff).await;
             backoff = (backoff * 2).min(options.max_backoff);
         }
-        let Connected { out, mut inbound, accepted } = match connect_once(&endpoint, &hello, &session_id).await {
+        let Connected { out, mut inbound, accepted } = match connect_once(&endpoint, &hello, &session_id, &resume_secret).await {
             Ok(c) => c,
             Err(Broke::Fatal(e)) => return Err(e),
             Err(Broke::Transient(why)) => {
@@ -172,6 +173,7 @@ async fn run_grpc(
             }
         }
         session_id = accepted.session_id.clone();
+        resume_secret = accepted.resume_secret.clone();
         let _ = events.send(LinkEvent::Accepted(accepted)).await;
         for f in &unacked {
             if out.send(frame_message(f.clone())).await.is_err() {

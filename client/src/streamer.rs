@@ -247,6 +247,7 @@ pub async fn stream(
         resume_session_id: String::new(),
         client_version: concat!("stillmap-client ", env!("CARGO_PKG_VERSION")).into(),
         fleet: options.fleet.clone(),
+        resume_secret: String::new(),
     };
     let Link { frames, mut events, task } = connect(hello);
     let mut frames = Some(frames);

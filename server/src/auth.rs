@@ -81,6 +81,18 @@ impl Admin {
     }
 }
 
+/// A new session's resume secret: 128 random bits, hex.
+pub fn new_secret() -> Result<String, getrandom::Error> {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes)?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Whether `given` is `secret` (never for an empty secret), in constant time.
+pub fn same_secret(secret: &str, given: &str) -> bool {
+    !secret.is_empty() && constant_time_eq(secret.as_bytes(), given.as_bytes())
+}
+
 /// Byte equality whose time depends on the lengths only.
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     if a.len() != b.len() {

@@ -88,6 +88,8 @@ pub struct TrackState {
 pub struct Session {
     pub id: String,
     pub robot_id: String,
+    /// What a hello resuming this session must carry (`Hello.resume_secret`).
+    resume_secret: String,
     /// The fleet the hello named (or the default one).
     pub fleet_name: String,
     pub transport: Transport,
@@ -246,6 +248,23 @@ impl Session {
         // Counted first, so the frame is never answered before it was received.
         self.schedule();
         Ok(())
+    }
+
+    /// The secret a resume must present, for the accept.
+    pub fn resume_secret(&self) -> &str {
+        &self.resume_secret
+    }
+
+    /// `Ok` when `given` is this session's resume secret (compared in constant time).
+    pub fn check_resume_secret(&self, given: &str) -> Result<(), BadHello> {
+        if crate::auth::same_secret(&self.resume_secret, given) {
+            Ok(())
+        } else {
+            Err(BadHello::Unauthenticated(format!(
+                "resuming session {} needs the resume secret its accept returned (Hello.resume_secret)",
+                self.id
+            )))
+        }
     }
 
     pub fn last_received_sequence(&self) -> Option<u64> {
@@ -530,6 +549,9 @@ pub enum BadHello {
     /// `session.max_connected` robots stream already (RESOURCE_EXHAUSTED).
     #[error("server full: {connected} robots connected, session.max_connected = {limit}")]
     Full { connected: usize, limit: usize },
+    /// A resume without the session's resume secret (UNAUTHENTICATED).
+    #[error("{0}")]
+    Unauthenticated(String),
     /// The hello asks for more than a limit allows (RESOURCE_EXHAUSTED, naming it).
     #[error("{0}")]
     TooLarge(String),
@@ -545,6 +567,7 @@ impl BadHello {
             Self::Invalid(_) => tonic::Code::InvalidArgument,
             Self::Full { .. } | Self::TooLarge(_) => tonic::Code::ResourceExhausted,
             Self::Internal(_) => tonic::Code::Internal,
+            Self::Unauthenticated(_) => tonic::Code::Unauthenticated,
         };
         tonic::Status::new(code, self.to_string())
     }
@@ -590,6 +613,8 @@ struct SessionParts {
     perception: Option<(PerceptionConfig, Option<Arc<SegmentationService>>)>,
     map: Option<SharedMap>,
     archived: bool,
+    /// What a resume must present (empty for a restored session: it cannot be resumed).
+    resume_secret: String,
 }
 
 /// The result of a hello.
@@ -660,6 +685,7 @@ impl Registry {
                     session.id, session.robot_id, hello.robot_id
                 )));
             }
+            session.check_resume_secret(&hello.resume_secret)?;
             if !session.is_connected() {
                 self.check_capacity()?;
             }
@@ -691,6 +717,7 @@ impl Registry {
             }
         };
         let started_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        let resume_secret = crate::auth::new_secret().map_err(|e| BadHello::Internal(format!("cannot make the session's resume secret: {e}")))?;
         let map = if self.mapping.enabled {
             let names = match &self.perception {
                 Some((_, Some(service))) => service.class_names().to_vec(),
@@ -740,6 +767,7 @@ impl Registry {
             perception: self.perception.clone(),
             map,
             archived: false,
+            resume_secret,
         }));
         session.attach(sink);
         self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session.clone());
@@ -813,6 +841,7 @@ impl Registry {
                 perception: None,
                 map,
                 archived: true,
+                resume_secret: String::new(),
             }));
             tracing::info!(session = %id, keyframes = s.meta.keyframes, "session restored from the store");
             self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session);
@@ -865,6 +894,7 @@ impl Registry {
             me: me.clone(),
             id: p.id,
             robot_id: p.robot_id,
+            resume_secret: p.resume_secret,
             fleet_name: p.fleet_name,
             fleets: if p.archived { None } else { self.fleets.clone() },
             transport: p.transport,

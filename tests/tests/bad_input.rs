@@ -175,6 +175,35 @@ async fn a_forged_frame_far_ahead_is_rejected_and_the_robots_frames_go_on() {
 }
 
 #[tokio::test(flavor = "multi_thread")]
+async fn a_resume_needs_the_sessions_resume_secret() {
+    let server = Server::start(&["--no-perception"]);
+    let (s, accepted) = Stream::hello(&server, tum_hello("owner")).await;
+    let (_, other) = Stream::hello(&server, tum_hello("owner")).await;
+    assert_eq!(accepted.resume_secret.len(), 32, "128 random bits in hex");
+    assert_ne!(accepted.resume_secret, other.resume_secret);
+    drop(s);
+    // The session id is public (GET /api/v1/sessions); it alone resumes nothing.
+    let (_, sessions) = server.get_json("/api/v1/sessions").await;
+    assert!(sessions.to_string().contains(&accepted.session_id) && !sessions.to_string().contains(&accepted.resume_secret));
+    for secret in ["", "0123456789abcdef0123456789abcdef", other.resume_secret.as_str()] {
+        let mut s = Stream::open(&server).await;
+        s.send(ClientMsg::Hello(pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: secret.into(), ..tum_hello("owner") })).await;
+        let status = s.next().await.expect_err("refused");
+        assert_eq!(
+            (status.code(), status.message().to_string()),
+            (Code::Unauthenticated, format!("resuming session {} needs the resume secret its accept returned (Hello.resume_secret)", accepted.session_id)),
+            "secret {secret:?}"
+        );
+    }
+    assert!(server.get_text("/metrics").await.contains("stillmap_frames_rejected_total{reason=\"unauthenticated\"} 3"));
+    // With it, the session comes back.
+    let hello = pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..tum_hello("owner") };
+    let (_, again) = Stream::hello(&server, hello).await;
+    assert!(again.resumed);
+    assert_eq!((again.session_id, again.resume_secret), (accepted.session_id, accepted.resume_secret));
+}
+
+#[tokio::test(flavor = "multi_thread")]
 async fn a_hello_declaring_a_huge_camera_is_resource_exhausted() {
     let server = Server::start(&["--no-perception"]);
     let mut hello = tum_hello("huge");
@@ -211,7 +240,7 @@ async fn oversized_message_is_resource_exhausted_and_the_session_can_resume() {
     assert!(status.message().contains("200000"), "{}", status.message());
 
     // The session survives: resume it and go on after the last frame it received.
-    let hello = pb::Hello { resume_session_id: accepted.session_id.clone(), ..tum_hello("big") };
+    let hello = pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..tum_hello("big") };
     let (mut s2, again) = Stream::hello(&server, hello).await;
     assert!(again.resumed);
     assert_eq!(again.session_id, accepted.session_id);

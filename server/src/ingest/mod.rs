@@ -33,6 +33,7 @@ pub fn refusal(e: &BadHello, metrics: &Metrics) -> Status {
     match e {
         BadHello::Full { .. } => metrics.rejected("server_full"),
         BadHello::TooLarge(_) => metrics.rejected("too_large"),
+        BadHello::Unauthenticated(_) => metrics.rejected("unauthenticated"),
         _ => {}
     }
     e.status()
@@ -47,6 +48,7 @@ pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::Server
             last_received_sequence: if opened.resumed { opened.session.last_received_sequence() } else { None },
             max_message_bytes: max_message_bytes as u64,
             server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
+            resume_secret: opened.session.resume_secret().to_string(),
         })),
     }
 }

@@ -149,6 +149,11 @@ pub async fn serve(
                 if let Some(link) = links.get_mut(&robot)
                     && hello.resume_session_id == link.session.id
                 {
+                    if let Err(e) = link.session.check_resume_secret(&hello.resume_secret) {
+                        metrics.rejected("unauthenticated");
+                        reply(&links, e.status()).await;
+                        continue;
+                    }
                     // A hello asks for the session outright, as a new one would.
                     link.session.attach(link.sink.clone());
                     link.seen();
