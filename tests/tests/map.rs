@@ -133,6 +133,7 @@ async fn the_streamed_clip_is_mapped_and_served() {
         (format!("/api/v1/maps/{id}/tiles/3/99999999/0.png"), 400, "tile index (99999999, 0) is out of range ±1048576"),
         (format!("/api/v1/maps/{id}/cloud.ply?bbox=1,2,3"), 400, "bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got 3"),
         (format!("/api/v1/maps/{id}/occupancy.pgm?min_height=1&max_height=0"), 400, "height band [1, 0] is empty"),
+        (format!("/api/v1/maps/{id}/occupancy.pgm?resolution=fine"), 400, "Failed to deserialize query string: resolution: invalid float literal"),
         ("/api/v1/maps/nobody/tiles/0/0/0.png".to_string(), 404, "unknown session \"nobody\""),
         ("/api/v1/maps/nobody/cloud.ply".to_string(), 404, "unknown session \"nobody\""),
         ("/api/v1/maps/nobody".to_string(), 404, "unknown session \"nobody\""),

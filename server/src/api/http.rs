@@ -16,6 +16,25 @@ use crate::api::map_queries::{self as mapping, BadQuery};
 use crate::map::SharedMap;
 use crate::session::{Registry, Session, summary};
 
+/// `Query<T>` whose rejection (bad query-string syntax, a wrong type) is the API's
+/// JSON error with 400, like every other error, instead of axum's plain text.
+struct JsonQuery<T>(T);
+
+impl<T, S> axum::extract::FromRequestParts<S> for JsonQuery<T>
+where
+    T: serde::de::DeserializeOwned,
+    S: Send + Sync,
+{
+    type Rejection = Response;
+
+    async fn from_request_parts(parts: &mut axum::http::request::Parts, state: &S) -> Result<Self, Self::Rejection> {
+        match Query::<T>::from_request_parts(parts, state).await {
+            Ok(Query(v)) => Ok(Self(v)),
+            Err(e) => Err(error(StatusCode::BAD_REQUEST, e.body_text())),
+        }
+    }
+}
+
 /// What the HTTP shell needs besides the registry: whole-map import and export's
 /// settings, the dashboard's viewer limit.
 pub struct MapTransfer {
@@ -177,7 +196,7 @@ fn in_frame(p: &pb::PoseStamped, fleet_from_world: Option<&nalgebra::Isometry3<f
     fleet_from_world.map_or(*p, |t| crate::convert::pose_in(p, t))
 }
 
-async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<FrameQuery>) -> Response {
+async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<FrameQuery>) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     };
@@ -198,7 +217,7 @@ async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>,
 async fn get_trajectory(
     State(registry): State<Arc<Registry>>,
     Path(id): Path<String>,
-    Query(q): Query<FrameQuery>,
+    JsonQuery(q): JsonQuery<FrameQuery>,
 ) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
@@ -341,14 +360,14 @@ async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> 
     blocking(move || mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution)).await?.map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
-async fn fleet_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(name): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+async fn fleet_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(name): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
     match fleet_occupancy(&registry, &name, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "image/x-portable-graymap")], grid.to_pgm()).into_response(),
         Err(r) => r,
     }
 }
 
-async fn fleet_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(name): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+async fn fleet_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(name): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
     match fleet_occupancy(&registry, &name, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "application/yaml")], grid.to_yaml("occupancy.pgm")).into_response(),
         Err(r) => r,
@@ -596,14 +615,14 @@ async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Re
     blocking(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution)).await?.map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
-async fn map_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+async fn map_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
     match occupancy(registry, id, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "image/x-portable-graymap")], grid.to_pgm()).into_response(),
         Err(r) => r,
     }
 }
 
-async fn map_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<OccupancyQuery>) -> Response {
+async fn map_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
     match occupancy(registry, id, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "application/yaml")], grid.to_yaml("occupancy.pgm")).into_response(),
         Err(r) => r,
@@ -615,7 +634,7 @@ struct CloudQuery {
     bbox: Option<String>,
 }
 
-async fn map_cloud(State(registry): State<Arc<Registry>>, Path(id): Path<String>, Query(q): Query<CloudQuery>) -> Response {
+async fn map_cloud(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<CloudQuery>) -> Response {
     let map = match session_map(&registry, &id) {
         Ok(m) => m,
         Err(r) => return r,
