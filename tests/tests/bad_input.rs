@@ -229,6 +229,12 @@ fn zstd_compress(bytes: &[u8]) -> Vec<u8> {
 #[tokio::test(flavor = "multi_thread")]
 async fn oversized_message_is_resource_exhausted_and_the_session_can_resume() {
     let server = Server::start(&["--max-message-bytes", "200000"]);
+    // An oversized hello gets the same answer as an oversized frame.
+    let mut s = Stream::open(&server).await;
+    s.send(ClientMsg::Hello(pb::Hello { client_version: "x".repeat(300_000), ..tum_hello("big") })).await;
+    let status = s.next().await.expect_err("status");
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().starts_with("message too large: ") && status.message().contains("200000"), "{}", status.message());
     let (mut s, accepted) = Stream::hello(&server, tum_hello("big")).await;
     s.send(ClientMsg::Frame(tum_frame(0, 10))).await;
     assert_eq!(s.result().await.status(), FrameStatus::Ok);
@@ -248,7 +254,7 @@ async fn oversized_message_is_resource_exhausted_and_the_session_can_resume() {
     s2.send(ClientMsg::Frame(tum_frame(2, 30))).await;
     assert_eq!(s2.result().await.status(), FrameStatus::Ok);
     let metrics = server.get_text("/metrics").await;
-    assert!(metrics.contains("stillmap_frames_rejected_total{reason=\"oversized\"} 1"), "{metrics}");
+    assert!(metrics.contains("stillmap_frames_rejected_total{reason=\"oversized\"} 2"), "the hello and the frame: {metrics}");
     // And the server survived everything.
     assert_eq!(server.get_json("/healthz").await.0, 200);
 }

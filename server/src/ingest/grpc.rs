@@ -51,7 +51,7 @@ async fn serve_stream(
     max_message_bytes: usize,
 ) -> Result<(), Status> {
     let metrics = registry.metrics().clone();
-    let hello = match inbound.message().await? {
+    let hello = match inbound.message().await.map_err(|s| oversized_as_resource_exhausted(s, &metrics))? {
         None => return Ok(()),
         Some(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }) => hello,
         Some(pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)) }) => {
