@@ -127,11 +127,16 @@ pub struct StoreConfig {
     /// the wait starts at 1 s and doubles up to this (seconds; default 60). While
     /// failing, `/healthz` answers 503 and the maps stay in memory.
     pub retry_max_s: f64,
+    /// Every this many seconds, what a live session has not committed (the poses
+    /// after its last keyframe, a commit that failed while the store could not
+    /// write) is committed: a crash loses at most this much, and a store that
+    /// failed is retried without waiting for the robot's next keyframe (default 5).
+    pub flush_interval_s: f64,
 }
 
 impl Default for StoreConfig {
     fn default() -> Self {
-        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20, retry_max_s: 60.0 }
+        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20, retry_max_s: 60.0, flush_interval_s: 5.0 }
     }
 }
 
@@ -347,6 +352,9 @@ impl ServerConfig {
         }
         if self.session.max_camera_pixels == 0 || self.session.max_sequence_jump == 0 || !(self.session.max_capture_gap_s > 0.0 && self.session.max_capture_gap_s.is_finite()) {
             return bad("session.max_camera_pixels, max_sequence_jump and max_capture_gap_s must be positive".into());
+        }
+        if !(0.1..=3600.0).contains(&self.store.flush_interval_s) {
+            return bad(format!("store.flush_interval_s must be within 0.1..=3600, got {}", self.store.flush_interval_s));
         }
         if !(0.1..=3600.0).contains(&self.store.retry_max_s) {
             return bad(format!("store.retry_max_s must be within 0.1..=3600, got {}", self.store.retry_max_s));

@@ -195,10 +195,28 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     };
     on_ready(&bound);
 
+    // What a session has not committed (the poses after its last keyframe, a commit
+    // that failed while the store could not write) is committed every
+    // store.flush_interval_s, off the runtime.
+    let flush_registry = registry.clone();
+    let flush_every = Duration::from_secs_f64(config.store.flush_interval_s);
+    let flush_task = tokio::spawn(async move {
+        let mut interval = tokio::time::interval(flush_every);
+        interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        interval.tick().await;
+        loop {
+            interval.tick().await;
+            let r = flush_registry.clone();
+            if tokio::task::spawn_blocking(move || r.list().iter().filter(|s| s.flush()).count()).await.is_err() {
+                break;
+            }
+        }
+    });
     let grpc_task = tokio::spawn(grpc);
     let http_task = tokio::spawn(async move { http.await.map_err(ServerError::Http) });
     let _ = shutdown.wait_for(|stop| *stop).await;
     tracing::info!("shutting down");
+    flush_task.abort();
     registry.close_all();
     let finish = async {
         match grpc_task.await {

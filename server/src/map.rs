@@ -131,6 +131,14 @@ impl SessionMap {
         }
     }
 
+    /// Whether anything is not committed yet: poses beyond `trajectory_len` already
+    /// committed, map changes, keyframe records, or the session itself.
+    pub fn uncommitted(&self, trajectory_len: usize) -> bool {
+        self.persistence.as_ref().is_some_and(|p| {
+            p.committed_poses < trajectory_len || p.committed_stamp != self.builder.map().change_stamp() || !p.pending.is_empty() || p.unrecorded_camera.is_some()
+        })
+    }
+
     /// Keyframes covered by the last commit (what a crash keeps).
     pub fn committed_keyframes(&self) -> Option<u64> {
         self.persistence.as_ref().map(|p| p.meta.keyframes)

@@ -495,6 +495,26 @@ impl Session {
         }
     }
 
+    /// Commits what is not committed yet (the poses after the last keyframe, what
+    /// a failed commit held); nothing when all is committed. Returns whether it
+    /// committed. The periodic flush calls it (`store.flush_interval_s`).
+    pub fn flush(&self) -> bool {
+        let Some(map) = self.map.as_ref().filter(|_| !self.archived) else { return false };
+        // Lock order: tracking, then map (as the map lane).
+        let track = self.tracking();
+        let mut m = lock(map);
+        if !m.uncommitted(track.trajectory.len()) {
+            return false;
+        }
+        match m.persist(&track.trajectory, None) {
+            Ok(committed) => committed,
+            Err(e) => {
+                tracing::debug!(session = %self.id, "flush not committed: {e}");
+                false
+            }
+        }
+    }
+
     /// Shutdown, after the pools have stopped: commits the poses after the last keyframe.
     fn finish(&self) {
         if let Some(map) = &self.map
