@@ -196,8 +196,12 @@ async fn run_grpc(
                             waiting_since = Some(tokio::time::Instant::now());
                         }
                         unacked.push_back(frame.clone());
-                        if out.send(frame_message(frame)).await.is_err() {
-                            break Broke::Transient("outbound stream closed".into());
+                        // A stream that stopped taking frames (flow control) is as dead as one
+                        // that stopped answering.
+                        match tokio::time::timeout(options.result_timeout, out.send(frame_message(frame))).await {
+                            Ok(Ok(())) => {}
+                            Ok(Err(_)) => break Broke::Transient("outbound stream closed".into()),
+                            Err(_) => break Broke::Transient(format!("a frame could not be sent for {:.1} s (--result-timeout)", options.result_timeout.as_secs_f64())),
                         }
                     }
                     _ => {

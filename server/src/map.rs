@@ -149,6 +149,13 @@ impl SessionMap {
     /// Returns whether there is a store (and so a commit happened).
     pub fn persist(&mut self, poses: &[pb::PoseStamped], keyframe: Option<KeyframeRecord>) -> Result<bool, StoreError> {
         let Some(p) = &mut self.persistence else { return Ok(false) };
+        // Kept for the next commit whatever happens below.
+        p.pending.extend(keyframe);
+        if p.pending.len() > MAX_PENDING_KEYFRAMES {
+            let dropped = p.pending.len() - MAX_PENDING_KEYFRAMES;
+            p.pending.drain(..dropped);
+            tracing::warn!(session = %p.session_id, dropped, "the store keeps failing: the oldest uncommitted keyframe records are dropped (their map data stays)");
+        }
         // A block started where an evicted one was (fusion out of the camera's
         // reach): merge the stored one in before this commit overwrites it.
         let reborn: Vec<BlockKey> = self.builder.map().changed_since(p.committed_stamp).map(|(k, _)| *k).filter(|k| p.cold.contains(k)).collect();
@@ -160,14 +167,27 @@ impl SessionMap {
         }
         let mut evicted = self.builder.take_evicted();
         let (min, max) = (self.builder.config().log_odds_min, self.builder.config().log_odds_max);
-        for (key, block) in &mut evicted {
-            // Started where an evicted block was and evicted again at once: merge
-            // the stored one in before this commit overwrites it.
-            if p.cold.contains(key)
-                && let Some(stored) = p.store.block(&p.session_id, *key)?
-            {
-                block.merge_older(&stored, min, max);
+        // Started where an evicted block was and evicted again at once: merge the
+        // stored one in before this commit overwrites it. All read first, so that
+        // a failed read puts every evicted block back in memory untouched.
+        let mut stored = Vec::new();
+        for (i, (key, _)) in evicted.iter().enumerate() {
+            if !p.cold.contains(key) {
+                continue;
             }
+            match p.store.block(&p.session_id, *key) {
+                Ok(Some(block)) => stored.push((i, block)),
+                Ok(None) => {}
+                Err(e) => {
+                    for (k, b) in evicted {
+                        self.builder.restore_block(k, b);
+                    }
+                    return Err(e);
+                }
+            }
+        }
+        for (i, block) in stored {
+            evicted[i].1.merge_older(&block, min, max);
         }
         // What this commit would make true; `p.meta` keeps what the store holds
         // until it has (committed_keyframes must not count a failed commit's).
@@ -177,12 +197,6 @@ impl SessionMap {
         if let Some((up, source)) = self.builder.up_in_world() {
             meta.up_in_world = Some([up.x, up.y, up.z]);
             meta.up_source = Some(source.label().to_string());
-        }
-        p.pending.extend(keyframe);
-        if p.pending.len() > MAX_PENDING_KEYFRAMES {
-            let dropped = p.pending.len() - MAX_PENDING_KEYFRAMES;
-            p.pending.drain(..dropped);
-            tracing::warn!(session = %p.session_id, dropped, "the store keeps failing: the oldest uncommitted keyframe records are dropped (their map data stays)");
         }
         let since = p.committed_stamp;
         let commit = Commit {

@@ -100,6 +100,8 @@ pub struct Session {
     queue: FrameQueue,
     sink: Mutex<Option<ResultSink>>,
     last_received_sequence: Mutex<Option<u64>>,
+    /// Frames received in a row whose sequence jumped past the order window.
+    received_jumps: Mutex<u32>,
     track: Mutex<TrackState>,
     poses: broadcast::Sender<pb::PoseStamped>,
     fleet: broadcast::Sender<FleetPose>,
@@ -236,9 +238,15 @@ impl Session {
         {
             // A frame jumping absurdly far (forged, corrupt) is rejected when decoded,
             // and must not tell a resuming robot it was received.
+            // (After as many jumps in a row as the decoder takes before following a
+            // new sequence, the new sequence is followed here too.)
             let mut last = lock(&self.last_received_sequence);
-            if self.order_window.sequence_fits(*last, sequence) {
-                *last = Some(last.map_or(sequence, |l| l.max(sequence)));
+            let mut jumps = lock(&self.received_jumps);
+            if self.order_window.sequence_fits(*last, sequence) || *jumps >= crate::pipeline::decode::RESYNC_AFTER_JUMPS {
+                *last = Some(if *jumps >= crate::pipeline::decode::RESYNC_AFTER_JUMPS { sequence } else { last.map_or(sequence, |l| l.max(sequence)) });
+                *jumps = 0;
+            } else {
+                *jumps += 1;
             }
         }
         if outcome != PushOutcome::Queued {
@@ -925,6 +933,7 @@ impl Registry {
             queue: p.queue,
             sink: Mutex::new(None),
             last_received_sequence: Mutex::new(p.last_received_sequence),
+            received_jumps: Mutex::new(0),
             track: Mutex::new(p.track),
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
             fleet: self.fleet.clone(),

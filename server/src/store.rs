@@ -269,15 +269,21 @@ impl Store {
     }
 
     /// The database for a write: while failing, refused until the backoff has
-    /// passed, then reopened (a database that saw an I/O error refuses everything).
+    /// passed; then this writer (one: it claims the retry) reopens the database,
+    /// since one that saw an I/O error refuses everything, and tries.
     fn db_for_write(&self) -> Result<Arc<Database>, StoreError> {
         let retry = {
-            let h = crate::lock(&self.health);
+            let mut h = crate::lock(&self.health);
             match (&h.failing, h.retry_at) {
                 (Some((_, error)), Some(at)) if Instant::now() < at => {
                     return Err(StoreError::Db { path: self.path.display().to_string(), message: format!("failing, next try in {:.1} s: {error}", at.saturating_duration_since(Instant::now()).as_secs_f64()) });
                 }
-                (Some(_), _) => true,
+                (Some(_), _) => {
+                    // Claimed: other writers wait for this one's outcome.
+                    let backoff = h.backoff;
+                    h.retry_at = Some(Instant::now() + backoff);
+                    true
+                }
                 (None, _) => false,
             }
         };
@@ -290,71 +296,84 @@ impl Store {
                 Ok(db) => *slot = Some(Arc::new(db)),
                 Err(e) => {
                     drop(slot);
-                    return Err(self.err(format!("reopening: {e}")));
+                    let e = self.err(format!("reopening: {e}"));
+                    self.failed(&e);
+                    return Err(e);
                 }
             }
         }
         self.db()
     }
 
-    /// Notes a write that went through: the store is healthy again.
-    fn wrote(&self) {
-        let mut h = crate::lock(&self.health);
-        if h.failing.take().is_some() {
-            tracing::info!(path = %self.path.display(), "the store takes writes again");
-        }
-        *h = Health::default();
-    }
-
-    /// A write transaction's outcome: counted and noted when it failed.
-    fn written(&self, outcome: Result<(), StoreError>) -> Result<(), StoreError> {
-        if outcome.is_ok() {
-            self.wrote();
+    /// A write's outcome: a success makes the store healthy again, a failure marks
+    /// it failing (reads that fail are counted, never marked).
+    fn written<T>(&self, outcome: Result<T, StoreError>) -> Result<T, StoreError> {
+        match &outcome {
+            Ok(_) => {
+                let mut h = crate::lock(&self.health);
+                if h.failing.take().is_some() {
+                    tracing::info!(path = %self.path.display(), "the store takes writes again");
+                }
+                *h = Health::default();
+            }
+            Err(e) => self.failed(e),
         }
         outcome
+    }
+
+    /// Marks the store failing with `e`, and pushes the next write attempt back
+    /// (1 s doubling to `store.retry_max_s`).
+    fn failed(&self, e: &StoreError) {
+        let message = match e {
+            StoreError::Db { message, .. } => message.clone(),
+            other => other.to_string(),
+        };
+        let mut h = crate::lock(&self.health);
+        let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        if h.failing.is_none() {
+            tracing::error!(path = %self.path.display(), "the store fails: {message}");
+        }
+        let since = h.failing.as_ref().map_or(now, |(since, _)| *since);
+        h.failing = Some((since, message));
+        h.backoff = if h.backoff.is_zero() { STORE_RETRY_MIN.min(self.retry_max) } else { (h.backoff * 2).min(self.retry_max) };
+        h.retry_at = Some(Instant::now() + h.backoff);
     }
 
     pub fn path(&self) -> &Path {
         &self.path
     }
 
-    /// A database error: counted, and the store marked failing until a write succeeds.
+    /// A database error, counted (`stillmap_store_errors_total`).
     fn err(&self, e: impl std::fmt::Display) -> StoreError {
-        let message = e.to_string();
         self.errors.inc();
-        let mut h = crate::lock(&self.health);
-        let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
-        let since = h.failing.as_ref().map_or(now, |(since, _)| *since);
-        if h.failing.is_none() {
-            tracing::error!(path = %self.path.display(), "the store fails: {message}");
-        }
-        h.failing = Some((since, message.clone()));
-        h.backoff = if h.backoff.is_zero() { STORE_RETRY_MIN.min(self.retry_max) } else { (h.backoff * 2).min(self.retry_max) };
-        h.retry_at = Some(Instant::now() + h.backoff);
-        StoreError::Db { path: self.path.display().to_string(), message }
+        StoreError::Db { path: self.path.display().to_string(), message: e.to_string() }
     }
 
     /// Records a new session (before any frame).
     pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
-        let tx = db.begin_write().map_err(|e| self.err(e))?;
-        {
-            let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
-            tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
-            tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
-        }
-        self.written(tx.commit().map_err(|e| self.err(e)))
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            {
+                let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
+                tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
+                tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+            }
+            tx.commit().map_err(|e| self.err(e))
+        })())
     }
 
     /// Records a session's frame in its fleet (its anchoring or its merge).
     pub fn put_fleet_frame(&self, id: &str, frame: &FleetFrame) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
-        let tx = db.begin_write().map_err(|e| self.err(e))?;
-        {
-            let json = serde_json::to_vec(frame).map_err(|e| self.err(e))?;
-            tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
-        }
-        self.written(tx.commit().map_err(|e| self.err(e)))
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            {
+                let json = serde_json::to_vec(frame).map_err(|e| self.err(e))?;
+                tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
+            }
+            tx.commit().map_err(|e| self.err(e))
+        })())
     }
 
     /// Every session's fleet frame.
@@ -373,9 +392,11 @@ impl Store {
     /// One keyframe's worth of state, atomically.
     pub fn commit(&self, c: &Commit<'_>) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
-        let tx = db.begin_write().map_err(|e| self.err(e))?;
-        self.write(&tx, c)?;
-        self.written(tx.commit().map_err(|e| self.err(e)))
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            self.write(&tx, c)?;
+            tx.commit().map_err(|e| self.err(e))
+        })())
     }
 
     fn write(&self, tx: &redb::WriteTransaction, c: &Commit<'_>) -> Result<(), StoreError> {
@@ -464,17 +485,19 @@ impl Store {
     /// Writes a whole session (an imported map file) in one transaction.
     pub fn import(&self, s: &StoredSession) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
-        let tx = db.begin_write().map_err(|e| self.err(e))?;
-        tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(s.id.as_str(), s.camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
-        {
-            let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
-            for k in &s.keyframes {
-                table.insert((s.id.as_str(), k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(s.id.as_str(), s.camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+            {
+                let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+                for k in &s.keyframes {
+                    table.insert((s.id.as_str(), k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+                }
             }
-        }
-        let commit = Commit { session_id: &s.id, meta: &s.meta, poses: &s.poses, keyframes: &[], camera: None, blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(), evicted: &[] };
-        self.write(&tx, &commit)?;
-        self.written(tx.commit().map_err(|e| self.err(e)))
+            let commit = Commit { session_id: &s.id, meta: &s.meta, poses: &s.poses, keyframes: &[], camera: None, blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(), evicted: &[] };
+            self.write(&tx, &commit)?;
+            tx.commit().map_err(|e| self.err(e))
+        })())
     }
 }
 

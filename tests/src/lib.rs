@@ -129,12 +129,12 @@ impl Server {
         format!("http://{}", self.grpc)
     }
 
-    /// GET on the HTTP API: (status, JSON body).
     /// The server process's id.
     pub fn pid(&self) -> u32 {
         self.child.id()
     }
 
+    /// GET on the HTTP API: (status, JSON body).
     pub async fn get_json(&self, path: &str) -> (u16, serde_json::Value) {
         let r = reqwest::get(format!("http://{}{path}", self.http)).await.expect("HTTP GET");
         let status = r.status().as_u16();

@@ -11,37 +11,47 @@ use tokio::net::{TcpListener, TcpStream};
 /// Bytes the first connection may carry towards the server before it is cut (about 10 frames).
 const CUT_AFTER_BYTES: usize = 1_500_000;
 
-async fn proxy(listener: TcpListener, upstream: String) {
+/// Forwards every connection to `upstream` as it is, except the first, which `first` carries.
+async fn proxy<F, Fut>(listener: TcpListener, upstream: String, first: F)
+where
+    F: Fn(TcpStream, TcpStream) -> Fut + Send + Sync + 'static,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    let first = Arc::new(first);
     let connections = Arc::new(AtomicUsize::new(0));
     while let Ok((mut client, _)) = listener.accept().await {
         let n = connections.fetch_add(1, Ordering::Relaxed);
-        let upstream = upstream.clone();
+        let (upstream, first) = (upstream.clone(), first.clone());
         tokio::spawn(async move {
             let Ok(mut server) = TcpStream::connect(&upstream).await else { return };
             if n > 0 {
                 let _ = tokio::io::copy_bidirectional(&mut client, &mut server).await;
-                return;
-            }
-            // First connection: forward until the budget is spent, then drop both sides.
-            let (mut cr, mut cw) = client.split();
-            let (mut sr, mut sw) = server.split();
-            let up = async {
-                let mut buf = vec![0u8; 64 * 1024];
-                let mut sent = 0;
-                while sent < CUT_AFTER_BYTES {
-                    let Ok(k) = cr.read(&mut buf).await else { break };
-                    if k == 0 || sw.write_all(&buf[..k]).await.is_err() {
-                        break;
-                    }
-                    sent += k;
-                }
-            };
-            let down = tokio::io::copy(&mut sr, &mut cw);
-            tokio::select! {
-                _ = up => {}
-                _ = down => {}
+            } else {
+                first(client, server).await;
             }
         });
+    }
+}
+
+/// Forwards until the client has sent `CUT_AFTER_BYTES`, then drops both sides.
+async fn cut_after_budget(mut client: TcpStream, mut server: TcpStream) {
+    let (mut cr, mut cw) = client.split();
+    let (mut sr, mut sw) = server.split();
+    let up = async {
+        let mut buf = vec![0u8; 64 * 1024];
+        let mut sent = 0;
+        while sent < CUT_AFTER_BYTES {
+            let Ok(k) = cr.read(&mut buf).await else { break };
+            if k == 0 || sw.write_all(&buf[..k]).await.is_err() {
+                break;
+            }
+            sent += k;
+        }
+    };
+    let down = tokio::io::copy(&mut sr, &mut cw);
+    tokio::select! {
+        _ = up => {}
+        _ = down => {}
     }
 }
 
@@ -55,7 +65,7 @@ async fn client_reconnects_and_resumes_the_session() {
     // The proxy binds port 0: the kernel picks a free port and no one can take it first.
     let listener = TcpListener::bind(("127.0.0.1", 0)).await.expect("proxy bind");
     let port = listener.local_addr().expect("proxy address").port();
-    tokio::spawn(proxy(listener, server.grpc.clone()));
+    tokio::spawn(proxy(listener, server.grpc.clone(), cut_after_budget));
 
     let src = format!("tum:{}", tum_dir().display());
     let url = format!("http://127.0.0.1:{port}");
@@ -96,42 +106,30 @@ async fn client_reconnects_and_resumes_the_session() {
 /// (the accept and a few results); the connection stays open.
 const ANSWER_BYTES: usize = 2_000;
 
-/// A proxy whose first connection stops answering: the client's frames still reach
-/// the server, its results no longer come back (as when another party took the
+/// The first connection stops answering: the client's frames still reach the
+/// server, its results no longer come back (as when another party took the
 /// session's results, or the server stalled).
-async fn silent_proxy(listener: TcpListener, upstream: String) {
-    let connections = Arc::new(AtomicUsize::new(0));
-    while let Ok((mut client, _)) = listener.accept().await {
-        let n = connections.fetch_add(1, Ordering::Relaxed);
-        let upstream = upstream.clone();
-        tokio::spawn(async move {
-            let Ok(mut server) = TcpStream::connect(&upstream).await else { return };
-            if n > 0 {
-                let _ = tokio::io::copy_bidirectional(&mut client, &mut server).await;
-                return;
+async fn stop_answering(mut client: TcpStream, mut server: TcpStream) {
+    let (mut cr, mut cw) = client.split();
+    let (mut sr, mut sw) = server.split();
+    let up = tokio::io::copy(&mut cr, &mut sw);
+    let down = async {
+        let mut buf = vec![0u8; 64 * 1024];
+        let mut passed = 0;
+        while let Ok(k) = sr.read(&mut buf).await {
+            if k == 0 {
+                break;
             }
-            let (mut cr, mut cw) = client.split();
-            let (mut sr, mut sw) = server.split();
-            let up = tokio::io::copy(&mut cr, &mut sw);
-            let down = async {
-                let mut buf = vec![0u8; 64 * 1024];
-                let mut passed = 0;
-                while let Ok(k) = sr.read(&mut buf).await {
-                    if k == 0 {
-                        break;
-                    }
-                    let pass = k.min(ANSWER_BYTES.saturating_sub(passed));
-                    if pass > 0 && cw.write_all(&buf[..pass]).await.is_err() {
-                        break;
-                    }
-                    passed += pass;
-                }
-            };
-            tokio::select! {
-                _ = up => {}
-                _ = down => {}
+            let pass = k.min(ANSWER_BYTES.saturating_sub(passed));
+            if pass > 0 && cw.write_all(&buf[..pass]).await.is_err() {
+                break;
             }
-        });
+            passed += pass;
+        }
+    };
+    tokio::select! {
+        _ = up => {}
+        _ = down => {}
     }
 }
 
@@ -140,7 +138,7 @@ async fn a_client_whose_results_stop_times_out_and_resumes() {
     let server = Server::start(&["--no-perception", "--queue-capacity", "64"]);
     let listener = TcpListener::bind(("127.0.0.1", 0)).await.expect("proxy bind");
     let port = listener.local_addr().expect("proxy address").port();
-    tokio::spawn(silent_proxy(listener, server.grpc.clone()));
+    tokio::spawn(proxy(listener, server.grpc.clone(), stop_answering));
     let src = format!("tum:{}", tum_dir().display());
     let url = format!("http://127.0.0.1:{port}");
     let started = std::time::Instant::now();

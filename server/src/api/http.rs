@@ -408,22 +408,14 @@ async fn fleet_tile(State(registry): State<Arc<Registry>>, Path((name, z, x, y))
         Ok(e) => e,
         Err(r) => return r,
     };
-    if headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| v.split(',').any(|t| t.trim() == etag)) {
-        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response();
+    if let Some(r) = not_modified(&headers, etag) {
+        return r;
     }
     let top = match fleet_top(registry, &name).await {
         Ok(t) => t,
         Err(r) => return r,
     };
-    match blocking(move || mapping::fleet_tile(&top, z, x, y)).await {
-        Ok(Ok(tile)) => (
-            [(header::CONTENT_TYPE, "image/png".to_string()), (header::ETAG, tile.etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())],
-            tile.png,
-        )
-            .into_response(),
-        Ok(Err(e)) => error(StatusCode::BAD_REQUEST, e.0),
-        Err(r) => r,
-    }
+    tile_response(blocking(move || mapping::fleet_tile(&top, z, x, y)).await)
 }
 
 /// The fleet map's legend, with the extent its tiles cover.
@@ -571,10 +563,24 @@ async fn map_tile(State(registry): State<Arc<Registry>>, Path((id, z, x, y)): Pa
         Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
     };
     let etag = mapping::tile_etag(&map, z, x, y);
-    if headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| v.split(',').any(|t| t.trim() == etag)) {
-        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response();
+    if let Some(r) = not_modified(&headers, etag) {
+        return r;
     }
-    match blocking(move || mapping::tile(&map, z, x, y)).await {
+    tile_response(blocking(move || mapping::tile(&map, z, x, y)).await)
+}
+
+/// Tiles change as the map grows: caches may keep them but must revalidate (ETag).
+const TILE_CACHE_CONTROL: &str = "no-cache";
+
+/// 304 when the request's `If-None-Match` names `etag`.
+fn not_modified(headers: &HeaderMap, etag: String) -> Option<Response> {
+    let matches = headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| v.split(',').any(|t| t.trim() == etag));
+    matches.then(|| (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response())
+}
+
+/// A rendered tile as the response (PNG with its ETag), or its error.
+fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) -> Response {
+    match rendered {
         Ok(Ok(tile)) => (
             [(header::CONTENT_TYPE, "image/png".to_string()), (header::ETAG, tile.etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())],
             tile.png,
@@ -584,9 +590,6 @@ async fn map_tile(State(registry): State<Arc<Registry>>, Path((id, z, x, y)): Pa
         Err(r) => r,
     }
 }
-
-/// Tiles change as the map grows: caches may keep them but must revalidate (ETag).
-const TILE_CACHE_CONTROL: &str = "no-cache";
 
 async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
     let map = match session_map(&registry, &id) {
@@ -693,11 +696,26 @@ fn admin_only(transfer: &MapTransfer, headers: &HeaderMap) -> Result<(), Respons
     })
 }
 
-/// The session as one file (everything committed to the store: up to its last keyframe).
-async fn map_export(State(registry): State<Arc<Registry>>, Extension(transfer): Extension<Arc<MapTransfer>>, headers: HeaderMap, Path(id): Path<String>) -> Response {
-    if let Err(r) = admin_only(&transfer, &headers) {
-        return r;
+/// The admin check as an extractor: it runs on the request's head, before a body
+/// extractor reads (up to 1 GiB of) the body.
+struct AdminOnly(Arc<MapTransfer>);
+
+impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
+    type Rejection = Response;
+
+    async fn from_request_parts(parts: &mut axum::http::request::Parts, _state: &S) -> Result<Self, Self::Rejection> {
+        let transfer = parts
+            .extensions
+            .get::<Arc<MapTransfer>>()
+            .cloned()
+            .ok_or_else(|| error(StatusCode::INTERNAL_SERVER_ERROR, "map transfer settings missing on this route".into()))?;
+        admin_only(&transfer, &parts.headers)?;
+        Ok(Self(transfer))
     }
+}
+
+/// The session as one file (everything committed to the store: up to its last keyframe).
+async fn map_export(State(registry): State<Arc<Registry>>, AdminOnly(_): AdminOnly, Path(id): Path<String>) -> Response {
     if registry.get(&id).is_none() {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     }
@@ -719,10 +737,7 @@ async fn map_export(State(registry): State<Arc<Registry>>, Extension(transfer): 
 }
 
 /// Adds a map file as a new (read-only) session: 201 with its id.
-async fn map_import(State(registry): State<Arc<Registry>>, Extension(transfer): Extension<Arc<MapTransfer>>, headers: HeaderMap, body: axum::body::Bytes) -> Response {
-    if let Err(r) = admin_only(&transfer, &headers) {
-        return r;
-    }
+async fn map_import(State(registry): State<Arc<Registry>>, AdminOnly(transfer): AdminOnly, body: axum::body::Bytes) -> Response {
     let max_bytes = transfer.import_max_bytes;
     let parsed = match blocking(move || crate::store::import_file(&body, max_bytes)).await {
         Ok(p) => p,

@@ -38,6 +38,8 @@ pub fn zenoh_config(cfg: &ZenohConfig) -> Result<zenoh::Config, ServerError> {
 struct Link {
     session: Arc<Session>,
     sink: ResultSink,
+    /// The hello that opened the session (the client repeats it until it hears the accept).
+    hello: pb::Hello,
     /// When the robot last sent anything.
     last_seen: Instant,
     /// Whether the idle check has found the robot quiet since it last spoke.
@@ -45,8 +47,15 @@ struct Link {
 }
 
 impl Link {
-    fn new(session: Arc<Session>, sink: ResultSink) -> Self {
-        Self { session, sink, last_seen: Instant::now(), quiet: false }
+    fn new(session: Arc<Session>, sink: ResultSink, hello: pb::Hello) -> Self {
+        Self { session, sink, hello, last_seen: Instant::now(), quiet: false }
+    }
+
+    /// Whether `hello` repeats the one that opened this session before any frame
+    /// arrived: the client did not hear the accept yet (it repeats its hello every
+    /// 500 ms), and a second session must not be opened for it.
+    fn is_repeat(&self, hello: &pb::Hello) -> bool {
+        hello.resume_session_id.is_empty() && *hello == self.hello && self.session.last_received_sequence().is_none()
     }
 
     /// The robot sent a frame: its results go to it again, unless another
@@ -161,11 +170,19 @@ pub async fn serve(
                     let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
                     continue;
                 }
+                if let Some(link) = links.get_mut(&robot)
+                    && link.is_repeat(&hello)
+                {
+                    link.seen();
+                    let opened = crate::session::Opened { session: link.session.clone(), resumed: false };
+                    let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
+                    continue;
+                }
                 let sink = spawn_publisher(zenoh.clone(), keys::results(&robot), result_buffer);
                 match registry.open(&hello, Transport::Zenoh, sink.clone()) {
                     Ok(opened) => {
                         let _ = sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
-                        if let Some(old) = links.insert(robot.clone(), Link::new(opened.session, sink)) {
+                        if let Some(old) = links.insert(robot.clone(), Link::new(opened.session, sink, hello)) {
                             old.session.detach(&old.sink);
                         }
                     }

@@ -50,9 +50,15 @@ pub struct Decoder {
     color_encoding: ColorEncoding,
     depth_encoding: DepthEncoding,
     window: OrderWindow,
+    /// Frames rejected in a row for jumping past the window.
+    jumps_in_a_row: u32,
     last_sequence: Option<u64>,
     last_capture_time_ns: Option<u64>,
 }
+
+/// Frames in a row that jump past the order window before the decoder takes the
+/// next one as the robot's new sequence and clock.
+pub const RESYNC_AFTER_JUMPS: u32 = 3;
 
 /// How far a frame may jump past the previous one and still be taken as the
 /// session's next (`session.max_sequence_jump`, `session.max_capture_gap_s`).
@@ -83,6 +89,7 @@ impl Decoder {
             depth_encoding: camera.depth_encoding(),
             camera,
             window,
+            jumps_in_a_row: 0,
             last_sequence: None,
             last_capture_time_ns: None,
         }
@@ -97,6 +104,22 @@ impl Decoder {
             && frame.sequence <= last
         {
             return Err(reject(RejectReason::Order, format!("frame sequence {} is not after the previous frame's {last}", frame.sequence)));
+        }
+        // A robot that really jumped (it paused for more than a day, its clock was
+        // set) sends more frames after the jump: after `RESYNC_AFTER_JUMPS` in a row
+        // the next is taken, and the session goes on from there. One forged frame
+        // between the robot's own is rejected and changes nothing.
+        let jumps = !self.window.sequence_fits(self.last_sequence, frame.sequence)
+            || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns.saturating_sub(last) > self.window.max_capture_gap_ns);
+        if !jumps {
+            self.jumps_in_a_row = 0;
+        } else if self.jumps_in_a_row >= RESYNC_AFTER_JUMPS {
+            tracing::warn!(sequence = frame.sequence, "{} frames in a row jumped past the order window: taking the new sequence and clock", self.jumps_in_a_row);
+            self.jumps_in_a_row = 0;
+            self.last_sequence = None;
+            self.last_capture_time_ns = None;
+        } else {
+            self.jumps_in_a_row += 1;
         }
         if !self.window.sequence_fits(self.last_sequence, frame.sequence) {
             return Err(reject(
@@ -269,6 +292,14 @@ mod tests {
         // Neither moved the session on: the robot's real next frames are taken.
         assert!(p.decode(&frame(6, 700)).is_ok());
         assert!(p.decode(&frame(1006, 1_000_000_700)).is_ok(), "a jump of exactly the window fits");
+        // A robot that really jumped (back after two days): three frames rejected,
+        // then the new timeline is taken and followed.
+        let later = 2 * 86_400_000_000_000u64;
+        for k in 0..RESYNC_AFTER_JUMPS as u64 {
+            assert_eq!(error_of(p.decode(&frame(1007 + k, later + k))).0, Code::InvalidArgument as i32);
+        }
+        assert!(p.decode(&frame(1010, later + 3)).is_ok());
+        assert!(p.decode(&frame(1011, later + 4)).is_ok());
         let w = OrderWindow::default();
         assert!(w.sequence_fits(None, u64::MAX) && w.sequence_fits(Some(7), 3) && !w.sequence_fits(Some(7), 1_000_008));
     }
