@@ -178,12 +178,12 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(query)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
     let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
-    let transfer = Arc::new(api::http::MapTransfer { admin: auth::Admin::new(&config.auth.admin_tokens, &config.auth.tokens), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
+    let settings = Arc::new(api::http::HttpSettings { admin: auth::Admin::new(&config.auth.admin_tokens, &config.auth.tokens), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
     }
-    let http = axum::serve(http_listener, api::http::router(registry.clone(), dashboard_dir, transfer)).with_graceful_shutdown(wait_for(shutdown.clone()));
+    let http = axum::serve(http_listener, api::http::router(registry.clone(), dashboard_dir, settings)).with_graceful_shutdown(wait_for(shutdown.clone()));
 
     let bound = Bound {
         grpc: bound_grpc,

@@ -101,7 +101,7 @@ pub struct Session {
     sink: Mutex<Option<ResultSink>>,
     last_received_sequence: Mutex<Option<u64>>,
     /// Frames received in a row whose sequence jumped past the order window.
-    received_jumps: Mutex<u32>,
+    received_jumps: Mutex<crate::pipeline::decode::JumpCount>,
     track: Mutex<TrackState>,
     poses: broadcast::Sender<pb::PoseStamped>,
     fleet: broadcast::Sender<FleetPose>,
@@ -238,15 +238,13 @@ impl Session {
         {
             // A frame jumping absurdly far (forged, corrupt) is rejected when decoded,
             // and must not tell a resuming robot it was received.
-            // (After as many jumps in a row as the decoder takes before following a
-            // new sequence, the new sequence is followed here too.)
+            // (A new timeline is followed here when the decoder follows it.)
             let mut last = lock(&self.last_received_sequence);
-            let mut jumps = lock(&self.received_jumps);
-            if self.order_window.sequence_fits(*last, sequence) || *jumps >= crate::pipeline::decode::RESYNC_AFTER_JUMPS {
-                *last = Some(if *jumps >= crate::pipeline::decode::RESYNC_AFTER_JUMPS { sequence } else { last.map_or(sequence, |l| l.max(sequence)) });
-                *jumps = 0;
-            } else {
-                *jumps += 1;
+            let jumped = !self.order_window.sequence_fits(*last, sequence);
+            if lock(&self.received_jumps).restart(jumped) {
+                *last = Some(sequence);
+            } else if !jumped {
+                *last = Some(last.map_or(sequence, |l| l.max(sequence)));
             }
         }
         if outcome != PushOutcome::Queued {
@@ -933,7 +931,7 @@ impl Registry {
             queue: p.queue,
             sink: Mutex::new(None),
             last_received_sequence: Mutex::new(p.last_received_sequence),
-            received_jumps: Mutex::new(0),
+            received_jumps: Mutex::default(),
             track: Mutex::new(p.track),
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
             fleet: self.fleet.clone(),

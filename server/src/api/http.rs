@@ -35,9 +35,9 @@ where
     }
 }
 
-/// What the HTTP shell needs besides the registry: whole-map import and export's
-/// settings, the dashboard's viewer limit.
-pub struct MapTransfer {
+/// What the HTTP shell needs besides the registry: who may import and export
+/// whole maps and how large, the dashboard's viewer limit.
+pub struct HttpSettings {
     pub admin: crate::auth::Admin,
     /// `store.import_max_bytes`.
     pub import_max_bytes: usize,
@@ -45,8 +45,8 @@ pub struct MapTransfer {
     pub max_event_viewers: usize,
 }
 
-pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, transfer: Arc<MapTransfer>) -> Router {
-    let feed = crate::api::dashboard::EventFeed::new(registry.clone(), transfer.max_event_viewers);
+pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, settings: Arc<HttpSettings>) -> Router {
+    let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers);
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
     let ui = Router::new()
         .route("/", get(crate::api::dashboard::index))
@@ -74,8 +74,8 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/maps/{id}/occupancy.yaml", get(map_occupancy_yaml))
         .route("/api/v1/maps/{id}/cloud.ply", get(map_cloud))
         .route("/api/v1/maps/{id}/objects", get(map_objects))
-        .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(transfer.clone())))
-        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(transfer))))
+        .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(settings.clone())))
+        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(settings))))
         .route("/metrics", get(metrics))
         .with_state(registry)
         .merge(ui)
@@ -385,12 +385,23 @@ async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<S
     }
 }
 
-/// The fleet map's top-down view (cached per fleet until a part changes).
-async fn fleet_top(registry: Arc<Registry>, name: &str) -> Result<Arc<mapping::FleetTop>, Response> {
-    let parts = fleet_parts(&registry, name)?;
+/// Fleet `name`'s merged members and the tag of the state their maps are in (off
+/// the runtime: it locks every member's map).
+async fn fleet_state(registry: &Registry, name: &str) -> Result<(FleetParts, u64), Response> {
+    let parts = fleet_parts(registry, name)?;
+    blocking(move || {
+        let tag = mapping::fleet_tag(&parts);
+        (parts, tag)
+    })
+    .await
+}
+
+type FleetParts = Vec<(SharedMap, nalgebra::Isometry3<f64>)>;
+
+/// The fleet map's top-down view for `parts` in the state `tag` (cached per fleet until a part changes).
+async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: u64) -> Result<Arc<mapping::FleetTop>, Response> {
     let fleet = name.to_string();
-    let registry2 = registry.clone();
-    blocking(move || registry2.fleet_tops().get(&fleet, &parts)).await?.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet")))
+    blocking(move || registry.fleet_tops().get(&fleet, &parts, tag)).await?.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet")))
 }
 
 /// A tile of the fleet map: the session tiles' scheme, in the fleet's map frame.
@@ -399,19 +410,14 @@ async fn fleet_tile(State(registry): State<Arc<Registry>>, Path((name, z, x, y))
         Ok(c) => c,
         Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
     };
-    let parts = match fleet_parts(&registry, &name) {
-        Ok(p) => p,
+    let (parts, tag) = match fleet_state(&registry, &name).await {
+        Ok(s) => s,
         Err(r) => return r,
     };
-    let tag_parts = parts.clone();
-    let etag = match blocking(move || mapping::fleet_tile_etag(mapping::fleet_tag(&tag_parts), z, x, y)).await {
-        Ok(e) => e,
-        Err(r) => return r,
-    };
-    if let Some(r) = not_modified(&headers, etag) {
+    if let Some(r) = not_modified(&headers, mapping::fleet_tile_etag(tag, z, x, y)) {
         return r;
     }
-    let top = match fleet_top(registry, &name).await {
+    let top = match fleet_top(registry, &name, parts, tag).await {
         Ok(t) => t,
         Err(r) => return r,
     };
@@ -420,7 +426,11 @@ async fn fleet_tile(State(registry): State<Arc<Registry>>, Path((name, z, x, y))
 
 /// The fleet map's legend, with the extent its tiles cover.
 async fn fleet_legend(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
-    let top = match fleet_top(registry, &name).await {
+    let (parts, tag) = match fleet_state(&registry, &name).await {
+        Ok(s) => s,
+        Err(r) => return r,
+    };
+    let top = match fleet_top(registry, &name, parts, tag).await {
         Ok(t) => t,
         Err(r) => return r,
     };
@@ -686,8 +696,8 @@ const MAX_IMPORT_BYTES: usize = 1 << 30;
 
 /// 401 / 403 unless the request carries an admin token (when any is configured).
 #[allow(clippy::result_large_err)]
-fn admin_only(transfer: &MapTransfer, headers: &HeaderMap) -> Result<(), Response> {
-    transfer.admin.check(headers.get(header::AUTHORIZATION).map(|v| v.as_bytes())).map_err(|refusal| {
+fn admin_only(settings: &HttpSettings, headers: &HeaderMap) -> Result<(), Response> {
+    settings.admin.check(headers.get(header::AUTHORIZATION).map(|v| v.as_bytes())).map_err(|refusal| {
         let status = match refusal {
             crate::auth::AdminRefusal::RobotToken => StatusCode::FORBIDDEN,
             _ => StatusCode::UNAUTHORIZED,
@@ -698,7 +708,7 @@ fn admin_only(transfer: &MapTransfer, headers: &HeaderMap) -> Result<(), Respons
 
 /// The admin check as an extractor: it runs on the request's head, before a body
 /// extractor reads (up to 1 GiB of) the body.
-struct AdminOnly(Arc<MapTransfer>);
+struct AdminOnly(Arc<HttpSettings>);
 
 impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
     type Rejection = Response;
@@ -706,9 +716,9 @@ impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
     async fn from_request_parts(parts: &mut axum::http::request::Parts, _state: &S) -> Result<Self, Self::Rejection> {
         let transfer = parts
             .extensions
-            .get::<Arc<MapTransfer>>()
+            .get::<Arc<HttpSettings>>()
             .cloned()
-            .ok_or_else(|| error(StatusCode::INTERNAL_SERVER_ERROR, "map transfer settings missing on this route".into()))?;
+            .ok_or_else(|| error(StatusCode::INTERNAL_SERVER_ERROR, "HTTP settings missing on this route".into()))?;
         admin_only(&transfer, &parts.headers)?;
         Ok(Self(transfer))
     }

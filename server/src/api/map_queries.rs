@@ -206,10 +206,10 @@ pub fn fleet_tag(parts: &[(SharedMap, Isometry3<f64>)]) -> u64 {
 }
 
 impl FleetTops {
-    /// Fleet `name`'s top-down view of `parts` (see [`fleet_map`]), from the cache when
-    /// nothing changed since it was built; `None` when there is no anchor map.
-    pub fn get(&self, name: &str, parts: &[(SharedMap, Isometry3<f64>)]) -> Option<Arc<FleetTop>> {
-        let tag = fleet_tag(parts);
+    /// Fleet `name`'s top-down view of `parts` in the state `tag` ([`fleet_tag`]; see
+    /// [`fleet_map`]), from the cache when nothing changed since it was built;
+    /// `None` when there is no anchor map.
+    pub fn get(&self, name: &str, parts: &[(SharedMap, Isometry3<f64>)], tag: u64) -> Option<Arc<FleetTop>> {
         let cached = || lock(&self.built).get(name).filter(|t| t.tag == tag).cloned();
         if let Some(top) = cached() {
             return Some(top);

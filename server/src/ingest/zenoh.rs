@@ -155,28 +155,26 @@ pub async fn serve(
                     continue;
                 }
                 // A repeated hello for the session already attached is a retry: answer it again.
-                if let Some(link) = links.get_mut(&robot)
-                    && hello.resume_session_id == link.session.id
-                {
-                    if let Err(e) = link.session.check_resume_secret(&hello.resume_secret) {
-                        metrics.rejected("unauthenticated");
-                        reply(&links, e.status()).await;
+                // A hello for the session already attached is answered again: a resume
+                // of it (secret checked), or the opening hello repeated before the
+                // client heard the accept.
+                if let Some(link) = links.get_mut(&robot) {
+                    let resumed = hello.resume_session_id == link.session.id;
+                    if resumed || link.is_repeat(&hello) {
+                        if resumed {
+                            if let Err(e) = link.session.check_resume_secret(&hello.resume_secret) {
+                                metrics.rejected("unauthenticated");
+                                reply(&links, e.status()).await;
+                                continue;
+                            }
+                            // A hello asks for the session outright, as a new one would.
+                            link.session.attach(link.sink.clone());
+                        }
+                        link.seen();
+                        let opened = crate::session::Opened { session: link.session.clone(), resumed };
+                        let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
                         continue;
                     }
-                    // A hello asks for the session outright, as a new one would.
-                    link.session.attach(link.sink.clone());
-                    link.seen();
-                    let opened = crate::session::Opened { session: link.session.clone(), resumed: true };
-                    let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
-                    continue;
-                }
-                if let Some(link) = links.get_mut(&robot)
-                    && link.is_repeat(&hello)
-                {
-                    link.seen();
-                    let opened = crate::session::Opened { session: link.session.clone(), resumed: false };
-                    let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
-                    continue;
                 }
                 let sink = spawn_publisher(zenoh.clone(), keys::results(&robot), result_buffer);
                 match registry.open(&hello, Transport::Zenoh, sink.clone()) {

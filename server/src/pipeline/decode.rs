@@ -50,8 +50,8 @@ pub struct Decoder {
     color_encoding: ColorEncoding,
     depth_encoding: DepthEncoding,
     window: OrderWindow,
-    /// Frames rejected in a row for jumping past the window.
-    jumps_in_a_row: u32,
+    /// Frames in a row that jumped past the window.
+    jumps: JumpCount,
     last_sequence: Option<u64>,
     last_capture_time_ns: Option<u64>,
 }
@@ -59,6 +59,29 @@ pub struct Decoder {
 /// Frames in a row that jump past the order window before the decoder takes the
 /// next one as the robot's new sequence and clock.
 pub const RESYNC_AFTER_JUMPS: u32 = 3;
+
+/// Frames in a row that jumped past the order window: after
+/// [`RESYNC_AFTER_JUMPS`] of them the next jumping frame starts the robot's new
+/// timeline (one forged frame between the robot's own changes nothing).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct JumpCount(u32);
+
+impl JumpCount {
+    /// Counts a frame that `jumped` or not; true when the frame starts a new
+    /// timeline (the previous frame is to be forgotten).
+    pub fn restart(&mut self, jumped: bool) -> bool {
+        if !jumped {
+            self.0 = 0;
+            false
+        } else if self.0 >= RESYNC_AFTER_JUMPS {
+            self.0 = 0;
+            true
+        } else {
+            self.0 += 1;
+            false
+        }
+    }
+}
 
 /// How far a frame may jump past the previous one and still be taken as the
 /// session's next (`session.max_sequence_jump`, `session.max_capture_gap_s`).
@@ -89,7 +112,7 @@ impl Decoder {
             depth_encoding: camera.depth_encoding(),
             camera,
             window,
-            jumps_in_a_row: 0,
+            jumps: JumpCount::default(),
             last_sequence: None,
             last_capture_time_ns: None,
         }
@@ -109,17 +132,12 @@ impl Decoder {
         // set) sends more frames after the jump: after `RESYNC_AFTER_JUMPS` in a row
         // the next is taken, and the session goes on from there. One forged frame
         // between the robot's own is rejected and changes nothing.
-        let jumps = !self.window.sequence_fits(self.last_sequence, frame.sequence)
+        let jumped = !self.window.sequence_fits(self.last_sequence, frame.sequence)
             || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns.saturating_sub(last) > self.window.max_capture_gap_ns);
-        if !jumps {
-            self.jumps_in_a_row = 0;
-        } else if self.jumps_in_a_row >= RESYNC_AFTER_JUMPS {
-            tracing::warn!(sequence = frame.sequence, "{} frames in a row jumped past the order window: taking the new sequence and clock", self.jumps_in_a_row);
-            self.jumps_in_a_row = 0;
+        if self.jumps.restart(jumped) {
+            tracing::warn!(sequence = frame.sequence, "{RESYNC_AFTER_JUMPS} frames in a row jumped past the order window: taking the new sequence and clock");
             self.last_sequence = None;
             self.last_capture_time_ns = None;
-        } else {
-            self.jumps_in_a_row += 1;
         }
         if !self.window.sequence_fits(self.last_sequence, frame.sequence) {
             return Err(reject(
