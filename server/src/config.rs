@@ -26,6 +26,33 @@ pub struct ServerConfig {
     pub store: StoreConfig,
     pub auth: AuthConfig,
     pub fleet: FleetConfig,
+    pub limits: LimitsConfig,
+}
+
+/// What the sessions in memory may take together. A hello beyond a limit first
+/// makes room by evicting idle sessions (disconnected, answered, committed: their
+/// state stays in the store); when none can go it is refused with
+/// RESOURCE_EXHAUSTED naming the limit, and counted
+/// (`stillmap_sessions_refused_total{limit=…}`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LimitsConfig {
+    /// Sessions in memory at once: live ones (streaming or recently disconnected)
+    /// and stored ones a query brought back. About 70 MB each at 640×480 once
+    /// streaming (tracker, perception buffers, the map's window). Default 128.
+    pub max_sessions: usize,
+    /// Live sessions in memory per robot id (a robot that reconnects without
+    /// resuming opens a new one each time). Default 4.
+    pub max_sessions_per_robot: usize,
+    /// Camera pixels (width × height) of the live sessions in memory, summed: the
+    /// per-pixel buffers grow with it. Default 40,000,000 (128 cameras of 640×480).
+    pub max_camera_pixels_total: u64,
+}
+
+impl Default for LimitsConfig {
+    fn default() -> Self {
+        Self { max_sessions: 128, max_sessions_per_robot: 4, max_camera_pixels_total: 40_000_000 }
+    }
 }
 
 /// Fleets: one world frame per fleet; sessions join it by place recognition.
@@ -234,6 +261,13 @@ pub struct SessionConfig {
     /// The same for capture time: a frame more than this many seconds after the
     /// previous one is rejected (default 86,400 s, a day).
     pub max_capture_gap_s: f64,
+    /// A session disconnected (or, restored from the store, not queried) for this
+    /// long leaves memory once everything it holds is answered and committed: its
+    /// pipeline, tracker and map are freed, the store keeps its trajectory and map,
+    /// and a query brings it back (read-only; a robot resuming it gets a new
+    /// session, as after a restart). Default 300 s; 0 = only under the `limits`.
+    /// Without a store nothing is evicted (it would be lost).
+    pub idle_evict_s: f64,
 }
 
 /// Overload policy of a session's frame queue. Every dropped frame is counted in
@@ -292,6 +326,7 @@ impl Default for SessionConfig {
             max_camera_pixels: 1 << 21,
             max_sequence_jump: 1_000_000,
             max_capture_gap_s: 86_400.0,
+            idle_evict_s: 300.0,
         }
     }
 }
@@ -375,6 +410,19 @@ impl ServerConfig {
         }
         if !(f.agreement_m > 0.0 && f.agreement_m <= 1.0 && f.agreement_deg > 0.0 && f.agreement_deg <= 45.0) {
             return bad(format!("fleet.agreement_m must be in (0, 1] and fleet.agreement_deg in (0, 45], got {} and {}", f.agreement_m, f.agreement_deg));
+        }
+        if !(self.session.idle_evict_s >= 0.0 && self.session.idle_evict_s <= MAX_IDLE_DISCONNECT_S) {
+            return bad(format!("session.idle_evict_s must be 0 (only under the limits) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.session.idle_evict_s));
+        }
+        let l = &self.limits;
+        if l.max_sessions == 0 || l.max_sessions_per_robot == 0 {
+            return bad("limits.max_sessions and limits.max_sessions_per_robot must be at least 1".into());
+        }
+        if l.max_camera_pixels_total < self.session.max_camera_pixels {
+            return bad(format!(
+                "limits.max_camera_pixels_total ({}) must be at least session.max_camera_pixels ({}): the largest camera allowed could never stream",
+                l.max_camera_pixels_total, self.session.max_camera_pixels
+            ));
         }
         if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s <= MAX_IDLE_DISCONNECT_S) {
             return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.zenoh.idle_disconnect_s));

@@ -31,7 +31,7 @@ use stillmap_tracking::Camera;
 
 use crate::config::FleetConfig;
 use crate::lock;
-use crate::store::{FleetFrame, KeyframeRecord, Store, StoredSession};
+use crate::store::{FleetFrame, KeyframeRecord, SessionHead, Store};
 
 /// A committed keyframe of some session, for place recognition.
 pub struct FleetJob {
@@ -184,7 +184,7 @@ impl FleetService {
 
     /// Rebuilds the fleets from the store: sessions in the order they started,
     /// their merges, and the keyframes of merged sessions in the index.
-    pub fn restore(&self, stored: &[StoredSession]) {
+    pub fn restore(&self, stored: &[SessionHead]) {
         let frames = match &self.shared.store {
             Some(store) => store.fleet_frames().unwrap_or_else(|e| {
                 tracing::error!("fleet merges cannot be read from the store: {e}");
@@ -192,7 +192,7 @@ impl FleetService {
             }),
             None => HashMap::new(),
         };
-        let mut order: Vec<&StoredSession> = stored.iter().collect();
+        let mut order: Vec<&SessionHead> = stored.iter().collect();
         order.sort_by_key(|s| (s.meta.started_unix_ns, s.id.clone()));
         let mut fleets = lock(&self.shared.fleets);
         for s in order {

@@ -20,12 +20,22 @@ pub mod session;
 pub mod store;
 
 use std::net::SocketAddr;
-use std::sync::{Mutex, MutexGuard};
+use std::sync::{Mutex, MutexGuard, RwLock, RwLockReadGuard, RwLockWriteGuard};
 
 /// Locks `m`, recovering a lock poisoned by a panicking thread: every structure the
 /// server keeps behind a mutex stays consistent between its single-step updates.
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// [`lock`] for reading an `RwLock`.
+pub(crate) fn read<T>(m: &RwLock<T>) -> RwLockReadGuard<'_, T> {
+    m.read().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// [`lock`] for writing an `RwLock`.
+pub(crate) fn write<T>(m: &RwLock<T>) -> RwLockWriteGuard<'_, T> {
+    m.write().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 use std::sync::Arc;
 use std::time::Duration;
@@ -112,8 +122,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let pools = session::Pools::start(&config.session).map_err(ServerError::Threads)?;
     let perception = perception_service(&config, &metrics)?;
     let store = if config.store.enabled { Some(Arc::new(store::Store::open(std::path::Path::new(&config.store.path))?.count_errors_in(metrics.store_errors()).retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s)))) } else { None };
+    // What is stored is listed, not loaded: a query brings a session's map and
+    // trajectory into memory when it needs them. Place recognition needs the
+    // keyframe records (bounded per fleet by fleet.max_places).
     let stored = match &store {
-        Some(s) => s.load_all()?,
+        Some(s) => s.heads(config.fleet.enabled && config.mapping.enabled)?,
         None => Vec::new(),
     };
     if config.fleet.enabled && !config.mapping.enabled {
@@ -123,15 +136,16 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     if let Some(f) = &fleets {
         f.restore(&stored);
     }
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets));
+    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets).with_limits(config.limits.clone()));
     let tokens = Arc::new(auth::Tokens::new(&config.auth.tokens));
     if !tokens.required() {
         tracing::info!("auth.tokens is empty: every robot's hello is accepted");
     }
     if !stored.is_empty() {
-        tracing::info!(sessions = stored.len(), "restoring sessions from the store");
-        registry.restore(stored);
+        tracing::info!(sessions = stored.len(), "stored sessions listed (loaded when a query needs them)");
+        registry.restore(&stored);
     }
+    drop(stored);
 
     let grpc_listener = bind(&config.grpc.listen).await?;
     let http_listener = bind(&config.http.listen).await?;
@@ -212,11 +226,30 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             }
         }
     });
+    // Sessions idle for session.idle_evict_s leave memory (the store keeps them).
+    let evict_task = (config.session.idle_evict_s > 0.0).then(|| {
+        let registry = registry.clone();
+        let every = Duration::from_secs_f64((config.session.idle_evict_s / 4.0).clamp(0.05, 5.0));
+        tokio::spawn(async move {
+            let mut interval = tokio::time::interval(every);
+            interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                interval.tick().await;
+                let r = registry.clone();
+                if tokio::task::spawn_blocking(move || r.evict_idle()).await.is_err() {
+                    break;
+                }
+            }
+        })
+    });
     let grpc_task = tokio::spawn(grpc);
     let http_task = tokio::spawn(async move { http.await.map_err(ServerError::Http) });
     let _ = shutdown.wait_for(|stop| *stop).await;
     tracing::info!("shutting down");
     flush_task.abort();
+    if let Some(t) = evict_task {
+        t.abort();
+    }
     registry.close_all();
     let finish = async {
         match grpc_task.await {

@@ -139,6 +139,11 @@ impl SessionMap {
         })
     }
 
+    /// Whether the map commits to a store.
+    pub fn has_store(&self) -> bool {
+        self.persistence.is_some()
+    }
+
     /// Keyframes covered by the last commit (what a crash keeps).
     pub fn committed_keyframes(&self) -> Option<u64> {
         self.persistence.as_ref().map(|p| p.meta.keyframes)

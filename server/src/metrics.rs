@@ -38,6 +38,10 @@ pub struct Metrics {
     map_backlog: Gauge,
     map_jobs_skipped: Family<Labels, Counter>,
     store_errors: Counter,
+    sessions_resident: Gauge,
+    sessions_evicted: Counter,
+    sessions_loaded: Counter,
+    sessions_refused: Family<Labels, Counter>,
 }
 
 impl Default for Metrics {
@@ -89,6 +93,18 @@ impl Default for Metrics {
         );
         let store_errors = Counter::default();
         registry.register("store_errors", "Store operations that failed (a full disk, an I/O error); /healthz says 503 while writes fail", store_errors.clone());
+        let sessions_resident = Gauge::default();
+        registry.register("sessions_resident", "Sessions in memory (live, and stored ones a query brought back)", sessions_resident.clone());
+        let sessions_evicted = Counter::default();
+        registry.register("sessions_evicted", "Sessions that left memory (idle, or to make room); the store keeps them", sessions_evicted.clone());
+        let sessions_loaded = Counter::default();
+        registry.register("sessions_loaded", "Stored sessions brought back into memory by a query", sessions_loaded.clone());
+        let sessions_refused = Family::<Labels, Counter>::default();
+        registry.register(
+            "sessions_refused",
+            "Hellos refused by a limit (max_connected, max_sessions, max_sessions_per_robot, max_camera_pixels_total)",
+            sessions_refused.clone(),
+        );
         Self {
             registry,
             frames_received,
@@ -108,6 +124,10 @@ impl Default for Metrics {
             map_backlog,
             map_jobs_skipped,
             store_errors,
+            sessions_resident,
+            sessions_evicted,
+            sessions_loaded,
+            sessions_refused,
         }
     }
 }
@@ -169,6 +189,18 @@ impl Metrics {
     }
     pub fn connected_delta(&self, delta: i64) {
         self.sessions_connected.inc_by(delta);
+    }
+    pub fn resident_delta(&self, delta: i64) {
+        self.sessions_resident.inc_by(delta);
+    }
+    pub fn session_evicted(&self) {
+        self.sessions_evicted.inc();
+    }
+    pub fn session_loaded(&self) {
+        self.sessions_loaded.inc();
+    }
+    pub fn session_refused(&self, limit: &str) {
+        self.sessions_refused.get_or_create(&one("limit", limit)).inc();
     }
 
     /// The Prometheus text exposition of every metric.

@@ -147,6 +147,11 @@ impl FrameQueue {
     pub fn close(&self) {
         self.lock().closed = true;
     }
+
+    /// Whether [`close`](Self::close) was called.
+    pub fn is_closed(&self) -> bool {
+        self.lock().closed
+    }
 }
 
 #[cfg(test)]

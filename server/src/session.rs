@@ -26,8 +26,8 @@ use stillmap_tracking::TrackerConfig;
 use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
-use crate::config::SessionConfig;
-use crate::lock;
+use crate::config::{LimitsConfig, SessionConfig};
+use crate::{lock, read, write};
 use crate::map::{SessionMap, SharedMap};
 use crate::metrics::Metrics;
 use crate::pipeline::decode::validate_camera;
@@ -36,7 +36,7 @@ use crate::pipeline::segmentation::SegmentationService;
 use crate::pipeline::{FrameOutcome, SessionPipeline, micros, stage};
 use crate::pool::{Lane, Pool};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
-use crate::store::{SessionMeta, Store, StoredSession};
+use crate::store::{SessionHead, SessionMeta, Store, StoredSession};
 
 /// Where a connection's results go: the gRPC response stream, or the Zenoh
 /// publisher task (which turns an `Err` into a `ServerMessage.error`).
@@ -132,6 +132,8 @@ pub struct Session {
     parked: AtomicBool,
     /// The runtime that wakes a parked session (`None` outside one: unit tests).
     runtime: Option<tokio::runtime::Handle>,
+    /// When a robot or a query last used the session (idle eviction counts from it).
+    touched: Mutex<Instant>,
     me: Weak<Session>,
 }
 
@@ -233,6 +235,7 @@ impl Session {
         let sequence = frame.sequence;
         self.metrics.frame_received(transport, encoded_len);
         let outcome = self.queue.push(QueuedFrame { frame, received_at: Instant::now() })?;
+        self.touch();
         self.counters.received.fetch_add(1, Ordering::Relaxed);
         self.counters.bytes.fetch_add(encoded_len as u64, Ordering::Relaxed);
         {
@@ -322,11 +325,59 @@ impl Session {
         }
     }
 
+    /// Records a use (a frame, a connection coming or going, a query).
+    fn touch(&self) {
+        *lock(&self.touched) = Instant::now();
+    }
+
+    /// How long since the session was last used.
+    fn idle_for(&self) -> std::time::Duration {
+        lock(&self.touched).elapsed()
+    }
+
+    /// What the session list shows of this session.
+    pub fn info(&self) -> SessionInfo {
+        SessionInfo {
+            summary: summary(self),
+            archived: self.archived,
+            resident: true,
+            fleet: self.fleet_name.clone(),
+            bytes_received: self.counters.bytes.load(Ordering::Relaxed),
+            last_received_sequence: self.last_received_sequence(),
+            latest: self.tracking().latest,
+        }
+    }
+
+    /// No robot attached, every frame answered, no map work queued or running.
+    fn idle_parts(&self) -> bool {
+        !self.is_connected()
+            && self.unanswered() == 0
+            && !self.scheduled.load(Ordering::SeqCst)
+            && !self.map_lane.as_ref().is_some_and(|l| l.scheduled.load(Ordering::SeqCst) || !lock(&l.jobs).is_empty())
+    }
+
+    /// Whether the session holds nothing that would be lost if it left memory now:
+    /// no robot attached, every frame answered, no map work queued or running,
+    /// everything committed (`false` without a store or a map: nothing keeps it).
+    fn at_rest(&self) -> bool {
+        if self.archived {
+            return true;
+        }
+        let Some(map) = &self.map else { return false };
+        if !self.idle_parts() {
+            return false;
+        }
+        let track = self.tracking();
+        let m = lock(map);
+        m.has_store() && !m.uncommitted(track.trajectory.len())
+    }
+
     /// Records the connection state; the gauge moves only when it changes.
     fn set_connected(&self, connected: bool) {
         if self.connected.swap(connected, Ordering::Relaxed) != connected {
             self.metrics.connected_delta(if connected { 1 } else { -1 });
         }
+        self.touch();
     }
 
     /// Frames received and not yet answered.
@@ -555,6 +606,47 @@ pub fn summary(s: &Session) -> pb::SessionSummary {
     }
 }
 
+/// What the session list and the dashboard show of a session, in memory or not.
+#[derive(Debug, Clone)]
+pub struct SessionInfo {
+    pub summary: pb::SessionSummary,
+    /// Read-only: restored from the store, or evicted from memory (a robot resuming
+    /// it gets a new session).
+    pub archived: bool,
+    /// In memory now (a query on its map or trajectory brings it back when not).
+    pub resident: bool,
+    pub fleet: String,
+    pub bytes_received: u64,
+    pub last_received_sequence: Option<u64>,
+    pub latest: Option<pb::PoseStamped>,
+}
+
+impl SessionInfo {
+    /// A stored session's, from what the store keeps of it (not in memory).
+    fn stored(head: &crate::store::SessionHead, fleet: String) -> Self {
+        let state = head.latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
+        Self {
+            summary: pb::SessionSummary {
+                session_id: head.id.clone(),
+                robot_id: head.meta.robot_id.clone(),
+                transport: if head.meta.transport == "zenoh" { "zenoh" } else { "grpc" }.into(),
+                connected: false,
+                camera: Some(head.camera.clone()),
+                frames_processed: head.pose_count as u64,
+                tracking_state: state as i32,
+                started_unix_ns: head.meta.started_unix_ns,
+                ..Default::default()
+            },
+            archived: true,
+            resident: false,
+            fleet,
+            bytes_received: 0,
+            last_received_sequence: head.latest.map(|p| p.sequence),
+            latest: head.latest,
+        }
+    }
+}
+
 /// Why a map file could not be imported.
 #[derive(Debug, thiserror::Error)]
 pub enum ImportError {
@@ -581,6 +673,10 @@ pub enum BadHello {
     /// The hello asks for more than a limit allows (RESOURCE_EXHAUSTED, naming it).
     #[error("{0}")]
     TooLarge(String),
+    /// The sessions in memory are at a `limits.*` bound and none is idle enough to
+    /// leave (RESOURCE_EXHAUSTED, naming the limit).
+    #[error("server full: {message}")]
+    Limit { limit: &'static str, message: String },
     /// The server could not start the session (INTERNAL).
     #[error("{0}")]
     Internal(String),
@@ -591,7 +687,7 @@ impl BadHello {
     pub fn status(&self) -> tonic::Status {
         let code = match self {
             Self::Invalid(_) => tonic::Code::InvalidArgument,
-            Self::Full { .. } | Self::TooLarge(_) => tonic::Code::ResourceExhausted,
+            Self::Full { .. } | Self::TooLarge(_) | Self::Limit { .. } => tonic::Code::ResourceExhausted,
             Self::Internal(_) => tonic::Code::Internal,
             Self::Unauthenticated(_) => tonic::Code::Unauthenticated,
         };
@@ -613,12 +709,20 @@ pub struct Registry {
     fleets: Option<Arc<crate::fleet::FleetService>>,
     /// The fleet maps' top-down views (tiles and legends), kept between requests.
     fleet_tops: crate::api::map_queries::FleetTops,
+    /// The sessions in memory.
     sessions: RwLock<HashMap<String, Arc<Session>>>,
+    /// The sessions out of memory (stored, or evicted): what the list shows of
+    /// them; the store holds the rest, and [`get`](Self::get) brings them back.
+    dormant: RwLock<HashMap<String, SessionInfo>>,
+    limits: LimitsConfig,
+    /// Held while a stored session is brought back into memory (one at a time,
+    /// so two queries for it load it once). Taken before `admission`, never after.
+    loading: Mutex<()>,
     /// The worker pools every live session's work runs on.
     pools: Pools,
     next_id: AtomicU64,
-    /// Held through `open`, so concurrent hellos see each other when the
-    /// `session.max_connected` limit is checked.
+    /// Held through `open` and every eviction, so concurrent hellos see each other
+    /// when the limits are checked and a resume never races an eviction.
     admission: Mutex<()>,
     /// Distinguishes session ids of different server runs.
     epoch: u64,
@@ -660,7 +764,30 @@ impl Registry {
         pools: Pools,
     ) -> Self {
         let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        Self { config, tracking, perception, mapping, store, metrics, fleet: broadcast::channel(FLEET_POSE_BUFFER).0, fleets: None, fleet_tops: Default::default(), pools, sessions: RwLock::default(), next_id: AtomicU64::new(1), admission: Mutex::new(()), epoch }
+        Self {
+            config,
+            tracking,
+            perception,
+            mapping,
+            store,
+            metrics,
+            fleet: broadcast::channel(FLEET_POSE_BUFFER).0,
+            fleets: None,
+            fleet_tops: Default::default(),
+            pools,
+            sessions: RwLock::default(),
+            dormant: RwLock::default(),
+            limits: LimitsConfig::default(),
+            loading: Mutex::new(()),
+            next_id: AtomicU64::new(1),
+            admission: Mutex::new(()),
+            epoch,
+        }
+    }
+
+    /// The registry under `limits` (before any session opens).
+    pub fn with_limits(self, limits: LimitsConfig) -> Self {
+        Self { limits, ..self }
     }
 
     /// The registry with fleets and place recognition (before any session opens).
@@ -687,15 +814,161 @@ impl Registry {
         self.fleet.subscribe()
     }
 
+    /// The session `id`, brought back from the store when it is not in memory
+    /// (read-only; counted in `stillmap_sessions_loaded_total`). A use: it resets
+    /// the session's idle time.
     pub fn get(&self, id: &str) -> Option<Arc<Session>> {
-        self.sessions.read().unwrap_or_else(|p| p.into_inner()).get(id).cloned()
+        if let Some(s) = self.resident(id) {
+            s.touch();
+            return Some(s);
+        }
+        if !read(&self.dormant).contains_key(id) {
+            return None;
+        }
+        let _loading = lock(&self.loading);
+        if let Some(s) = self.resident(id) {
+            s.touch();
+            return Some(s);
+        }
+        let store = self.store.as_ref()?;
+        let stored = match store.load(id) {
+            Ok(Some(stored)) => stored,
+            Ok(None) => {
+                tracing::error!(session = id, "listed as stored, but the store does not hold it");
+                return None;
+            }
+            Err(e) => {
+                tracing::error!(session = id, "cannot bring the stored session back: {e}");
+                return None;
+            }
+        };
+        let session = self.archived_session(stored);
+        write(&self.sessions).insert(id.to_string(), session.clone());
+        write(&self.dormant).remove(id);
+        self.metrics.session_loaded();
+        self.metrics.resident_delta(1);
+        tracing::info!(session = id, "stored session brought back into memory for a query");
+        // Over limits.max_sessions: an idle session makes room (this one stays).
+        let _admission = lock(&self.admission);
+        if let Err(e) = self.make_room(None, 0, 0, Some(id)) {
+            tracing::debug!(session = id, "loaded beyond the limit for now: {e}");
+        }
+        Some(session)
     }
 
-    /// All sessions, oldest first.
+    /// The session `id` if it is in memory (nothing is loaded).
+    pub fn resident(&self, id: &str) -> Option<Arc<Session>> {
+        read(&self.sessions).get(id).cloned()
+    }
+
+    /// The sessions in memory, oldest first.
     pub fn list(&self) -> Vec<Arc<Session>> {
-        let mut all: Vec<_> = self.sessions.read().unwrap_or_else(|p| p.into_inner()).values().cloned().collect();
+        let mut all: Vec<_> = read(&self.sessions).values().cloned().collect();
         all.sort_by_key(|s| (s.started_unix_ns, s.id.clone()));
         all
+    }
+
+    /// What the list shows of the sessions out of memory, oldest first.
+    pub fn dormant(&self) -> Vec<SessionInfo> {
+        let mut all: Vec<_> = read(&self.dormant).values().cloned().collect();
+        all.sort_by_key(|s| (s.summary.started_unix_ns, s.summary.session_id.clone()));
+        all
+    }
+
+    /// Every session, in memory or not, oldest first (nothing is loaded).
+    pub fn list_info(&self) -> Vec<SessionInfo> {
+        let resident = self.list();
+        let mut all: Vec<SessionInfo> = resident.iter().map(|s| s.info()).collect();
+        all.extend(self.dormant().into_iter().filter(|d| !resident.iter().any(|s| s.id == d.summary.session_id)));
+        all.sort_by_key(|s| (s.summary.started_unix_ns, s.summary.session_id.clone()));
+        all
+    }
+
+    /// What the list shows of session `id` (nothing is loaded).
+    pub fn info(&self, id: &str) -> Option<SessionInfo> {
+        match self.resident(id) {
+            Some(s) => Some(s.info()),
+            None => read(&self.dormant).get(id).cloned(),
+        }
+    }
+
+    /// Takes `s` out of memory if nothing would be lost: a live session must be
+    /// disconnected, answered, without map work, and committed (what is left is
+    /// committed first); its queue is closed, so a robot still sending to it is
+    /// told to open a new session. Call it holding `admission`. True when it left.
+    fn try_evict(&self, s: &Arc<Session>) -> bool {
+        if !s.archived {
+            if !s.idle_parts() {
+                return false;
+            }
+            s.flush();
+            if !s.at_rest() {
+                return false;
+            }
+            s.queue.close();
+            // A frame that slipped in before the close: the next sweep takes it.
+            if !s.at_rest() {
+                return false;
+            }
+        }
+        if write(&self.sessions).remove(&s.id).is_none() {
+            return false;
+        }
+        let mut info = s.info();
+        info.archived = true;
+        info.resident = false;
+        info.summary.connected = false;
+        write(&self.dormant).insert(s.id.clone(), info);
+        self.metrics.session_evicted();
+        self.metrics.resident_delta(-1);
+        tracing::info!(session = %s.id, idle_s = s.idle_for().as_secs_f64(), "session left memory (the store keeps it)");
+        true
+    }
+
+    /// Evicts sessions idle for `session.idle_evict_s` (see [`try_evict`](Self::try_evict));
+    /// returns how many left. The server calls it periodically, off the runtime.
+    pub fn evict_idle(&self) -> usize {
+        if self.config.idle_evict_s <= 0.0 {
+            return 0;
+        }
+        let idle = std::time::Duration::from_secs_f64(self.config.idle_evict_s);
+        let mut evicted = 0;
+        for s in self.list().iter().filter(|s| s.idle_for() >= idle) {
+            let _admission = lock(&self.admission);
+            evicted += usize::from(self.try_evict(s));
+        }
+        evicted
+    }
+
+    /// Makes room for `new` more sessions (of `robot`, with `pixels` camera pixels)
+    /// under the `limits`, evicting the longest-idle sessions that can leave
+    /// (never `keep`). Call it holding `admission`.
+    fn make_room(&self, robot: Option<&str>, new: usize, pixels: u64, keep: Option<&str>) -> Result<(), BadHello> {
+        let l = &self.limits;
+        loop {
+            let resident = self.list();
+            let live = || resident.iter().filter(|s| !s.archived);
+            let (limit, mut candidates, message) = if resident.len() + new > l.max_sessions {
+                ("max_sessions", resident.clone(), format!("{} sessions in memory, limits.max_sessions = {}", resident.len(), l.max_sessions))
+            } else if let Some(robot) = robot.filter(|r| live().filter(|s| s.robot_id == *r).count() + new > l.max_sessions_per_robot) {
+                let mine: Vec<_> = live().filter(|s| s.robot_id == robot).cloned().collect();
+                let message = format!("robot {robot:?} has {} sessions in memory, limits.max_sessions_per_robot = {}", mine.len(), l.max_sessions_per_robot);
+                ("max_sessions_per_robot", mine, message)
+            } else {
+                let used: u64 = live().map(|s| u64::from(s.camera.width) * u64::from(s.camera.height)).sum();
+                if used + pixels <= l.max_camera_pixels_total {
+                    return Ok(());
+                }
+                let message = format!("{used} camera pixels in memory + {pixels} asked, limits.max_camera_pixels_total = {}", l.max_camera_pixels_total);
+                ("max_camera_pixels_total", live().cloned().collect(), message)
+            };
+            // Stored sessions a query brought back go first, then the longest idle.
+            candidates.retain(|s| keep != Some(s.id.as_str()));
+            candidates.sort_by_key(|s| (!s.archived, std::cmp::Reverse(s.idle_for())));
+            if !candidates.iter().any(|s| self.try_evict(s)) {
+                return Err(BadHello::Limit { limit, message: format!("{message}, and none is idle enough to leave") });
+            }
+        }
     }
 
     /// Opens a session for `hello`, or resumes the one it names, and attaches `sink`.
@@ -703,7 +976,7 @@ impl Registry {
         stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello::Invalid)?;
         let _admission = lock(&self.admission);
         if !hello.resume_session_id.is_empty()
-            && let Some(session) = self.get(&hello.resume_session_id).filter(|s| !s.archived)
+            && let Some(session) = self.resident(&hello.resume_session_id).filter(|s| !s.archived && !s.queue.is_closed())
         {
             if session.robot_id != hello.robot_id {
                 return Err(BadHello::Invalid(format!(
@@ -734,6 +1007,12 @@ impl Registry {
             None => hello.fleet.clone(),
         };
         self.check_capacity()?;
+        if let Err(e) = self.make_room(Some(&hello.robot_id), 1, pixels, None) {
+            if let BadHello::Limit { limit, .. } = &e {
+                self.metrics.session_refused(limit);
+            }
+            return Err(e);
+        }
         // An imported map may hold the id this run would give next: skip it.
         let id = loop {
             let n = self.next_id.fetch_add(1, Ordering::Relaxed);
@@ -796,8 +1075,9 @@ impl Registry {
             resume_secret,
         }));
         session.attach(sink);
-        self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session.clone());
+        write(&self.sessions).insert(id, session.clone());
         self.metrics.session_opened();
+        self.metrics.resident_delta(1);
         tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
         Ok(Opened { session, resumed: false })
     }
@@ -809,69 +1089,79 @@ impl Registry {
         if limit == 0 {
             return Ok(());
         }
-        let connected = self.sessions.read().unwrap_or_else(|p| p.into_inner()).values().filter(|s| s.is_connected()).count();
+        let connected = read(&self.sessions).values().filter(|s| s.is_connected()).count();
         if connected >= limit {
+            self.metrics.session_refused("max_connected");
             return Err(BadHello::Full { connected, limit });
         }
         Ok(())
     }
 
-    /// Brings back every session in the store (read-only: queries answer, robots
-    /// resuming one get a new session).
-    pub fn restore(&self, stored: Vec<StoredSession>) {
-        for s in stored {
-            let id = s.id.clone();
-            let map = if self.mapping.enabled {
-                match SessionMap::new(&s.camera, self.mapping.clone(), s.meta.class_names.clone()) {
-                    Ok(map) => {
-                        {
-                            let mut m = lock(&map);
-                            if let Some(store) = &self.store {
-                                m.attach_store(store.clone(), &id, s.meta.clone());
-                            }
-                            let last_camera = s.keyframes.last().map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
-                            m.restore(s.blocks, &s.meta, s.poses.len(), last_camera);
-                        }
-                        Some(map)
-                    }
-                    Err(e) => {
-                        tracing::error!(session = %id, "stored map cannot be restored: {e}");
-                        None
-                    }
-                }
-            } else {
-                None
+    /// Lists the stored sessions (read-only: queries answer, and bring a session
+    /// into memory when they need its map or trajectory; robots resuming one get a
+    /// new session). Nothing is loaded here.
+    pub fn restore(&self, heads: &[SessionHead]) {
+        let mut dormant = write(&self.dormant);
+        for head in heads {
+            let fleet = match &self.fleets {
+                Some(f) => f.fleet_for(&head.meta.fleet),
+                None => head.meta.fleet.clone(),
             };
-            let transport = if s.meta.transport == "zenoh" { Transport::Zenoh } else { Transport::Grpc };
-            let counters = Counters::default();
-            counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
-            let latest = s.poses.last().copied();
-            let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
-            let queue = FrameQueue::new(1, 1, self.config.overload_policy);
-            queue.close();
-            let fleet_name = match &self.fleets {
-                Some(f) => f.fleet_for(&s.meta.fleet),
-                None => s.meta.fleet.clone(),
-            };
-            let session = Arc::new_cyclic(|me| self.session(me, SessionParts {
-                id: id.clone(),
-                robot_id: s.meta.robot_id.clone(),
-                fleet_name,
-                transport,
-                camera: s.camera,
-                started_unix_ns: s.meta.started_unix_ns,
-                counters,
-                queue,
-                last_received_sequence: latest.map(|p| p.sequence),
-                track: TrackState { state, latest, trajectory: s.poses },
-                perception: None,
-                map,
-                archived: true,
-                resume_secret: String::new(),
-            }));
-            tracing::info!(session = %id, keyframes = s.meta.keyframes, "session restored from the store");
-            self.sessions.write().unwrap_or_else(|p| p.into_inner()).insert(id, session);
+            dormant.insert(head.id.clone(), SessionInfo::stored(head, fleet));
         }
+    }
+
+    /// A stored session in memory, read-only.
+    fn archived_session(&self, s: StoredSession) -> Arc<Session> {
+        let id = s.id.clone();
+        let map = if self.mapping.enabled {
+            match SessionMap::new(&s.camera, self.mapping.clone(), s.meta.class_names.clone()) {
+                Ok(map) => {
+                    {
+                        let mut m = lock(&map);
+                        if let Some(store) = &self.store {
+                            m.attach_store(store.clone(), &id, s.meta.clone());
+                        }
+                        let last_camera = s.keyframes.last().map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
+                        m.restore(s.blocks, &s.meta, s.poses.len(), last_camera);
+                    }
+                    Some(map)
+                }
+                Err(e) => {
+                    tracing::error!(session = %id, "stored map cannot be restored: {e}");
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        let transport = if s.meta.transport == "zenoh" { Transport::Zenoh } else { Transport::Grpc };
+        let counters = Counters::default();
+        counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
+        let latest = s.poses.last().copied();
+        let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
+        let queue = FrameQueue::new(1, 1, self.config.overload_policy);
+        queue.close();
+        let fleet_name = match &self.fleets {
+            Some(f) => f.fleet_for(&s.meta.fleet),
+            None => s.meta.fleet.clone(),
+        };
+        Arc::new_cyclic(|me| self.session(me, SessionParts {
+            id,
+            robot_id: s.meta.robot_id.clone(),
+            fleet_name,
+            transport,
+            camera: s.camera,
+            started_unix_ns: s.meta.started_unix_ns,
+            counters,
+            queue,
+            last_received_sequence: latest.map(|p| p.sequence),
+            track: TrackState { state, latest, trajectory: s.poses },
+            perception: None,
+            map,
+            archived: true,
+            resume_secret: String::new(),
+        }))
     }
 
     pub fn store(&self) -> Option<&Arc<Store>> {
@@ -884,19 +1174,26 @@ impl Registry {
         let store = self.store.as_ref().ok_or(ImportError::NoStore)?;
         // Under the admission lock, so a hello cannot take the same id meanwhile.
         let _admission = lock(&self.admission);
-        if self.get(&stored.id).is_some() || store.contains(&stored.id).map_err(ImportError::Store)? {
+        if self.info(&stored.id).is_some() || store.contains(&stored.id).map_err(ImportError::Store)? {
             return Err(ImportError::Exists(stored.id));
         }
         store.import(&stored).map_err(ImportError::Store)?;
-        let id = stored.id.clone();
-        self.restore(vec![stored]);
-        Ok(id)
+        let head = SessionHead {
+            id: stored.id.clone(),
+            meta: stored.meta,
+            camera: stored.camera,
+            pose_count: stored.poses.len(),
+            latest: stored.poses.last().copied(),
+            keyframes: Vec::new(),
+        };
+        self.restore(std::slice::from_ref(&head));
+        Ok(head.id)
     }
 
     /// Whether a session `id` exists, live, restored or only in the store (a store
     /// that cannot be read counts it as free: committing to it fails anyway).
     fn taken(&self, id: &str) -> bool {
-        self.get(id).is_some() || self.store.as_ref().is_some_and(|s| s.contains(id).unwrap_or(false))
+        self.info(id).is_some() || self.store.as_ref().is_some_and(|s| s.contains(id).unwrap_or(false))
     }
 
     /// A session from what differs between a live and a restored one.
@@ -917,6 +1214,7 @@ impl Registry {
             map_lane,
             parked: AtomicBool::new(false),
             runtime: tokio::runtime::Handle::try_current().ok(),
+            touched: Mutex::new(Instant::now()),
             me: me.clone(),
             id: p.id,
             robot_id: p.robot_id,
@@ -977,6 +1275,121 @@ impl Registry {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn small_camera() -> pb::CameraInfo {
+        pb::CameraInfo {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 32.0,
+            cy: 24.0,
+            depth_units_per_metre: 1000.0,
+            color_encoding: pb::ColorEncoding::Rgb8 as i32,
+            depth_encoding: pb::DepthEncoding::Zstd as i32,
+            ..Default::default()
+        }
+    }
+
+    /// A registry with mapping on, a store in a fresh file (`None`: no store).
+    fn registry_with(name: Option<&str>, session: SessionConfig, limits: LimitsConfig) -> Registry {
+        let store = name.map(|name| {
+            let path = std::env::temp_dir().join(format!("stillmap-registry-{name}-{}.redb", std::process::id()));
+            let _ = std::fs::remove_file(&path);
+            Arc::new(Store::open(&path).expect("store"))
+        });
+        let pools = Pools::start(&session).expect("pools");
+        Registry::new(session, TrackerConfig::default(), None, MappingConfig::default(), store, Arc::default(), pools).with_limits(limits)
+    }
+
+    fn hello(robot: &str) -> pb::Hello {
+        pb::Hello { robot_id: robot.into(), camera: Some(small_camera()), ..Default::default() }
+    }
+
+    fn metric(registry: &Registry, name: &str) -> Option<String> {
+        registry.metrics().render().lines().find(|l| l.starts_with(name)).map(str::to_owned)
+    }
+
+    /// A disconnected session leaves memory after session.idle_evict_s; the list
+    /// still shows it, a query brings it back read-only, and a resume of it gets a
+    /// new session.
+    #[test]
+    fn idle_sessions_leave_memory_and_a_query_brings_them_back() {
+        let config = SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() };
+        let registry = registry_with(Some("evict"), config, LimitsConfig::default());
+        let (sink, _rx) = mpsc::channel(4);
+        let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
+        let (id, secret) = (opened.id.clone(), opened.resume_secret().to_string());
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), 0, "a connected session stays");
+        opened.detach(&sink);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), 1);
+        assert!(registry.resident(&id).is_none());
+        assert!(opened.queue.is_closed(), "a robot still sending to it is told to send a hello");
+        drop(opened);
+        let info = registry.info(&id).expect("listed");
+        assert!((info.archived, info.resident, info.summary.connected) == (true, false, false));
+        assert_eq!(registry.list_info().len(), 1);
+        assert_eq!(metric(&registry, "stillmap_sessions_evicted_total").as_deref(), Some("stillmap_sessions_evicted_total 1"));
+        assert_eq!(metric(&registry, "stillmap_sessions_resident ").as_deref(), Some("stillmap_sessions_resident 0"));
+        // The resume finds it gone from memory: a new session.
+        let resume = pb::Hello { resume_session_id: id.clone(), resume_secret: secret, ..hello("r") };
+        let again = registry.open(&resume, Transport::Grpc, sink.clone()).expect("open");
+        assert!(!again.resumed);
+        assert_ne!(again.session.id, id);
+        // A query brings the evicted one back, read-only, with its map.
+        let back = registry.get(&id).expect("loaded from the store");
+        assert!(back.is_archived() && back.map().is_some());
+        assert_eq!(metric(&registry, "stillmap_sessions_loaded_total").as_deref(), Some("stillmap_sessions_loaded_total 1"));
+        assert_eq!(metric(&registry, "stillmap_sessions_resident ").as_deref(), Some("stillmap_sessions_resident 2"));
+        assert_eq!(registry.list_info().len(), 2, "listed once");
+        registry.close_all();
+        registry.join_workers();
+    }
+
+    /// Every limit makes room by evicting idle sessions first and is refused,
+    /// named and counted, only when none can go; without a store nothing is
+    /// evicted (it would be lost).
+    #[test]
+    fn limits_evict_idle_sessions_first_and_refuse_by_name() {
+        let limits = LimitsConfig { max_sessions: 3, max_sessions_per_robot: 1, max_camera_pixels_total: 64 * 48 * 2 };
+        let registry = registry_with(Some("limits"), SessionConfig { idle_evict_s: 0.0, ..SessionConfig::default() }, limits.clone());
+        let (sink, _rx) = mpsc::channel(4);
+        let first = registry.open(&hello("a"), Transport::Grpc, sink.clone()).expect("open").session;
+        let limit_of = |r: Result<Opened, BadHello>| match r {
+            Err(BadHello::Limit { limit, message }) => (limit, message),
+            Err(e) => panic!("another refusal: {e}"),
+            Ok(_) => panic!("accepted"),
+        };
+        let (limit, message) = limit_of(registry.open(&hello("a"), Transport::Grpc, sink.clone()));
+        assert_eq!(limit, "max_sessions_per_robot");
+        assert!(message.contains("limits.max_sessions_per_robot = 1"), "{message}");
+        assert_eq!(registry.open(&hello("a"), Transport::Grpc, sink.clone()).err().map(|e| e.status().code()), Some(tonic::Code::ResourceExhausted));
+        // Disconnected: the robot's next session takes its place.
+        first.detach(&sink);
+        let second = registry.open(&hello("a"), Transport::Grpc, sink.clone()).expect("room made").session;
+        assert!(registry.resident(&first.id).is_none() && registry.info(&first.id).is_some());
+        let _b = registry.open(&hello("b"), Transport::Grpc, sink.clone()).expect("open");
+        let (limit, _) = limit_of(registry.open(&hello("c"), Transport::Grpc, sink.clone()));
+        assert_eq!(limit, "max_camera_pixels_total");
+        second.detach(&sink);
+        let _c = registry.open(&hello("c"), Transport::Grpc, sink.clone()).expect("room made");
+        assert_eq!(metric(&registry, "stillmap_sessions_refused_total{limit=\"max_sessions_per_robot\"}").as_deref(), Some("stillmap_sessions_refused_total{limit=\"max_sessions_per_robot\"} 2"));
+        assert_eq!(metric(&registry, "stillmap_sessions_refused_total{limit=\"max_camera_pixels_total\"}").as_deref(), Some("stillmap_sessions_refused_total{limit=\"max_camera_pixels_total\"} 1"));
+        registry.close_all();
+        registry.join_workers();
+
+        // No store: a disconnected session holds its place (its map would be lost).
+        let registry = registry_with(None, SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() }, limits);
+        let first = registry.open(&hello("a"), Transport::Grpc, sink.clone()).expect("open").session;
+        first.detach(&sink);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), 0);
+        assert_eq!(limit_of(registry.open(&hello("a"), Transport::Grpc, sink.clone())).0, "max_sessions_per_robot");
+        registry.close_all();
+        registry.join_workers();
+    }
 
     /// A Zenoh robot's frames re-attach its link only when no other connection holds
     /// the session: a gRPC resume keeps the results, and the gauge counts once.

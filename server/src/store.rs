@@ -170,6 +170,19 @@ pub struct StoredSession {
     pub blocks: Vec<(BlockKey, Block)>,
 }
 
+/// What [`Store::heads`] reads of a stored session.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionHead {
+    pub id: String,
+    pub meta: SessionMeta,
+    pub camera: pb::CameraInfo,
+    /// Poses stored, and the latest of them.
+    pub pose_count: usize,
+    pub latest: Option<pb::PoseStamped>,
+    /// Empty unless asked for.
+    pub keyframes: Vec<KeyframeRecord>,
+}
+
 /// The store: a redb file. A failed write (a full disk, an I/O error) marks it
 /// failing until a write succeeds again: [`Store::failing`] says since when and
 /// why (`/healthz` answers 503), every failure is counted
@@ -433,6 +446,40 @@ impl Store {
         decode_block(v.value()).map(Some)
     }
 
+    /// What the server keeps of every stored session while it is not in memory:
+    /// description, camera, pose count and latest pose, and (`with_keyframes`) the
+    /// keyframe records place recognition needs. No map block and no trajectory
+    /// is read: start-up stays fast and small however much the store holds.
+    pub fn heads(&self, with_keyframes: bool) -> Result<Vec<SessionHead>, StoreError> {
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
+        let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
+        let cameras = tx.open_table(CAMERAS).map_err(|e| self.err(e))?;
+        let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
+        let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+        let mut out = Vec::new();
+        for entry in sessions.iter().map_err(|e| self.err(e))? {
+            let (id, meta) = entry.map_err(|e| self.err(e))?;
+            let id = id.value().to_string();
+            let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
+            let camera = cameras.get(id.as_str()).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
+            let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
+            let range = (id.as_str(), 0)..=(id.as_str(), u64::MAX);
+            let pose_count = poses.range(range.clone()).map_err(|e| self.err(e))?.count();
+            let latest = match poses.range(range.clone()).map_err(|e| self.err(e))?.next_back() {
+                Some(p) => Some(pb::PoseStamped::decode(p.map_err(|e| self.err(e))?.1.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?),
+                None => None,
+            };
+            let mut kfs = Vec::new();
+            if with_keyframes {
+                for k in keyframes.range(range).map_err(|e| self.err(e))? {
+                    kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
+                }
+            }
+            out.push(SessionHead { id, meta, camera, pose_count, latest, keyframes: kfs });
+        }
+        Ok(out)
+    }
+
     /// Every stored session, with its trajectory, keyframes and map blocks.
     pub fn load_all(&self) -> Result<Vec<StoredSession>, StoreError> {
         let ids: Vec<String> = {
@@ -680,6 +727,10 @@ mod tests {
         assert_eq!(s.blocks[0], ([1, -2, 3], block.clone()));
         assert_eq!(store.block("s1", [9, 9, 9]).unwrap(), Some(block));
         assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
+        // Heads: no blocks, no trajectory; the count and the latest pose.
+        let heads = store.heads(false).unwrap();
+        assert_eq!(heads, vec![SessionHead { id: "s1".into(), meta: meta.clone(), camera: camera.clone(), pose_count: 1, latest: Some(pose), keyframes: vec![] }]);
+        assert_eq!(store.heads(true).unwrap()[0].keyframes.len(), 1);
         let frame = FleetFrame { fleet: "lab".into(), fleet_from_session: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0], anchor: false, support: 3, inliers: 120, merged_unix_ns: 7, first_merged_unix_ns: 5, merged_after_ns: 200_000_000 };
         store.put_fleet_frame("s1", &frame).unwrap();
         assert_eq!(store.fleet_frames().unwrap().get("s1"), Some(&frame));

@@ -121,3 +121,62 @@ async fn a_graceful_restart_keeps_every_pose_and_the_map() {
     drop(server);
     let _ = std::fs::remove_file(&store);
 }
+
+/// The value of the metric line starting with `name ` in `/metrics`.
+async fn metric(server: &Server, name: &str) -> Option<u64> {
+    let text = server.get_text("/metrics").await;
+    text.lines().find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+}
+
+/// A disconnected session leaves memory after session.idle_evict_s and a query
+/// brings it back whole; after a restart stored sessions are listed, not loaded,
+/// until a query needs one.
+#[tokio::test(flavor = "multi_thread")]
+async fn idle_sessions_leave_memory_and_stored_ones_load_when_queried() {
+    let store = tempfile_path("evict.redb");
+    let store_arg = store.to_str().expect("utf-8 path").to_string();
+    let config = tempfile_path("evict.toml");
+    std::fs::write(&config, "[session]\nidle_evict_s = 1.0\n").expect("write config");
+    let config_arg = config.to_str().expect("utf-8 path").to_string();
+    let mut server = Server::start(&["--no-zenoh", "--store", &store_arg, "--config", &config_arg]);
+    let (out, summary) = stillmap_e2e::run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max", "--max-frames", "60"]);
+    assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
+    let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
+    let (_, poses_before) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    let (_, map_before) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    assert!(map_before["occupied_voxels"].as_u64().unwrap_or(0) > 1000, "{map_before}");
+    eventually(Duration::from_secs(20), "the idle session leaves memory", async || metric(&server, "stillmap_sessions_evicted_total").await == Some(1)).await;
+    assert_eq!(metric(&server, "stillmap_sessions_resident").await, Some(0));
+    let (_, listed) = server.get_json("/api/v1/sessions").await;
+    let entry = &listed["sessions"][0];
+    assert_eq!((&entry["session_id"], &entry["resident"], &entry["archived"]), (&serde_json::json!(id), &serde_json::json!(false), &serde_json::json!(true)));
+    assert_eq!(entry["counters"]["frames_processed"], 60);
+    // A query brings it back whole.
+    let (status, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    assert_eq!(status, 200);
+    for key in ["keyframes", "occupied_voxels", "blocks"] {
+        assert_eq!(map[key], map_before[key], "{key}");
+    }
+    let (_, poses) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    assert_eq!(poses["poses"], poses_before["poses"]);
+    assert_eq!(metric(&server, "stillmap_sessions_loaded_total").await, Some(1));
+    // Not queried any more: it leaves again.
+    eventually(Duration::from_secs(20), "the loaded session leaves again", async || metric(&server, "stillmap_sessions_evicted_total").await == Some(2)).await;
+    server.terminate();
+
+    // Restarted on the same store (idle eviction at its default): listed, not loaded.
+    let server = Server::start(&["--no-zenoh", "--store", &store_arg]);
+    assert_eq!(metric(&server, "stillmap_sessions_resident").await, Some(0));
+    let (_, listed) = server.get_json("/api/v1/sessions").await;
+    assert_eq!(listed["sessions"][0]["session_id"], serde_json::json!(id));
+    let (status, one) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!((status, &one["resident"]), (200, &serde_json::json!(false)));
+    assert_eq!(metric(&server, "stillmap_sessions_resident").await, Some(0), "describing a session loads nothing");
+    let (_, poses) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+    assert_eq!(poses["poses"], poses_before["poses"]);
+    assert_eq!(metric(&server, "stillmap_sessions_resident").await, Some(1));
+    assert_eq!(metric(&server, "stillmap_sessions_loaded_total").await, Some(1));
+    drop(server);
+    let _ = std::fs::remove_file(&store);
+    let _ = std::fs::remove_file(&config);
+}

@@ -125,6 +125,30 @@ fn session_json(s: &crate::session::Session, fps: f64) -> Value {
     })
 }
 
+/// What a session out of memory looks like on the dashboard (its map loads when selected).
+fn stored_json(s: &crate::session::SessionInfo) -> Value {
+    let summary = &s.summary;
+    json!({
+        "session_id": summary.session_id,
+        "robot_id": summary.robot_id,
+        "transport": summary.transport,
+        "connected": false,
+        "archived": true,
+        "tracking_state": pb::TrackingState::try_from(summary.tracking_state).map(|t| t.as_str_name()).unwrap_or("UNKNOWN"),
+        "frames_received": summary.frames_received,
+        "frames_processed": summary.frames_processed,
+        "frames_dropped": summary.frames_dropped,
+        "frames_rejected": summary.frames_rejected,
+        "fps": 0.0,
+        "latency_ms": {},
+        "pose": s.latest.and_then(|p| p.world_from_camera).map(|p| {
+            let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
+            json!({ "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
+        }),
+        "map": null,
+    })
+}
+
 /// Pose events buffered for viewers; one that falls further behind skips poses
 /// (it redraws from the next ones).
 const POSE_EVENTS_BUFFER: usize = 1024;
@@ -215,6 +239,7 @@ fn snapshot(registry: &Registry, mut previous: HashMap<String, (u64, Instant)>) 
             seen.insert(s.id.clone(), (processed, now));
             session_json(s, fps)
         })
+        .chain(registry.dormant().iter().map(stored_json))
         .collect();
     (Arc::from(json!({ "sessions": sessions }).to_string()), seen)
 }

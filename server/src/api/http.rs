@@ -14,7 +14,7 @@ use stillmap_proto::pb;
 
 use crate::api::map_queries::{self as mapping, BadQuery};
 use crate::map::SharedMap;
-use crate::session::{Registry, Session, summary};
+use crate::session::{Registry, Session, SessionInfo};
 
 /// `Query<T>` whose rejection (bad query-string syntax, a wrong type) is the API's
 /// JSON error with 400, like every other error, instead of axum's plain text.
@@ -106,15 +106,16 @@ fn camera_json(c: &pb::CameraInfo) -> Value {
     })
 }
 
-fn session_json(s: &Session, detail: bool) -> Value {
-    let sum = summary(s);
+fn session_json(s: &SessionInfo, detail: bool) -> Value {
+    let sum = &s.summary;
     let mut v = json!({
         "session_id": sum.session_id,
         "robot_id": sum.robot_id,
         "transport": sum.transport,
         "connected": sum.connected,
-        "archived": s.is_archived(),
-        "fleet": s.fleet_name,
+        "archived": s.archived,
+        "resident": s.resident,
+        "fleet": s.fleet,
         "tracking_state": enum_name(sum.tracking_state, |t: pb::TrackingState| t.as_str_name()),
         "started_unix_ns": sum.started_unix_ns,
         "counters": {
@@ -122,8 +123,8 @@ fn session_json(s: &Session, detail: bool) -> Value {
             "frames_processed": sum.frames_processed,
             "frames_dropped": sum.frames_dropped,
             "frames_rejected": sum.frames_rejected,
-            "bytes_received": s.counters.bytes.load(std::sync::atomic::Ordering::Relaxed),
-            "last_received_sequence": s.last_received_sequence(),
+            "bytes_received": s.bytes_received,
+            "last_received_sequence": s.last_received_sequence,
         },
     });
     if detail && let Some(c) = &sum.camera {
@@ -133,12 +134,12 @@ fn session_json(s: &Session, detail: bool) -> Value {
 }
 
 async fn list_sessions(State(registry): State<Arc<Registry>>) -> Json<Value> {
-    let sessions: Vec<Value> = registry.list().iter().map(|s| session_json(s, false)).collect();
+    let sessions: Vec<Value> = registry.list_info().iter().map(|s| session_json(s, false)).collect();
     Json(json!({ "sessions": sessions }))
 }
 
 async fn get_session(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
-    match registry.get(&id) {
+    match registry.info(&id) {
         Some(s) => Json(session_json(&s, true)).into_response(),
         None => error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")),
     }

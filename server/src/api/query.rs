@@ -10,7 +10,7 @@ use tokio_stream::StreamExt;
 use tokio_stream::wrappers::BroadcastStream;
 use tonic::{Request, Response, Status};
 
-use crate::session::{Registry, Session, summary};
+use crate::session::{Registry, Session};
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
@@ -72,7 +72,7 @@ impl Query for QueryService {
     }
 
     async fn list_sessions(&self, _: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
-        let sessions = self.registry.list().iter().map(|s| summary(s)).collect();
+        let sessions = self.registry.list_info().into_iter().map(|s| s.summary).collect();
         Ok(Response::new(pb::ListSessionsResponse { sessions }))
     }
 

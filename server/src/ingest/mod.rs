@@ -24,7 +24,7 @@ pub fn frame_before_hello(sequence: u64) -> Status {
 pub fn queue_status(e: QueueError) -> Status {
     match e {
         QueueError::Overloaded(_) => Status::resource_exhausted(e.to_string()),
-        QueueError::Closed => Status::unavailable("the server is shutting down"),
+        QueueError::Closed => Status::unavailable("session closed (the server is shutting down, or the session left memory after session.idle_evict_s): send a hello for a new one"),
     }
 }
 
@@ -33,6 +33,7 @@ pub fn refusal(e: &BadHello, metrics: &Metrics) -> Status {
     match e {
         BadHello::Full { .. } => metrics.rejected("server_full"),
         BadHello::TooLarge(_) => metrics.rejected("too_large"),
+        BadHello::Limit { .. } => metrics.rejected("server_full"),
         BadHello::Unauthenticated(_) => metrics.rejected("unauthenticated"),
         _ => {}
     }

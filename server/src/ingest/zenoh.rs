@@ -103,6 +103,9 @@ pub async fn serve(
                     link.quiet = true;
                     tracing::info!(session = %link.session.id, "zenoh robot silent for {idle_disconnect:?}: disconnected");
                 }
+                // A session that left memory (session.idle_evict_s) is not held here:
+                // the robot's next frame is told to send a hello.
+                links.retain(|_, l| !l.quiet || registry.resident(&l.session.id).is_some());
                 continue;
             }
             _ = shutdown.changed() => break,
