@@ -20,7 +20,7 @@ export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet vocabulary clean
+.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet soak vocabulary clean
 
 deps:
 	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
@@ -50,6 +50,12 @@ bench: bench-codecs bench-transport
 bench-fleet: deps
 	$(CARGO) build --release --workspace --bins
 	deploy/bench-fleet.sh target/release
+
+# Soak: 8 robots in back-to-back sessions for 10 min against a release server, its
+# memory, threads and open files every 10 s (deploy/soak.sh says what it varies).
+soak: deps
+	$(CARGO) build --release --workspace --bins
+	deploy/soak.sh target/release
 
 bench-codecs: deps
 	$(CARGO) run --release -q -p stillmap-client -- bench-codecs --tum $(TUM)

@@ -159,11 +159,14 @@ pub struct StoreConfig {
     /// write) is committed: a crash loses at most this much, and a store that
     /// failed is retried without waiting for the robot's next keyframe (default 5).
     pub flush_interval_s: f64,
+    /// The store's page cache in memory, in bytes (default 64 MiB; redb's own
+    /// default, 1 GiB, is taken as the store grows and kept).
+    pub cache_bytes: usize,
 }
 
 impl Default for StoreConfig {
     fn default() -> Self {
-        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20, retry_max_s: 60.0, flush_interval_s: 5.0 }
+        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20, retry_max_s: 60.0, flush_interval_s: 5.0, cache_bytes: crate::store::DEFAULT_CACHE_BYTES }
     }
 }
 
@@ -393,6 +396,9 @@ impl ServerConfig {
         }
         if !(0.1..=3600.0).contains(&self.store.retry_max_s) {
             return bad(format!("store.retry_max_s must be within 0.1..=3600, got {}", self.store.retry_max_s));
+        }
+        if self.store.cache_bytes < 1 << 20 {
+            return bad(format!("store.cache_bytes {} is below 1 MiB", self.store.cache_bytes));
         }
         if self.store.import_max_bytes < 1024 {
             return bad(format!("store.import_max_bytes {} is below 1024", self.store.import_max_bytes));

@@ -121,7 +121,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .map_err(|e| ServerError::Config(format!("session.opencv_threads: {e}")))?;
     let pools = session::Pools::start(&config.session).map_err(ServerError::Threads)?;
     let perception = perception_service(&config, &metrics)?;
-    let store = if config.store.enabled { Some(Arc::new(store::Store::open(std::path::Path::new(&config.store.path))?.count_errors_in(metrics.store_errors()).retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s)))) } else { None };
+    let store = if config.store.enabled { Some(Arc::new(store::Store::open_with_cache(std::path::Path::new(&config.store.path), config.store.cache_bytes)?.count_errors_in(metrics.store_errors()).retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s)))) } else { None };
     // What is stored is listed, not loaded: a query brings a session's map and
     // trajectory into memory when it needs them. Place recognition needs the
     // keyframe records (bounded per fleet by fleet.max_places).

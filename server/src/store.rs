@@ -32,6 +32,9 @@ const BLOCKS: TableDefinition<(&str, i32, i32, i32), &[u8]> = TableDefinition::n
 /// Session id → its frame in its fleet (JSON [`FleetFrame`]), once anchored or merged.
 const FLEET_FRAMES: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_frames");
 
+/// redb's page cache unless `store.cache_bytes` says otherwise.
+pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
+
 /// zstd level for map blocks: most voxels are empty, level 1 already gives ~10×.
 const BLOCK_ZSTD_LEVEL: i32 = 1;
 
@@ -223,12 +226,19 @@ pub struct Failing {
 impl Store {
     /// Opens (or creates) the store file, creating its folder.
     pub fn open(path: &Path) -> Result<Self, StoreError> {
+        Self::open_with_cache(path, DEFAULT_CACHE_BYTES)
+    }
+
+    /// [`open`](Self::open) with redb's page cache bounded to `cache_bytes`
+    /// (`store.cache_bytes`; redb's own default is 1 GiB, which a long-running
+    /// server fills as the store grows).
+    pub fn open_with_cache(path: &Path, cache_bytes: usize) -> Result<Self, StoreError> {
         let err = |e: &dyn std::fmt::Display| StoreError::Db { path: path.display().to_string(), message: e.to_string() };
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|e| err(&e))?;
         }
         let file = path.to_path_buf();
-        Self::with_opener(path, Box::new(move || Database::create(&file).map_err(|e| e.to_string())))
+        Self::with_opener(path, Box::new(move || redb::Builder::new().set_cache_size(cache_bytes).create(&file).map_err(|e| e.to_string())))
     }
 
     /// A store whose database `opener` opens (again after a failure).
