@@ -10,6 +10,7 @@
 # Usage: deploy/soak.sh <bin-dir>
 # Environment: ROBOTS=8 DURATION=600 ROUND=30 RATE=5 (Hz per robot: what this 2-core
 #   machine sustains for 8 robots with segmentation) IDLE_EVICT=10 WARMUP=120
+#   MAX_PLACES=500 (fleet.max_places)
 #   MODEL (../shared/models/yolov8n-seg_fp32_640.onnx; "none": no perception)
 #   OUT (a temp dir: the samples as CSV, the server log, each round's report)
 set -euo pipefail
@@ -18,18 +19,21 @@ cd "$(dirname "$0")/.."
 SHARED=${SHARED:-../shared}
 TUM=${TUM:-$SHARED/data/tum/rgbd_dataset_freiburg1_rpy}
 ROBOTS=${ROBOTS:-8}; DURATION=${DURATION:-600}; ROUND=${ROUND:-30}; RATE=${RATE:-5}
-IDLE_EVICT=${IDLE_EVICT:-10}; WARMUP=${WARMUP:-120}
+IDLE_EVICT=${IDLE_EVICT:-10}; WARMUP=${WARMUP:-120}; MAX_PLACES=${MAX_PLACES:-500}
 MODEL=${MODEL:-$SHARED/models/yolov8n-seg_fp32_640.onnx}
 OUT=${OUT:-$(mktemp -d)}
 mkdir -p "$OUT"
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 grpc="127.0.0.1:$(free_port)"; http="127.0.0.1:$(free_port)"
-printf '[session]\nidle_evict_s = %s\n' "$IDLE_EVICT" >"$OUT/soak.toml"
+# The fleet's place index is bounded by fleet.max_places (5000 by default, about 60 KB
+# a keyframe: 300 MB per fleet, reached after an hour of this load); the soak bounds it
+# at MAX_PLACES so that it is full within the warm-up and what is left is the sessions.
+printf '[session]\nidle_evict_s = %s\n[fleet]\nmax_places = %s\n' "$IDLE_EVICT" "$MAX_PLACES" >"$OUT/soak.toml"
 model_args=(--model "$MODEL"); [ "$MODEL" = none ] && model_args=(--no-perception)
 "$BIN/stillmap-server" --config "$OUT/soak.toml" --store "$OUT/soak.redb" "${model_args[@]}" --no-zenoh \
   --grpc-listen "$grpc" --http-listen "$http" >"$OUT/server.out" 2>"$OUT/server.log" &
 server=$!
-trap 'kill $server 2>/dev/null || true; kill $rounds 2>/dev/null || true' EXIT
+rounds=; trap 'kill $server 2>/dev/null || true; [ -n "$rounds" ] && kill $rounds 2>/dev/null || true' EXIT
 for _ in $(seq 300); do
   grep -q "ready" "$OUT/server.out" 2>/dev/null && break
   kill -0 $server 2>/dev/null || { echo "soak: server failed to start:" >&2; cat "$OUT/server.log" >&2; exit 1; }

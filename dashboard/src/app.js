@@ -4,6 +4,7 @@
 // the cloud are fetched again only when a session's map version changes.
 
 import { Map2D, rotate } from "./map2d.js";
+import { authed } from "./token.js";
 
 const SPARK_FRAMES = 60; // latency history per stage
 // Stages on the tracking path (map fusion runs off it, in /metrics only).
@@ -84,7 +85,7 @@ $("#session-table tbody").addEventListener("click", (e) => {
 });
 
 async function getJson(url) {
-  const r = await fetch(url, { cache: "no-cache" });
+  const r = await fetch(authed(url), { cache: "no-cache" });
   if (!r.ok) throw new Error(`${url}: ${r.status}`);
   return r.json();
 }
@@ -251,7 +252,7 @@ function drawFleetTiles(ctx, f, anchorInfo, x0, y0, x1, y1, scale, px) {
       if (!img) {
         img = new Image();
         img.onload = scheduleDraw;
-        img.src = url;
+        img.src = authed(url);
         tiles.images.set(url, img);
       }
       if (!img.complete || !img.naturalWidth) continue;
@@ -338,7 +339,7 @@ map2d.onChange = scheduleDraw;
 
 // ---------------------------------------------------------------- the event stream
 function connect() {
-  const events = new EventSource("/api/v1/events");
+  const events = new EventSource(authed("/api/v1/events"));
   events.onopen = () => { $("#link").textContent = "live"; $("#link").className = "badge ok"; };
   events.onerror = () => { $("#link").textContent = "server unreachable, retrying…"; $("#link").className = "badge bad"; };
   events.addEventListener("sessions", (e) => {

@@ -3,6 +3,8 @@
 // trajectory and the current pose on top. Coordinates are the map frame (metres,
 // z up); the screen shows x east, y north.
 
+import { authed } from "./token.js";
+
 const BACKGROUND = "#0c1014";
 const TILE_PX = 256;
 
@@ -147,7 +149,7 @@ export class Map2D {
           if (!tile) {
             tile = { img: new Image(), ready: false, filtered: null };
             tile.img.onload = () => { tile.ready = true; this.onChange(); };
-            tile.img.src = url;
+            tile.img.src = authed(url);
             this.tiles.set(url, tile);
           }
           if (!tile.ready) continue;

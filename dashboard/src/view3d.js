@@ -3,6 +3,7 @@
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { authed } from "./token.js";
 
 const UNLABELLED = 65535;
 const VERTEX_BYTES = 21; // x y z float, r g b uchar, class ushort, confidence float
@@ -77,7 +78,7 @@ export class View3D {
   }
 
   async load(url, legend, _mapFromWorld) {
-    const r = await fetch(url, { cache: "no-cache" });
+    const r = await fetch(authed(url), { cache: "no-cache" });
     if (!r.ok) { this.status.textContent = `no map yet (${r.status})`; return 0; }
     this.cloud = parsePly(await r.arrayBuffer());
     this.classColors = new Map(legend.filter((c) => c.class_id !== null).map((c) => [c.class_id, c.color]));

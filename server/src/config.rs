@@ -118,23 +118,33 @@ const MAX_FLEET_QUEUE: usize = 4096;
 /// Largest `zenoh.idle_disconnect_s`: a day.
 const MAX_IDLE_DISCONNECT_S: f64 = 86_400.0;
 
-/// Who may stream to this server.
+/// Who may do what (see [`crate::auth`]): tokens with scopes. None configured
+/// anywhere (the default): everything is open, for a server on a trusted network.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AuthConfig {
-    /// Bearer tokens a robot's hello must carry (`Hello.auth_token`, `stillmap-client
-    /// --token`) on gRPC and Zenoh; a hello without one of them is refused with
-    /// UNAUTHENTICATED. Empty (the default): every hello is accepted, for a server on
-    /// a trusted network. Not covered: the query APIs (HTTP, gRPC `Query`) and
-    /// Zenoh frames after an accepted hello (anyone who can publish on a robot's key
-    /// speaks for it: use Zenoh's access control and TLS there).
+    /// Robot tokens (`robot:*`): a hello must carry a token that may stream as its
+    /// robot (`Hello.auth_token`, `stillmap-client --token`) on gRPC and Zenoh, else
+    /// UNAUTHENTICATED (no or an unknown token) or PERMISSION_DENIED (another
+    /// robot's). Not covered: Zenoh frames after an accepted hello (anyone who can
+    /// publish on a robot's key speaks for it: use Zenoh's access control and TLS).
     pub tokens: Vec<String>,
-    /// Bearer tokens for the HTTP map import and export (`Authorization: Bearer
-    /// <token>`): whole maps in and out of the store. When any token is configured,
-    /// here or in `tokens`, import and export need one of these (a robot token is
-    /// refused with 403). None configured at all (the default): they are open, like
-    /// everything else on a trusted network.
+    /// Admin tokens (`admin`, implies `read`): whole maps in and out of the store
+    /// (`POST /api/v1/maps/import`, `GET /api/v1/maps/{id}/export`, `Authorization:
+    /// Bearer <token>`); another token gets 403, none 401.
     pub admin_tokens: Vec<String>,
+    /// Read tokens (`read`): the query APIs, HTTP `/api/v1/...`, `/metrics`, the
+    /// dashboard's event stream (`?access_token=` where a browser cannot send a
+    /// header) and gRPC `Query` (`authorization` metadata). When any token is
+    /// configured anywhere, queries need one with `read` (these, admin tokens, or a
+    /// token file's); `/healthz` and the dashboard's files stay open.
+    pub read_tokens: Vec<String>,
+    /// A file of scoped tokens, one per line: the token, then its scopes separated by
+    /// spaces: `robot:<glob>` (stream as matching robot ids), `read`, `admin`
+    /// (implies `read`); `#` starts a comment (so a token cannot hold `#`). SIGHUP
+    /// reads it again (a mistake keeps the tokens in force and is logged). Empty:
+    /// none.
+    pub token_file: String,
 }
 
 /// The embedded store (redb): sessions, trajectories, keyframes and map blocks
@@ -196,6 +206,11 @@ pub struct HttpConfig {
     /// Every viewer shares one snapshot per 500 ms and one serialisation per pose,
     /// so a viewer costs a connection and a copy of the text (default 1024).
     pub max_event_viewers: usize,
+    /// Threads for the server's blocking work: map queries (tiles, clouds,
+    /// occupancy grids), the dashboard's snapshot, store flushes and session
+    /// eviction. Queued beyond it; a thread once started stays, so the thread
+    /// count stays flat (default 32).
+    pub blocking_threads: usize,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -297,7 +312,7 @@ impl Default for GrpcConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024 }
+        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, blocking_threads: 32 }
     }
 }
 
@@ -362,6 +377,9 @@ impl ServerConfig {
         if !(1..=MAX_MAP_QUEUE).contains(&self.session.map_queue) {
             return bad(format!("session.map_queue must be in 1..={MAX_MAP_QUEUE}, got {}", self.session.map_queue));
         }
+        if !(1..=MAX_POOL_THREADS).contains(&self.http.blocking_threads) {
+            return bad(format!("http.blocking_threads must be in 1..={MAX_POOL_THREADS}, got {}", self.http.blocking_threads));
+        }
         if self.session.result_buffer == 0 {
             return bad("session.result_buffer must be at least 1".into());
         }
@@ -377,7 +395,7 @@ impl ServerConfig {
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }
-        for (name, tokens) in [("tokens", &self.auth.tokens), ("admin_tokens", &self.auth.admin_tokens)] {
+        for (name, tokens) in [("tokens", &self.auth.tokens), ("admin_tokens", &self.auth.admin_tokens), ("read_tokens", &self.auth.read_tokens)] {
             if let Some(i) = tokens.iter().position(|t| t.trim().is_empty()) {
                 return bad(format!("auth.{name}[{i}] is empty"));
             }
@@ -385,8 +403,9 @@ impl ServerConfig {
                 return bad(format!("auth.{name}[{i}] has leading or trailing whitespace"));
             }
         }
-        if self.auth.admin_tokens.iter().any(|t| self.auth.tokens.contains(t)) {
-            return bad("a token is in both auth.tokens and auth.admin_tokens: give admins tokens of their own".into());
+        let a = &self.auth;
+        if a.admin_tokens.iter().chain(&a.read_tokens).any(|t| a.tokens.contains(t)) || a.admin_tokens.iter().any(|t| a.read_tokens.contains(t)) {
+            return bad("a token is in two of auth.tokens, auth.read_tokens and auth.admin_tokens: give each role tokens of its own".into());
         }
         if self.session.max_camera_pixels == 0 || self.session.max_sequence_jump == 0 || !(self.session.max_capture_gap_s > 0.0 && self.session.max_capture_gap_s.is_finite()) {
             return bad("session.max_camera_pixels, max_sequence_jump and max_capture_gap_s must be positive".into());

@@ -137,9 +137,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         f.restore(&stored);
     }
     let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets).with_limits(config.limits.clone()));
-    let tokens = Arc::new(auth::Tokens::new(&config.auth.tokens));
-    if !tokens.required() {
-        tracing::info!("auth.tokens is empty: every robot's hello is accepted");
+    let auth = Arc::new(auth::AuthHandle::new(&config.auth).map_err(ServerError::Config)?);
+    if !auth.get().required() {
+        tracing::info!("no auth token configured: every robot's hello and every query is accepted");
     }
     if !stored.is_empty() {
         tracing::info!(sessions = stored.len(), "stored sessions listed (loaded when a query needs them)");
@@ -163,7 +163,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             config.session.result_buffer,
             config.grpc.max_message_bytes,
             std::time::Duration::from_secs_f64(config.zenoh.idle_disconnect_s),
-            tokens.clone(),
+            auth.clone(),
             shutdown.clone(),
         ));
         Some((z, task))
@@ -178,12 +178,18 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let max = config.grpc.max_message_bytes;
     let ingest = IngestServer::new(ingest::grpc::IngestService {
         registry: registry.clone(),
-        tokens: tokens.clone(),
+        auth: auth.clone(),
         result_buffer: config.session.result_buffer,
         max_message_bytes: max,
     })
     .max_decoding_message_size(max);
-    let query = QueryServer::new(api::query::QueryService { registry: registry.clone() });
+    // Queries need a token with the read scope (when any token is configured).
+    let query_auth = auth.clone();
+    let query = QueryServer::with_interceptor(api::query::QueryService { registry: registry.clone() }, move |request: tonic::Request<()>| {
+        let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
+        query_auth.get().check(authorization, auth::Need::Read).map_err(|r| r.grpc_status())?;
+        Ok(request)
+    });
     let grpc_shutdown = wait_for(shutdown.clone());
     let grpc = tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(Duration::from_secs(config.grpc.keepalive_interval_s)))
@@ -192,7 +198,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(query)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
     let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
-    let settings = Arc::new(api::http::HttpSettings { admin: auth::Admin::new(&config.auth.admin_tokens, &config.auth.tokens), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
+    let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
@@ -226,6 +232,24 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             }
         }
     });
+    // SIGHUP reads auth.token_file again (a mistake keeps the tokens in force).
+    let reload_task = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
+        Ok(mut hangup) => {
+            let auth = auth.clone();
+            Some(tokio::spawn(async move {
+                while hangup.recv().await.is_some() {
+                    match auth.reload() {
+                        Ok(n) => tracing::info!(tokens = n, "SIGHUP: auth tokens reloaded"),
+                        Err(e) => tracing::error!("SIGHUP: auth tokens not reloaded, the ones in force stay: {e}"),
+                    }
+                }
+            }))
+        }
+        Err(e) => {
+            tracing::warn!("no SIGHUP handler (auth.token_file is read at start-up only): {e}");
+            None
+        }
+    };
     // Sessions idle for session.idle_evict_s leave memory (the store keeps them).
     let evict_task = (config.session.idle_evict_s > 0.0).then(|| {
         let registry = registry.clone();
@@ -247,8 +271,8 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let _ = shutdown.wait_for(|stop| *stop).await;
     tracing::info!("shutting down");
     flush_task.abort();
-    if let Some(t) = evict_task {
-        t.abort();
+    for task in [evict_task, reload_task].into_iter().flatten() {
+        task.abort();
     }
     registry.close_all();
     let finish = async {

@@ -56,6 +56,12 @@ struct Args {
     /// Bearer token for the HTTP map import and export, repeatable (adds to auth.admin_tokens).
     #[arg(long = "admin-token", env = "STILLMAP_ADMIN_TOKENS", value_delimiter = ',', hide_env_values = true)]
     admin_tokens: Vec<String>,
+    /// Bearer token for the query APIs and the dashboard, repeatable (adds to auth.read_tokens).
+    #[arg(long = "read-token", env = "STILLMAP_READ_TOKENS", value_delimiter = ',', hide_env_values = true)]
+    read_tokens: Vec<String>,
+    /// A file of scoped tokens (auth.token_file; SIGHUP reloads it).
+    #[arg(long, env = "STILLMAP_TOKEN_FILE")]
+    token_file: Option<String>,
     /// Where segmentation runs: cpu, cuda or tensorrt (perception.segmentation.execution_provider).
     #[arg(long, env = "STILLMAP_EXECUTION_PROVIDER", value_parser = parse_provider)]
     execution_provider: Option<ExecutionProvider>,
@@ -131,6 +137,10 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     // "a, b" in STILLMAP_AUTH_TOKENS means the tokens "a" and "b".
     c.auth.tokens.extend(args.auth_tokens.iter().map(|t| t.trim().to_string()));
     c.auth.admin_tokens.extend(args.admin_tokens.iter().map(|t| t.trim().to_string()));
+    c.auth.read_tokens.extend(args.read_tokens.iter().map(|t| t.trim().to_string()));
+    if let Some(f) = &args.token_file {
+        c.auth.token_file = f.clone();
+    }
     c.validate()?;
     Ok(c)
 }
@@ -145,15 +155,18 @@ async fn shutdown_signal() -> anyhow::Result<()> {
     Ok(())
 }
 
-#[tokio::main]
-async fn main() {
-    if let Err(e) = real_main().await {
+fn main() {
+    if let Err(e) = real_main() {
         eprintln!("stillmap-server: {e:#}");
         std::process::exit(1);
     }
 }
 
-async fn real_main() -> anyhow::Result<()> {
+/// How long an idle thread of the blocking pool stays: its threads, once started,
+/// stay (bounded by `http.blocking_threads`), so the thread count is flat.
+const BLOCKING_THREAD_KEEP_ALIVE: std::time::Duration = std::time::Duration::from_secs(24 * 3600);
+
+fn real_main() -> anyhow::Result<()> {
     let args = Args::parse();
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -164,10 +177,19 @@ async fn real_main() -> anyhow::Result<()> {
     let config = effective_config(&args)?;
     if args.print_config {
         let mut shown = config.clone();
-        shown.auth.tokens.iter_mut().chain(shown.auth.admin_tokens.iter_mut()).for_each(|t| *t = "<redacted>".into());
+        shown.auth.tokens.iter_mut().chain(shown.auth.admin_tokens.iter_mut()).chain(shown.auth.read_tokens.iter_mut()).for_each(|t| *t = "<redacted>".into());
         print!("{}", toml::to_string_pretty(&shown)?);
         return Ok(());
     }
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .max_blocking_threads(config.http.blocking_threads)
+        .thread_keep_alive(BLOCKING_THREAD_KEEP_ALIVE)
+        .build()?
+        .block_on(serve(config))
+}
+
+async fn serve(config: ServerConfig) -> anyhow::Result<()> {
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     tokio::spawn(async move {
         if let Err(e) = shutdown_signal().await {

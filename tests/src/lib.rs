@@ -48,6 +48,9 @@ pub struct Server {
     pub grpc: String,
     pub http: String,
     pub zenoh: String,
+    /// The token [`get_json`](Self::get_json) and [`get_text`](Self::get_text) send:
+    /// the server's `--read-token` (else its `--admin-token`), when it has one.
+    pub token: Option<String>,
 }
 
 /// Attempts at starting a server: [`free_port`] only finds ports free at that
@@ -102,7 +105,9 @@ impl Server {
             }
         });
         // Dropped on a failed start: killed, waited for, its own store removed.
-        let server = Self { child, own_store, grpc, http, zenoh };
+        let token_after = |flag: &str| extra.iter().position(|a| *a == flag).and_then(|i| extra.get(i + 1)).map(|t| t.to_string());
+        let token = token_after("--read-token").or_else(|| token_after("--admin-token"));
+        let server = Self { child, own_store, grpc, http, zenoh, token };
         match rx.recv_timeout(SERVER_START_TIMEOUT) {
             Ok(line) => {
                 assert!(line.contains(&server.grpc), "{line}");
@@ -136,13 +141,22 @@ impl Server {
 
     /// GET on the HTTP API: (status, JSON body).
     pub async fn get_json(&self, path: &str) -> (u16, serde_json::Value) {
-        let r = reqwest::get(format!("http://{}{path}", self.http)).await.expect("HTTP GET");
+        let r = self.get(path).await;
         let status = r.status().as_u16();
         (status, r.json().await.expect("JSON body"))
     }
 
     pub async fn get_text(&self, path: &str) -> String {
-        reqwest::get(format!("http://{}{path}", self.http)).await.expect("HTTP GET").text().await.expect("text")
+        self.get(path).await.text().await.expect("text")
+    }
+
+    /// GET on the HTTP API with [`token`](Self::token) when there is one.
+    async fn get(&self, path: &str) -> reqwest::Response {
+        let mut request = reqwest::Client::new().get(format!("http://{}{path}", self.http));
+        if let Some(t) = &self.token {
+            request = request.bearer_auth(t);
+        }
+        request.send().await.expect("HTTP GET")
     }
 }
 

@@ -306,7 +306,7 @@ async fn queries_answer_for_a_live_session() {
 /// with that one line, and the holder of a token streams as usual.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_hello_without_a_configured_token_is_unauthenticated() {
-    let server = Server::start(&["--auth-token", "fleet-secret-1", "--auth-token", "fleet-secret-2"]);
+    let server = Server::start(&["--auth-token", "fleet-secret-1", "--auth-token", "fleet-secret-2", "--read-token", "viewer-1"]);
     for (token, message) in [
         ("", "this server requires an auth token in the hello (stillmap-client --token)"),
         ("fleet-secret-3", "unknown auth token"),
@@ -340,6 +340,75 @@ async fn a_hello_without_a_configured_token_is_unauthenticated() {
     }
     let metrics = server.get_text("/metrics").await;
     assert!(metrics.contains("reason=\"unauthenticated\"} 5"), "{metrics}");
+}
+
+/// The scope matrix (issue 21): a robot token streams only as its robots, a read
+/// token cannot stream, a robot token cannot query, queries need `read` on HTTP
+/// (header or `?access_token=`) and gRPC, `/healthz` stays open, and SIGHUP reloads
+/// the token file (a broken one keeps the tokens in force).
+#[tokio::test(flavor = "multi_thread")]
+async fn tokens_carry_scopes_and_sighup_reloads_the_token_file() {
+    let file = stillmap_e2e::tempfile_path("tokens.txt");
+    std::fs::write(&file, "# robots of the warehouse\nwh-token robot:warehouse-*\nviewer-token read\n").expect("token file");
+    let server = Server::start(&["--no-zenoh", "--no-perception", "--token-file", file.to_str().expect("utf-8"), "--admin-token", "root-token"]);
+    let http = reqwest::Client::new();
+    let status = |path: &'static str, header: Option<&'static str>| {
+        let mut r = http.get(format!("http://{}{path}", server.http));
+        if let Some(t) = header {
+            r = r.bearer_auth(t);
+        }
+        async move {
+            let r = r.send().await.expect("GET");
+            let code = r.status().as_u16();
+            (code, if code >= 400 { r.json::<serde_json::Value>().await.expect("JSON error")["error"].as_str().unwrap_or_default().to_string() } else { String::new() })
+        }
+    };
+    assert_eq!(status("/api/v1/sessions", None).await, (401, "this needs a token with the read scope: Authorization: Bearer <token>".into()));
+    assert_eq!(status("/api/v1/sessions", Some("wh-token")).await, (403, "this token lacks the read scope".into()));
+    assert_eq!(status("/api/v1/sessions", Some("guess")).await, (401, "unknown token".into()));
+    assert_eq!(status("/api/v1/sessions", Some("viewer-token")).await.0, 200);
+    assert_eq!(status("/api/v1/sessions?access_token=viewer-token", None).await.0, 200);
+    assert_eq!(status("/api/v1/events?access_token=wh-token", None).await.0, 403);
+    assert_eq!(status("/metrics", None).await.0, 401);
+    assert_eq!(status("/healthz", None).await.0, 200);
+
+    // Ingest: a robot token streams only as its robots; a read token not at all.
+    let hello = |robot: &str, token: &str| pb::Hello { auth_token: token.into(), ..tum_hello(robot) };
+    let (_, accepted) = Stream::hello(&server, hello("warehouse-3", "wh-token")).await;
+    for (robot, token) in [("lab-1", "wh-token"), ("warehouse-3", "viewer-token")] {
+        let mut s = Stream::open(&server).await;
+        s.send(ClientMsg::Hello(hello(robot, token))).await;
+        let e = s.next().await.expect_err("refused");
+        assert_eq!(e.code(), Code::PermissionDenied, "{robot} with {token}: {e:?}");
+    }
+    // gRPC queries: the authorization metadata.
+    let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
+    let list = |token: Option<&str>| {
+        let mut request = tonic::Request::new(pb::ListSessionsRequest::default());
+        if let Some(t) = token {
+            request.metadata_mut().insert("authorization", format!("Bearer {t}").parse().expect("metadata"));
+        }
+        request
+    };
+    assert_eq!(q.list_sessions(list(None)).await.expect_err("no token").code(), Code::Unauthenticated);
+    assert_eq!(q.list_sessions(list(Some("wh-token"))).await.expect_err("robot token").code(), Code::PermissionDenied);
+    let sessions = q.list_sessions(list(Some("viewer-token"))).await.expect("read token").into_inner().sessions;
+    assert_eq!(sessions.iter().map(|s| s.session_id.as_str()).collect::<Vec<_>>(), [accepted.session_id.as_str()]);
+
+    // SIGHUP: the file's new tokens replace the old ones.
+    std::fs::write(&file, "viewer-2 read\n").expect("token file");
+    let hup = || assert!(std::process::Command::new("kill").args(["-HUP", &server.pid().to_string()]).status().expect("kill").success());
+    hup();
+    stillmap_e2e::eventually(Duration::from_secs(10), "the token file is reloaded", async || status("/api/v1/sessions", Some("viewer-token")).await.0 == 401).await;
+    assert_eq!(status("/api/v1/sessions", Some("viewer-2")).await.0, 200);
+    assert_eq!(status("/api/v1/sessions", Some("root-token")).await.0, 200, "the config's admin token stays (admin implies read)");
+    // A broken file keeps the tokens in force.
+    std::fs::write(&file, "viewer-3 reed\n").expect("token file");
+    hup();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(status("/api/v1/sessions", Some("viewer-2")).await.0, 200);
+    assert_eq!(status("/api/v1/sessions", Some("viewer-3")).await.0, 401);
+    let _ = std::fs::remove_file(&file);
 }
 
 /// A rolling-shutter readout or an exposure-time offset the server cannot use is

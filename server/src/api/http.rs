@@ -35,10 +35,11 @@ where
     }
 }
 
-/// What the HTTP shell needs besides the registry: who may import and export
-/// whole maps and how large, the dashboard's viewer limit.
+/// What the HTTP shell needs besides the registry: who may query, import and
+/// export (the tokens in force), how large an import may be, the dashboard's
+/// viewer limit.
 pub struct HttpSettings {
-    pub admin: crate::auth::Admin,
+    pub auth: Arc<crate::auth::AuthHandle>,
     /// `store.import_max_bytes`.
     pub import_max_bytes: usize,
     /// `http.max_event_viewers`.
@@ -48,13 +49,20 @@ pub struct HttpSettings {
 pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, settings: Arc<HttpSettings>) -> Router {
     let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers);
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
+    let read = axum::middleware::from_fn_with_state(settings.clone(), require_read);
+    // The dashboard's files hold no data: open. Its event stream needs `read`.
     let ui = Router::new()
+        .route("/api/v1/events", get(crate::api::dashboard::events))
+        .route_layer(read.clone())
         .route("/", get(crate::api::dashboard::index))
         .route("/assets/{*path}", get(crate::api::dashboard::asset))
-        .route("/api/v1/events", get(crate::api::dashboard::events))
         .with_state(dashboard);
+    // Whole maps in and out check `admin` themselves (before reading a body).
+    let admin = Router::new()
+        .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(settings.clone())))
+        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(settings))))
+        .with_state(registry.clone());
     Router::new()
-        .route("/healthz", get(healthz))
         .route("/api/v1/sessions", get(list_sessions))
         .route("/api/v1/sessions/{id}", get(get_session))
         .route("/api/v1/sessions/{id}/pose", get(get_pose))
@@ -74,10 +82,11 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/maps/{id}/occupancy.yaml", get(map_occupancy_yaml))
         .route("/api/v1/maps/{id}/cloud.ply", get(map_cloud))
         .route("/api/v1/maps/{id}/objects", get(map_objects))
-        .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(settings.clone())))
-        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(settings))))
         .route("/metrics", get(metrics))
+        .route_layer(read)
+        .route("/healthz", get(healthz))
         .with_state(registry)
+        .merge(admin)
         .merge(ui)
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
 }
@@ -695,16 +704,32 @@ async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
 /// Largest map file `POST /api/v1/maps/import` accepts.
 const MAX_IMPORT_BYTES: usize = 1 << 30;
 
-/// 401 / 403 unless the request carries an admin token (when any is configured).
+/// The request's credentials: its `Authorization` header, else an
+/// `access_token` query parameter (a browser's `EventSource` and `<img>` cannot
+/// send headers), as `Bearer <token>`.
+fn credentials(headers: &HeaderMap, uri: &axum::http::Uri) -> Option<Vec<u8>> {
+    if let Some(v) = headers.get(header::AUTHORIZATION) {
+        return Some(v.as_bytes().to_vec());
+    }
+    let pairs: Vec<(String, String)> = serde_urlencoded::from_str(uri.query()?).ok()?;
+    pairs.into_iter().find(|(k, _)| k == "access_token").map(|(_, v)| format!("Bearer {v}").into_bytes())
+}
+
+/// 401 / 403 unless the request's credentials carry `need` (when any token is configured).
 #[allow(clippy::result_large_err)]
-fn admin_only(settings: &HttpSettings, headers: &HeaderMap) -> Result<(), Response> {
-    settings.admin.check(headers.get(header::AUTHORIZATION).map(|v| v.as_bytes())).map_err(|refusal| {
-        let status = match refusal {
-            crate::auth::AdminRefusal::RobotToken => StatusCode::FORBIDDEN,
-            _ => StatusCode::UNAUTHORIZED,
-        };
+fn authorize(settings: &HttpSettings, headers: &HeaderMap, uri: &axum::http::Uri, need: crate::auth::Need) -> Result<(), Response> {
+    settings.auth.get().check(credentials(headers, uri).as_deref(), need).map_err(|refusal| {
+        let status = StatusCode::from_u16(refusal.http_status()).unwrap_or(StatusCode::UNAUTHORIZED);
         error(status, refusal.to_string())
     })
+}
+
+/// The query APIs' layer: a token with the `read` scope.
+async fn require_read(State(settings): State<Arc<HttpSettings>>, request: axum::extract::Request, next: axum::middleware::Next) -> Response {
+    match authorize(&settings, request.headers(), request.uri(), crate::auth::Need::Read) {
+        Ok(()) => next.run(request).await,
+        Err(refused) => refused,
+    }
 }
 
 /// The admin check as an extractor: it runs on the request's head, before a body
@@ -720,7 +745,7 @@ impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
             .get::<Arc<HttpSettings>>()
             .cloned()
             .ok_or_else(|| error(StatusCode::INTERNAL_SERVER_ERROR, "HTTP settings missing on this route".into()))?;
-        admin_only(&transfer, &parts.headers)?;
+        authorize(&transfer, &parts.headers, &parts.uri, crate::auth::Need::Admin)?;
         Ok(Self(transfer))
     }
 }

@@ -15,7 +15,7 @@ use crate::session::{Registry, ResultSink, Session, Transport};
 
 pub struct IngestService {
     pub registry: Arc<Registry>,
-    pub tokens: Arc<crate::auth::Tokens>,
+    pub auth: Arc<crate::auth::AuthHandle>,
     pub result_buffer: usize,
     pub max_message_bytes: usize,
 }
@@ -31,10 +31,10 @@ impl Ingest for IngestService {
         let inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(self.result_buffer);
         let registry = self.registry.clone();
-        let tokens = self.tokens.clone();
+        let auth = self.auth.clone();
         let max = self.max_message_bytes;
         tokio::spawn(async move {
-            if let Err(status) = serve_stream(inbound, &registry, &tokens, tx.clone(), max).await {
+            if let Err(status) = serve_stream(inbound, &registry, &auth, tx.clone(), max).await {
                 let _ = tx.send(Err(status)).await;
             }
         });
@@ -46,7 +46,7 @@ impl Ingest for IngestService {
 async fn serve_stream(
     mut inbound: Streaming<pb::ClientMessage>,
     registry: &Registry,
-    tokens: &crate::auth::Tokens,
+    auth: &crate::auth::AuthHandle,
     sink: ResultSink,
     max_message_bytes: usize,
 ) -> Result<(), Status> {
@@ -63,7 +63,7 @@ async fn serve_stream(
             return Err(Status::invalid_argument("empty client message: expected a hello"));
         }
     };
-    tokens.check(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
+    auth.get().check_hello(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
     let opened = registry
         .open(&hello, Transport::Grpc, sink.clone())
         .map_err(|e| refusal(&e, &metrics))?;

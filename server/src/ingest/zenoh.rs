@@ -80,7 +80,7 @@ pub async fn serve(
     result_buffer: usize,
     max_message_bytes: usize,
     idle_disconnect: Duration,
-    tokens: Arc<crate::auth::Tokens>,
+    auth: Arc<crate::auth::AuthHandle>,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
     let subscriber = zenoh
@@ -152,7 +152,7 @@ pub async fn serve(
                     reply(&links, Status::invalid_argument(msg)).await;
                     continue;
                 }
-                if let Err(status) = tokens.check(&hello) {
+                if let Err(status) = auth.get().check_hello(&hello) {
                     metrics.rejected("unauthenticated");
                     reply(&links, status).await;
                     continue;
