@@ -47,11 +47,31 @@ pub struct LimitsConfig {
     /// Camera pixels (width × height) of the live sessions in memory, summed: the
     /// per-pixel buffers grow with it. Default 40,000,000 (128 cameras of 640×480).
     pub max_camera_pixels_total: u64,
+    /// Hellos per minute a client may send, after a burst of `hello_burst`: per peer
+    /// address on gRPC, per robot id on Zenoh. Beyond: RESOURCE_EXHAUSTED naming the
+    /// limit, counted as `rate_limited`. A whole fleet behind one address reconnecting
+    /// at once fits the burst. Defaults 600 (10 a second) and 200; 0: no limit.
+    pub hellos_per_minute: u32,
+    pub hello_burst: u32,
+    /// HTTP requests per minute a client may send (per bearer token, else per peer
+    /// address), after a burst of `http_burst`; beyond: 429 naming the limit, with
+    /// Retry-After. `/healthz` is not limited. Defaults 6,000 (100 a second: a
+    /// dashboard's screenful of tiles fits the burst) and 400; 0: no limit.
+    pub http_requests_per_minute: u32,
+    pub http_burst: u32,
 }
 
 impl Default for LimitsConfig {
     fn default() -> Self {
-        Self { max_sessions: 128, max_sessions_per_robot: 4, max_camera_pixels_total: 40_000_000 }
+        Self {
+            max_sessions: 128,
+            max_sessions_per_robot: 4,
+            max_camera_pixels_total: 40_000_000,
+            hellos_per_minute: 600,
+            hello_burst: 200,
+            http_requests_per_minute: 6000,
+            http_burst: 400,
+        }
     }
 }
 
@@ -211,6 +231,13 @@ pub struct HttpConfig {
     /// eviction. Queued beyond it; a thread once started stays, so the thread
     /// count stays flat (default 32).
     pub blocking_threads: usize,
+    /// A connection must send each request's head within this many seconds, or it
+    /// is closed (slowloris: a client dribbling its headers, or sending nothing).
+    /// Default 10.
+    pub header_timeout_s: f64,
+    /// HTTP connections served at once; more are closed on accept and counted
+    /// (`rejected_total{reason="http_connections"}`). Default 4096.
+    pub max_connections: usize,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -312,7 +339,7 @@ impl Default for GrpcConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, blocking_threads: 32 }
+        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, blocking_threads: 32, header_timeout_s: 10.0, max_connections: 4096 }
     }
 }
 
@@ -379,6 +406,9 @@ impl ServerConfig {
         }
         if !(1..=MAX_POOL_THREADS).contains(&self.http.blocking_threads) {
             return bad(format!("http.blocking_threads must be in 1..={MAX_POOL_THREADS}, got {}", self.http.blocking_threads));
+        }
+        if !(self.http.header_timeout_s >= 0.1 && self.http.header_timeout_s <= 3600.0) || self.http.max_connections == 0 {
+            return bad(format!("http.header_timeout_s must be within 0.1..=3600 and http.max_connections at least 1, got {} and {}", self.http.header_timeout_s, self.http.max_connections));
         }
         if self.session.result_buffer == 0 {
             return bad("session.result_buffer must be at least 1".into());

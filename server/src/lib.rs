@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod pipeline;
 pub mod pool;
 pub mod queue;
+pub mod ratelimit;
 pub mod session;
 pub mod store;
 
@@ -138,6 +139,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     }
     let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets).with_limits(config.limits.clone()));
     let auth = Arc::new(auth::AuthHandle::new(&config.auth).map_err(ServerError::Config)?);
+    let rate_limits = Arc::new(ratelimit::RateLimits::new(&config.limits));
     if !auth.get().required() {
         tracing::info!("no auth token configured: every robot's hello and every query is accepted");
     }
@@ -157,15 +159,14 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         let z = zenoh::open(ingest::zenoh::zenoh_config(&config.zenoh)?)
             .await
             .map_err(|e| ServerError::Zenoh(format!("open: {e}")))?;
-        let task = tokio::spawn(ingest::zenoh::serve(
-            z.clone(),
-            registry.clone(),
-            config.session.result_buffer,
-            config.grpc.max_message_bytes,
-            std::time::Duration::from_secs_f64(config.zenoh.idle_disconnect_s),
-            auth.clone(),
-            shutdown.clone(),
-        ));
+        let settings = ingest::zenoh::Settings {
+            result_buffer: config.session.result_buffer,
+            max_message_bytes: config.grpc.max_message_bytes,
+            idle_disconnect: Duration::from_secs_f64(config.zenoh.idle_disconnect_s),
+            auth: auth.clone(),
+            rate_limits: rate_limits.clone(),
+        };
+        let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, shutdown.clone()));
         Some((z, task))
     } else {
         None
@@ -179,6 +180,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let ingest = IngestServer::new(ingest::grpc::IngestService {
         registry: registry.clone(),
         auth: auth.clone(),
+        rate_limits: rate_limits.clone(),
         result_buffer: config.session.result_buffer,
         max_message_bytes: max,
     })
@@ -198,12 +200,19 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(query)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
     let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
-    let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
+    let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), rate_limits: rate_limits.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
     }
-    let http = axum::serve(http_listener, api::http::router(registry.clone(), dashboard_dir, settings)).with_graceful_shutdown(wait_for(shutdown.clone()));
+    let http = api::serve::serve(
+        http_listener,
+        api::http::router(registry.clone(), dashboard_dir, settings),
+        api::serve::ConnectionLimits { header_timeout: Duration::from_secs_f64(config.http.header_timeout_s), max_connections: config.http.max_connections },
+        registry.metrics().clone(),
+        shutdown.clone(),
+        SHUTDOWN_GRACE,
+    );
 
     let bound = Bound {
         grpc: bound_grpc,
@@ -219,6 +228,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     // that failed while the store could not write) is committed every
     // store.flush_interval_s, off the runtime.
     let flush_registry = registry.clone();
+    let flush_limits = rate_limits.clone();
     let flush_every = Duration::from_secs_f64(config.store.flush_interval_s);
     let flush_task = tokio::spawn(async move {
         let mut interval = tokio::time::interval(flush_every);
@@ -227,6 +237,8 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         loop {
             interval.tick().await;
             let r = flush_registry.clone();
+            // Clients quiet long enough leave the rate limiters too.
+            flush_limits.forget_idle();
             if tokio::task::spawn_blocking(move || r.list().iter().filter(|s| s.flush()).count()).await.is_err() {
                 break;
             }
@@ -267,7 +279,10 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         })
     });
     let grpc_task = tokio::spawn(grpc);
-    let http_task = tokio::spawn(async move { http.await.map_err(ServerError::Http) });
+    let http_task = tokio::spawn(async move {
+        http.await;
+        Ok::<(), ServerError>(())
+    });
     let _ = shutdown.wait_for(|stop| *stop).await;
     tracing::info!("shutting down");
     flush_task.abort();

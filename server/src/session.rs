@@ -1353,7 +1353,7 @@ mod tests {
     /// evicted (it would be lost).
     #[test]
     fn limits_evict_idle_sessions_first_and_refuse_by_name() {
-        let limits = LimitsConfig { max_sessions: 3, max_sessions_per_robot: 1, max_camera_pixels_total: 64 * 48 * 2 };
+        let limits = LimitsConfig { max_sessions: 3, max_sessions_per_robot: 1, max_camera_pixels_total: 64 * 48 * 2, ..LimitsConfig::default() };
         let registry = registry_with(Some("limits"), SessionConfig { idle_evict_s: 0.0, ..SessionConfig::default() }, limits.clone());
         let (sink, _rx) = mpsc::channel(4);
         let first = registry.open(&hello("a"), Transport::Grpc, sink.clone()).expect("open").session;

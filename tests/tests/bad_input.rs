@@ -411,6 +411,74 @@ async fn tokens_carry_scopes_and_sighup_reloads_the_token_file() {
     let _ = std::fs::remove_file(&file);
 }
 
+/// Slow and greedy clients (issue 21): a connection that sends no request head, or
+/// dribbles one, is closed after `http.header_timeout_s`; connections beyond
+/// `http.max_connections` are closed on accept; HTTP requests and hellos beyond
+/// their per-client rate get 429 / RESOURCE_EXHAUSTED naming the limit.
+#[tokio::test(flavor = "multi_thread")]
+async fn slow_and_greedy_clients_are_cut_off_by_name() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let config = stillmap_e2e::tempfile_path("greedy.toml");
+    std::fs::write(&config, "[http]\nheader_timeout_s = 1.0\nmax_connections = 4\n[limits]\nhttp_requests_per_minute = 60\nhttp_burst = 5\nhellos_per_minute = 60\nhello_burst = 3\n").expect("config");
+    let server = Server::start(&["--no-zenoh", "--no-perception", "--config", config.to_str().expect("utf-8")]);
+    // Closed by the server: a read returns end of stream (or a reset) within `within`.
+    async fn closed_within(stream: &mut tokio::net::TcpStream, within: Duration) -> bool {
+        let mut buf = [0u8; 256];
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            match tokio::time::timeout_at(deadline, stream.read(&mut buf)).await {
+                Err(_) => return false,
+                Ok(Ok(0) | Err(_)) => return true,
+                Ok(Ok(_)) => {} // a 408 or 400 answer before the close
+            }
+        }
+    }
+    let started = std::time::Instant::now();
+    let mut silent = tokio::net::TcpStream::connect(&server.http).await.expect("connect");
+    let mut dribbling = tokio::net::TcpStream::connect(&server.http).await.expect("connect");
+    dribbling.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n").await.expect("write");
+    let mut others = Vec::new();
+    for _ in 0..2 {
+        others.push(tokio::net::TcpStream::connect(&server.http).await.expect("connect"));
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut fifth = tokio::net::TcpStream::connect(&server.http).await.expect("connect");
+    assert!(closed_within(&mut fifth, Duration::from_millis(500)).await, "beyond http.max_connections: closed on accept");
+    assert!(closed_within(&mut silent, Duration::from_secs(5)).await, "no request head in 1 s");
+    assert!(closed_within(&mut dribbling, Duration::from_secs(5)).await, "half a request head in 1 s");
+    let waited = started.elapsed();
+    assert!(waited >= Duration::from_millis(900), "closed after the timeout, not before: {waited:?}");
+    drop(others);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert!(server.get_text("/metrics").await.contains("reason=\"http_connections\"} 1"));
+
+    // HTTP: a burst of 5 (the /metrics read above was one), then 429 naming the limit.
+    let http = reqwest::Client::new();
+    let mut answers = Vec::new();
+    for _ in 0..5 {
+        answers.push(http.get(format!("http://{}/api/v1/sessions", server.http)).send().await.expect("GET"));
+    }
+    let codes: Vec<u16> = answers.iter().map(|r| r.status().as_u16()).collect();
+    assert_eq!(codes, [200, 200, 200, 200, 429]);
+    let limited = answers.pop().expect("the 429");
+    assert_eq!(limited.headers().get("retry-after").map(|v| v.as_bytes()), Some(&b"1"[..]));
+    let body: serde_json::Value = limited.json().await.expect("JSON");
+    assert_eq!(body["error"], "too many requests from 127.0.0.1: limits.http_requests_per_minute = 60, limits.http_burst = 5");
+    let healthz = http.get(format!("http://{}/healthz", server.http)).send().await.expect("GET");
+    assert_eq!(healthz.status(), 200, "/healthz is not limited");
+
+    // Hellos: a burst of 3 streams from this address, then RESOURCE_EXHAUSTED.
+    for _ in 0..3 {
+        let _ = Stream::hello(&server, tum_hello("greedy")).await;
+    }
+    let mut client = IngestClient::connect(server.grpc_url()).await.expect("connect");
+    let (_tx, rx) = mpsc::channel::<pb::ClientMessage>(1);
+    let refused = client.stream(ReceiverStream::new(rx)).await.expect_err("rate limited");
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert_eq!(refused.message(), "too many hellos from 127.0.0.1: limits.hellos_per_minute = 60, limits.hello_burst = 3");
+    let _ = std::fs::remove_file(&config);
+}
+
 /// A rolling-shutter readout or an exposure-time offset the server cannot use is
 /// refused by name: in a raw hello (INVALID_ARGUMENT) and on the client's command
 /// line (exit 1, one line); ones it can use reach the session and its poses' times.

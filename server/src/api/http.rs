@@ -40,6 +40,8 @@ where
 /// viewer limit.
 pub struct HttpSettings {
     pub auth: Arc<crate::auth::AuthHandle>,
+    /// Requests per client (`limits.http_requests_per_minute`).
+    pub rate_limits: Arc<crate::ratelimit::RateLimits>,
     /// `store.import_max_bytes`.
     pub import_max_bytes: usize,
     /// `http.max_event_viewers`.
@@ -50,6 +52,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
     let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers);
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
     let read = axum::middleware::from_fn_with_state(settings.clone(), require_read);
+    let settings_for_limits = settings.clone();
     // The dashboard's files hold no data: open. Its event stream needs `read`.
     let ui = Router::new()
         .route("/api/v1/events", get(crate::api::dashboard::events))
@@ -62,6 +65,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(settings.clone())))
         .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(settings))))
         .with_state(registry.clone());
+    let rate_limited = axum::middleware::from_fn_with_state(settings_for_limits, rate_limit);
     Router::new()
         .route("/api/v1/sessions", get(list_sessions))
         .route("/api/v1/sessions/{id}", get(get_session))
@@ -88,6 +92,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .with_state(registry)
         .merge(admin)
         .merge(ui)
+        .layer(rate_limited)
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
 }
 
@@ -722,6 +727,29 @@ fn authorize(settings: &HttpSettings, headers: &HeaderMap, uri: &axum::http::Uri
         let status = StatusCode::from_u16(refusal.http_status()).unwrap_or(StatusCode::UNAUTHORIZED);
         error(status, refusal.to_string())
     })
+}
+
+/// Every route but `/healthz`: at most `limits.http_requests_per_minute` per client
+/// (its bearer token, else its peer address), else 429 naming the limit.
+async fn rate_limit(State(settings): State<Arc<HttpSettings>>, request: axum::extract::Request, next: axum::middleware::Next) -> Response {
+    if request.uri().path() == "/healthz" {
+        return next.run(request).await;
+    }
+    let (client, shown) = match credentials(request.headers(), request.uri()) {
+        Some(token) => (format!("token {}", String::from_utf8_lossy(&token)), "this token".to_string()),
+        None => match crate::api::serve::peer(&request) {
+            Some(peer) => (format!("ip {}", peer.ip()), peer.ip().to_string()),
+            None => ("unknown".to_string(), "this client".to_string()),
+        },
+    };
+    match settings.rate_limits.http(&client, &shown) {
+        Ok(()) => next.run(request).await,
+        Err(message) => {
+            let mut response = error(StatusCode::TOO_MANY_REQUESTS, message);
+            response.headers_mut().insert(header::RETRY_AFTER, axum::http::HeaderValue::from_static("1"));
+            response
+        }
+    }
 }
 
 /// The query APIs' layer: a token with the `read` scope.

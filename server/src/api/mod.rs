@@ -5,3 +5,4 @@ pub mod dashboard;
 pub mod http;
 pub mod map_queries;
 pub mod query;
+pub mod serve;

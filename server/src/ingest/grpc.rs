@@ -16,6 +16,7 @@ use crate::session::{Registry, ResultSink, Session, Transport};
 pub struct IngestService {
     pub registry: Arc<Registry>,
     pub auth: Arc<crate::auth::AuthHandle>,
+    pub rate_limits: Arc<crate::ratelimit::RateLimits>,
     pub result_buffer: usize,
     pub max_message_bytes: usize,
 }
@@ -28,6 +29,12 @@ impl Ingest for IngestService {
     type StreamStream = BoxStream<pb::ServerMessage>;
 
     async fn stream(&self, request: Request<Streaming<pb::ClientMessage>>) -> Result<Response<Self::StreamStream>, Status> {
+        // Every stream opens with a hello: counted per peer address.
+        let client = request.remote_addr().map_or_else(|| "an unknown address".to_string(), |a| a.ip().to_string());
+        if let Err(message) = self.rate_limits.hello(&client) {
+            self.registry.metrics().rejected("rate_limited");
+            return Err(Status::resource_exhausted(message));
+        }
         let inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(self.result_buffer);
         let registry = self.registry.clone();

@@ -69,20 +69,23 @@ impl Link {
     }
 }
 
+/// What the Zenoh shell is told besides the registry.
+pub struct Settings {
+    pub result_buffer: usize,
+    pub max_message_bytes: usize,
+    /// A robot silent this long (zero: never) counts as disconnected.
+    pub idle_disconnect: Duration,
+    pub auth: Arc<crate::auth::AuthHandle>,
+    pub rate_limits: Arc<crate::ratelimit::RateLimits>,
+}
+
 /// Longest wait between two checks for quiet robots.
 const MAX_IDLE_CHECK: Duration = Duration::from_secs(1);
 
 /// Subscribes to every robot's frames until `shutdown` fires. A robot silent for
 /// `idle_disconnect` (zero: never) counts as disconnected until it sends again.
-pub async fn serve(
-    zenoh: zenoh::Session,
-    registry: Arc<Registry>,
-    result_buffer: usize,
-    max_message_bytes: usize,
-    idle_disconnect: Duration,
-    auth: Arc<crate::auth::AuthHandle>,
-    mut shutdown: tokio::sync::watch::Receiver<bool>,
-) -> Result<(), ServerError> {
+pub async fn serve(zenoh: zenoh::Session, registry: Arc<Registry>, settings: Settings, mut shutdown: tokio::sync::watch::Receiver<bool>) -> Result<(), ServerError> {
+    let Settings { result_buffer, max_message_bytes, idle_disconnect, auth, rate_limits } = settings;
     let subscriber = zenoh
         .declare_subscriber(keys::ALL_FRAMES)
         .await
@@ -150,6 +153,12 @@ pub async fn serve(
                 if hello.robot_id != robot {
                     let msg = format!("hello for robot {:?} published on the key of robot {robot:?}", hello.robot_id);
                     reply(&links, Status::invalid_argument(msg)).await;
+                    continue;
+                }
+                // Zenoh carries no peer address: hellos are counted per robot key.
+                if let Err(message) = rate_limits.hello(&format!("robot {robot}")) {
+                    metrics.rejected("rate_limited");
+                    reply(&links, Status::resource_exhausted(message)).await;
                     continue;
                 }
                 if let Err(status) = auth.get().check_hello(&hello) {
