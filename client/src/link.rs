@@ -33,6 +33,8 @@ pub enum LinkEvent {
 #[derive(Debug, Clone)]
 pub struct GrpcOptions {
     pub endpoint: String,
+    /// TLS to the server (an https:// endpoint), `None`: plain.
+    pub tls: Option<ClientTls>,
     pub keepalive: Duration,
     pub connect_timeout: Duration,
     pub initial_backoff: Duration,
@@ -43,6 +45,24 @@ pub struct GrpcOptions {
     /// as dead (a server that stopped answering, or the session's results going
     /// elsewhere) and the link reconnects, resuming the session.
     pub result_timeout: Duration,
+}
+
+/// The PEM files of a TLS link: the CA that signed the server's certificate, and
+/// this robot's certificate and key when the server asks for one.
+#[derive(Debug, Clone)]
+pub struct ClientTls {
+    pub ca: Vec<u8>,
+    pub identity: Option<(Vec<u8>, Vec<u8>)>,
+}
+
+impl ClientTls {
+    fn config(&self) -> tonic::transport::ClientTlsConfig {
+        let mut c = tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(&self.ca));
+        if let Some((cert, key)) = &self.identity {
+            c = c.identity(tonic::transport::Identity::from_pem(cert, key));
+        }
+        c
+    }
 }
 
 /// Zenoh link settings.
@@ -127,8 +147,12 @@ async fn run_grpc(
     mut frames_rx: mpsc::Receiver<pb::Frame>,
     events: mpsc::Sender<LinkEvent>,
 ) -> Result<(), ClientError> {
-    let endpoint = tonic::transport::Endpoint::from_shared(options.endpoint.clone())
-        .map_err(|e| ClientError::Usage(format!("bad server address {:?}: {e}", options.endpoint)))?
+    let mut endpoint = tonic::transport::Endpoint::from_shared(options.endpoint.clone())
+        .map_err(|e| ClientError::Usage(format!("bad server address {:?}: {e}", options.endpoint)))?;
+    if let Some(tls) = &options.tls {
+        endpoint = endpoint.tls_config(tls.config()).map_err(|e| ClientError::Usage(format!("TLS to {}: {e}", options.endpoint)))?;
+    }
+    let endpoint = endpoint
         .connect_timeout(options.connect_timeout)
         .http2_keep_alive_interval(options.keepalive)
         .keep_alive_timeout(options.keepalive * 2)

@@ -78,6 +78,34 @@ struct EndpointArgs {
     /// Zenoh mode: peer or client.
     #[arg(long, default_value = "peer")]
     zenoh_mode: String,
+    /// The CA (PEM) that signed the server's certificate: gRPC over TLS (give the
+    /// server as https://...).
+    #[arg(long, env = "STILLMAP_TLS_CA")]
+    tls_ca: Option<PathBuf>,
+    /// This robot's certificate and key (PEM), for a server that asks for client
+    /// certificates (tls.client_ca_path).
+    #[arg(long, env = "STILLMAP_TLS_CERT", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    #[arg(long, env = "STILLMAP_TLS_KEY", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+}
+
+impl EndpointArgs {
+    /// The TLS files, read (a problem names the file).
+    fn tls(&self) -> Result<Option<link::ClientTls>, ClientError> {
+        let read = |flag: &str, p: &PathBuf| std::fs::read(p).map_err(|e| ClientError::Usage(format!("{flag} {}: {e}", p.display())));
+        let Some(ca) = &self.tls_ca else {
+            return match self.tls_cert {
+                Some(_) => Err(ClientError::Usage("--tls-cert needs --tls-ca (the CA that signed the server's certificate)".into())),
+                None => Ok(None),
+            };
+        };
+        let identity = match (&self.tls_cert, &self.tls_key) {
+            (Some(c), Some(k)) => Some((read("--tls-cert", c)?, read("--tls-key", k)?)),
+            _ => None,
+        };
+        Ok(Some(link::ClientTls { ca: read("--tls-ca", ca)?, identity }))
+    }
 }
 
 /// Where the camera's intrinsics come from (`stream` and `fleet`).
@@ -294,7 +322,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Stream {
             source,
             transport,
-            endpoints: EndpointArgs { server, zenoh_connect, zenoh_mode },
+            endpoints,
             robot_id,
             fleet,
             token,
@@ -365,7 +393,8 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             let summary = match transport {
                 TransportArg::Grpc => {
                     let grpc = GrpcOptions {
-                        endpoint: server,
+                        tls: endpoints.tls()?,
+                        endpoint: endpoints.server,
                         keepalive: Duration::from_secs(10),
                         connect_timeout: timeout,
                         initial_backoff: Duration::from_millis(100),
@@ -377,12 +406,12 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 #[cfg(feature = "zenoh")]
                 TransportArg::Zenoh => {
-                    let z = ZenohOptions { connect: zenoh_connect, mode: zenoh_mode, timeout };
+                    let z = ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout };
                     streamer::run(&options, "zenoh", |hello| link::start_zenoh(hello, z)).await?
                 }
                 #[cfg(not(feature = "zenoh"))]
                 TransportArg::Zenoh => {
-                    let _ = (zenoh_connect, zenoh_mode, ZenohOptions::clone);
+                    let _ = (endpoints, ZenohOptions::clone);
                     return Err(ClientError::Usage("this client was built without the zenoh feature".into()).into());
                 }
             };
@@ -404,7 +433,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             rate,
             duration,
             transport,
-            endpoints: EndpointArgs { server, zenoh_connect, zenoh_mode },
+            endpoints,
             http,
             robot_prefix,
             token,
@@ -433,7 +462,8 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     FleetTransportArg::Mixed => FleetTransport::Mixed,
                 },
                 grpc: GrpcOptions {
-                    endpoint: server,
+                    tls: endpoints.tls()?,
+                    endpoint: endpoints.server.clone(),
                     keepalive: Duration::from_secs(10),
                     connect_timeout: timeout,
                     initial_backoff: Duration::from_millis(100),
@@ -441,7 +471,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     max_attempts: 10,
                     result_timeout: Duration::from_secs(15),
                 },
-                zenoh: ZenohOptions { connect: zenoh_connect, mode: zenoh_mode, timeout },
+                zenoh: ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout },
                 http: (!http.is_empty()).then_some(http),
                 robot_prefix,
                 token,

@@ -27,6 +27,21 @@ pub struct ServerConfig {
     pub auth: AuthConfig,
     pub fleet: FleetConfig,
     pub limits: LimitsConfig,
+    pub tls: TlsConfig,
+}
+
+/// TLS on the gRPC and HTTP ports (rustls). Off by default: plain TCP, for a
+/// trusted network or behind a TLS-terminating proxy.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TlsConfig {
+    /// The server's certificate chain (PEM). Empty (default): no TLS.
+    pub cert_path: String,
+    /// Its private key (PEM).
+    pub key_path: String,
+    /// A CA (PEM): clients must present a certificate it signed, on gRPC and HTTP
+    /// (mutual TLS). Empty (default): no client certificate is asked for.
+    pub client_ca_path: String,
 }
 
 /// What the sessions in memory may take together. A hello beyond a limit first
@@ -468,6 +483,9 @@ impl ServerConfig {
         }
         if !(self.session.idle_evict_s >= 0.0 && self.session.idle_evict_s <= MAX_IDLE_DISCONNECT_S) {
             return bad(format!("session.idle_evict_s must be 0 (only under the limits) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.session.idle_evict_s));
+        }
+        if self.tls.cert_path.is_empty() != self.tls.key_path.is_empty() || (self.tls.cert_path.is_empty() && !self.tls.client_ca_path.is_empty()) {
+            return bad("tls.cert_path and tls.key_path go together, and tls.client_ca_path needs them".into());
         }
         let l = &self.limits;
         if l.max_sessions == 0 || l.max_sessions_per_robot == 0 {

@@ -19,6 +19,7 @@ pub mod queue;
 pub mod ratelimit;
 pub mod session;
 pub mod store;
+pub mod tls;
 
 use std::net::SocketAddr;
 use std::sync::{Mutex, MutexGuard, RwLock, RwLockReadGuard, RwLockWriteGuard};
@@ -140,6 +141,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets).with_limits(config.limits.clone()));
     let auth = Arc::new(auth::AuthHandle::new(&config.auth).map_err(ServerError::Config)?);
     let rate_limits = Arc::new(ratelimit::RateLimits::new(&config.limits));
+    let tls = tls::TlsFiles::load(&config.tls).map_err(ServerError::Config)?;
+    let http_tls = tls.as_ref().map(tls::TlsFiles::http).transpose().map_err(ServerError::Config)?;
+    if tls.is_some() {
+        tracing::info!(client_certificates = if config.tls.client_ca_path.is_empty() { "not asked" } else { "required" }, "TLS on the gRPC and HTTP ports");
+    }
     if !auth.get().required() {
         tracing::info!("no auth token configured: every robot's hello and every query is accepted");
     }
@@ -193,7 +199,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         Ok(request)
     });
     let grpc_shutdown = wait_for(shutdown.clone());
-    let grpc = tonic::transport::Server::builder()
+    let mut grpc_builder = tonic::transport::Server::builder();
+    if let Some(t) = &tls {
+        grpc_builder = grpc_builder.tls_config(t.grpc())?;
+    }
+    let grpc = grpc_builder
         .http2_keepalive_interval(Some(Duration::from_secs(config.grpc.keepalive_interval_s)))
         .http2_keepalive_timeout(Some(Duration::from_secs(config.grpc.keepalive_timeout_s)))
         .add_service(ingest)
@@ -208,7 +218,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let http = api::serve::serve(
         http_listener,
         api::http::router(registry.clone(), dashboard_dir, settings),
-        api::serve::ConnectionLimits { header_timeout: Duration::from_secs_f64(config.http.header_timeout_s), max_connections: config.http.max_connections },
+        api::serve::Options { header_timeout: Duration::from_secs_f64(config.http.header_timeout_s), max_connections: config.http.max_connections, tls: http_tls },
         registry.metrics().clone(),
         shutdown.clone(),
         SHUTDOWN_GRACE,

@@ -1,4 +1,5 @@
-//! The HTTP accept loop (axum's `serve` has no knobs for these): every connection
+//! The HTTP accept loop (axum's `serve` has no knobs for these): TLS when
+//! configured (`tls.*`, with client certificates when asked), every connection
 //! must send a request head within `http.header_timeout_s` (a slowloris
 //! connection dribbling its headers, or one that sends nothing, is closed), at most
 //! `http.max_connections` connections are served at once (more are closed on
@@ -20,15 +21,17 @@ use tower::ServiceExt;
 
 use crate::metrics::Metrics;
 
-/// What bounds the HTTP connections.
-pub struct ConnectionLimits {
+/// What bounds the HTTP connections, and their TLS.
+pub struct Options {
     pub header_timeout: Duration,
     pub max_connections: usize,
+    /// TLS (`tls.*`); `None`: plain TCP.
+    pub tls: Option<tokio_rustls::TlsAcceptor>,
 }
 
 /// Serves `app` on `listener` until `shutdown` becomes true, then waits for the
 /// open connections at most `grace`.
-pub async fn serve(listener: TcpListener, app: Router, limits: ConnectionLimits, metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>, grace: Duration) {
+pub async fn serve(listener: TcpListener, app: Router, limits: Options, metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>, grace: Duration) {
     let slots = Arc::new(Semaphore::new(limits.max_connections));
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();
     let mut builder = auto::Builder::new(TokioExecutor::new());
@@ -64,6 +67,7 @@ pub async fn serve(listener: TcpListener, app: Router, limits: ConnectionLimits,
         let builder = builder.clone();
         let watcher = graceful.watcher();
         let header_timeout = limits.header_timeout;
+        let tls = limits.tls.clone();
         tokio::spawn(async move {
             let _slot = slot;
             // hyper's header timeout starts at a request's first byte: a connection
@@ -72,8 +76,19 @@ pub async fn serve(listener: TcpListener, app: Router, limits: ConnectionLimits,
             if !matches!(tokio::time::timeout(header_timeout, stream.peek(&mut first)).await, Ok(Ok(1..))) {
                 return;
             }
-            let connection = watcher.watch(builder.serve_connection_with_upgrades(TokioIo::new(stream), service).into_owned());
-            if let Err(e) = connection.await {
+            let outcome = match tls {
+                None => watcher.watch(builder.serve_connection_with_upgrades(TokioIo::new(stream), service).into_owned()).await,
+                // The handshake must finish within the header timeout too.
+                Some(acceptor) => match tokio::time::timeout(header_timeout, acceptor.accept(stream)).await {
+                    Ok(Ok(stream)) => watcher.watch(builder.serve_connection_with_upgrades(TokioIo::new(stream), service).into_owned()).await,
+                    Ok(Err(e)) => {
+                        tracing::debug!(%peer, "TLS handshake failed: {e}");
+                        return;
+                    }
+                    Err(_) => return,
+                },
+            };
+            if let Err(e) = outcome {
                 tracing::debug!(%peer, "HTTP connection ended: {e}");
             }
         });
