@@ -1399,19 +1399,7 @@ mod tests {
         let config = SessionConfig::default();
         let pools = Pools::start(&config).expect("pools");
         let registry = Registry::new(config, TrackerConfig::default(), None, mapping, None, Arc::default(), pools);
-        let camera = pb::CameraInfo {
-            width: 64,
-            height: 48,
-            fx: 60.0,
-            fy: 60.0,
-            cx: 32.0,
-            cy: 24.0,
-            depth_units_per_metre: 1000.0,
-            color_encoding: pb::ColorEncoding::Rgb8 as i32,
-            depth_encoding: pb::DepthEncoding::Zstd as i32,
-            ..Default::default()
-        };
-        let hello = pb::Hello { robot_id: "r".into(), camera: Some(camera), ..Default::default() };
+        let hello = hello("r");
         let (zenoh, _zenoh_rx) = mpsc::channel(4);
         let (grpc, _grpc_rx) = mpsc::channel(4);
         let session = registry.open(&hello, Transport::Zenoh, zenoh.clone()).expect("open").session;
