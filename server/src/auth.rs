@@ -116,6 +116,11 @@ impl Auth {
         self.grants.iter().fold(None, |found, g| if constant_time_eq(&g.secret, token) { Some(g) } else { found })
     }
 
+    /// Whether `authorization` (`Bearer <token>`) carries a configured token.
+    pub fn known(&self, authorization: Option<&[u8]>) -> bool {
+        authorization.and_then(|v| v.strip_prefix(b"Bearer ")).is_some_and(|t| self.find(t).is_some())
+    }
+
     /// `Ok` when no token is configured, or the hello carries a token that may
     /// stream as its robot (UNAUTHENTICATED without a known token, PERMISSION_DENIED
     /// for another robot's token).
@@ -293,6 +298,7 @@ mod tests {
         assert_eq!(auth.check(Some(b"root"), Need::Admin), Err(Refusal::Missing("admin")), "not a bearer header");
         assert_eq!(auth.check(Some(&bearer("roo")), Need::Read), Err(Refusal::Unknown));
         assert_eq!((Refusal::Unknown.http_status(), Refusal::Scope("read").http_status()), (401, 403));
+        assert!(auth.known(Some(&bearer("wh-token"))) && !auth.known(Some(&bearer("guess"))) && !auth.known(Some(b"wh-token")) && !auth.known(None));
     }
 
     #[test]

@@ -99,53 +99,35 @@ fn not_found(name: &str) -> Response {
     (StatusCode::NOT_FOUND, axum::Json(json!({ "error": format!("no dashboard asset {name:?} (run make dashboard)") }))).into_response()
 }
 
-/// What one session looks like on the dashboard.
+/// What one session in memory looks like on the dashboard.
 fn session_json(s: &crate::session::Session, fps: f64) -> Value {
-    let summary = crate::session::summary(s);
-    let latest = s.tracking().latest;
-    let map = s.map().map(crate::map::summary);
+    let latency: HashMap<_, _> = s.last_latency().iter().map(|l| (l.stage.clone(), f64::from(l.micros) / 1000.0)).collect();
+    let map = s.map().map(crate::map::summary).map(|(version, keyframes, occupied)| json!({ "version": version, "keyframes": keyframes, "occupied_voxels": occupied }));
+    listed_json(&s.info(), fps, json!(latency), map.unwrap_or(Value::Null))
+}
+
+/// A session's row: in memory, or out of it (no latencies, no map summary: its map
+/// loads when selected).
+fn listed_json(info: &crate::session::SessionInfo, fps: f64, latency_ms: Value, map: Value) -> Value {
+    let summary = &info.summary;
     json!({
         "session_id": summary.session_id,
         "robot_id": summary.robot_id,
         "transport": summary.transport,
         "connected": summary.connected,
-        "archived": s.is_archived(),
+        "archived": info.archived,
         "tracking_state": pb::TrackingState::try_from(summary.tracking_state).map(|t| t.as_str_name()).unwrap_or("UNKNOWN"),
         "frames_received": summary.frames_received,
         "frames_processed": summary.frames_processed,
         "frames_dropped": summary.frames_dropped,
         "frames_rejected": summary.frames_rejected,
         "fps": fps,
-        "latency_ms": s.last_latency().iter().map(|l| (l.stage.clone(), f64::from(l.micros) / 1000.0)).collect::<HashMap<_, _>>(),
-        "pose": latest.and_then(|p| p.world_from_camera).map(|p| {
+        "latency_ms": latency_ms,
+        "pose": info.latest.and_then(|p| p.world_from_camera).map(|p| {
             let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
             json!({ "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
         }),
-        "map": map.map(|(version, keyframes, occupied)| json!({ "version": version, "keyframes": keyframes, "occupied_voxels": occupied })),
-    })
-}
-
-/// What a session out of memory looks like on the dashboard (its map loads when selected).
-fn stored_json(s: &crate::session::SessionInfo) -> Value {
-    let summary = &s.summary;
-    json!({
-        "session_id": summary.session_id,
-        "robot_id": summary.robot_id,
-        "transport": summary.transport,
-        "connected": false,
-        "archived": true,
-        "tracking_state": pb::TrackingState::try_from(summary.tracking_state).map(|t| t.as_str_name()).unwrap_or("UNKNOWN"),
-        "frames_received": summary.frames_received,
-        "frames_processed": summary.frames_processed,
-        "frames_dropped": summary.frames_dropped,
-        "frames_rejected": summary.frames_rejected,
-        "fps": 0.0,
-        "latency_ms": {},
-        "pose": s.latest.and_then(|p| p.world_from_camera).map(|p| {
-            let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
-            json!({ "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
-        }),
-        "map": null,
+        "map": map,
     })
 }
 
@@ -239,7 +221,7 @@ fn snapshot(registry: &Registry, mut previous: HashMap<String, (u64, Instant)>) 
             seen.insert(s.id.clone(), (processed, now));
             session_json(s, fps)
         })
-        .chain(registry.dormant().iter().map(stored_json))
+        .chain(registry.dormant().iter().map(|d| listed_json(d, 0.0, json!({}), Value::Null)))
         .collect();
     (Arc::from(json!({ "sessions": sessions }).to_string()), seen)
 }

@@ -730,12 +730,13 @@ fn authorize(settings: &HttpSettings, headers: &HeaderMap, uri: &axum::http::Uri
 }
 
 /// Every route but `/healthz`: at most `limits.http_requests_per_minute` per client
-/// (its bearer token, else its peer address), else 429 naming the limit.
+/// (its bearer token when it is a configured one, else its peer address: made-up
+/// tokens cannot each get a bucket of their own), else 429 naming the limit.
 async fn rate_limit(State(settings): State<Arc<HttpSettings>>, request: axum::extract::Request, next: axum::middleware::Next) -> Response {
     if request.uri().path() == "/healthz" {
         return next.run(request).await;
     }
-    let (client, shown) = match credentials(request.headers(), request.uri()) {
+    let (client, shown) = match credentials(request.headers(), request.uri()).filter(|c| settings.auth.get().known(Some(c))) {
         Some(token) => (format!("token {}", String::from_utf8_lossy(&token)), "this token".to_string()),
         None => match crate::api::serve::peer(&request) {
             Some(peer) => (format!("ip {}", peer.ip()), peer.ip().to_string()),
