@@ -57,6 +57,11 @@ pub enum Transport {
 }
 
 impl Transport {
+    /// The transport a stored session's description names (`label`'s inverse).
+    fn stored(label: &str) -> Self {
+        if label == Self::Zenoh.label() { Self::Zenoh } else { Self::Grpc }
+    }
+
     pub fn label(self) -> &'static str {
         match self {
             Self::Grpc => "grpc",
@@ -629,7 +634,7 @@ impl SessionInfo {
             summary: pb::SessionSummary {
                 session_id: head.id.clone(),
                 robot_id: head.meta.robot_id.clone(),
-                transport: if head.meta.transport == "zenoh" { "zenoh" } else { "grpc" }.into(),
+                transport: Transport::stored(&head.meta.transport).label().into(),
                 connected: false,
                 camera: Some(head.camera.clone()),
                 frames_processed: head.pose_count as u64,
@@ -877,9 +882,9 @@ impl Registry {
 
     /// Every session, in memory or not, oldest first (nothing is loaded).
     pub fn list_info(&self) -> Vec<SessionInfo> {
-        let resident = self.list();
-        let mut all: Vec<SessionInfo> = resident.iter().map(|s| s.info()).collect();
-        all.extend(self.dormant().into_iter().filter(|d| !resident.iter().any(|s| s.id == d.summary.session_id)));
+        let mut all: Vec<SessionInfo> = self.list().iter().map(|s| s.info()).collect();
+        let resident: std::collections::HashSet<String> = all.iter().map(|s| s.summary.session_id.clone()).collect();
+        all.extend(read(&self.dormant).values().filter(|d| !resident.contains(&d.summary.session_id)).cloned());
         all.sort_by_key(|s| (s.summary.started_unix_ns, s.summary.session_id.clone()));
         all
     }
@@ -1002,10 +1007,7 @@ impl Registry {
         if !hello.fleet.is_empty() {
             stillmap_proto::validate_fleet(&hello.fleet).map_err(BadHello::Invalid)?;
         }
-        let fleet_name = match &self.fleets {
-            Some(f) => f.fleet_for(&hello.fleet),
-            None => hello.fleet.clone(),
-        };
+        let fleet_name = self.fleet_for(&hello.fleet);
         self.check_capacity()?;
         if let Err(e) = self.make_room(Some(&hello.robot_id), 1, pixels, None) {
             if let BadHello::Limit { limit, .. } = &e {
@@ -1103,11 +1105,15 @@ impl Registry {
     pub fn restore(&self, heads: &[SessionHead]) {
         let mut dormant = write(&self.dormant);
         for head in heads {
-            let fleet = match &self.fleets {
-                Some(f) => f.fleet_for(&head.meta.fleet),
-                None => head.meta.fleet.clone(),
-            };
-            dormant.insert(head.id.clone(), SessionInfo::stored(head, fleet));
+            dormant.insert(head.id.clone(), SessionInfo::stored(head, self.fleet_for(&head.meta.fleet)));
+        }
+    }
+
+    /// The fleet a session of fleet `named` belongs to (the default one for none).
+    fn fleet_for(&self, named: &str) -> String {
+        match &self.fleets {
+            Some(f) => f.fleet_for(named),
+            None => named.to_string(),
         }
     }
 
@@ -1135,17 +1141,14 @@ impl Registry {
         } else {
             None
         };
-        let transport = if s.meta.transport == "zenoh" { Transport::Zenoh } else { Transport::Grpc };
+        let transport = Transport::stored(&s.meta.transport);
         let counters = Counters::default();
         counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
         let latest = s.poses.last().copied();
         let state = latest.map_or(TrackingState::Initializing, |p| p.tracking_state());
         let queue = FrameQueue::new(1, 1, self.config.overload_policy);
         queue.close();
-        let fleet_name = match &self.fleets {
-            Some(f) => f.fleet_for(&s.meta.fleet),
-            None => s.meta.fleet.clone(),
-        };
+        let fleet_name = self.fleet_for(&s.meta.fleet);
         Arc::new_cyclic(|me| self.session(me, SessionParts {
             id,
             robot_id: s.meta.robot_id.clone(),

@@ -474,9 +474,13 @@ impl Store {
             let camera = cameras.get(id.as_str()).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
             let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
             let range = (id.as_str(), 0)..=(id.as_str(), u64::MAX);
-            let pose_count = poses.range(range.clone()).map_err(|e| self.err(e))?.count();
-            let latest = match poses.range(range.clone()).map_err(|e| self.err(e))?.next_back() {
-                Some(p) => Some(pb::PoseStamped::decode(p.map_err(|e| self.err(e))?.1.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?),
+            let (mut pose_count, mut last) = (0, None);
+            for p in poses.range(range.clone()).map_err(|e| self.err(e))? {
+                pose_count += 1;
+                last = Some(p.map_err(|e| self.err(e))?.1);
+            }
+            let latest = match last {
+                Some(v) => Some(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?),
                 None => None,
             };
             let mut kfs = Vec::new();
@@ -488,20 +492,6 @@ impl Store {
             out.push(SessionHead { id, meta, camera, pose_count, latest, keyframes: kfs });
         }
         Ok(out)
-    }
-
-    /// Every stored session, with its trajectory, keyframes and map blocks.
-    pub fn load_all(&self) -> Result<Vec<StoredSession>, StoreError> {
-        let ids: Vec<String> = {
-            let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-            let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
-            let mut ids = Vec::new();
-            for entry in sessions.iter().map_err(|e| self.err(e))? {
-                ids.push(entry.map_err(|e| self.err(e))?.0.value().to_string());
-            }
-            ids
-        };
-        ids.iter().filter_map(|id| self.load(id).transpose()).collect()
     }
 
     /// One stored session, everything committed about it.
@@ -727,7 +717,7 @@ mod tests {
                 .unwrap();
         }
         let store = Store::open(&path).unwrap();
-        let all = store.load_all().unwrap();
+        let all: Vec<StoredSession> = store.heads(false).unwrap().iter().map(|h| store.load(&h.id).unwrap().expect("listed")).collect();
         assert_eq!(all.len(), 1);
         let s = &all[0];
         assert_eq!((s.id.as_str(), &s.meta, &s.camera, s.poses.as_slice()), ("s1", &meta, &camera, &[pose][..]));
