@@ -52,7 +52,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
     let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers);
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
     let read = axum::middleware::from_fn_with_state(settings.clone(), require_read);
-    let settings_for_limits = settings.clone();
+    let rate_limited = axum::middleware::from_fn_with_state(settings.clone(), rate_limit);
     // The dashboard's files hold no data: open. Its event stream needs `read`.
     let ui = Router::new()
         .route("/api/v1/events", get(crate::api::dashboard::events))
@@ -65,7 +65,6 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(settings.clone())))
         .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(settings))))
         .with_state(registry.clone());
-    let rate_limited = axum::middleware::from_fn_with_state(settings_for_limits, rate_limit);
     Router::new()
         .route("/api/v1/sessions", get(list_sessions))
         .route("/api/v1/sessions/{id}", get(get_session))
