@@ -74,6 +74,9 @@ pub struct ZenohOptions {
     pub mode: String,
     /// How long to wait for the server to accept the hello, and for late results.
     pub timeout: Duration,
+    /// A Zenoh configuration file (JSON5: TLS, mTLS, authentication); when given
+    /// it is the whole Zenoh configuration, and `connect` and `mode` are ignored.
+    pub config_file: Option<std::path::PathBuf>,
 }
 
 /// A started link.
@@ -285,16 +288,22 @@ async fn run_zenoh(
         let what = what.to_string();
         move |e: zenoh::Error| ClientError::Connect(format!("zenoh {what}: {e}"))
     };
-    let mut config = zenoh::Config::default();
-    let list = serde_json::to_string(&options.connect).unwrap_or_else(|_| "[]".into());
-    for (key, value) in [
-        ("mode", format!("{:?}", options.mode)),
-        ("scouting/multicast/enabled", "false".to_string()),
-        ("listen/endpoints", "[]".to_string()),
-        ("connect/endpoints", list),
-    ] {
-        config.insert_json5(key, &value).map_err(zerr(key))?;
-    }
+    let config = match &options.config_file {
+        Some(path) => zenoh::Config::from_file(path).map_err(|e| ClientError::Usage(format!("zenoh config file {}: {e}", path.display())))?,
+        None => {
+            let mut config = zenoh::Config::default();
+            let list = serde_json::to_string(&options.connect).unwrap_or_else(|_| "[]".into());
+            for (key, value) in [
+                ("mode", format!("{:?}", options.mode)),
+                ("scouting/multicast/enabled", "false".to_string()),
+                ("listen/endpoints", "[]".to_string()),
+                ("connect/endpoints", list),
+            ] {
+                config.insert_json5(key, &value).map_err(zerr(key))?;
+            }
+            config
+        }
+    };
     let session = zenoh::open(config).await.map_err(zerr("open"))?;
     // Wait until the server (or router) is connected, so the hello is not published into the void.
     let deadline = tokio::time::Instant::now() + options.timeout;

@@ -78,6 +78,11 @@ struct EndpointArgs {
     /// Zenoh mode: peer or client.
     #[arg(long, default_value = "peer")]
     zenoh_mode: String,
+    /// A Zenoh configuration file (JSON5, Zenoh's own format) for TLS, mTLS or
+    /// authentication to a router (deploy/zenoh/robot.json5); it replaces
+    /// --zenoh-connect and --zenoh-mode.
+    #[arg(long, env = "STILLMAP_ZENOH_CONFIG")]
+    zenoh_config: Option<PathBuf>,
     /// The CA (PEM) that signed the server's certificate: gRPC over TLS (give the
     /// server as https://...).
     #[arg(long, env = "STILLMAP_TLS_CA")]
@@ -406,7 +411,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 #[cfg(feature = "zenoh")]
                 TransportArg::Zenoh => {
-                    let z = ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout };
+                    let z = ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout, config_file: endpoints.zenoh_config };
                     streamer::run(&options, "zenoh", |hello| link::start_zenoh(hello, z)).await?
                 }
                 #[cfg(not(feature = "zenoh"))]
@@ -471,7 +476,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     max_attempts: 10,
                     result_timeout: Duration::from_secs(15),
                 },
-                zenoh: ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout },
+                zenoh: ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout, config_file: endpoints.zenoh_config },
                 http: (!http.is_empty()).then_some(http),
                 robot_prefix,
                 token,

@@ -74,6 +74,16 @@ pub struct LimitsConfig {
     /// dashboard's screenful of tiles fits the burst) and 400; 0: no limit.
     pub http_requests_per_minute: u32,
     pub http_burst: u32,
+    /// CPU one frame may take on a pipeline thread (decoding, tracking, flow,
+    /// mask fusion; milliseconds of that thread's CPU time). A frame cannot be
+    /// stopped halfway, so a frame over it is finished, counted
+    /// (`stillmap_frame_cpu_over_budget_total`) and logged; `frame_cpu_strikes`
+    /// such frames in a row end the session's stream with RESOURCE_EXHAUSTED
+    /// naming the limit (the session takes no more frames; a new hello opens a
+    /// new one). A 640×480 frame takes 20–80 ms on one core. Defaults 2,000 ms
+    /// and 3; 0: no budget.
+    pub frame_cpu_ms: f64,
+    pub frame_cpu_strikes: u32,
 }
 
 impl Default for LimitsConfig {
@@ -86,6 +96,8 @@ impl Default for LimitsConfig {
             hello_burst: 200,
             http_requests_per_minute: 6000,
             http_burst: 400,
+            frame_cpu_ms: 2000.0,
+            frame_cpu_strikes: 3,
         }
     }
 }
@@ -253,6 +265,14 @@ pub struct HttpConfig {
     /// HTTP connections served at once; more are closed on accept and counted
     /// (`rejected_total{reason="http_connections"}`). Default 4096.
     pub max_connections: usize,
+    /// Threads of the runtime that serves HTTP (the API, map queries' hand-off,
+    /// the dashboard and its event streams), apart from the one that takes
+    /// robots' frames. Default 2.
+    pub worker_threads: usize,
+    /// Scheduling niceness of the HTTP runtime's threads (Linux, per thread;
+    /// 0–19): above 0, robots' frames and their tracking win the CPU over
+    /// dashboards and queries when both want it. Default 10; 0: same priority.
+    pub nice: i32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -268,6 +288,13 @@ pub struct ZenohConfig {
     pub connect: Vec<String>,
     /// Multicast scouting (off by default: explicit endpoints only).
     pub multicast_scouting: bool,
+    /// A Zenoh configuration file (JSON5, Zenoh's own format): TLS and mTLS under
+    /// `transport/link/tls`, user/password authentication, access control. When
+    /// set it is the whole Zenoh configuration, and `mode`, `listen`, `connect`
+    /// and `multicast_scouting` above are ignored. `deploy/zenoh/` has the
+    /// server's, the router's (TLS, mTLS, per-robot ACL) and a robot's.
+    /// Default: none.
+    pub config_file: Option<std::path::PathBuf>,
     /// Seconds without a message, with every frame answered, after which a Zenoh
     /// robot's session counts as disconnected. Zenoh has no per-robot connection whose close the server could
     /// see (gRPC has its stream), so without this a robot that vanished would show
@@ -354,7 +381,7 @@ impl Default for GrpcConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, blocking_threads: 32, header_timeout_s: 10.0, max_connections: 4096 }
+        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, blocking_threads: 32, header_timeout_s: 10.0, max_connections: 4096, worker_threads: 2, nice: 10 }
     }
 }
 
@@ -366,6 +393,7 @@ impl Default for ZenohConfig {
             listen: vec!["tcp/127.0.0.1:7447".into()],
             connect: vec![],
             multicast_scouting: false,
+            config_file: None,
             idle_disconnect_s: 10.0,
         }
     }
@@ -490,6 +518,15 @@ impl ServerConfig {
         let l = &self.limits;
         if l.max_sessions == 0 || l.max_sessions_per_robot == 0 {
             return bad("limits.max_sessions and limits.max_sessions_per_robot must be at least 1".into());
+        }
+        if self.http.worker_threads == 0 || !(0..=19).contains(&self.http.nice) {
+            return bad(format!("http.worker_threads must be at least 1 and http.nice within 0..=19; got {} and {}", self.http.worker_threads, self.http.nice));
+        }
+        if !(l.frame_cpu_ms.is_finite() && l.frame_cpu_ms >= 0.0) || l.frame_cpu_strikes == 0 {
+            return bad(format!(
+                "limits.frame_cpu_ms must be 0 (no budget) or a positive number of milliseconds, and limits.frame_cpu_strikes at least 1; got {} and {}",
+                l.frame_cpu_ms, l.frame_cpu_strikes
+            ));
         }
         if l.max_camera_pixels_total < self.session.max_camera_pixels {
             return bad(format!(

@@ -74,6 +74,61 @@ pub enum ServerError {
     Fleet(#[from] fleet::FleetError),
 }
 
+/// How long an idle thread of a blocking pool stays: once started, threads stay
+/// (bounded by `http.blocking_threads`), so the thread count is flat.
+pub const BLOCKING_THREAD_KEEP_ALIVE: Duration = Duration::from_secs(24 * 3600);
+
+/// A runtime beside the one running us, shut down without waiting when dropped
+/// (dropping a runtime from inside another blocks, which tokio forbids).
+struct SideRuntime(Option<tokio::runtime::Runtime>);
+
+impl SideRuntime {
+    fn handle(&self) -> tokio::runtime::Handle {
+        self.0.as_ref().map(|r| r.handle().clone()).unwrap_or_else(tokio::runtime::Handle::current)
+    }
+}
+
+impl Drop for SideRuntime {
+    fn drop(&mut self) {
+        if let Some(runtime) = self.0.take() {
+            runtime.shutdown_background();
+        }
+    }
+}
+
+/// The runtime that serves HTTP: `http.worker_threads` threads named `http`,
+/// each at niceness `http.nice` (Linux keeps a niceness per thread).
+fn http_runtime(config: &config::HttpConfig) -> Result<SideRuntime, ServerError> {
+    let nice = config.nice;
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(config.worker_threads)
+        .thread_name("http")
+        .max_blocking_threads(config.blocking_threads)
+        .thread_keep_alive(BLOCKING_THREAD_KEEP_ALIVE)
+        .on_thread_start(move || lower_this_thread(nice))
+        .enable_all()
+        .build()
+        .map(|r| SideRuntime(Some(r)))
+        .map_err(ServerError::Threads)
+}
+
+/// Raises the calling thread's niceness to `nice` (never needs privileges); a
+/// failure leaves it as it was, logged.
+fn lower_this_thread(nice: i32) {
+    if nice == 0 {
+        return;
+    }
+    // SAFETY: gettid has no arguments and cannot fail; setpriority on our own
+    // thread id only changes this thread's scheduling weight.
+    let done = unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        libc::setpriority(libc::PRIO_PROCESS, tid, nice)
+    };
+    if done != 0 {
+        tracing::warn!("http.nice = {nice}: setpriority failed: {}", std::io::Error::last_os_error());
+    }
+}
+
 /// Where the server ended up listening (ports resolved when 0 was asked for).
 #[derive(Debug, Clone)]
 pub struct Bound {
@@ -215,14 +270,19 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
     }
-    let http = api::serve::serve(
-        http_listener,
-        api::http::router(registry.clone(), dashboard_dir, settings),
-        api::serve::Options { header_timeout: Duration::from_secs_f64(config.http.header_timeout_s), max_connections: config.http.max_connections, tls: http_tls },
-        registry.metrics().clone(),
-        shutdown.clone(),
-        SHUTDOWN_GRACE,
-    );
+    // HTTP on a runtime of its own at a lower priority: dashboards and queries
+    // take what CPU robots' frames leave. Its listener moves there (its readiness
+    // then comes from that runtime's driver); shut down below without blocking.
+    let http_runtime = http_runtime(&config.http)?;
+    let http_listener = http_listener.into_std().map_err(ServerError::Http)?;
+    let http_app = api::http::router(registry.clone(), dashboard_dir, settings);
+    let http_options = api::serve::Options { header_timeout: Duration::from_secs_f64(config.http.header_timeout_s), max_connections: config.http.max_connections, tls: http_tls };
+    let (http_metrics, http_shutdown) = (registry.metrics().clone(), shutdown.clone());
+    let http = async move {
+        let listener = tokio::net::TcpListener::from_std(http_listener).map_err(ServerError::Http)?;
+        api::serve::serve(listener, http_app, http_options, http_metrics, http_shutdown, SHUTDOWN_GRACE).await;
+        Ok::<(), ServerError>(())
+    };
 
     let bound = Bound {
         grpc: bound_grpc,
@@ -289,10 +349,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         })
     });
     let grpc_task = tokio::spawn(grpc);
-    let http_task = tokio::spawn(async move {
-        http.await;
-        Ok::<(), ServerError>(())
-    });
+    let http_task = http_runtime.handle().spawn(http);
     let _ = shutdown.wait_for(|stop| *stop).await;
     tracing::info!("shutting down");
     flush_task.abort();
@@ -315,6 +372,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         Ok(r) => r?,
         Err(_) => tracing::warn!("open streams outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway"),
     }
+    drop(http_runtime);
     // The workers finish their queues and commit what came after their last keyframe.
     let workers = registry.clone();
     if tokio::time::timeout(SHUTDOWN_GRACE, tokio::task::spawn_blocking(move || workers.join_workers())).await.is_err() {

@@ -162,9 +162,6 @@ fn main() {
     }
 }
 
-/// How long an idle thread of the blocking pool stays: its threads, once started,
-/// stay (bounded by `http.blocking_threads`), so the thread count is flat.
-const BLOCKING_THREAD_KEEP_ALIVE: std::time::Duration = std::time::Duration::from_secs(24 * 3600);
 
 fn real_main() -> anyhow::Result<()> {
     let args = Args::parse();
@@ -184,7 +181,7 @@ fn real_main() -> anyhow::Result<()> {
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .max_blocking_threads(config.http.blocking_threads)
-        .thread_keep_alive(BLOCKING_THREAD_KEEP_ALIVE)
+        .thread_keep_alive(stillmap_server::BLOCKING_THREAD_KEEP_ALIVE)
         .build()?
         .block_on(serve(config))
 }

@@ -42,6 +42,8 @@ pub struct Metrics {
     sessions_evicted: Counter,
     sessions_loaded: Counter,
     sessions_refused: Family<Labels, Counter>,
+    frame_cpu_over_budget: Counter,
+    sessions_ended: Family<Labels, Counter>,
 }
 
 impl Default for Metrics {
@@ -99,6 +101,10 @@ impl Default for Metrics {
         registry.register("sessions_evicted", "Sessions that left memory (idle, or to make room); the store keeps them", sessions_evicted.clone());
         let sessions_loaded = Counter::default();
         registry.register("sessions_loaded", "Stored sessions brought back into memory by a query", sessions_loaded.clone());
+        let frame_cpu_over_budget = Counter::default();
+        registry.register("frame_cpu_over_budget", "Frames that took more pipeline CPU than limits.frame_cpu_ms", frame_cpu_over_budget.clone());
+        let sessions_ended = Family::<Labels, Counter>::default();
+        registry.register("sessions_ended", "Session streams the server ended by a limit (frame_cpu_ms)", sessions_ended.clone());
         let sessions_refused = Family::<Labels, Counter>::default();
         registry.register(
             "sessions_refused",
@@ -128,6 +134,8 @@ impl Default for Metrics {
             sessions_evicted,
             sessions_loaded,
             sessions_refused,
+            frame_cpu_over_budget,
+            sessions_ended,
         }
     }
 }
@@ -198,6 +206,12 @@ impl Metrics {
     }
     pub fn session_loaded(&self) {
         self.sessions_loaded.inc();
+    }
+    pub fn frame_cpu_over_budget(&self) {
+        self.frame_cpu_over_budget.inc();
+    }
+    pub fn session_ended(&self, limit: &str) {
+        self.sessions_ended.get_or_create(&one("limit", limit)).inc();
     }
     pub fn session_refused(&self, limit: &str) {
         self.sessions_refused.get_or_create(&one("limit", limit)).inc();

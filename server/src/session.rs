@@ -15,9 +15,9 @@
 //! out of the map and counted (`stillmap_map_jobs_skipped_total`).
 
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock, Weak};
-use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use stillmap_mapping::MappingConfig;
 use stillmap_perception::PerceptionConfig;
@@ -107,6 +107,8 @@ pub struct Session {
     last_received_sequence: Mutex<Option<u64>>,
     /// Frames received in a row whose sequence jumped past the order window.
     received_jumps: Mutex<crate::pipeline::decode::JumpCount>,
+    /// `limits.frame_cpu_ms`: what one frame may cost on a pipeline thread.
+    cpu_budget: CpuBudget,
     track: Mutex<TrackState>,
     poses: broadcast::Sender<pb::PoseStamped>,
     fleet: broadcast::Sender<FleetPose>,
@@ -202,6 +204,11 @@ impl Lane for Session {
                 return;
             }
             let Some(work) = self.queue.try_pop() else { break };
+            // Frames still queued when a limit ended the stream are not run.
+            let work = match work {
+                Work::Frame(q) if self.cpu_budget.ended() => Work::Dropped { sequence: q.frame.sequence, capture_time_ns: q.frame.capture_time_ns },
+                work => work,
+            };
             let result = match work {
                 Work::Dropped { sequence, capture_time_ns } => pb::FrameResult {
                     sequence,
@@ -212,13 +219,21 @@ impl Lane for Session {
                 },
                 Work::Frame(queued) => {
                     let pipeline = worker.get_or_insert_with(|| self.new_pipeline());
+                    let cpu_before = thread_cpu_time();
                     let mut outcome = pipeline.process(&queued);
+                    let over_budget = self.cpu_budget.spent(outcome.sequence, thread_cpu_time().saturating_sub(cpu_before));
                     if let Some(job) = outcome.map_job.take()
                         && let Some(job) = self.hand_to_map(job)
                     {
                         pipeline.map_job_refused(&job);
                     }
-                    self.account(&outcome)
+                    let result = self.account(&outcome);
+                    if let Some(status) = over_budget {
+                        self.deliver(result);
+                        self.end_stream(status);
+                        return;
+                    }
+                    result
                 }
             };
             self.deliver(result);
@@ -233,7 +248,75 @@ impl Lane for Session {
 }
 
 
+/// CPU time this thread has used (zero where the clock cannot be read).
+fn thread_cpu_time() -> Duration {
+    let mut t = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: `t` is a valid timespec to write into; CLOCK_THREAD_CPUTIME_ID is
+    // the calling thread's CPU clock, which every Linux has.
+    let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } == 0;
+    if !ok {
+        return Duration::ZERO;
+    }
+    Duration::new(u64::try_from(t.tv_sec).unwrap_or(0), u32::try_from(t.tv_nsec).unwrap_or(0))
+}
+
+/// `limits.frame_cpu_ms` for one session: frames over it are counted, and
+/// `limits.frame_cpu_strikes` of them in a row end the session's stream.
+struct CpuBudget {
+    /// `None`: no budget.
+    per_frame: Option<Duration>,
+    strikes: u32,
+    over_in_row: AtomicU32,
+    /// The last strike came: the stream was ended.
+    ended: AtomicBool,
+    metrics: Arc<Metrics>,
+}
+
+impl CpuBudget {
+    fn ended(&self) -> bool {
+        self.ended.load(Ordering::Relaxed)
+    }
+
+    fn new(limits: &LimitsConfig, metrics: Arc<Metrics>) -> Self {
+        let per_frame = (limits.frame_cpu_ms > 0.0).then(|| Duration::from_secs_f64(limits.frame_cpu_ms / 1e3));
+        Self { per_frame, strikes: limits.frame_cpu_strikes.max(1), over_in_row: AtomicU32::new(0), ended: AtomicBool::new(false), metrics }
+    }
+
+    /// Counts a frame that took `cpu`: the status ending the stream when it was
+    /// the last strike.
+    fn spent(&self, sequence: u64, cpu: Duration) -> Option<tonic::Status> {
+        let budget = self.per_frame?;
+        if cpu <= budget {
+            self.over_in_row.store(0, Ordering::Relaxed);
+            return None;
+        }
+        self.metrics.frame_cpu_over_budget();
+        let in_row = self.over_in_row.fetch_add(1, Ordering::Relaxed) + 1;
+        tracing::warn!(sequence, cpu_ms = cpu.as_secs_f64() * 1e3, in_row, "frame over limits.frame_cpu_ms = {}", budget.as_secs_f64() * 1e3);
+        (in_row >= self.strikes && !self.ended.swap(true, Ordering::Relaxed)).then(|| {
+            self.metrics.session_ended("frame_cpu_ms");
+            tonic::Status::resource_exhausted(format!(
+                "{in_row} frames in a row took more than limits.frame_cpu_ms = {} ms of CPU each (frame {sequence}: {:.0} ms): the session takes no more frames",
+                budget.as_secs_f64() * 1e3,
+                cpu.as_secs_f64() * 1e3
+            ))
+        })
+    }
+}
+
 impl Session {
+    /// Ends the session's stream with `status` (a limit it went over): its queue
+    /// takes no more frames, the connection hears why.
+    fn end_stream(&self, status: tonic::Status) {
+        tracing::warn!(session = %self.id, "stream ended: {}", status.message());
+        self.queue.close();
+        if let Some(sink) = lock(&self.sink).clone()
+            && sink.try_send(Err(status)).is_err()
+        {
+            tracing::warn!(session = %self.id, "the connection's buffer is full: it hears of the end from its next frame (session closed)");
+        }
+    }
+
     /// Queues a received frame. Dropped frames are counted here and answered by the worker.
     pub fn push(&self, frame: pb::Frame, encoded_len: usize) -> Result<(), QueueError> {
         let transport = self.transport.label();
@@ -687,6 +770,26 @@ pub enum BadHello {
     Internal(String),
 }
 
+/// Checks a hello that opens a new session, before anything is allocated for
+/// it: the robot id, the camera (sizes, intrinsics, encodings), its pixels
+/// against `max_camera_pixels`, and the fleet name. Returns the camera. Pure,
+/// so the fuzz target `hello` drives it.
+pub fn validate_new_hello(hello: &pb::Hello, max_camera_pixels: u64) -> Result<&pb::CameraInfo, BadHello> {
+    stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello::Invalid)?;
+    let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello::Invalid)?;
+    let pixels = u64::from(camera.width) * u64::from(camera.height);
+    if pixels > max_camera_pixels {
+        return Err(BadHello::TooLarge(format!(
+            "camera of {}x{} = {pixels} pixels is over session.max_camera_pixels = {max_camera_pixels}",
+            camera.width, camera.height
+        )));
+    }
+    if !hello.fleet.is_empty() {
+        stillmap_proto::validate_fleet(&hello.fleet).map_err(BadHello::Invalid)?;
+    }
+    Ok(camera)
+}
+
 impl BadHello {
     /// The gRPC status this refusal is answered with (gRPC, and Zenoh's `ServerMessage.error`).
     pub fn status(&self) -> tonic::Status {
@@ -996,17 +1099,8 @@ impl Registry {
             session.attach(sink);
             return Ok(Opened { session, resumed: true });
         }
-        let camera = validate_camera(hello.camera.as_ref()).map_err(BadHello::Invalid)?.clone();
+        let camera = validate_new_hello(hello, self.config.max_camera_pixels)?.clone();
         let pixels = u64::from(camera.width) * u64::from(camera.height);
-        if pixels > self.config.max_camera_pixels {
-            return Err(BadHello::TooLarge(format!(
-                "camera of {}x{} = {pixels} pixels is over session.max_camera_pixels = {}",
-                camera.width, camera.height, self.config.max_camera_pixels
-            )));
-        }
-        if !hello.fleet.is_empty() {
-            stillmap_proto::validate_fleet(&hello.fleet).map_err(BadHello::Invalid)?;
-        }
         let fleet_name = self.fleet_for(&hello.fleet);
         self.check_capacity()?;
         if let Err(e) = self.make_room(Some(&hello.robot_id), 1, pixels, None) {
@@ -1233,6 +1327,7 @@ impl Registry {
             sink: Mutex::new(None),
             last_received_sequence: Mutex::new(p.last_received_sequence),
             received_jumps: Mutex::default(),
+            cpu_budget: CpuBudget::new(&self.limits, self.metrics.clone()),
             track: Mutex::new(p.track),
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
             fleet: self.fleet.clone(),

@@ -549,7 +549,7 @@ impl Store {
 }
 
 /// The one-file map format: magic, then zstd of length-prefixed sections.
-const EXPORT_MAGIC: &[u8] = b"STILLMAP-MAP\0\x01";
+pub const EXPORT_MAGIC: &[u8] = b"STILLMAP-MAP\0\x01";
 /// zstd level of exports (written once, read rarely).
 const EXPORT_ZSTD_LEVEL: i32 = 3;
 /// Largest section an import accepts (a corrupt length must not allocate wildly).

@@ -552,3 +552,29 @@ fn auth_tokens_are_redacted_and_an_empty_one_is_refused() {
     assert_eq!(out.status.code(), Some(1));
     assert_eq!(String::from_utf8_lossy(&out.stderr).trim(), "stillmap-server: invalid configuration: auth.tokens[0] is empty");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn frames_over_the_cpu_budget_end_the_stream_naming_the_limit() {
+    // A budget no real frame fits: every frame is over it.
+    let config = stillmap_e2e::tempfile_path("cpu-budget.toml");
+    std::fs::write(&config, "[limits]\nframe_cpu_ms = 0.001\nframe_cpu_strikes = 2\n").expect("write config");
+    let server = Server::start(&["--no-perception", "--config", config.to_str().expect("utf-8")]);
+    let (mut s, _) = Stream::hello(&server, tum_hello("heavy")).await;
+    // The first strike is answered as usual.
+    s.send(ClientMsg::Frame(tum_frame(0, 10))).await;
+    assert_eq!(s.result().await.status(), FrameStatus::Ok);
+    // The second is answered, then the stream ends naming the limit.
+    s.send(ClientMsg::Frame(tum_frame(1, 20))).await;
+    assert_eq!(s.result().await.sequence, 1);
+    let status = s.next().await.expect_err("the stream ends");
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().starts_with("2 frames in a row took more than limits.frame_cpu_ms = 0.001 ms of CPU each (frame 1: "), "{}", status.message());
+    let metrics = server.get_text("/metrics").await;
+    assert!(metrics.contains("stillmap_frame_cpu_over_budget_total 2"), "{metrics}");
+    assert!(metrics.contains("stillmap_sessions_ended_total{limit=\"frame_cpu_ms\"} 1"), "{metrics}");
+    // Another robot still opens a session (the server is fine; only that stream ended).
+    let (mut other, _) = Stream::hello(&server, tum_hello("next")).await;
+    other.send(ClientMsg::Frame(tum_frame(0, 10))).await;
+    assert_eq!(other.result().await.status(), FrameStatus::Ok);
+    let _ = std::fs::remove_file(&config);
+}

@@ -6,7 +6,8 @@ pub mod grpc;
 #[cfg(feature = "zenoh")]
 pub mod zenoh;
 
-use stillmap_proto::pb::{self, server_message::Msg};
+use prost::Message;
+use stillmap_proto::pb::{self, client_message::Msg as ClientMsg, server_message::Msg};
 use tonic::Status;
 
 use crate::metrics::Metrics;
@@ -51,5 +52,44 @@ pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::Server
             server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
             resume_secret: opened.session.resume_secret().to_string(),
         })),
+    }
+}
+
+/// A message a robot published on its Zenoh frames key, once checked.
+#[derive(Debug)]
+pub enum ZenohMessage {
+    Hello(pb::Hello),
+    Frame(pb::Frame),
+}
+
+/// A Zenoh message the shell answers with an error: the metrics label it is
+/// counted under (none: not counted) and the status it gets.
+#[derive(Debug)]
+pub struct ZenohRejection {
+    pub label: Option<&'static str>,
+    pub status: Status,
+}
+
+/// Checks and decodes what `robot` published on its frames key: the size
+/// before decoding, then the message, then that a hello names the robot of its
+/// key. Free of Zenoh itself, so the fuzz target `zenoh_message` drives it.
+pub fn parse_zenoh_message(robot: &str, payload: &[u8], max_message_bytes: usize) -> Result<ZenohMessage, ZenohRejection> {
+    let reject = |label, status| Err(ZenohRejection { label, status });
+    if payload.len() > max_message_bytes {
+        let message = format!("message of {} bytes exceeds the limit of {max_message_bytes} bytes", payload.len());
+        return reject(Some("oversized"), Status::resource_exhausted(message));
+    }
+    let message = match pb::ClientMessage::decode(payload) {
+        Ok(m) => m,
+        Err(e) => return reject(Some("malformed"), Status::invalid_argument(format!("undecodable message: {e}"))),
+    };
+    match message.msg {
+        Some(ClientMsg::Hello(hello)) if hello.robot_id != robot => {
+            let message = format!("hello for robot {:?} published on the key of robot {robot:?}", hello.robot_id);
+            reject(None, Status::invalid_argument(message))
+        }
+        Some(ClientMsg::Hello(hello)) => Ok(ZenohMessage::Hello(hello)),
+        Some(ClientMsg::Frame(frame)) => Ok(ZenohMessage::Frame(frame)),
+        None => reject(Some("malformed"), Status::invalid_argument("empty client message")),
     }
 }

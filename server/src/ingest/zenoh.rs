@@ -10,18 +10,22 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use prost::Message;
-use stillmap_proto::{keys, pb, pb::client_message::Msg as ClientMsg, pb::server_message::Msg};
+use stillmap_proto::{keys, pb, pb::server_message::Msg};
 use tokio::sync::mpsc;
 use tonic::Status;
 use zenoh::qos::CongestionControl;
 
 use crate::ServerError;
 use crate::config::ZenohConfig;
-use super::{accepted_message, frame_before_hello, queue_status, refusal};
+use super::{ZenohMessage, ZenohRejection, accepted_message, frame_before_hello, parse_zenoh_message, queue_status, refusal};
 use crate::session::{Registry, ResultSink, Session, Transport};
 
-/// Builds the Zenoh configuration of the server from its config section.
+/// Builds the Zenoh configuration of the server from its config section: the
+/// file it names as it is, else the section's endpoints and mode.
 pub fn zenoh_config(cfg: &ZenohConfig) -> Result<zenoh::Config, ServerError> {
+    if let Some(path) = &cfg.config_file {
+        return zenoh::Config::from_file(path).map_err(|e| ServerError::Zenoh(format!("config file {}: {e}", path.display())));
+    }
     let mut c = zenoh::Config::default();
     let set = |c: &mut zenoh::Config, key: &str, value: String| {
         c.insert_json5(key, &value).map_err(|e| ServerError::Zenoh(format!("config {key}: {e}")))
@@ -131,30 +135,18 @@ pub async fn serve(zenoh: zenoh::Session, registry: Arc<Registry>, settings: Set
                 }
             }
         };
-        if payload.len() > max_message_bytes {
-            metrics.rejected("oversized");
-            let status = Status::resource_exhausted(format!(
-                "message of {} bytes exceeds the limit of {max_message_bytes} bytes",
-                payload.len()
-            ));
-            reply(&links, status).await;
-            continue;
-        }
-        let message = match pb::ClientMessage::decode(payload.as_ref()) {
+        let message = match parse_zenoh_message(&robot, &payload, max_message_bytes) {
             Ok(m) => m,
-            Err(e) => {
-                metrics.rejected("malformed");
-                reply(&links, Status::invalid_argument(format!("undecodable message: {e}"))).await;
+            Err(ZenohRejection { label, status }) => {
+                if let Some(label) = label {
+                    metrics.rejected(label);
+                }
+                reply(&links, status).await;
                 continue;
             }
         };
-        match message.msg {
-            Some(ClientMsg::Hello(hello)) => {
-                if hello.robot_id != robot {
-                    let msg = format!("hello for robot {:?} published on the key of robot {robot:?}", hello.robot_id);
-                    reply(&links, Status::invalid_argument(msg)).await;
-                    continue;
-                }
+        match message {
+            ZenohMessage::Hello(hello) => {
                 // Zenoh carries no peer address: hellos are counted per robot key.
                 if let Err(message) = rate_limits.hello(&format!("robot {robot}")) {
                     metrics.rejected("rate_limited");
@@ -201,7 +193,7 @@ pub async fn serve(zenoh: zenoh::Session, registry: Arc<Registry>, settings: Set
                     }
                 }
             }
-            Some(ClientMsg::Frame(frame)) => {
+            ZenohMessage::Frame(frame) => {
                 let Some(link) = links.get_mut(&robot) else {
                     metrics.rejected("no_hello");
                     reply(&links, frame_before_hello(frame.sequence)).await;
@@ -211,10 +203,6 @@ pub async fn serve(zenoh: zenoh::Session, registry: Arc<Registry>, settings: Set
                 if let Err(e) = link.session.push(frame, payload.len()) {
                     let _ = link.sink.send(Err(queue_status(e))).await;
                 }
-            }
-            None => {
-                metrics.rejected("malformed");
-                reply(&links, Status::invalid_argument("empty client message")).await;
             }
         }
     }
