@@ -20,7 +20,7 @@ export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet soak vocabulary clean
+.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet soak fuzz vocabulary clean
 
 deps:
 	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
@@ -56,6 +56,12 @@ bench-fleet: deps
 soak: deps
 	$(CARGO) build --release --workspace --bins
 	deploy/soak.sh target/release
+
+# Fuzzing: every cargo-fuzz target in fuzz/ for FUZZ_RUNS executions (nightly; prints
+# executions and crashes per target; deploy/fuzz.sh says more).
+FUZZ_RUNS ?= 1000000
+fuzz: deps
+	deploy/fuzz.sh $(FUZZ_RUNS)
 
 bench-codecs: deps
 	$(CARGO) run --release -q -p stillmap-client -- bench-codecs --tum $(TUM)

@@ -1450,6 +1450,22 @@ mod tests {
     /// named and counted, only when none can go; without a store nothing is
     /// evicted (it would be lost).
     #[test]
+    fn a_new_hello_is_checked_before_anything_is_allocated() {
+        let ok = hello("r1");
+        assert_eq!(validate_new_hello(&ok, 64 * 48).expect("valid").width, 64);
+        let message = |r: Result<&pb::CameraInfo, BadHello>| r.expect_err("refused").status();
+        let status = message(validate_new_hello(&ok, 64 * 48 - 1));
+        assert_eq!((status.code(), status.message()), (tonic::Code::ResourceExhausted, "camera of 64x48 = 3072 pixels is over session.max_camera_pixels = 3071"));
+        let status = message(validate_new_hello(&pb::Hello { robot_id: "r/1".into(), ..hello("r1") }, u64::MAX));
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(status.message().contains("robot_id \"r/1\" contains '/'"), "{}", status.message());
+        let status = message(validate_new_hello(&pb::Hello { fleet: "a b".into(), ..hello("r1") }, u64::MAX));
+        assert!(status.message().contains("fleet \"a b\" contains ' '"), "{}", status.message());
+        let status = message(validate_new_hello(&pb::Hello { camera: None, ..hello("r1") }, u64::MAX));
+        assert!(status.message().contains("hello has no camera info"), "{}", status.message());
+    }
+
+    #[test]
     fn limits_evict_idle_sessions_first_and_refuse_by_name() {
         let limits = LimitsConfig { max_sessions: 3, max_sessions_per_robot: 1, max_camera_pixels_total: 64 * 48 * 2, ..LimitsConfig::default() };
         let registry = registry_with(Some("limits"), SessionConfig { idle_evict_s: 0.0, ..SessionConfig::default() }, limits.clone());

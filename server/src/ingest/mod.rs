@@ -93,3 +93,38 @@ pub fn parse_zenoh_message(robot: &str, payload: &[u8], max_message_bytes: usize
         None => reject(Some("malformed"), Status::invalid_argument("empty client message")),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tonic::Code;
+
+    fn encoded(msg: Option<ClientMsg>) -> Vec<u8> {
+        pb::ClientMessage { msg }.encode_to_vec()
+    }
+
+    fn rejection(r: Result<ZenohMessage, ZenohRejection>) -> (Option<&'static str>, Code, String) {
+        let e = r.expect_err("rejected");
+        (e.label, e.status.code(), e.status.message().to_string())
+    }
+
+    #[test]
+    fn zenoh_messages_are_checked_before_and_after_decoding() {
+        let hello = |robot: &str| Some(ClientMsg::Hello(pb::Hello { robot_id: robot.into(), ..Default::default() }));
+        assert!(matches!(parse_zenoh_message("r1", &encoded(hello("r1")), 1000), Ok(ZenohMessage::Hello(h)) if h.robot_id == "r1"));
+        let frame = Some(ClientMsg::Frame(pb::Frame { sequence: 7, ..Default::default() }));
+        assert!(matches!(parse_zenoh_message("r1", &encoded(frame), 1000), Ok(ZenohMessage::Frame(f)) if f.sequence == 7));
+        assert_eq!(
+            rejection(parse_zenoh_message("r1", &encoded(hello("r2")), 1000)),
+            (None, Code::InvalidArgument, "hello for robot \"r2\" published on the key of robot \"r1\"".into())
+        );
+        assert_eq!(
+            rejection(parse_zenoh_message("r1", &[0; 11], 10)),
+            (Some("oversized"), Code::ResourceExhausted, "message of 11 bytes exceeds the limit of 10 bytes".into())
+        );
+        let (label, code, message) = rejection(parse_zenoh_message("r1", &[0xff, 0xff], 1000));
+        assert_eq!((label, code), (Some("malformed"), Code::InvalidArgument));
+        assert!(message.starts_with("undecodable message: "), "{message}");
+        assert_eq!(rejection(parse_zenoh_message("r1", &encoded(None), 1000)), (Some("malformed"), Code::InvalidArgument, "empty client message".into()));
+    }
+}

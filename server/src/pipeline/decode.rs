@@ -193,6 +193,11 @@ impl Decoder {
 /// Longest `CameraInfo.calibration_source` the server accepts.
 pub const MAX_CALIBRATION_SOURCE_BYTES: usize = 512;
 
+/// Narrowest and widest field of view (degrees, per axis) a hello's intrinsics
+/// may give: beyond them they are a mistake (fx = 1e-300), not a camera.
+pub const MIN_FIELD_OF_VIEW_DEG: f64 = 0.5;
+pub const MAX_FIELD_OF_VIEW_DEG: f64 = 170.0;
+
 /// Largest image side the server accepts in a hello.
 pub const MAX_IMAGE_SIDE: u32 = 8192;
 
@@ -205,6 +210,15 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
     let finite_positive = |v: f64| v.is_finite() && v > 0.0;
     if !finite_positive(c.fx) || !finite_positive(c.fy) {
         return Err(format!("camera focal lengths must be positive, got fx={} fy={}", c.fx, c.fy));
+    }
+    // fx = 1e-300 is positive, and makes every ray of the map's camera infinite.
+    for (axis, focal, side) in [("fx", c.fx, c.width), ("fy", c.fy, c.height)] {
+        let fov_deg = 2.0 * (f64::from(side) / (2.0 * focal)).atan().to_degrees();
+        if !(MIN_FIELD_OF_VIEW_DEG..=MAX_FIELD_OF_VIEW_DEG).contains(&fov_deg) {
+            return Err(format!(
+                "camera {axis} = {focal:?} over {side} pixels is a field of view of {fov_deg:.3}°, outside {MIN_FIELD_OF_VIEW_DEG}-{MAX_FIELD_OF_VIEW_DEG}°"
+            ));
+        }
     }
     if !c.cx.is_finite() || !c.cy.is_finite() {
         return Err("camera principal point is not finite".into());
@@ -387,5 +401,15 @@ mod tests {
         assert!(validate_camera(Some(&c)).is_ok());
         c.calibration_source.push('x');
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "calibration_source is 513 bytes, more than 512");
+        // Positive but absurd focal lengths: a field of view of 180° or of nothing.
+        let mut c = camera();
+        (c.width, c.fx) = (640, 1e-300);
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera fx = 1e-300 over 640 pixels is a field of view of 180.000°, outside 0.5-170°");
+        let mut c = camera();
+        (c.height, c.fy) = (480, 1e9);
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera fy = 1000000000.0 over 480 pixels is a field of view of 0.000°, outside 0.5-170°");
+        let mut c = camera();
+        (c.width, c.height, c.fx, c.fy) = (640, 480, 517.3, 516.5);
+        assert!(validate_camera(Some(&c)).is_ok(), "TUM freiburg1");
     }
 }
