@@ -6,28 +6,14 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use stillmap_e2e::{Server, run_client, tempfile_path, tum_dir};
-
-/// Runs `openssl` with `args` in `dir`.
-fn openssl(dir: &Path, args: &[&str]) {
-    let out = Command::new("openssl").args(args).current_dir(dir).output().expect("run openssl");
-    assert!(out.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-}
-
-/// A certificate signed by the CA in `dir`, for `usage` (serverAuth, clientAuth).
-fn signed(dir: &Path, name: &str, usage: &str, san: &str) {
-    let ext = format!("{name}.ext");
-    std::fs::write(dir.join(&ext), format!("basicConstraints=CA:FALSE\nextendedKeyUsage={usage}\nsubjectAltName={san}\n")).expect("ext file");
-    openssl(dir, &["req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", &format!("{name}.key"), "-out", &format!("{name}.csr"), "-subj", &format!("/CN={name}")]);
-    openssl(dir, &["x509", "-req", "-in", &format!("{name}.csr"), "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", &format!("{name}.pem"), "-days", "1", "-extfile", &ext]);
-}
+use stillmap_e2e::{Server, run_client, signed_certificate, tempfile_path, test_ca, tum_dir};
 
 fn certificates() -> PathBuf {
     let dir = tempfile_path("tls");
     std::fs::create_dir_all(&dir).expect("dir");
-    openssl(&dir, &["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "1", "-subj", "/CN=stillmap test CA", "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign"]);
-    signed(&dir, "server", "serverAuth", "IP:127.0.0.1,DNS:localhost");
-    signed(&dir, "robot", "clientAuth", "DNS:robot-1");
+    test_ca(&dir);
+    signed_certificate(&dir, "server", "serverAuth", "IP:127.0.0.1,DNS:localhost");
+    signed_certificate(&dir, "robot", "clientAuth", "DNS:robot-1");
     dir
 }
 

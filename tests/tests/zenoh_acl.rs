@@ -11,21 +11,8 @@ use std::process::Command;
 use std::time::Duration;
 
 use prost::Message;
-use stillmap_e2e::{Server, eventually, free_port, run_client, tempfile_path, tum_dir, tum_frame, tum_hello};
+use stillmap_e2e::{Server, eventually, free_port, run_client, signed_certificate, tempfile_path, test_ca, tum_dir, tum_frame, tum_hello};
 use stillmap_proto::{keys, pb};
-
-fn openssl(dir: &Path, args: &[&str]) {
-    let out = Command::new("openssl").args(args).current_dir(dir).output().expect("run openssl");
-    assert!(out.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-}
-
-/// A certificate for common name `name` signed by the CA in `dir`.
-fn signed(dir: &Path, name: &str, usage: &str, san: &str) {
-    let ext = format!("{name}.ext");
-    std::fs::write(dir.join(&ext), format!("basicConstraints=CA:FALSE\nextendedKeyUsage={usage}\nsubjectAltName={san}\n")).expect("ext file");
-    openssl(dir, &["req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", &format!("{name}.key"), "-out", &format!("{name}.csr"), "-subj", &format!("/CN={name}")]);
-    openssl(dir, &["x509", "-req", "-in", &format!("{name}.csr"), "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", &format!("{name}.pem"), "-days", "1", "-extfile", &ext]);
-}
 
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(path)
@@ -56,10 +43,10 @@ fn client_message(msg: pb::client_message::Msg) -> Vec<u8> {
 async fn the_router_keeps_each_robot_on_its_own_keys() {
     let dir = tempfile_path("zenoh-acl");
     std::fs::create_dir_all(&dir).expect("dir");
-    openssl(&dir, &["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "1", "-subj", "/CN=stillmap test CA", "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign"]);
-    signed(&dir, "router", "serverAuth", "IP:127.0.0.1,DNS:localhost");
+    test_ca(&dir);
+    signed_certificate(&dir, "router", "serverAuth", "IP:127.0.0.1,DNS:localhost");
     for name in ["stillmap-server", "robot-a", "robot-b"] {
-        signed(&dir, name, "clientAuth", &format!("DNS:{name}"));
+        signed_certificate(&dir, name, "clientAuth", &format!("DNS:{name}"));
     }
     let endpoint = format!("tls/127.0.0.1:{}", free_port());
     let file = |f: &str| dir.join(f).to_str().expect("utf-8").to_string();
