@@ -164,7 +164,18 @@ async fn a_map_over_its_memory_budget_evicts_to_the_store_and_loses_nothing() {
         let summary = summary.expect("summary");
         assert_eq!(summary["frames_dropped"], 0);
         let id = summary["session_id"].as_str().expect("session id").to_string();
-        let (_, info) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+        // The robot hears its last result before the map lane has fused and
+        // committed its last keyframes: wait until the map is at rest.
+        let mut info = serde_json::Value::Null;
+        stillmap_e2e::eventually(std::time::Duration::from_secs(60), "the map to be fused and committed", async || {
+            let (_, before) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+            tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+            let (_, after) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+            let settled = before["version"] == after["version"] && after["committed_keyframes"] == after["keyframes"];
+            info = after;
+            settled
+        })
+        .await;
         let ply = get(&server, &format!("/api/v1/maps/{id}/cloud.ply"), None).await.bytes().await.expect("body");
         let header = String::from_utf8_lossy(&ply[..ply.windows(11).position(|w| w == b"end_header\n").expect("header")]).to_string();
         let n: usize = header.lines().find_map(|l| l.strip_prefix("element vertex ")).expect("count").parse().expect("number");
