@@ -105,16 +105,16 @@ fn http_runtime(config: &config::HttpConfig) -> Result<SideRuntime, ServerError>
         .thread_name("http")
         .max_blocking_threads(config.blocking_threads)
         .thread_keep_alive(BLOCKING_THREAD_KEEP_ALIVE)
-        .on_thread_start(move || lower_this_thread(nice))
+        .on_thread_start(move || lower_this_thread(nice, "http"))
         .enable_all()
         .build()
         .map(|r| SideRuntime(Some(r)))
         .map_err(ServerError::Threads)
 }
 
-/// Raises the calling thread's niceness to `nice` (never needs privileges); a
-/// failure leaves it as it was, logged.
-fn lower_this_thread(nice: i32) {
+/// Raises the calling thread's niceness to `nice` (Linux keeps one per thread;
+/// never needs privileges); a failure leaves it as it was, logged as `what`'s.
+pub(crate) fn lower_this_thread(nice: i32, what: &str) {
     if nice == 0 {
         return;
     }
@@ -125,7 +125,7 @@ fn lower_this_thread(nice: i32) {
         libc::setpriority(libc::PRIO_PROCESS, tid, nice)
     };
     if done != 0 {
-        tracing::warn!("http.nice = {nice}: setpriority failed: {}", std::io::Error::last_os_error());
+        tracing::warn!("cannot set the {what} thread's niceness to {nice}: {}", std::io::Error::last_os_error());
     }
 }
 

@@ -187,23 +187,8 @@ fn next_batch(shared: &Shared) -> Option<Vec<(u64, Job)>> {
     Some(batch)
 }
 
-/// Lowers the calling thread's priority (Linux: niceness is per thread).
-fn set_thread_nice(nice: i32) {
-    if nice == 0 {
-        return;
-    }
-    // SAFETY: gettid and setpriority take plain integers and touch no memory of ours.
-    let result = unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        libc::setpriority(libc::PRIO_PROCESS, tid, nice)
-    };
-    if result != 0 {
-        tracing::warn!("cannot set the segmentation worker's niceness to {nice}: {}", std::io::Error::last_os_error());
-    }
-}
-
 fn worker(segmenter: &mut dyn Segmenter, shared: &Shared) {
-    set_thread_nice(shared.nice);
+    crate::lower_this_thread(shared.nice, "segmentation worker");
     while let Some(batch) = next_batch(shared) {
         if batch.is_empty() {
             continue;
