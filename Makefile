@@ -25,7 +25,7 @@ export ORT_DYLIB_PATH := $(ORT_LIB)
 deps:
 	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
 
-# The third command on a GPU machine: the GPU build of ONNX Runtime and the CUDA 12 /
+# The third command on a GPU machine: the GPU build of ONNX Runtime and the CUDA 13 /
 # cuDNN 9 libraries from PyPI wheels (then `make demo GPU=1`, `make bench-fleet GPU=1`).
 gpu-deps:
 	@deploy/install-deps.sh --gpu

@@ -10,7 +10,7 @@
 #                     deploy/make-batched-model.py, ROBOTS="1 4 8 16 32", RATES=30
 #   MODEL_DIR         where yolov8n-seg_fp32_<size>[_batch].onnx are (../shared/models;
 #                     .deps/models for the batching ones)
-#   OUT               folder for the per-run JSON reports and server logs (a temp dir)
+#   OUT               folder for the per-run JSON reports, /metrics and server logs (a temp dir)
 #   OPENCV_THREADS, PIPELINE_THREADS, SEG_NICE  session.opencv_threads /
 #                     pipeline_threads, perception.segmentation.worker_nice
 #                     (default: the server's defaults, 1 and one per core)
@@ -70,6 +70,9 @@ for model in $MODELS; do
       "$BIN/stillmap-client" fleet --robots "$n" --source "tum:$TUM" --rate "$rate" --duration "$DURATION" \
         --server "http://$grpc" --zenoh-connect "$zenoh" --http "http://$http" --robot-prefix "m$model" \
         --summary-json "$run.json" >"$run.table.md" || true
+      # The server's own counters (segmentation batch sizes and times, masks by source).
+      python3 -c 'import sys, urllib.request; open(sys.argv[2], "wb").write(urllib.request.urlopen(sys.argv[1], timeout=10).read())' \
+        "http://$http/metrics" "$run.metrics" || echo "bench-fleet: no /metrics for $run" >&2
       kill $server 2>/dev/null; wait $server 2>/dev/null || true
       rm -f "$run.redb"
       python3 - "$run.json" "$model" "$n" "$rate" <<'PY'

@@ -89,20 +89,22 @@ if [ ! -f .deps/models/yolov8n-seg_fp32_320_batch.onnx ] || [ ! -f .deps/models/
 fi
 
 # GPU machines (`make gpu-deps`, `deploy/install-deps.sh --gpu`): the GPU build of
-# ONNX Runtime (same version, so ort's api-31 fits) and the CUDA 12 / cuDNN 9
-# libraries its CUDA and TensorRT providers load, all from PyPI wheels: no system
-# CUDA toolkit, only the NVIDIA driver. The libraries go to .deps/ort-gpu and
-# .deps/cuda/lib; `make ... GPU=1` points ORT_DYLIB_PATH and LD_LIBRARY_PATH there.
+# ONNX Runtime (same version, so ort's api-31 fits) and the CUDA 13 / cuDNN 9
+# libraries its CUDA provider loads, all from PyPI wheels: no system CUDA toolkit,
+# only the NVIDIA driver (580 or newer: CUDA 13). onnxruntime-gpu 1.31 on PyPI is
+# built for CUDA 13 (its wheel's `cuda` and `cudnn` extras); the pins are the CUDA
+# 13.0 releases, the driver's own minor version. The libraries go to .deps/ort-gpu
+# and .deps/cuda/lib; `make ... GPU=1` points ORT_DYLIB_PATH and LD_LIBRARY_PATH there.
 if [ -n "$GPU" ]; then
   gpu_lib=".deps/ort-gpu/libonnxruntime.so.${ORT_VERSION}"
   if [ ! -f "$gpu_lib" ] || [ ! -d .deps/cuda/lib ]; then
-    echo "install-deps: fetching onnxruntime-gpu ${ORT_VERSION} and the CUDA 12 runtime wheels from PyPI (several GB)"
+    echo "install-deps: fetching onnxruntime-gpu ${ORT_VERSION} and the CUDA 13 runtime wheels from PyPI (about 2 GB)"
     mkdir -p .deps/gpu-wheels .deps/ort-gpu .deps/cuda/lib
     python3 -m pip download -q --no-deps --only-binary=:all: -d .deps/gpu-wheels \
       "onnxruntime-gpu==${ORT_VERSION}" \
-      "nvidia-cuda-runtime-cu12==12.9.79" "nvidia-cublas-cu12==12.9.3.13" "nvidia-cudnn-cu12==9.27.0.42" \
-      "nvidia-cufft-cu12==11.4.1.4" "nvidia-curand-cu12==10.3.10.19" "nvidia-cuda-nvrtc-cu12==12.9.86" \
-      "nvidia-nvjitlink-cu12==12.9.86"
+      "nvidia-cuda-runtime==13.0.96" "nvidia-cublas==13.0.2.14" "nvidia-cudnn-cu13==9.19.1.2" \
+      "nvidia-cufft==12.0.0.61" "nvidia-curand==10.4.0.35" "nvidia-cuda-nvrtc==13.0.88" \
+      "nvidia-nvjitlink==13.0.88"
     python3 - "$ORT_VERSION" <<'PY'
 import glob, os, zipfile
 for wheel_path in glob.glob(".deps/gpu-wheels/*.whl"):

@@ -8,7 +8,8 @@
 //! segmentation per batch size: `STILLMAP_BENCH_BATCHES` (default "1 4 8 16"),
 //! `STILLMAP_BENCH_PROVIDER` (cpu, cuda or tensorrt; the GPU ones need the GPU
 //! build of ONNX Runtime: `make gpu-deps`, then ORT_DYLIB_PATH and LD_LIBRARY_PATH as
-//! `make ... GPU=1` sets them). The
+//! `make ... GPU=1` sets them); `STILLMAP_BENCH_ONLY_BATCHES=1` prints that table alone
+//! (needs only the 640 batching model and the frames: what a GPU run carries). The
 //! table's flow + mask rows run the two-phase masker around the real tracker, as
 //! the server does (tracking time not included); the criterion bench runs the
 //! one-phase `process` without a tracked motion (the path after a tracking loss).
@@ -196,6 +197,10 @@ criterion_group! {
 }
 
 fn main() {
+    if std::env::var_os("STILLMAP_BENCH_ONLY_BATCHES").is_some() {
+        batch_table(&tum::load(&tum::fr1_rpy_dir(), 16));
+        return;
+    }
     table();
     group();
     Criterion::default().configure_from_args().final_summary();

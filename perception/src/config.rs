@@ -24,7 +24,7 @@ pub struct PerceptionConfig {
 pub enum ExecutionProvider {
     /// ONNX Runtime's CPU provider.
     Cpu,
-    /// NVIDIA CUDA (needs the GPU build of ONNX Runtime, CUDA 12 and cuDNN 9:
+    /// NVIDIA CUDA (needs the GPU build of ONNX Runtime, CUDA 13 and cuDNN 9, driver 580+:
     /// `make gpu-deps`). Start-up fails when it cannot run, unless `fallback_to_cpu`.
     Cuda,
     /// NVIDIA TensorRT, CUDA for the nodes it does not take; engines are cached in

@@ -97,6 +97,14 @@ pub trait Segmenter: Send {
     fn max_batch(&self) -> usize {
         1
     }
+    /// Runs every batch shape that batches of up to `max_batch` frames will use once,
+    /// so that no frame pays a device's first-run cost (cuDNN's convolution search
+    /// for each new input shape: up to a second per shape). Returns the shapes run.
+    /// A segmenter with nothing to warm does nothing (the default).
+    fn warm_up(&mut self, max_batch: usize) -> Result<Vec<usize>, PerceptionError> {
+        let _ = max_batch;
+        Ok(Vec::new())
+    }
     /// Class names, indexed by class id.
     fn class_names(&self) -> &[String];
     /// Where inference runs ("cpu", "cuda").
@@ -126,6 +134,15 @@ fn onnxruntime(library: &str) -> Result<ort::environment::Environment, Perceptio
 /// YOLOv8-seg (Ultralytics ONNX export) on ONNX Runtime.
 pub struct YoloSegmenter {
     session: Session,
+    /// With padded batches: one session per batch shape above 1 (made by
+    /// [`Segmenter::warm_up`]), so that no session ever sees its input shape change.
+    /// ONNX Runtime's CUDA provider plans every convolution again (cuDNN) each time a
+    /// session's input shape differs from its previous run: measured on an H200,
+    /// 0.4–1.6 s per change, so batches alternating between 2 and 4 frames took
+    /// seconds. One shape per session plans once.
+    shape_sessions: Vec<(usize, Session)>,
+    /// Makes those sessions (the same provider and options as `session`).
+    config: SegmentationConfig,
     input_name: String,
     letterbox_size: u32,
     classes: usize,
@@ -138,6 +155,23 @@ pub struct YoloSegmenter {
     model_path: PathBuf,
     /// The model takes any batch size (its input's first dimension is symbolic).
     dynamic_batch: bool,
+    /// Pad each batch to the next power of two ([`batch_shape`]): on a GPU every new
+    /// input shape costs a convolution-algorithm search, so batches use a few shapes
+    /// that [`Segmenter::warm_up`] runs at start-up. On by default for GPU providers
+    /// (on a CPU the padding would be computed for nothing).
+    pad_batches: bool,
+}
+
+/// The input batch a batch of `frames` frames runs as when batches are padded: the
+/// next power of two (1, 2, 4, 8, …), so that at most ⌈log₂ max_batch⌉ + 1 shapes occur.
+pub fn batch_shape(frames: usize) -> usize {
+    frames.max(1).next_power_of_two()
+}
+
+/// The padded batch shapes batches of 1 to `max_batch` frames use.
+pub fn batch_shapes(max_batch: usize) -> Vec<usize> {
+    let top = batch_shape(max_batch);
+    std::iter::successors(Some(1usize), |b| (*b < top).then_some(b * 2)).collect()
 }
 
 impl YoloSegmenter {
@@ -151,14 +185,12 @@ impl YoloSegmenter {
         if !path.is_file() {
             return Err(PerceptionError::Model(format!("segmentation model {} does not exist", path.display())));
         }
-        let environment = onnxruntime(&config.onnxruntime_library)?;
         let load = |e: String| PerceptionError::Model(format!("cannot load segmentation model {}: {e}", path.display()));
-        let mut builder = Session::builder(&environment).map_err(|e| load(e.to_string()))?;
-        if config.intra_threads > 0 {
-            builder = builder.with_intra_threads(config.intra_threads).map_err(|e| load(e.to_string()))?;
-        }
-        let (mut builder, device) = with_provider(builder, config).map_err(PerceptionError::Model)?;
-        let session = builder.commit_from_file(&path).map_err(|e| load(e.to_string()))?;
+        let (session, device) = open_session(config).map_err(|e| match e {
+            OpenError::Runtime(e) => e,
+            OpenError::Provider(why) => PerceptionError::Model(why),
+            OpenError::Load(why) => load(why),
+        })?;
 
         let not_yolo = |why: String| {
             PerceptionError::Model(format!("segmentation model {} is not a YOLOv8-seg export: {why}", path.display()))
@@ -209,9 +241,12 @@ impl YoloSegmenter {
             mask_threshold: config.mask_threshold,
             max_instances: config.max_instances,
         };
-        tracing::info!(model = %path.display(), size = model_size, classes, device, dynamic_batch, "segmentation model loaded");
+        let pad_batches = dynamic_batch && config.execution_provider != ExecutionProvider::Cpu && device != "cpu";
+        tracing::info!(model = %path.display(), size = model_size, classes, device, dynamic_batch, pad_batches, "segmentation model loaded");
         Ok(Self {
             session,
+            shape_sessions: Vec::new(),
+            config: config.clone(),
             input_name,
             letterbox_size: model_size,
             classes,
@@ -223,7 +258,14 @@ impl YoloSegmenter {
             device,
             model_path: path,
             dynamic_batch,
+            pad_batches,
         })
+    }
+
+    /// Pads batches to [`batch_shape`] (default: on for GPU providers with a batching
+    /// model). Results do not depend on it.
+    pub fn set_batch_padding(&mut self, on: bool) {
+        self.pad_batches = on && self.dynamic_batch;
     }
 
     /// Whether the model takes batches of any size.
@@ -245,10 +287,15 @@ impl YoloSegmenter {
             data.extend(yolo::preprocess(f.rgb, f.width, f.height, &lb)?);
             boxes.push(lb);
         }
-        let batch = frames.len();
+        // Padding frames are zeros; their outputs are not decoded.
+        let batch = if self.pad_batches { batch_shape(frames.len()) } else { frames.len() };
+        data.resize(batch * 3 * s * s, 0.0);
         let input = Tensor::from_array(([batch, 3, s, s], data)).map_err(|e| PerceptionError::Runtime(e.to_string()))?;
-        let outputs = self
-            .session
+        let session = match self.shape_sessions.iter_mut().find(|(shape, _)| *shape == batch) {
+            Some((_, session)) => session,
+            None => &mut self.session,
+        };
+        let outputs = session
             .run(ort::inputs![self.input_name.as_str() => input])
             .map_err(|e| PerceptionError::Runtime(format!("inference failed: {e}")))?;
         let (_, det) = outputs[0].try_extract_tensor::<f32>().map_err(|e| PerceptionError::Runtime(e.to_string()))?;
@@ -292,6 +339,28 @@ impl YoloSegmenter {
     pub fn model_path(&self) -> &Path {
         &self.model_path
     }
+}
+
+enum OpenError {
+    /// ONNX Runtime itself cannot be loaded.
+    Runtime(PerceptionError),
+    /// The execution provider cannot run (the message names the way out).
+    Provider(String),
+    /// ONNX Runtime could not load the file.
+    Load(String),
+}
+
+/// One ONNX Runtime session of `config`'s model on its execution provider, and the
+/// device it runs on.
+fn open_session(config: &SegmentationConfig) -> Result<(Session, String), OpenError> {
+    let environment = onnxruntime(&config.onnxruntime_library).map_err(OpenError::Runtime)?;
+    let mut builder = Session::builder(&environment).map_err(|e| OpenError::Load(e.to_string()))?;
+    if config.intra_threads > 0 {
+        builder = builder.with_intra_threads(config.intra_threads).map_err(|e| OpenError::Load(e.to_string()))?;
+    }
+    let (mut builder, device) = with_provider(builder, config).map_err(OpenError::Provider)?;
+    let session = builder.commit_from_file(&config.model_path).map_err(|e| OpenError::Load(e.to_string()))?;
+    Ok((session, device))
 }
 
 fn tensor_shape(t: &ort::value::ValueType) -> Option<Vec<i64>> {
@@ -358,6 +427,30 @@ impl Segmenter for YoloSegmenter {
 
     fn max_batch(&self) -> usize {
         if self.dynamic_batch { usize::MAX } else { 1 }
+    }
+
+    fn warm_up(&mut self, max_batch: usize) -> Result<Vec<usize>, PerceptionError> {
+        if !self.pad_batches {
+            return Ok(Vec::new());
+        }
+        let shapes = batch_shapes(max_batch);
+        let black = vec![0u8; 64 * 48 * 3];
+        for &b in &shapes {
+            if b > 1 && !self.shape_sessions.iter().any(|(shape, _)| *shape == b) {
+                let (session, _) = open_session(&self.config).map_err(|e| match e {
+                    OpenError::Runtime(e) => e,
+                    OpenError::Provider(why) | OpenError::Load(why) => {
+                        PerceptionError::Model(format!("cannot load segmentation model {} for batches of {b}: {why}", self.model_path.display()))
+                    }
+                })?;
+                self.shape_sessions.push((b, session));
+            }
+            let frames = vec![RgbFrame { rgb: &black, width: 64, height: 48 }; b];
+            let t = std::time::Instant::now();
+            self.run_batch(&frames)?;
+            tracing::debug!(batch = b, ms = t.elapsed().as_secs_f64() * 1e3, "segmentation warm-up");
+        }
+        Ok(shapes)
     }
 
     fn segment(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<Segmentation, PerceptionError> {

@@ -134,6 +134,30 @@ fn a_batched_run_equals_the_single_frame_runs() {
     assert_eq!(single.segment_batch(&frames).expect("one by one"), together);
 }
 
+/// Padding a batch to a power of two (GPU providers: few input shapes, warmed up at
+/// start) changes no frame's result; the warm-up runs the shapes batches will use.
+#[test]
+fn padded_batches_give_the_same_results() {
+    use stillmap_perception::segment::{batch_shape, batch_shapes};
+    assert_eq!([0, 1, 2, 3, 5, 8, 9, 16].map(batch_shape), [1, 1, 2, 4, 8, 8, 16, 16]);
+    assert_eq!(batch_shapes(1), [1]);
+    assert_eq!(batch_shapes(12), [1, 2, 4, 8, 16]);
+    assert_eq!(batch_shapes(16), [1, 2, 4, 8, 16]);
+
+    let config = SegmentationConfig { model_path: batched_model(320), ..segmentation_config("x") };
+    let mut plain = YoloSegmenter::new(&config).expect("batched model loads");
+    assert_eq!(plain.warm_up(8).expect("warm-up"), Vec::<usize>::new(), "the CPU pads nothing, so warms nothing");
+    let mut padded = YoloSegmenter::new(&config).expect("batched model loads");
+    padded.set_batch_padding(true);
+    assert_eq!(padded.warm_up(3).expect("warm-up"), [1, 2, 4]);
+    let (bus, bw, bh) = photo("bus.jpg");
+    let (astronaut, aw, ah) = photo("astronaut.png");
+    let frames = [RgbFrame { rgb: &bus, width: bw, height: bh }, RgbFrame { rgb: &astronaut, width: aw, height: ah }, RgbFrame { rgb: &bus, width: bw, height: bh }];
+    let three = padded.segment_batch(&frames).expect("3 frames run as a batch of 4");
+    assert_eq!(three, plain.segment_batch(&frames).expect("3 frames as 3"));
+    assert_eq!(count(&three[0], "bus"), 1);
+}
+
 /// A GPU provider that cannot run is a start-up error naming the way out, unless
 /// the configuration allows the CPU.
 #[test]

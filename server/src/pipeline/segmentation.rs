@@ -103,6 +103,19 @@ impl SegmentationService {
                 "the segmentation model has a fixed batch of 1: frames run one at a time (deploy/make-batched-model.py makes a batching one)"
             );
         }
+        // Every batch shape runs once before the first frame (all workers at once):
+        // on a GPU a new shape costs a convolution search that would stall frames.
+        let mut segmenters = segmenters;
+        let started = Instant::now();
+        let warmed = std::thread::scope(|scope| {
+            let runs: Vec<_> = segmenters.iter_mut().map(|s| scope.spawn(move || s.warm_up(max_batch))).collect();
+            runs.into_iter()
+                .map(|r| r.join().unwrap_or_else(|_| Err(PerceptionError::Runtime("a segmentation warm-up panicked".into()))))
+                .collect::<Result<Vec<_>, _>>()
+        })?;
+        if let Some(shapes) = warmed.first().filter(|s| !s.is_empty()) {
+            tracing::info!(?shapes, workers = warmed.len(), ms = started.elapsed().as_millis() as u64, "segmentation warmed up");
+        }
         let shared = Arc::new(Shared {
             state: Mutex::default(),
             wake: Condvar::new(),
@@ -378,6 +391,56 @@ mod tests {
         assert_eq!(seen, [10, 11, 12], "every frame segmented once");
         drop(clients);
         service.close();
+    }
+
+    /// Records its warm-up and fails a frame segmented before it.
+    struct Warming {
+        warmed: Arc<Mutex<Vec<usize>>>,
+        done: bool,
+        fail: bool,
+    }
+
+    impl Segmenter for Warming {
+        fn segment(&mut self, _: &[u8], width: u32, height: u32) -> Result<Segmentation, PerceptionError> {
+            assert!(self.done, "a frame ran before the warm-up");
+            Ok(Segmentation::empty(width, height))
+        }
+        fn max_batch(&self) -> usize {
+            usize::MAX
+        }
+        fn warm_up(&mut self, max_batch: usize) -> Result<Vec<usize>, PerceptionError> {
+            if self.fail {
+                return Err(PerceptionError::Runtime("out of device memory".into()));
+            }
+            lock(&self.warmed).push(max_batch);
+            self.done = true;
+            Ok(vec![1, 2, 4, 8])
+        }
+        fn class_names(&self) -> &[String] {
+            &[]
+        }
+        fn device(&self) -> &str {
+            "fake"
+        }
+    }
+
+    /// Every worker warms up for the service's batch limit before it takes a frame,
+    /// and a warm-up that fails fails the start with its error.
+    #[test]
+    fn every_worker_warms_up_before_the_first_frame() {
+        let warmed = Arc::new(Mutex::new(Vec::new()));
+        let workers = (0..2).map(|_| Box::new(Warming { warmed: warmed.clone(), done: false, fail: false }) as Box<dyn Segmenter>).collect();
+        let service = SegmentationService::with_segmenters(workers, &config(6, 1), Arc::default()).expect("service");
+        assert_eq!(*lock(&warmed), [6, 6], "both workers warmed up for max_batch = 6 before the service started");
+        let client = service.client();
+        client.submit(1, &frame(0));
+        assert_eq!(wait_for(&client).0, 1);
+        drop(client);
+        service.close();
+
+        let failing: Vec<Box<dyn Segmenter>> = vec![Box::new(Warming { warmed, done: false, fail: true })];
+        let e = SegmentationService::with_segmenters(failing, &config(6, 1), Arc::default()).err().expect("start fails");
+        assert_eq!(e.to_string(), PerceptionError::Runtime("out of device memory".into()).to_string());
     }
 
     /// A model with a fixed batch of 1 runs frames one at a time, whatever max_batch says.
