@@ -369,12 +369,16 @@ function connect() {
     if (!state.selected && sessions.length) select(sessions[0].session_id);
     renderTable();
   });
-  events.addEventListener("pose", (e) => {
-    const p = JSON.parse(e.data);
-    const list = state.trajectories.get(p.session_id) || [];
-    list.push({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw });
-    state.trajectories.set(p.session_id, list);
-    if (p.session_id === state.selected || state.fleets.length) scheduleDraw();
+  // New poses of every session, every http.pose_event_interval_ms (250 ms), oldest first.
+  events.addEventListener("poses", (e) => {
+    let draw = false;
+    for (const p of JSON.parse(e.data)) {
+      const list = state.trajectories.get(p.session_id) || [];
+      list.push({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw });
+      state.trajectories.set(p.session_id, list);
+      draw ||= p.session_id === state.selected || state.fleets.length > 0;
+    }
+    if (draw) scheduleDraw();
   });
 }
 

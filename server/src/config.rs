@@ -250,9 +250,15 @@ pub struct HttpConfig {
     /// working directory, else two levels above the server binary (`target/<profile>/`).
     pub dashboard_dir: String,
     /// Dashboard event streams (`/api/v1/events`) at once; one more is answered 503.
-    /// Every viewer shares one snapshot per 500 ms and one serialisation per pose,
-    /// so a viewer costs a connection and a copy of the text (default 1024).
+    /// Every viewer shares one snapshot per 500 ms and one serialisation of the new
+    /// poses per `pose_event_interval_ms`, so a viewer costs a connection and a copy
+    /// of the text (default 1024).
     pub max_event_viewers: usize,
+    /// How often viewers get the new poses of every session, as one `poses` event
+    /// (milliseconds, 20..=5000). Each event is a write per viewer whatever the fleet's
+    /// frame rate: 4 a second per viewer at the default, where one event per pose
+    /// would be 480 for 16 robots at 30 Hz (default 250).
+    pub pose_event_interval_ms: u64,
     /// Threads for the server's blocking work: map queries (tiles, clouds,
     /// occupancy grids), the dashboard's snapshot, store flushes and session
     /// eviction. Queued beyond it; a thread once started stays, so the thread
@@ -381,7 +387,7 @@ impl Default for GrpcConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, blocking_threads: 32, header_timeout_s: 10.0, max_connections: 4096, worker_threads: 2, nice: 10 }
+        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, pose_event_interval_ms: 250, blocking_threads: 32, header_timeout_s: 10.0, max_connections: 4096, worker_threads: 2, nice: 10 }
     }
 }
 
@@ -519,6 +525,9 @@ impl ServerConfig {
         if l.max_sessions == 0 || l.max_sessions_per_robot == 0 {
             return bad("limits.max_sessions and limits.max_sessions_per_robot must be at least 1".into());
         }
+        if !(20..=5000).contains(&self.http.pose_event_interval_ms) {
+            return bad(format!("http.pose_event_interval_ms must be within 20..=5000, got {}", self.http.pose_event_interval_ms));
+        }
         if self.http.worker_threads == 0 || !(0..=19).contains(&self.http.nice) {
             return bad(format!("http.worker_threads must be at least 1 and http.nice within 0..=19; got {} and {}", self.http.worker_threads, self.http.nice));
         }
@@ -567,6 +576,9 @@ mod tests {
         let err = ServerConfig::from_toml("[auth]\ntokens = [\"a\", \" b\"]\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: auth.tokens[1] has leading or trailing whitespace");
         assert_eq!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 0.0\n").unwrap().zenoh.idle_disconnect_s, 0.0);
+        let err = ServerConfig::from_toml("[http]\npose_event_interval_ms = 0\n").unwrap_err().to_string();
+        assert_eq!(err, "invalid configuration: http.pose_event_interval_ms must be within 20..=5000, got 0");
+        assert_eq!(ServerConfig::from_toml("[http]\npose_event_interval_ms = 20\n").unwrap().http.pose_event_interval_ms, 20);
     }
 
     /// Pool sizes, queues and the segmentation batcher's limits are checked at start-up.

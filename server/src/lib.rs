@@ -265,7 +265,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(query)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
     let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
-    let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), rate_limits: rate_limits.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers });
+    let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), rate_limits: rate_limits.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers, pose_event_interval: std::time::Duration::from_millis(config.http.pose_event_interval_ms) });
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),

@@ -133,11 +133,14 @@ fn listed_json(info: &crate::session::SessionInfo, fps: f64, latency_ms: Value, 
 
 /// Pose events buffered for viewers; one that falls further behind skips poses
 /// (it redraws from the next ones).
-const POSE_EVENTS_BUFFER: usize = 1024;
+const POSE_EVENTS_BUFFER: usize = 64;
+/// Poses one `poses` event carries at most; more in one interval are dropped (the
+/// viewer's trajectories then skip them; the snapshot and the query APIs have them).
+const MAX_POSES_PER_EVENT: usize = 4096;
 
 /// The dashboard's event stream, built once for every viewer: the sessions
 /// snapshot every 500 ms (on a blocking thread, not the runtime that serves the
-/// robots) and each pose serialised once; a viewer only copies text out. Started
+/// robots) and the new poses every `pose_interval`, serialised once; a viewer only copies text out. Started
 /// by the first viewer; the snapshot is skipped while nobody watches.
 pub struct EventFeed {
     registry: Arc<Registry>,
@@ -146,10 +149,14 @@ pub struct EventFeed {
     started: std::sync::Once,
     viewers: Arc<AtomicUsize>,
     max_viewers: usize,
+    /// New poses go out together, one `poses` event per interval
+    /// (`http.pose_event_interval_ms`): a viewer's writes do not grow with the fleet's
+    /// frame rate (16 robots at 30 Hz would be 480 events a second per viewer).
+    pose_interval: Duration,
 }
 
 impl EventFeed {
-    pub fn new(registry: Arc<Registry>, max_viewers: usize) -> Arc<Self> {
+    pub fn new(registry: Arc<Registry>, max_viewers: usize, pose_interval: Duration) -> Arc<Self> {
         Arc::new(Self {
             registry,
             snapshot: watch::channel(Arc::from("{\"sessions\":[]}")).0,
@@ -157,6 +164,7 @@ impl EventFeed {
             started: std::sync::Once::new(),
             viewers: Arc::default(),
             max_viewers,
+            pose_interval,
         })
     }
 
@@ -187,16 +195,29 @@ impl EventFeed {
             let feed = self.clone();
             let mut poses = feed.registry.subscribe_fleet();
             tokio::spawn(async move {
+                let mut pending: Vec<String> = Vec::new();
+                let mut interval = tokio::time::interval(feed.pose_interval);
+                interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
                 loop {
-                    match poses.recv().await {
-                        Ok((id, p)) => {
-                            let pose = p.world_from_camera.unwrap_or_default();
-                            let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
-                            let text = json!({ "session_id": &*id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] }).to_string();
-                            let _ = feed.poses.send(Arc::from(text));
+                    tokio::select! {
+                        received = poses.recv() => match received {
+                            Ok((id, p)) => {
+                                if pending.len() < MAX_POSES_PER_EVENT && feed.poses.receiver_count() > 0 {
+                                    let pose = p.world_from_camera.unwrap_or_default();
+                                    let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
+                                    pending.push(json!({ "session_id": &*id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] }).to_string());
+                                }
+                            }
+                            Err(broadcast::error::RecvError::Lagged(_)) => {}
+                            Err(broadcast::error::RecvError::Closed) => break,
+                        },
+                        _ = interval.tick() => {
+                            if !pending.is_empty() {
+                                let text = format!("[{}]", pending.join(","));
+                                pending.clear();
+                                let _ = feed.poses.send(Arc::from(text));
+                            }
                         }
-                        Err(broadcast::error::RecvError::Lagged(_)) => {}
-                        Err(broadcast::error::RecvError::Closed) => break,
                     }
                 }
             });
@@ -236,7 +257,8 @@ impl Drop for Viewer {
 }
 
 /// `GET /api/v1/events`: `sessions` every 500 ms (the table, frames/s, latencies,
-/// map versions) and `pose` for every new pose of any session. Beyond
+/// map versions) and `poses` every `http.pose_event_interval_ms` (250) while there are new ones (a JSON array of
+/// every session's new poses, oldest first). Beyond
 /// `http.max_event_viewers` at once: 503.
 pub async fn events(State(state): State<DashboardState>) -> Response {
     let feed = state.feed.clone();
@@ -251,7 +273,7 @@ pub async fn events(State(state): State<DashboardState>) -> Response {
     let viewer = Viewer(feed.viewers.clone());
     feed.start();
     let sessions = WatchStream::new(feed.snapshot.subscribe()).map(|text| Event::default().event("sessions").data(&*text));
-    let poses = BroadcastStream::new(feed.poses.subscribe()).filter_map(|p| p.ok().map(|text| Event::default().event("pose").data(&*text)));
+    let poses = BroadcastStream::new(feed.poses.subscribe()).filter_map(|p| p.ok().map(|text| Event::default().event("poses").data(&*text)));
     let stream = sessions.merge(poses).map(move |event| {
         let _counted = &viewer;
         Ok::<_, Infallible>(event)

@@ -46,10 +46,12 @@ pub struct HttpSettings {
     pub import_max_bytes: usize,
     /// `http.max_event_viewers`.
     pub max_event_viewers: usize,
+    /// `http.pose_event_interval_ms`.
+    pub pose_event_interval: std::time::Duration,
 }
 
 pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, settings: Arc<HttpSettings>) -> Router {
-    let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers);
+    let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers, settings.pose_event_interval);
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
     let read = axum::middleware::from_fn_with_state(settings.clone(), require_read);
     let rate_limited = axum::middleware::from_fn_with_state(settings.clone(), rate_limit);
