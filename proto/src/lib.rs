@@ -12,6 +12,9 @@ pub mod codec;
 /// Generated protobuf and gRPC code for package `stillmap.v1`.
 pub mod pb {
     tonic::include_proto!("stillmap.v1");
+
+    /// The encoded `FileDescriptorSet` of `stillmap.proto` (gRPC server reflection).
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("stillmap_descriptor");
 }
 
 /// Zenoh key expressions used by the contract.

@@ -72,6 +72,8 @@ pub enum ServerError {
     Threads(std::io::Error),
     #[error("{0}")]
     Fleet(#[from] fleet::FleetError),
+    #[error("gRPC reflection: {0}")]
+    Reflection(String),
 }
 
 /// How long an idle thread of a blocking pool stays: once started, threads stay
@@ -253,6 +255,30 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         query_auth.get().check(authorization, auth::Need::Read).map_err(|r| r.grpc_status())?;
         Ok(request)
     });
+    // gRPC health checking (grpc.health.v1): the server ("") and both services are
+    // SERVING while it runs and NOT_SERVING from the moment it starts shutting down,
+    // so a load balancer drains it. Open like /healthz; reflection is open too (it
+    // describes the API and holds no data).
+    let (health, health_service) = tonic_health::server::health_reporter();
+    let grpc_services = [
+        <IngestServer<ingest::grpc::IngestService> as tonic::server::NamedService>::NAME,
+        <QueryServer<api::query::QueryService> as tonic::server::NamedService>::NAME,
+    ];
+    for service in grpc_services {
+        health.set_service_status(service, tonic_health::ServingStatus::Serving).await;
+    }
+    let health_shutdown = wait_for(shutdown.clone());
+    tokio::spawn(async move {
+        health_shutdown.await;
+        for service in std::iter::once("").chain(grpc_services) {
+            health.set_service_status(service, tonic_health::ServingStatus::NotServing).await;
+        }
+    });
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(stillmap_proto::pb::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .map_err(|e| ServerError::Reflection(e.to_string()))?;
     let grpc_shutdown = wait_for(shutdown.clone());
     let mut grpc_builder = tonic::transport::Server::builder();
     if let Some(t) = &tls {
@@ -263,6 +289,8 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .http2_keepalive_timeout(Some(Duration::from_secs(config.grpc.keepalive_timeout_s)))
         .add_service(ingest)
         .add_service(query)
+        .add_service(health_service)
+        .add_service(reflection)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
     let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
     let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), rate_limits: rate_limits.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers, pose_event_interval: std::time::Duration::from_millis(config.http.pose_event_interval_ms) });

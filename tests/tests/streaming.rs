@@ -1,5 +1,7 @@
 //! The real client streams real frames to the real server, over gRPC and Zenoh.
 
+use std::time::Duration;
+
 use stillmap_e2e::{Server, run_client, tum_dir};
 
 fn tum_source() -> String {
@@ -289,4 +291,44 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     let (_, session) = server.get_json(&format!("/api/v1/sessions/{id}")).await;
     assert_eq!(session["counters"]["frames_received"], 11);
     let _ = std::fs::remove_file(&config);
+}
+
+/// gRPC health checking answers for the server and each service (SERVING), names an
+/// unknown service NOT_FOUND and turns NOT_SERVING when the server shuts down;
+/// reflection lists the services.
+#[tokio::test(flavor = "multi_thread")]
+async fn grpc_health_and_reflection_describe_the_server() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    use tonic_reflection::pb::v1::ServerReflectionRequest;
+
+    let mut server = Server::start(&["--no-zenoh", "--no-perception"]);
+    let channel = tonic::transport::Channel::from_shared(server.grpc_url()).expect("url").connect().await.expect("connect");
+    let mut health = HealthClient::new(channel.clone());
+    for service in ["", "stillmap.v1.Ingest", "stillmap.v1.Query"] {
+        let status = health.check(HealthCheckRequest { service: service.into() }).await.expect("check").into_inner().status;
+        assert_eq!(status, ServingStatus::Serving as i32, "{service:?}");
+    }
+    let unknown = health.check(HealthCheckRequest { service: "stillmap.v1.Nope".into() }).await.expect_err("unknown service");
+    assert_eq!(unknown.code(), tonic::Code::NotFound);
+
+    let mut reflection = ServerReflectionClient::new(channel);
+    let request = ServerReflectionRequest { host: String::new(), message_request: Some(MessageRequest::ListServices(String::new())) };
+    let mut answers = reflection.server_reflection_info(tokio_stream::iter([request])).await.expect("reflection").into_inner();
+    let answer = answers.message().await.expect("answer").expect("one answer");
+    let Some(MessageResponse::ListServicesResponse(list)) = answer.message_response else { panic!("{answer:?}") };
+    let mut names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
+    names.sort();
+    assert_eq!(names, ["grpc.health.v1.Health", "grpc.reflection.v1.ServerReflection", "stillmap.v1.Ingest", "stillmap.v1.Query"]);
+
+    // A load balancer watching the server sees it leave before it closes.
+    let mut watch = health.watch(HealthCheckRequest { service: String::new() }).await.expect("watch").into_inner();
+    assert_eq!(watch.message().await.expect("status").expect("first status").status, ServingStatus::Serving as i32);
+    let stopping = tokio::task::spawn_blocking(move || server.terminate());
+    let next = tokio::time::timeout(Duration::from_secs(10), watch.message()).await.expect("a status in time").expect("status");
+    assert_eq!(next.map(|s| s.status), Some(ServingStatus::NotServing as i32));
+    stopping.await.expect("terminate");
 }
