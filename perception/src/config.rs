@@ -86,7 +86,10 @@ pub struct SegmentationConfig {
     pub tensorrt_cache_dir: String,
     /// Server: most frames (of different sessions) one inference runs together. Only
     /// a model with a symbolic batch dimension batches (deploy/make-batched-model.py);
-    /// with the shipped batch-1 files every frame runs alone.
+    /// with the shipped batch-1 files every frame runs alone. On a GPU provider each
+    /// worker keeps one session per padded batch shape (1, 2, 4, … up to `max_batch`,
+    /// made and run once at start-up): on a small GPU, a lower `max_batch` needs less
+    /// of its memory (a start that runs out names the batch size).
     pub max_batch: usize,
     /// Server: how long a worker holding fewer than `max_batch` frames waits for
     /// more before it runs them (Triton's `max_queue_delay`), in milliseconds.
