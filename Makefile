@@ -20,7 +20,7 @@ export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps gpu-deps dashboard build demo test bench bench-codecs bench-transport bench-fleet soak fuzz vocabulary clean
+.PHONY: deps gpu-deps dashboard build demo lint test bench bench-codecs bench-transport bench-fleet soak fuzz vocabulary clean
 
 deps:
 	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
@@ -40,7 +40,13 @@ build: deps
 demo: build
 	deploy/demo.sh target/debug
 
-test: build
+# The lint policy (rustfmt.toml, [workspace.lints] in Cargo.toml, clippy.toml):
+# formatting, and clippy with warnings as errors. `make test` runs it first.
+lint: deps
+	$(CARGO) fmt --all --check
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
+
+test: build lint
 	$(CARGO) test --workspace --no-fail-fast
 
 bench: bench-codecs bench-transport

@@ -30,6 +30,12 @@ if ! command -v cargo >/dev/null; then
   echo "install-deps: cargo not found; install Rust with rustup (https://rustup.rs)" >&2
   exit 1
 fi
+# `make lint` (run by `make test`) needs rustfmt and clippy.
+if command -v rustup >/dev/null; then
+  for component in rustfmt clippy; do
+    rustup component list --installed 2>/dev/null | grep -q "^${component}" || rustup component add "$component"
+  done
+fi
 
 lib=".deps/ort/libonnxruntime.so.${ORT_VERSION}"
 if [ ! -f "$lib" ]; then

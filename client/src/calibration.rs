@@ -331,10 +331,7 @@ fn untag(v: &Value) -> &Value {
 }
 
 fn size(v: &Value, name: &str) -> Result<u32, String> {
-    v.as_u64()
-        .and_then(|n| u32::try_from(n).ok())
-        .filter(|&n| n > 0)
-        .ok_or(format!("{name} must be a positive integer, got {v:?}"))
+    v.as_u64().and_then(|n| u32::try_from(n).ok()).filter(|&n| n > 0).ok_or(format!("{name} must be a positive integer, got {v:?}"))
 }
 
 /// A matrix as `{rows, cols, data: [...]}` (ROS and OpenCV) or a plain list.
@@ -463,14 +460,29 @@ Camera.height: 480
     #[test]
     fn bad_files_are_named_errors() {
         assert_eq!(parse("just text").unwrap_err(), "expected a YAML mapping of calibration keys");
-        assert_eq!(parse(&ROS.replace("plumb_bob", "equidistant")).unwrap_err(), "distortion_model \"equidistant\" is not supported (plumb_bob only)");
-        assert_eq!(parse(&ROS.replace("517.3, 0, 318.6", "517.3, 0, 318.6, 1")).unwrap_err(), "camera_matrix declares 3x3 but holds 10 numbers");
-        assert_eq!(parse(&ROS.replace("516.5, 255.3", "-516.5, 255.3")).unwrap_err(), "focal lengths must be positive, got fx=517.3 fy=-516.5");
+        assert_eq!(
+            parse(&ROS.replace("plumb_bob", "equidistant")).unwrap_err(),
+            "distortion_model \"equidistant\" is not supported (plumb_bob only)"
+        );
+        assert_eq!(
+            parse(&ROS.replace("517.3, 0, 318.6", "517.3, 0, 318.6, 1")).unwrap_err(),
+            "camera_matrix declares 3x3 but holds 10 numbers"
+        );
+        assert_eq!(
+            parse(&ROS.replace("516.5, 255.3", "-516.5, 255.3")).unwrap_err(),
+            "focal lengths must be positive, got fx=517.3 fy=-516.5"
+        );
         assert_eq!(parse(&ROS.replace("image_width: 640\n", "")).unwrap_err(), "no image_width");
-        assert_eq!(parse(&ROS.replace("image_height: 480", "image_height: -4")).unwrap_err(), "image_height must be a positive integer, got Number(-4)");
+        assert_eq!(
+            parse(&ROS.replace("image_height: 480", "image_height: -4")).unwrap_err(),
+            "image_height must be a positive integer, got Number(-4)"
+        );
         assert!(parse("a: [1, 2").unwrap_err().starts_with("not YAML: "));
         assert_eq!(parse("fx: 1").unwrap_err(), "no camera_matrix (ROS camera_info, OpenCV) or Camera.fx (ORB-SLAM) key");
-        let eight = ROS.replace("rows: 1\n  cols: 5\n  data: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]", "rows: 1\n  cols: 8\n  data: [0.1, 0, 0, 0, 0, 0.5, 0, 0]");
+        let eight = ROS.replace(
+            "rows: 1\n  cols: 5\n  data: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]",
+            "rows: 1\n  cols: 8\n  data: [0.1, 0, 0, 0, 0, 0.5, 0, 0]",
+        );
         assert_eq!(parse(&eight).unwrap_err(), "8 distortion coefficients: only plumb_bob (k1 k2 p1 p2 [k3]) is supported");
     }
 
@@ -518,14 +530,11 @@ Camera.height: 480
 
         let small = dir.join("small.yaml");
         std::fs::write(&small, OPENCV).expect("write");
-        let e = resolve(tum_like(None), &CameraOptions { calibration: Some(small.clone()), ..Default::default() })
-            .unwrap_err()
-            .to_string();
+        let e = resolve(tum_like(None), &CameraOptions { calibration: Some(small.clone()), ..Default::default() }).unwrap_err().to_string();
         assert_eq!(e, format!("calibration {} is for 320x240 images but TUM folder renamed delivers 640x480", small.display()));
         let missing = dir.join("missing.yaml");
-        let e = resolve(tum_like(None), &CameraOptions { calibration: Some(missing.clone()), ..Default::default() })
-            .unwrap_err()
-            .to_string();
+        let e =
+            resolve(tum_like(None), &CameraOptions { calibration: Some(missing.clone()), ..Default::default() }).unwrap_err().to_string();
         assert!(e.starts_with(&format!("calibration {}: ", missing.display())), "{e}");
         std::fs::remove_dir_all(&dir).ok();
     }

@@ -128,7 +128,12 @@ struct Connected {
 }
 
 /// Connects, sends the hello (resuming `session_id` when set) and waits for the accept.
-async fn connect_once(endpoint: &tonic::transport::Endpoint, hello: &pb::Hello, session_id: &str, resume_secret: &str) -> Result<Connected, Broke> {
+async fn connect_once(
+    endpoint: &tonic::transport::Endpoint,
+    hello: &pb::Hello,
+    session_id: &str,
+    resume_secret: &str,
+) -> Result<Connected, Broke> {
     let channel = endpoint.connect().await.map_err(|e| Broke::Transient(e.to_string()))?;
     let mut client = IngestClient::new(channel);
     let (out, out_rx) = mpsc::channel(LINK_BUFFER);
@@ -289,7 +294,9 @@ async fn run_zenoh(
         move |e: zenoh::Error| ClientError::Connect(format!("zenoh {what}: {e}"))
     };
     let config = match &options.config_file {
-        Some(path) => zenoh::Config::from_file(path).map_err(|e| ClientError::Usage(format!("zenoh config file {}: {e}", path.display())))?,
+        Some(path) => {
+            zenoh::Config::from_file(path).map_err(|e| ClientError::Usage(format!("zenoh config file {}: {e}", path.display())))?
+        }
         None => {
             let mut config = zenoh::Config::default();
             let list = serde_json::to_string(&options.connect).unwrap_or_else(|_| "[]".into());
@@ -319,11 +326,8 @@ async fn run_zenoh(
     }
     let robot = hello.robot_id.clone();
     let subscriber = session.declare_subscriber(keys::results(&robot)).await.map_err(zerr("subscribe"))?;
-    let publisher = session
-        .declare_publisher(keys::frames(&robot))
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(zerr("publisher"))?;
+    let publisher =
+        session.declare_publisher(keys::frames(&robot)).congestion_control(CongestionControl::Block).await.map_err(zerr("publisher"))?;
     let hello_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }.encode_to_vec();
 
     // Hello until accepted.

@@ -8,10 +8,10 @@ use std::time::Duration;
 use clap::{Parser, Subcommand, ValueEnum};
 use stillmap_client::calibration::{CameraOptions, KnownCamera};
 use stillmap_client::eval::{self, Alignment, EvalOptions, Metric, Relation};
+use stillmap_client::fleet::{self, FleetOptions, FleetTransport};
 use stillmap_client::link::{self, GrpcOptions, ZenohOptions};
 use stillmap_client::source::SourceSpec;
 use stillmap_client::streamer::{self, Rate, StreamOptions};
-use stillmap_client::fleet::{self, FleetOptions, FleetTransport};
 use stillmap_client::{ClientError, bench};
 use stillmap_proto::pb::{ColorEncoding, DepthEncoding};
 
@@ -303,9 +303,7 @@ enum Command {
 #[tokio::main]
 async fn main() -> ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("STILLMAP_LOG").unwrap_or_else(|_| "warn,zenoh=error".into()),
-        )
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("STILLMAP_LOG").unwrap_or_else(|_| "warn,zenoh=error".into()))
         .with_writer(std::io::stderr)
         .init();
     match run(Cli::parse()).await {
@@ -369,8 +367,8 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             if max_in_flight == 0 {
                 return Err(ClientError::Usage("--max-in-flight must be at least 1".into()).into());
             }
-            let timeout = Duration::try_from_secs_f64(timeout)
-                .map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
+            let timeout =
+                Duration::try_from_secs_f64(timeout).map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
             let options = StreamOptions {
                 robot_id,
                 fleet: fleet.unwrap_or_default(),
@@ -411,7 +409,12 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 #[cfg(feature = "zenoh")]
                 TransportArg::Zenoh => {
-                    let z = ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout, config_file: endpoints.zenoh_config };
+                    let z = ZenohOptions {
+                        connect: endpoints.zenoh_connect,
+                        mode: endpoints.zenoh_mode,
+                        timeout,
+                        config_file: endpoints.zenoh_config,
+                    };
                     streamer::run(&options, "zenoh", |hello| link::start_zenoh(hello, z)).await?
                 }
                 #[cfg(not(feature = "zenoh"))]
@@ -422,8 +425,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             };
             println!("{}", summary.report());
             if let Some(path) = trajectory {
-                std::fs::write(&path, summary.tum_trajectory())
-                    .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
+                std::fs::write(&path, summary.tum_trajectory()).map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
             }
             if let Some(path) = summary_json {
                 std::fs::write(&path, serde_json::to_string_pretty(&summary)?)
@@ -452,8 +454,8 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 return Err(ClientError::Usage("fleet replays a recording: --source tum:<dir>".into()).into());
             };
             let duration = positive_seconds("--duration", duration)?;
-            let timeout = Duration::try_from_secs_f64(timeout)
-                .map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
+            let timeout =
+                Duration::try_from_secs_f64(timeout).map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
             let options = FleetOptions {
                 robots,
                 tum,
@@ -476,7 +478,12 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     max_attempts: 10,
                     result_timeout: Duration::from_secs(15),
                 },
-                zenoh: ZenohOptions { connect: endpoints.zenoh_connect, mode: endpoints.zenoh_mode, timeout, config_file: endpoints.zenoh_config },
+                zenoh: ZenohOptions {
+                    connect: endpoints.zenoh_connect,
+                    mode: endpoints.zenoh_mode,
+                    timeout,
+                    config_file: endpoints.zenoh_config,
+                },
                 http: (!http.is_empty()).then_some(http),
                 robot_prefix,
                 token,
@@ -492,19 +499,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             let clean = t.robots_failed == 0 && t.frames_rejected == 0 && t.frames_unanswered == 0;
             Ok(if clean { ExitCode::SUCCESS } else { ExitCode::from(2) })
         }
-        Command::Eval {
-            metric,
-            reference,
-            estimate,
-            align,
-            align_origin,
-            relation,
-            delta,
-            t_max_diff,
-            t_offset,
-            json,
-            plot,
-        } => {
+        Command::Eval { metric, reference, estimate, align, align_origin, relation, delta, t_max_diff, t_offset, json, plot } => {
             let metric = match (metric, delta) {
                 (MetricArg::Ape, Some(_)) => Err(ClientError::Usage("--delta applies to rpe only".into()))?,
                 (MetricArg::Ape, None) => Metric::Ape,

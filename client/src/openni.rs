@@ -139,11 +139,7 @@ impl FrameSource for OpenNiSource {
             }
         }
         let depth = DepthImage { width: w, height: h, data: depth_frame.pixels().to_vec() };
-        let color = ColorImage {
-            width: w,
-            height: h,
-            data: color_frame.pixels().iter().flat_map(|p| [p.r, p.g, p.b]).collect(),
-        };
+        let color = ColorImage { width: w, height: h, data: color_frame.pixels().iter().flat_map(|p| [p.r, p.g, p.b]).collect() };
         // OpenNI2 timestamps are microseconds; keep them strictly increasing.
         let ns = (depth_frame.timestamp() * 1000).max(self.last_ns + 1);
         self.last_ns = ns;

@@ -185,7 +185,9 @@ fn spawn_source(options: &StreamOptions) -> (SourceOpened, mpsc::Receiver<Result
     let (spec, max_frames, quality) = (options.source.clone(), options.max_frames, options.jpeg_quality);
     let (color_encoding, depth_encoding) = (options.color_encoding, options.depth_encoding);
     let camera_options = options.camera.clone();
-    std::thread::spawn(move || {
+    // A thread that cannot start drops `camera_tx` with its closure: `run` then
+    // reports that the source thread stopped.
+    let _source = std::thread::Builder::new().name("camera-source".into()).spawn(move || {
         let mut src = match source::open(&spec, max_frames, &camera_options) {
             Ok(s) => s,
             Err(e) => {
@@ -212,11 +214,7 @@ fn spawn_source(options: &StreamOptions) -> (SourceOpened, mpsc::Receiver<Result
 }
 
 /// Streams the source through a link built by `connect` from the hello.
-pub async fn run(
-    options: &StreamOptions,
-    transport: &str,
-    connect: impl FnOnce(pb::Hello) -> Link,
-) -> Result<Summary, ClientError> {
+pub async fn run(options: &StreamOptions, transport: &str, connect: impl FnOnce(pb::Hello) -> Link) -> Result<Summary, ClientError> {
     let (camera_rx, frames) = spawn_source(options);
     let (camera, len_hint) = camera_rx.await.map_err(|_| ClientError::Source("the source thread stopped".into()))??;
     stream(options, transport, Feed { camera, len_hint, frames }, connect).await

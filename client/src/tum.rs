@@ -39,9 +39,10 @@ pub fn read_list(path: &Path) -> Result<Vec<(u64, Vec<String>)>, ClientError> {
             continue;
         }
         let mut fields = line.split_whitespace();
-        let ts = fields.next().and_then(parse_timestamp_ns).ok_or_else(|| {
-            ClientError::Source(format!("{}:{}: bad timestamp in {line:?}", path.display(), i + 1))
-        })?;
+        let ts = fields
+            .next()
+            .and_then(parse_timestamp_ns)
+            .ok_or_else(|| ClientError::Source(format!("{}:{}: bad timestamp in {line:?}", path.display(), i + 1)))?;
         out.push((ts, fields.map(str::to_owned).collect()));
     }
     Ok(out)
@@ -146,9 +147,11 @@ impl TumSource {
         let mut frames = Vec::new();
         for (i, j) in associate(&rgb_ts, &depth_ts, MAX_ASSOCIATION_NS) {
             let file = |list: &[(u64, Vec<String>)], k: usize, name: &str| {
-                list[k].1.first().map(|f| dir.join(f)).ok_or_else(|| {
-                    ClientError::Source(format!("{name}.txt: line for {} names no file", list[k].0))
-                })
+                list[k]
+                    .1
+                    .first()
+                    .map(|f| dir.join(f))
+                    .ok_or_else(|| ClientError::Source(format!("{name}.txt: line for {} names no file", list[k].0)))
             };
             let ts = rgb_ts[i];
             let nearest = accel_ts.partition_point(|&t| t < ts);

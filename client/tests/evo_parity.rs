@@ -26,16 +26,14 @@ fn workspace() -> PathBuf {
 }
 
 fn tum_dir() -> PathBuf {
-    let dir = std::env::var_os("TUM")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace().join("../shared/data/tum/rgbd_dataset_freiburg1_rpy"));
+    let dir =
+        std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(|| workspace().join("../shared/data/tum/rgbd_dataset_freiburg1_rpy"));
     assert!(dir.join("groundtruth.txt").exists(), "TUM clip not found at {} (set TUM)", dir.display());
     dir
 }
 
 fn evo_bin() -> PathBuf {
-    let dir =
-        std::env::var_os("STILLMAP_EVO_BIN").map(PathBuf::from).unwrap_or_else(|| workspace().join(".deps/evo/bin"));
+    let dir = std::env::var_os("STILLMAP_EVO_BIN").map(PathBuf::from).unwrap_or_else(|| workspace().join(".deps/evo/bin"));
     assert!(
         dir.join("evo_ape").exists() && dir.join("evo_rpe").exists(),
         "evo not found in {}: run deploy/install-deps.sh (or set STILLMAP_EVO_BIN to a folder with evo_ape, evo_rpe, python)",
@@ -67,8 +65,7 @@ impl Noise {
 fn write_estimate(tum: &Path, out: &Path) {
     let gt = read_tum(&tum.join("groundtruth.txt")).expect("ground truth");
     let rgb = std::fs::read_to_string(tum.join("rgb.txt")).expect("rgb.txt");
-    let stamps: Vec<f64> =
-        rgb.lines().filter(|l| !l.starts_with('#')).filter_map(|l| l.split_whitespace().next()?.parse().ok()).collect();
+    let stamps: Vec<f64> = rgb.lines().filter(|l| !l.starts_with('#')).filter_map(|l| l.split_whitespace().next()?.parse().ok()).collect();
     let moved = Isometry3::new(Vector3::new(0.8, -0.4, 1.5), Vector3::new(0.2, -0.5, 0.9));
     let mut noise = Noise(0x5717_1A4D);
     let mut estimate = Vec::new();
@@ -244,8 +241,7 @@ fn eval_errors_are_one_line_naming_the_file_and_line() {
     let good = dir.join("good.txt");
     std::fs::write(&good, "1.0 0 0 0 0 0 0 1\n").expect("write");
     for args in [vec![&good, &bad], vec![&bad, &good]] {
-        let output =
-            Command::new(env!("CARGO_BIN_EXE_stillmap-client")).args(["eval", "ape"]).args(args).output().expect("run");
+        let output = Command::new(env!("CARGO_BIN_EXE_stillmap-client")).args(["eval", "ape"]).args(args).output().expect("run");
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert_eq!(output.status.code(), Some(1), "{stderr}");
         assert_eq!(stderr.lines().count(), 1, "{stderr}");

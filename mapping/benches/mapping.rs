@@ -48,7 +48,9 @@ fn table() {
     let frames = tum::load(&dir, 150);
     let gt = tum::groundtruth(&dir);
     println!("\nstatic semantic map on the real fr1_rpy clip (150 frames, a keyframe every {KEYFRAME_INTERVAL}); this CPU");
-    println!("| voxel | keyframes | fusion mean / median / p95 ms | occupied voxels | blocks | memory | memory per m³ of bounding box | store (zstd blocks) |");
+    println!(
+        "| voxel | keyframes | fusion mean / median / p95 ms | occupied voxels | blocks | memory | memory per m³ of bounding box | store (zstd blocks) |"
+    );
     println!("|---|---|---|---|---|---|---|---|");
     for voxel in [0.02, 0.04] {
         let (b, times) = build(&frames, &gt, MappingConfig { voxel_size_m: voxel, ..MappingConfig::default() });
@@ -104,7 +106,12 @@ fn table() {
     let t = Instant::now();
     let points = cloud(b.map(), &up, None);
     let ply = to_ply(&points, &[], "bench");
-    println!("| PLY export ({} points, {:.1} MiB) | {:.1} | | | 1 |", points.len(), ply.len() as f64 / 1048576.0, t.elapsed().as_secs_f64() * 1e3);
+    println!(
+        "| PLY export ({} points, {:.1} MiB) | {:.1} | | | 1 |",
+        points.len(),
+        ply.len() as f64 / 1048576.0,
+        t.elapsed().as_secs_f64() * 1e3
+    );
     let t = Instant::now();
     let objs = objects(b.map(), &up);
     println!("| objects ({} clusters) | {:.1} | | | 1 |", objs.len(), t.elapsed().as_secs_f64() * 1e3);
@@ -132,7 +139,9 @@ fn criterion_benches(c: &mut Criterion) {
     let [x0, _, _, y1] = top.bounds().expect("bounds");
     let span = top.tile_span_m(MAX_ZOOM);
     let (tx, ty) = ((x0 / span).floor() as i64, (-y1 / span).floor() as i64);
-    c.bench_function("render tile (zoom 5) + PNG", |bench| bench.iter(|| encode_png_rgba(&top.render(MAX_ZOOM, tx, ty).expect("tile"), 256, 256).expect("png")));
+    c.bench_function("render tile (zoom 5) + PNG", |bench| {
+        bench.iter(|| encode_png_rgba(&top.render(MAX_ZOOM, tx, ty).expect("tile"), 256, 256).expect("png"))
+    });
 }
 
 criterion_group! {

@@ -57,7 +57,17 @@ impl MapBuilder {
             return Err(MappingError::Input(format!("camera of {}x{} pixels", camera.width, camera.height)));
         }
         let gravity = Gravity::new(config.fallback_up_in_camera);
-        Ok(Self { rays: CameraRays::new(camera), map: VoxelMap::new(config)?, gravity, window: VecDeque::new(), keyframes: 0, refused: 0, retracted: 0, eviction: false, evicted: Vec::new() })
+        Ok(Self {
+            rays: CameraRays::new(camera),
+            map: VoxelMap::new(config)?,
+            gravity,
+            window: VecDeque::new(),
+            keyframes: 0,
+            refused: 0,
+            retracted: 0,
+            eviction: false,
+            evicted: Vec::new(),
+        })
     }
 
     pub fn map(&self) -> &VoxelMap {
@@ -107,7 +117,12 @@ impl MapBuilder {
     }
 
     /// Fuses a new keyframe.
-    pub fn add_keyframe(&mut self, id: u64, world_from_camera: &Isometry3<f64>, view: &DepthView<'_>) -> Result<KeyframeReport, MappingError> {
+    pub fn add_keyframe(
+        &mut self,
+        id: u64,
+        world_from_camera: &Isometry3<f64>,
+        view: &DepthView<'_>,
+    ) -> Result<KeyframeReport, MappingError> {
         let start = Instant::now();
         let input = self.map.prepare(&self.rays, view)?;
         if self.gravity.frozen().is_none() {
@@ -170,7 +185,9 @@ impl MapBuilder {
             .filter_map(|f| {
                 let now = current_pose(f.id)?;
                 let delta = f.world_from_camera.inverse() * now;
-                (delta.translation.vector.norm() > cfg.refuse_translation_m || delta.rotation.angle().to_degrees() > cfg.refuse_rotation_deg).then_some((f.id, now))
+                (delta.translation.vector.norm() > cfg.refuse_translation_m
+                    || delta.rotation.angle().to_degrees() > cfg.refuse_rotation_deg)
+                    .then_some((f.id, now))
             })
             .collect()
     }

@@ -56,7 +56,8 @@ pub fn floor_up(points_in_camera: &[[f32; 3]], prior_up_in_camera: &Vector3<f64>
     if n < FLOOR_MIN_POINTS {
         return None;
     }
-    let p = |i: usize| Vector3::new(f64::from(points_in_camera[i][0]), f64::from(points_in_camera[i][1]), f64::from(points_in_camera[i][2]));
+    let p =
+        |i: usize| Vector3::new(f64::from(points_in_camera[i][0]), f64::from(points_in_camera[i][1]), f64::from(points_in_camera[i][2]));
     let min_cos = FLOOR_MAX_TILT_DEG.to_radians().cos();
     // SplitMix64: reproducible samples.
     let mut state = 0x9e37_79b9_7f4a_7c15u64;

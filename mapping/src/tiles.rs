@@ -84,7 +84,9 @@ impl TopDown {
                 continue;
             }
             let (cx, cy) = ((p.x / res).floor() as i32, (p.y / res).floor() as i32);
-            let chunk = chunks.entry([cx.div_euclid(CHUNK), cy.div_euclid(CHUNK)]).or_insert_with(|| vec![None; (CHUNK * CHUNK) as usize].into_boxed_slice());
+            let chunk = chunks
+                .entry([cx.div_euclid(CHUNK), cy.div_euclid(CHUNK)])
+                .or_insert_with(|| vec![None; (CHUNK * CHUNK) as usize].into_boxed_slice());
             let slot = &mut chunk[(cy.rem_euclid(CHUNK) * CHUNK + cx.rem_euclid(CHUNK)) as usize];
             let (class, confidence) = v.class();
             let class = if confidence >= cfg.objects_min_confidence { class } else { NO_CLASS };
@@ -205,7 +207,13 @@ impl OccupancyGrid {
     /// below the band (the floor) was seen. Unknown otherwise.
     /// (Comparisons are negated so that NaN fails them too.)
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
-    pub fn build(map: &VoxelMap, map_from_world: &UnitQuaternion<f64>, min_height_m: f64, max_height_m: f64, resolution_m: f64) -> Result<Self, MappingError> {
+    pub fn build(
+        map: &VoxelMap,
+        map_from_world: &UnitQuaternion<f64>,
+        min_height_m: f64,
+        max_height_m: f64,
+        resolution_m: f64,
+    ) -> Result<Self, MappingError> {
         if !(max_height_m > min_height_m) {
             return Err(MappingError::Input(format!("height band [{min_height_m}, {max_height_m}] is empty")));
         }
@@ -255,7 +263,8 @@ impl OccupancyGrid {
 
     /// Binary PGM (P5), as map_server reads it.
     pub fn to_pgm(&self) -> Vec<u8> {
-        let mut out = format!("P5\n# stillmap occupancy grid, {} m/cell\n{} {}\n255\n", self.resolution_m, self.width, self.height).into_bytes();
+        let mut out =
+            format!("P5\n# stillmap occupancy grid, {} m/cell\n{} {}\n255\n", self.resolution_m, self.width, self.height).into_bytes();
         out.extend_from_slice(&self.cells);
         out
     }

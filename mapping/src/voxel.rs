@@ -172,7 +172,11 @@ pub fn voxel_of(block: BlockKey, index: usize) -> VoxelKey {
 }
 
 pub fn voxel_key(point_in_world: &Point3<f64>, voxel_size: f64) -> VoxelKey {
-    [(point_in_world.x / voxel_size).floor() as i32, (point_in_world.y / voxel_size).floor() as i32, (point_in_world.z / voxel_size).floor() as i32]
+    [
+        (point_in_world.x / voxel_size).floor() as i32,
+        (point_in_world.y / voxel_size).floor() as i32,
+        (point_in_world.z / voxel_size).floor() as i32,
+    ]
 }
 
 pub fn voxel_centre(key: VoxelKey, voxel_size: f64) -> Point3<f64> {
@@ -283,7 +287,13 @@ mod tests {
     #[test]
     fn blocks_serialise_exactly_and_reject_bad_bytes() {
         let mut b = Block { touched: 42, ..Block::default() };
-        b.voxels[5] = Voxel { log_odds: 1.25, color: [1, 2, 3], hits: 4, classes: [ClassVote { class: 62, votes: 9 }, ClassVote::default(), ClassVote { class: NO_CLASS, votes: 2 }], votes_total: 11 };
+        b.voxels[5] = Voxel {
+            log_odds: 1.25,
+            color: [1, 2, 3],
+            hits: 4,
+            classes: [ClassVote { class: 62, votes: 9 }, ClassVote::default(), ClassVote { class: NO_CLASS, votes: 2 }],
+            votes_total: 11,
+        };
         let bytes = b.to_bytes();
         // Header, bitmap and the one observed voxel.
         assert_eq!(bytes.len(), 8 + 64 + 24);

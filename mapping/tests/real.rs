@@ -5,22 +5,22 @@
 //! and a voxel can be checked against the pasted object's exact world position.
 //! Run with `--nocapture` for the numbers.
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
-#[path = "../../perception/tests/support/mod.rs"]
-mod support;
 #[path = "../../perception/tests/support/composite_run.rs"]
 mod composite_run;
 #[path = "support/map_run.rs"]
 mod map_run;
+#[path = "../../perception/tests/support/mod.rs"]
+mod support;
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
 
 use std::sync::OnceLock;
 
+use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
 use nalgebra::{Isometry3, Point3, Vector3};
 use stillmap_mapping::export::{cloud, objects, to_ply};
 use stillmap_mapping::tiles::{OccupancyGrid, TopDown};
 use stillmap_mapping::{DepthView, MapBuilder, MappingConfig, NO_CLASS};
-use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
 use stillmap_perception::composite::{interpolate_pose, paste};
 use stillmap_perception::{Segmenter, YoloSegmenter};
 
@@ -128,7 +128,8 @@ fn the_static_clip_map_carries_the_segmenters_classes() {
     let c = clip();
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     let names = seg.class_names().to_vec();
-    let frames: Vec<Frame> = c.frames.iter().map(|f| Frame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone() }).collect();
+    let frames: Vec<Frame> =
+        c.frames.iter().map(|f| Frame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone() }).collect();
     let fused = fuse(&frames, &c.poses, Masking::Perception, Some((&mut seg, 5)), &[]);
     let (up, _) = fused.builder.map_from_world().expect("map frame");
     let map = fused.builder.map();
@@ -256,7 +257,10 @@ fn without_an_accelerometer_the_floor_plane_gives_up() {
         let (up, source) = b.up_in_world().expect("up");
         let error = up.angle(&Vector3::z_axis()).to_degrees();
         let config_error = camera_minus_y.angle(&Vector3::z()).to_degrees();
-        eprintln!("frame {k}: up from {}: {error:.2}° from the ground truth (the configured camera −y: {config_error:.1}°)", source.label());
+        eprintln!(
+            "frame {k}: up from {}: {error:.2}° from the ground truth (the configured camera −y: {config_error:.1}°)",
+            source.label()
+        );
         assert_eq!(source, stillmap_mapping::UpSource::FloorPlane, "frame {k}");
         worst = worst.max(error);
     }

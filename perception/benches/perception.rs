@@ -14,19 +14,19 @@
 //! the server does (tracking time not included); the criterion bench runs the
 //! one-phase `process` without a tracked motion (the path after a tracking loss).
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
 #[path = "../tests/support/mod.rs"]
 mod support;
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
 
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, criterion_group};
 use stillmap_perception::segment::RgbFrame;
 use stillmap_perception::{DynamicMasker, MaskerInput, PerceptionConfig, Segmenter, YoloSegmenter};
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
 use stillmap_tracking::features::Extractor;
 use stillmap_tracking::tracker::to_gray;
+use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
 
 const FRAMES: usize = 60;
 
@@ -65,7 +65,8 @@ fn batch_table(frames: &[tum::TumFrame]) {
         println!("| batch | per batch (median) | per frame | frames/s |");
         println!("|---|---|---|---|");
         for &b in &batches {
-            let inputs: Vec<RgbFrame<'_>> = (0..b).map(|i| RgbFrame { rgb: &frames[i % frames.len()].rgb, width: 640, height: 480 }).collect();
+            let inputs: Vec<RgbFrame<'_>> =
+                (0..b).map(|i| RgbFrame { rgb: &frames[i % frames.len()].rgb, width: 640, height: 480 }).collect();
             let _ = seg.segment_batch(&inputs).expect("warm-up");
             let runs = (32 / b).clamp(3, 10);
             let times: Vec<Duration> = (0..runs)

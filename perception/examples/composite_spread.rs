@@ -11,12 +11,12 @@
 //! override the configurations). The real YOLOv8n-seg model segments each frame
 //! once; its results are replayed, in order, to every run.
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
-#[path = "../tests/support/mod.rs"]
-mod support;
 #[path = "../tests/support/composite_run.rs"]
 mod composite_run;
+#[path = "../tests/support/mod.rs"]
+mod support;
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
 
 use composite_run::{CompositeFrame, Schedule};
 use stillmap_perception::{PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};
@@ -74,7 +74,9 @@ fn main() {
     let mut seg_with = Replay::record(&mut model, &with_board);
     let mut seg_without = Replay::record(&mut model, &without_board);
 
-    println!("| features | IoU | false-dynamic | eliminated | ATE with board (cm) | masked, without board (cm) | tracker alone, without board (cm) |");
+    println!(
+        "| features | IoU | false-dynamic | eliminated | ATE with board (cm) | masked, without board (cm) | tracker alone, without board (cm) |"
+    );
     println!("|---|---|---|---|---|---|---|");
     let (mut with, mut masked, mut plain, mut eliminated) = (vec![], vec![], vec![], vec![]);
     for nudge in NUDGES {
@@ -82,10 +84,19 @@ fn main() {
         let tracking = TrackerConfig { features, candidate_features: base.candidate_features.max(features), ..base.clone() };
         seg_with.next = 0;
         seg_without.next = 0;
-        let s = composite_run::run_with(&with_board, Some(&mut seg_with), Schedule::EveryFrame, false, perception.clone(), tracking.clone());
-        let m = composite_run::run_with(&without_board, Some(&mut seg_without), Schedule::EveryFrame, false, perception.clone(), tracking.clone());
+        let s =
+            composite_run::run_with(&with_board, Some(&mut seg_with), Schedule::EveryFrame, false, perception.clone(), tracking.clone());
+        let m = composite_run::run_with(
+            &without_board,
+            Some(&mut seg_without),
+            Schedule::EveryFrame,
+            false,
+            perception.clone(),
+            tracking.clone(),
+        );
         let p = composite_run::track_plain_with(&frames, tracking);
-        let (a, b, c) = (tum::score(&gt, &s.trajectory).ate_m * 100.0, tum::score(&gt, &m.trajectory).ate_m * 100.0, tum::score(&gt, &p).ate_m * 100.0);
+        let (a, b, c) =
+            (tum::score(&gt, &s.trajectory).ate_m * 100.0, tum::score(&gt, &m.trajectory).ate_m * 100.0, tum::score(&gt, &p).ate_m * 100.0);
         println!(
             "| {features} | {:.3} | {:.2} % | {:.2} % | {a:.2} | {b:.2} | {c:.2} |",
             s.mean_iou,

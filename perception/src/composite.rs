@@ -200,7 +200,8 @@ pub struct CircularMotion {
 impl CircularMotion {
     pub fn world_from_plane(&self, t_s: f64) -> Isometry3<f64> {
         let a = std::f64::consts::TAU * t_s / self.period_s;
-        self.world_from_centre * Isometry3::from_parts(Translation3::new(self.radius_m * a.cos(), self.radius_m * a.sin(), 0.0), UnitQuaternion::identity())
+        self.world_from_centre
+            * Isometry3::from_parts(Translation3::new(self.radius_m * a.cos(), self.radius_m * a.sin(), 0.0), UnitQuaternion::identity())
     }
 }
 
@@ -327,7 +328,12 @@ mod tests {
     #[test]
     fn stop_and_go_walks_stands_and_walks_on() {
         let motion = StopAndGo {
-            waypoints: vec![(0.0, Point3::new(0.0, 0.0, 0.0)), (1.0, Point3::new(1.0, 0.0, 0.0)), (2.0, Point3::new(1.0, 0.0, 0.0)), (3.0, Point3::new(1.0, 2.0, 0.0))],
+            waypoints: vec![
+                (0.0, Point3::new(0.0, 0.0, 0.0)),
+                (1.0, Point3::new(1.0, 0.0, 0.0)),
+                (2.0, Point3::new(1.0, 0.0, 0.0)),
+                (3.0, Point3::new(1.0, 2.0, 0.0)),
+            ],
             rotation: UnitQuaternion::identity(),
         };
         let at = |t: f64| motion.world_from_plane(t).translation.vector;

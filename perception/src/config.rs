@@ -267,7 +267,9 @@ impl PerceptionConfig {
         if s.input_size != 0 && (!s.input_size.is_multiple_of(32) || s.input_size > 2048) {
             return Err(format!("perception.segmentation.input_size must be 0 or a multiple of 32 up to 2048, got {}", s.input_size));
         }
-        for (k, v) in [("score_threshold", s.score_threshold), ("nms_iou_threshold", s.nms_iou_threshold), ("mask_threshold", s.mask_threshold)] {
+        for (k, v) in
+            [("score_threshold", s.score_threshold), ("nms_iou_threshold", s.nms_iou_threshold), ("mask_threshold", s.mask_threshold)]
+        {
             if !(v > 0.0 && v < 1.0) {
                 return Err(format!("perception.segmentation.{k} must be in (0, 1), got {v}"));
             }
@@ -291,7 +293,10 @@ impl PerceptionConfig {
             return Err(format!("perception.segmentation.max_batch must be in 1..={MAX_SEGMENTATION_BATCH}, got {}", s.max_batch));
         }
         if s.max_queue_delay_ms > MAX_QUEUE_DELAY_MS {
-            return Err(format!("perception.segmentation.max_queue_delay_ms must be at most {MAX_QUEUE_DELAY_MS}, got {}", s.max_queue_delay_ms));
+            return Err(format!(
+                "perception.segmentation.max_queue_delay_ms must be at most {MAX_QUEUE_DELAY_MS}, got {}",
+                s.max_queue_delay_ms
+            ));
         }
         if s.device_id < 0 {
             return Err(format!("perception.segmentation.device_id must be 0 or more, got {}", s.device_id));
@@ -348,7 +353,10 @@ impl PerceptionConfig {
             return Err(format!("perception.fusion.mapping_mask_dilation_px must be at most 64, got {}", u.mapping_mask_dilation_px));
         }
         if u.retract_keyframes > MAX_RETRACT_KEYFRAMES {
-            return Err(format!("perception.fusion.retract_keyframes must be at most {MAX_RETRACT_KEYFRAMES}, got {}", u.retract_keyframes));
+            return Err(format!(
+                "perception.fusion.retract_keyframes must be at most {MAX_RETRACT_KEYFRAMES}, got {}",
+                u.retract_keyframes
+            ));
         }
         if u.tracking_mask_dilation_px > 64 {
             return Err(format!("perception.fusion.tracking_mask_dilation_px must be at most 64, got {}", u.tracking_mask_dilation_px));
@@ -362,8 +370,25 @@ impl PerceptionConfig {
 
 /// COCO names (Ultralytics spelling) that are dynamic a priori: person, vehicles, animals.
 pub const DEFAULT_PRIOR_DYNAMIC: &[&str] = &[
-    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat", "bird", "cat", "dog", "horse",
-    "sheep", "cow", "elephant", "bear", "zebra", "giraffe",
+    "person",
+    "bicycle",
+    "car",
+    "motorcycle",
+    "airplane",
+    "bus",
+    "train",
+    "truck",
+    "boat",
+    "bird",
+    "cat",
+    "dog",
+    "horse",
+    "sheep",
+    "cow",
+    "elephant",
+    "bear",
+    "zebra",
+    "giraffe",
 ];
 
 impl Default for PerceptionConfig {

@@ -189,10 +189,7 @@ impl EgoMotion {
                 let f = flow.data[i];
                 let target_raw = Point2::new(self.raw[i].x + f64::from(f[0]) * s, self.raw[i].y + f64::from(f[1]) * s);
                 let ideal = self.camera.undistort(&target_raw);
-                correspondences.push((
-                    Point3::new(r.x * z, r.y * z, z),
-                    Measurement { ideal, disparity: None, information },
-                ));
+                correspondences.push((Point3::new(r.x * z, r.y * z, z), Measurement { ideal, disparity: None, information }));
             }
         }
         let samples = correspondences.len();
@@ -232,14 +229,17 @@ impl EgoMotion {
         // (`exclude`) do not vote: a person must not make its own motion the camera's.
         // Candidates are compared on every other cell in each direction; the winner
         // is then classified in full.
-        let (mut previous_from_current, mut refined, mut inliers) = candidates.first().copied().unwrap_or((Isometry3::identity(), false, 0));
+        let (mut previous_from_current, mut refined, mut inliers) =
+            candidates.first().copied().unwrap_or((Isometry3::identity(), false, 0));
         let mut classified = None;
         if candidates.len() > 1 {
             let mut best = usize::MAX;
             let mut seen: Vec<Isometry3<f64>> = Vec::new();
             for &(motion, is_refined, n) in &candidates {
                 // Refinements from different starts often converge to the same motion.
-                if seen.iter().any(|m| (m.inverse() * motion).translation.vector.norm() < SAME_MOTION && (m.inverse() * motion).rotation.angle() < SAME_MOTION) {
+                if seen.iter().any(|m| {
+                    (m.inverse() * motion).translation.vector.norm() < SAME_MOTION && (m.inverse() * motion).rotation.angle() < SAME_MOTION
+                }) {
                     continue;
                 }
                 seen.push(motion);
@@ -313,29 +313,32 @@ impl EgoMotion {
                 residual_px[i] = residual as f32;
                 // The threshold is never below min_residual_px: most pixels are decided
                 // without the depth term.
-                let moving = residual > self.config.min_residual_px && {
-                    // The depth's effect on the prediction, through the pinhole (the lens
-                    // scales it by a few per cent at most).
-                    let ideal_far = self.camera.project(&far).unwrap_or(ideal);
-                    let depth_var = (ideal_far - ideal).norm_squared();
-                    residual > (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px)
-                } && {
-                    // Where the camera motion alone puts this pixel in the previous flow image.
-                    let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
-                    // The pixel's own patch, compared where the camera motion and where the flow put it.
-                    let here = patch(current, x, y);
-                    let d = here.as_ref().and_then(|p| difference_to(p, previous, qx, qy));
-                    let measured = here.as_ref().and_then(|p| difference_to(p, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1])));
-                    // Moving when the camera motion explains the patch badly, and clearly
-                    // worse than the measured flow does. A pixel whose predicted patch
-                    // leaves the image cannot be confirmed and is not called moving
-                    // (Farneback is least reliable at the border).
-                    match (d, measured) {
-                        (Some(d), Some(m)) => d > self.config.photometric_threshold && d > self.config.photometric_ratio * m,
-                        (Some(d), None) => d > self.config.photometric_threshold,
-                        (None, _) => false,
+                let moving = residual > self.config.min_residual_px
+                    && {
+                        // The depth's effect on the prediction, through the pinhole (the lens
+                        // scales it by a few per cent at most).
+                        let ideal_far = self.camera.project(&far).unwrap_or(ideal);
+                        let depth_var = (ideal_far - ideal).norm_squared();
+                        residual > (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px)
                     }
-                };
+                    && {
+                        // Where the camera motion alone puts this pixel in the previous flow image.
+                        let (qx, qy) = ((p.x + 0.5) / s - 0.5, (p.y + 0.5) / s - 0.5);
+                        // The pixel's own patch, compared where the camera motion and where the flow put it.
+                        let here = patch(current, x, y);
+                        let d = here.as_ref().and_then(|p| difference_to(p, previous, qx, qy));
+                        let measured =
+                            here.as_ref().and_then(|p| difference_to(p, previous, x as f64 + f64::from(f[0]), y as f64 + f64::from(f[1])));
+                        // Moving when the camera motion explains the patch badly, and clearly
+                        // worse than the measured flow does. A pixel whose predicted patch
+                        // leaves the image cannot be confirmed and is not called moving
+                        // (Farneback is least reliable at the border).
+                        match (d, measured) {
+                            (Some(d), Some(m)) => d > self.config.photometric_threshold && d > self.config.photometric_ratio * m,
+                            (Some(d), None) => d > self.config.photometric_threshold,
+                            (None, _) => false,
+                        }
+                    };
                 class[i] = if moving { RESIDUAL } else { CONSISTENT };
             }
         }
@@ -502,11 +505,8 @@ mod tests {
         let depth = vec![2000u16; 320 * 240];
         let (w, h) = ego.grid_size();
         let texture = |x: f64, y: f64| 128.0 + 60.0 * (0.7 * x).sin() * (0.5 * y).cos() + 40.0 * (0.31 * x + 0.17 * y).sin();
-        let previous = SmallGray {
-            width: w,
-            height: h,
-            data: (0..w * h).map(|i| texture((i % w) as f64, (i / w) as f64).round() as u8).collect(),
-        };
+        let previous =
+            SmallGray { width: w, height: h, data: (0..w * h).map(|i| texture((i % w) as f64, (i / w) as f64).round() as u8).collect() };
         let (mut data, mut current) = (Vec::with_capacity(w * h), Vec::with_capacity(w * h));
         for i in 0..w * h {
             let (x, y) = (i % w, i / w);
@@ -596,7 +596,11 @@ mod tests {
         // Vertical stripes: texture in x only, so the smaller eigenvalue is still 0.
         let stripes = SmallGray { width: 16, height: 16, data: (0..256).map(|i| if i % 2 == 0 { 0 } else { 200 }).collect() };
         assert!(min_eigen_texture(&stripes).iter().all(|&t| t == 0.0));
-        let checker = SmallGray { width: 16, height: 16, data: (0..256).map(|i| if ((i % 16) / 2 + (i / 16) / 2) % 2 == 0 { 0 } else { 200 }).collect() };
+        let checker = SmallGray {
+            width: 16,
+            height: 16,
+            data: (0..256).map(|i| if ((i % 16) / 2 + (i / 16) / 2) % 2 == 0 { 0 } else { 200 }).collect(),
+        };
         assert!(min_eigen_texture(&checker)[8 * 16 + 8] > 100.0);
         // A brightness offset is not a difference; a shift is.
         let brighter = SmallGray { width: 16, height: 16, data: checker.data.iter().map(|v| v + 30).collect() };

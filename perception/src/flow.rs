@@ -156,7 +156,8 @@ mod tests {
         // (so the second flow is read where the first one points).
         let (w, h) = (20, 10);
         let later = FlowField { width: w, height: h, subsample: 2, data: vec![[2.0, 0.0]; w * h] };
-        let earlier = FlowField { width: w, height: h, subsample: 2, data: (0..w * h).map(|i| [1.0 + (i % w) as f32 / 10.0, 0.5]).collect() };
+        let earlier =
+            FlowField { width: w, height: h, subsample: 2, data: (0..w * h).map(|i| [1.0 + (i % w) as f32 / 10.0, 0.5]).collect() };
         let both = later.then(&earlier);
         assert_eq!(both.subsample, 2);
         // Cell (5, 3): 2 → x = 7, where the earlier flow is 1.7 → total 3.7.

@@ -260,13 +260,19 @@ pub fn fuse(
     Fused { width, height, labels, instances, flow_regions, rejected_regions }
 }
 
-
 /// Grows a (pruned) flow region over neighbouring cells whose depth continues its
 /// surface (see [`grow_over_depth`]). An object moves as a whole, and the 3×3 vote
 /// and Farneback's smoothing leave its rim and weakly textured inside unflagged.
 /// Growth stays inside the region's bounding box (a person's feet must not leak
 /// along the floor) and out of `blocked` cells.
-fn grow_along_depth(mut region: Vec<usize>, ego: &EgoResult, gw: usize, gh: usize, ratio: f64, blocked: impl Fn(usize) -> bool) -> Vec<usize> {
+fn grow_along_depth(
+    mut region: Vec<usize>,
+    ego: &EgoResult,
+    gw: usize,
+    gh: usize,
+    ratio: f64,
+    blocked: impl Fn(usize) -> bool,
+) -> Vec<usize> {
     if region.is_empty() {
         return region;
     }
@@ -313,12 +319,8 @@ pub(crate) fn grow_over_depth(
         for &i in &frontier {
             let z = f64::from(depth_m[i]);
             let (x, y) = (i % width, i / width);
-            let neighbours = [
-                (x > 0).then(|| i - 1),
-                (x + 1 < width).then(|| i + 1),
-                (y > 0).then(|| i - width),
-                (y + 1 < height).then(|| i + width),
-            ];
+            let neighbours =
+                [(x > 0).then(|| i - 1), (x + 1 < width).then(|| i + 1), (y > 0).then(|| i - width), (y + 1 < height).then(|| i + width)];
             for j in neighbours.into_iter().flatten() {
                 let zj = f64::from(depth_m[j]);
                 if !inside[j] && zj > 0.0 && (zj - z).abs() <= ratio * z && allowed(j) {
@@ -406,7 +408,16 @@ mod tests {
                 depth_m[y * gw + x] = depth(x, y);
             }
         }
-        EgoResult { previous_from_current: Isometry3::identity(), refined: true, confirmed: true, samples: 0, inliers: 0, class, residual_px, depth_m }
+        EgoResult {
+            previous_from_current: Isometry3::identity(),
+            refined: true,
+            confirmed: true,
+            samples: 0,
+            inliers: 0,
+            class,
+            residual_px,
+            depth_m,
+        }
     }
 
     fn person_box(width: usize, height: usize, x0: usize, x1: usize, y0: usize, y1: usize) -> Segmentation {

@@ -321,7 +321,8 @@ impl DynamicMasker {
             Some(step) => {
                 // Carry the last segmentation forward one frame.
                 if let Some(c) = self.carried.take_if(|c| c.at_sequence == step.from) {
-                    self.carried = Some(Carried { segmentation: warp_segmentation(&c.segmentation, &step.flow), at_sequence: step.to, ..c });
+                    self.carried =
+                        Some(Carried { segmentation: warp_segmentation(&c.segmentation, &step.flow), at_sequence: step.to, ..c });
                 }
             }
             None => {
@@ -365,7 +366,15 @@ impl DynamicMasker {
             times.ego_motion += t.elapsed();
             ego.map(|ego| {
                 let t = Instant::now();
-                let fused = fuse(w, h, s as usize, Some(&ego), self.carried.as_ref().map(|c| &c.segmentation), &self.prior_dynamic, &self.config.fusion);
+                let fused = fuse(
+                    w,
+                    h,
+                    s as usize,
+                    Some(&ego),
+                    self.carried.as_ref().map(|c| &c.segmentation),
+                    &self.prior_dynamic,
+                    &self.config.fusion,
+                );
                 let cells = self.dynamic_cells(&fused.labels);
                 times.fusion += t.elapsed();
                 (ego, fused, cells)
@@ -393,8 +402,17 @@ impl DynamicMasker {
         let tracking_dynamic = match seeds {
             Some(seeds) if growth_cells > 0 && seeds.contains(&1) => {
                 let grown = match &early {
-                    Some((ego, _, _)) => grow_over_surfaces(seeds, &ego.depth_m, gw, gh, growth_cells, self.config.fusion.region_depth_ratio),
-                    None => grow_over_surfaces(seeds, &self.ego.sample_depth(input.depth), gw, gh, growth_cells, self.config.fusion.region_depth_ratio),
+                    Some((ego, _, _)) => {
+                        grow_over_surfaces(seeds, &ego.depth_m, gw, gh, growth_cells, self.config.fusion.region_depth_ratio)
+                    }
+                    None => grow_over_surfaces(
+                        seeds,
+                        &self.ego.sample_depth(input.depth),
+                        gw,
+                        gh,
+                        growth_cells,
+                        self.config.fusion.region_depth_ratio,
+                    ),
                 };
                 Some(dilate(grown, gw, gh, radius_cells)?)
             }
@@ -435,7 +453,15 @@ impl DynamicMasker {
         }
         times.fusion += t.elapsed();
         times.total = started.elapsed();
-        self.pending = Some(Pending { sequence: input.sequence, small, previous: previous.map(|(_, p)| p), exclude, early, carried_cells: persistent, times });
+        self.pending = Some(Pending {
+            sequence: input.sequence,
+            small,
+            previous: previous.map(|(_, p)| p),
+            exclude,
+            early,
+            carried_cells: persistent,
+            times,
+        });
         Ok(mask)
     }
 
@@ -461,7 +487,9 @@ impl DynamicMasker {
             // disagrees and leaves fewer pixels moving.
             Some((early_ego, early_fused, early_cells)) => {
                 let better = match (self.latest_step(sequence), &previous, previous_from_current) {
-                    (Some(step), Some(prev), Some(tracked)) => self.ego.reconsider(&step.flow, &small, prev, &early_ego, &tracked, Some(&exclude)),
+                    (Some(step), Some(prev), Some(tracked)) => {
+                        self.ego.reconsider(&step.flow, &small, prev, &early_ego, &tracked, Some(&exclude))
+                    }
                     _ => None,
                 };
                 times.ego_motion += t.elapsed();
@@ -672,8 +700,23 @@ impl DynamicMasker {
                 bbox = [bbox[0].min(x), bbox[1].min(y), bbox[2].max(x + 1.0), bbox[3].max(y + 1.0)];
             }
             let class_name = self.class_names.get(usize::from(track.class_id)).cloned().unwrap_or_default();
-            seg.instances.push(crate::segment::Instance { id, class_id: track.class_id, class_name, score: track.score, bbox, pixels: kept.len() as u32 });
-            tracks.push(self.track_from(id, (track.class_id, track.score), track.detected_at, &kept, depth, pose.as_ref(), track.points.as_ref()));
+            seg.instances.push(crate::segment::Instance {
+                id,
+                class_id: track.class_id,
+                class_name,
+                score: track.score,
+                bbox,
+                pixels: kept.len() as u32,
+            });
+            tracks.push(self.track_from(
+                id,
+                (track.class_id, track.score),
+                track.detected_at,
+                &kept,
+                depth,
+                pose.as_ref(),
+                track.points.as_ref(),
+            ));
             coasted = true;
         }
         if !coasted {
@@ -725,7 +768,12 @@ impl DynamicMasker {
                 .map(|&i| {
                     let ideal = self.camera.undistort(&nalgebra::Point2::new((i % w) as f64, (i / w) as f64));
                     let z = f64::from(depth[i]) * metres;
-                    let p = anchor_from_camera * nalgebra::Point3::new((ideal.x - self.camera.cx) / self.camera.fx * z, (ideal.y - self.camera.cy) / self.camera.fy * z, z);
+                    let p = anchor_from_camera
+                        * nalgebra::Point3::new(
+                            (ideal.x - self.camera.cx) / self.camera.fx * z,
+                            (ideal.y - self.camera.cy) / self.camera.fy * z,
+                            z,
+                        );
                     [p.x as f32, p.y as f32, p.z as f32]
                 })
                 .collect();
@@ -735,7 +783,10 @@ impl DynamicMasker {
                 let (wf, hf) = (f64::from(self.camera.width), f64::from(self.camera.height));
                 let out_of_view = |p: &&[f32; 3]| {
                     let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-                    self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)).is_none_or(|r| r.x < 0.0 || r.y < 0.0 || r.x >= wf || r.y >= hf)
+                    self.camera
+                        .project(&q)
+                        .map(|ideal| self.camera.distort(&ideal))
+                        .is_none_or(|r| r.x < 0.0 || r.y < 0.0 || r.x >= wf || r.y >= hf)
                 };
                 tp.points.extend(prev.points.iter().filter(out_of_view));
                 tp.spacing_px = tp.spacing_px.max(prev.spacing_px);
@@ -902,7 +953,15 @@ fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec
     let side = 2 * radius as i32 + 1;
     let kernel = imgproc::get_structuring_element(imgproc::MORPH_ELLIPSE, Size::new(side, side), Point::new(-1, -1))?;
     let mut out = Mat::default();
-    imgproc::dilate(&src, &mut out, &kernel, Point::new(-1, -1), 1, opencv::core::BORDER_CONSTANT, imgproc::morphology_default_border_value()?)?;
+    imgproc::dilate(
+        &src,
+        &mut out,
+        &kernel,
+        Point::new(-1, -1),
+        1,
+        opencv::core::BORDER_CONSTANT,
+        imgproc::morphology_default_border_value()?,
+    )?;
     Ok(out.data_bytes()?.to_vec())
 }
 
@@ -918,11 +977,13 @@ mod tests {
     fn growth_follows_the_surface_and_stops_at_depth_edges_holes_and_its_reach() {
         let (w, h) = (12, 5);
         // Columns 0–7 board (with a hole at (4, 2)), 8–11 wall.
-        let depth: Vec<f32> = (0..w * h).map(|i| match (i % w, i / w) {
-            (4, 2) => 0.0,
-            (x, _) if x < 8 => 0.8 + 0.01 * x as f32,
-            _ => 2.0,
-        }).collect();
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| match (i % w, i / w) {
+                (4, 2) => 0.0,
+                (x, _) if x < 8 => 0.8 + 0.01 * x as f32,
+                _ => 2.0,
+            })
+            .collect();
         let mut seeds = vec![0u8; w * h];
         seeds[2 * w + 2] = 1;
         let grown = grow_over_surfaces(seeds.clone(), &depth, w, h, 3, 0.05);
@@ -963,15 +1024,27 @@ mod tests {
     #[test]
     fn a_missed_person_coasts_near_his_depth_and_is_taken_out_of_earlier_keyframes() {
         let (w, h) = (96usize, 72usize);
-        let camera = Camera { width: w as u32, height: h as u32, fx: 80.0, fy: 80.0, cx: 48.0, cy: 36.0, distortion: None, depth_units_per_metre: 1000.0, readout_s: 0.0 };
+        let camera = Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: 80.0,
+            fy: 80.0,
+            cx: 48.0,
+            cy: 36.0,
+            distortion: None,
+            depth_units_per_metre: 1000.0,
+            readout_s: 0.0,
+        };
         let mut config = PerceptionConfig::default();
         config.segmentation.track_coast_frames = 4;
         let mut masker = DynamicMasker::new(camera, config, &["person".to_string()]).expect("masker");
         // A still, textured scene: a wall at 3 m, a person at 1 m over columns 30..50.
-        let rgb: Vec<u8> = (0..w * h).flat_map(|i| {
-            let v = ((i % w) * 37 + (i / w) * 91 + (i % 7) * 53) as u8;
-            [v, v.wrapping_mul(3), v ^ 0x5a]
-        }).collect();
+        let rgb: Vec<u8> = (0..w * h)
+            .flat_map(|i| {
+                let v = ((i % w) * 37 + (i / w) * 91 + (i % 7) * 53) as u8;
+                [v, v.wrapping_mul(3), v ^ 0x5a]
+            })
+            .collect();
         let depth: Vec<u16> = (0..w * h).map(|i| if (30..50).contains(&(i % w)) { 1000 } else { 3000 }).collect();
         // The detection's mask spills 6 columns onto the wall (30..56), rows 10..60.
         let mut detection = Segmentation::empty(w as u32, h as u32);
@@ -980,10 +1053,20 @@ mod tests {
                 detection.instance_map[y * w + x] = 1;
             }
         }
-        detection.instances.push(crate::segment::Instance { id: 1, class_id: 0, class_name: "person".into(), score: 0.9, bbox: [30.0, 10.0, 56.0, 60.0], pixels: 26 * 50 });
-        let person_pixels = |m: &DynamicMasker| m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>());
+        detection.instances.push(crate::segment::Instance {
+            id: 1,
+            class_id: 0,
+            class_name: "person".into(),
+            score: 0.9,
+            bbox: [30.0, 10.0, 56.0, 60.0],
+            pixels: 26 * 50,
+        });
+        let person_pixels = |m: &DynamicMasker| {
+            m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>())
+        };
         let step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
-            m.prepare(MaskerInput { sequence: k, rgb: &rgb, depth: &depth, segmentation: seg.map(|s| (k, s)), motion_prior: None }).expect("prepare");
+            m.prepare(MaskerInput { sequence: k, rgb: &rgb, depth: &depth, segmentation: seg.map(|s| (k, s)), motion_prior: None })
+                .expect("prepare");
             m.finish(&depth, Some(Isometry3::identity())).expect("finish")
         };
         // Frame 0 has no person detected and becomes keyframe 100: the person is fused.
@@ -1017,7 +1100,17 @@ mod tests {
     #[test]
     fn a_track_out_of_view_is_remembered_by_its_points() {
         let (w, h) = (96usize, 72usize);
-        let camera = Camera { width: w as u32, height: h as u32, fx: 80.0, fy: 80.0, cx: 48.0, cy: 36.0, distortion: None, depth_units_per_metre: 1000.0, readout_s: 0.0 };
+        let camera = Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: 80.0,
+            fy: 80.0,
+            cx: 48.0,
+            cy: 36.0,
+            distortion: None,
+            depth_units_per_metre: 1000.0,
+            readout_s: 0.0,
+        };
         let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
         let depth = vec![1000u16; w * h];
         // A person over columns 40..56, rows 20..60, seen at the identity pose.
@@ -1063,7 +1156,13 @@ mod tests {
         let depth: Vec<u16> = (0..w * h).map(|i| if i % w < 40 { 2000 } else { 4000 }).collect();
         // A dynamic block at columns 20..30, rows 10..20.
         let labels: Vec<u8> = (0..w * h)
-            .map(|i| if (20..30).contains(&(i % w)) && (10..20).contains(&(i / w)) { PixelLabel::Dynamic as u8 } else { PixelLabel::Static as u8 })
+            .map(|i| {
+                if (20..30).contains(&(i % w)) && (10..20).contains(&(i / w)) {
+                    PixelLabel::Dynamic as u8
+                } else {
+                    PixelLabel::Static as u8
+                }
+            })
             .collect();
         let fused = Fused { width: w, height: h, labels, instances: vec![], flow_regions: 0, rejected_regions: 0 };
         let mask = masker.mapping_mask(&fused, &depth).expect("mask");

@@ -141,7 +141,13 @@ impl KeyframeOrigins {
             }
             if !cells.is_empty() {
                 cells.sort_unstable();
-                out.push(Retraction { keyframe: f.keyframe, cells, grid_width: grid_width as u32, grid_height: grid_height as u32, subsample });
+                out.push(Retraction {
+                    keyframe: f.keyframe,
+                    cells,
+                    grid_width: grid_width as u32,
+                    grid_height: grid_height as u32,
+                    subsample,
+                });
             }
         }
         out

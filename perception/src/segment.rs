@@ -192,9 +192,8 @@ impl YoloSegmenter {
             OpenError::Load(why) => load(why),
         })?;
 
-        let not_yolo = |why: String| {
-            PerceptionError::Model(format!("segmentation model {} is not a YOLOv8-seg export: {why}", path.display()))
-        };
+        let not_yolo =
+            |why: String| PerceptionError::Model(format!("segmentation model {} is not a YOLOv8-seg export: {why}", path.display()));
         let input = session.inputs().first().ok_or_else(|| not_yolo("it has no input".into()))?;
         let input_name = input.name().to_string();
         let input_shape = tensor_shape(input.dtype()).ok_or_else(|| not_yolo("its input is not a tensor".into()))?;
@@ -316,17 +315,7 @@ impl YoloSegmenter {
             let det = &det[i * det_len..(i + 1) * det_len];
             let proto = &proto[i * proto_len..(i + 1) * proto_len];
             let detections = yolo::decode_detections(det, self.anchors, self.classes, self.mask_dim, &self.params)?;
-            out.push(yolo::assemble(
-                &detections,
-                proto,
-                self.mask_dim,
-                self.proto_side,
-                lb,
-                f.width,
-                f.height,
-                &self.params,
-                &self.names,
-            )?);
+            out.push(yolo::assemble(&detections, proto, self.mask_dim, self.proto_side, lb, f.width, f.height, &self.params, &self.names)?);
         }
         Ok(out)
     }
@@ -383,10 +372,9 @@ fn with_provider(
     let mut gpu = builder.clone();
     let registered = match config.execution_provider {
         ExecutionProvider::Cpu => return Ok((builder, "cpu".into())),
-        ExecutionProvider::Cuda => ort::ep::CUDA::default()
-            .with_device_id(device_id)
-            .register(&mut gpu)
-            .map(|()| format!("cuda:{device_id}")),
+        ExecutionProvider::Cuda => {
+            ort::ep::CUDA::default().with_device_id(device_id).register(&mut gpu).map(|()| format!("cuda:{device_id}"))
+        }
         ExecutionProvider::Tensorrt => {
             let cache = &config.tensorrt_cache_dir;
             let trt = ort::ep::TensorRT::default()
@@ -439,9 +427,10 @@ impl Segmenter for YoloSegmenter {
             if b > 1 && !self.shape_sessions.iter().any(|(shape, _)| *shape == b) {
                 let (session, _) = open_session(&self.config).map_err(|e| match e {
                     OpenError::Runtime(e) => e,
-                    OpenError::Provider(why) | OpenError::Load(why) => {
-                        PerceptionError::Model(format!("cannot load segmentation model {} for batches of {b}: {why}", self.model_path.display()))
-                    }
+                    OpenError::Provider(why) | OpenError::Load(why) => PerceptionError::Model(format!(
+                        "cannot load segmentation model {} for batches of {b}: {why}",
+                        self.model_path.display()
+                    )),
                 })?;
                 self.shape_sessions.push((b, session));
             }

@@ -18,7 +18,12 @@ pub fn warp_segmentation(previous: &Segmentation, flow: &FlowField) -> Segmentat
         .iter()
         .map(|i| {
             let clamp = |v: f32, hi: usize| (v.max(0.0) as usize).min(hi);
-            [clamp((i.bbox[0] - reach).floor(), w), clamp((i.bbox[1] - reach).floor(), h), clamp((i.bbox[2] + reach).ceil(), w), clamp((i.bbox[3] + reach).ceil(), h)]
+            [
+                clamp((i.bbox[0] - reach).floor(), w),
+                clamp((i.bbox[1] - reach).floor(), h),
+                clamp((i.bbox[2] + reach).ceil(), w),
+                clamp((i.bbox[3] + reach).ceil(), h),
+            ]
         })
         .collect();
     let map = warp_map_in(&previous.instance_map, w, h, flow, NO_INSTANCE, &regions);
@@ -104,7 +109,14 @@ mod tests {
                 seg.instance_map[y * w as usize + x] = 1;
             }
         }
-        seg.instances.push(Instance { id: 1, class_id: 0, class_name: "person".into(), score: 0.8, bbox: [10.0, 10.0, 30.0, 20.0], pixels: 200 });
+        seg.instances.push(Instance {
+            id: 1,
+            class_id: 0,
+            class_name: "person".into(),
+            score: 0.8,
+            bbox: [10.0, 10.0, 30.0, 20.0],
+            pixels: 200,
+        });
         // The scene moved 6 px right: current (x, y) shows previous (x − 6, y).
         let flow = FlowField { width: 32, height: 24, subsample: 2, data: vec![[-3.0, 0.0]; 32 * 24] };
         let out = warp_segmentation(&seg, &flow);

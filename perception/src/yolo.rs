@@ -56,14 +56,7 @@ pub fn preprocess(rgb: &[u8], width: u32, height: u32, lb: &Letterbox) -> Result
     let src = Mat::new_rows_cols_with_data(height as i32, width as i32 * 3, rgb)?;
     let src = src.reshape(3, height as i32)?;
     let mut resized = Mat::default();
-    imgproc::resize(
-        &src,
-        &mut resized,
-        Size::new(lb.resized_w as i32, lb.resized_h as i32),
-        0.0,
-        0.0,
-        imgproc::INTER_LINEAR,
-    )?;
+    imgproc::resize(&src, &mut resized, Size::new(lb.resized_w as i32, lb.resized_h as i32), 0.0, 0.0, imgproc::INTER_LINEAR)?;
     let s = lb.size as usize;
     let plane = s * s;
     let mut out = vec![f32::from(PAD_VALUE) / 255.0; 3 * plane];
@@ -122,10 +115,7 @@ pub fn decode_detections(
 ) -> Result<Vec<Detection>, PerceptionError> {
     let rows = 4 + classes + mask_dim;
     if output0.len() != rows * anchors {
-        return Err(PerceptionError::Model(format!(
-            "output0 holds {} values, expected {rows}×{anchors}",
-            output0.len()
-        )));
+        return Err(PerceptionError::Model(format!("output0 holds {} values, expected {rows}×{anchors}", output0.len())));
     }
     let at = |row: usize, j: usize| output0[row * anchors + j];
     let mut candidates = Vec::new();

@@ -10,11 +10,11 @@
 //! A benchmark, not a check: it prints the table docs/people.md quotes.
 //! `cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture`
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
-mod support;
 #[path = "support/composite_run.rs"]
 mod composite_run;
+mod support;
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
 
 use composite_run::{CompositeFrame, Schedule, Stage};
 use nalgebra::Isometry3;
@@ -38,13 +38,21 @@ fn boards(poses: &[Isometry3<f64>]) -> Vec<Board> {
         // Standing 0.7 m ahead in the first frame; carried off to the right after 1.5 s.
         Board {
             plane: photo("bus.jpg", 0.7, 0.5),
-            motion: StopAndGo { waypoints: vec![(0.0, s.at(0.7, 0.1, z)), (1.5, s.at(0.7, 0.1, z)), (3.0, s.at(0.7, 1.3, z))], rotation: s.facing },
+            motion: StopAndGo {
+                waypoints: vec![(0.0, s.at(0.7, 0.1, z)), (1.5, s.at(0.7, 0.1, z)), (3.0, s.at(0.7, 1.3, z))],
+                rotation: s.facing,
+            },
         },
         // Carried in from the left, set down for 1.5 s, carried on to the right.
         Board {
             plane: photo("astronaut.png", 0.7, 0.5),
             motion: StopAndGo {
-                waypoints: vec![(0.0, s.at(0.8, -1.2, z)), (1.5, s.at(0.8, -0.25, z)), (3.0, s.at(0.8, -0.25, z)), (4.5, s.at(0.8, 0.5, z))],
+                waypoints: vec![
+                    (0.0, s.at(0.8, -1.2, z)),
+                    (1.5, s.at(0.8, -0.25, z)),
+                    (3.0, s.at(0.8, -0.25, z)),
+                    (4.5, s.at(0.8, 0.5, z)),
+                ],
                 rotation: s.facing,
             },
         },
@@ -62,7 +70,9 @@ fn boards_carried_through_the_view() {
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     let camera = tum::fr1_camera();
     let dirs = [tum::fr1_rpy_dir(), tum::fr1_rpy_dir().with_file_name("rgbd_dataset_freiburg1_rpy_b")];
-    println!("| clip | boards cover (mean / max / first frame) | ATE object-free | ATE boards, mask | ATE boards, no mask | frames without a pose (free / mask / no mask) | ATE, exact mask of every board / of the moving boards |");
+    println!(
+        "| clip | boards cover (mean / max / first frame) | ATE object-free | ATE boards, mask | ATE boards, no mask | frames without a pose (free / mask / no mask) | ATE, exact mask of every board / of the moving boards |"
+    );
     println!("|---|---|---|---|---|---|---|");
     for dir in &dirs {
         let frames = tum::load(dir, 150);
@@ -95,7 +105,8 @@ fn boards_carried_through_the_view() {
                 CompositeFrame { timestamp_ns: f.timestamp_ns, rgb, depth, object_mask }
             })
             .collect();
-        let cover: Vec<f64> = composite.iter().map(|f| f.object_mask.iter().filter(|&&m| m != 0).count() as f64 / f.object_mask.len() as f64).collect();
+        let cover: Vec<f64> =
+            composite.iter().map(|f| f.object_mask.iter().filter(|&&m| m != 0).count() as f64 / f.object_mask.len() as f64).collect();
         let schedule = Schedule::Late { every: 2, delay: 0 };
         let free = composite_run::run(&composite_run::without_object(&frames), Some(&mut seg), schedule, false);
         let masked = composite_run::run(&composite, Some(&mut seg), schedule, std::env::var_os("STILLMAP_VERBOSE").is_some());
@@ -104,7 +115,8 @@ fn boards_carried_through_the_view() {
         let exact = composite_run::track_masked(&composite, &every_board);
         let exact_moving = composite_run::track_masked(&composite, &moving_masks);
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let ate = |t: &[(u64, Isometry3<f64>)]| if t.len() > 2 { format!("{:.2} cm", 100.0 * tum::score(&gt, t).ate_m) } else { "–".into() };
+        let ate =
+            |t: &[(u64, Isometry3<f64>)]| if t.len() > 2 { format!("{:.2} cm", 100.0 * tum::score(&gt, t).ate_m) } else { "–".into() };
         println!(
             "| {name} | {:.0} % / {:.0} % / {:.0} % | {} | {} | {} | {} / {} / {} | {} / {} |",
             100.0 * cover.iter().sum::<f64>() / cover.len() as f64,

@@ -3,16 +3,16 @@
 //! hand-held motion) consistently with the ground truth, and the fused mask is
 //! scored against the board's exact mask. Run with `--nocapture` for the numbers.
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
-mod support;
 #[path = "support/composite_run.rs"]
 mod composite_run;
+mod support;
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
 
 use std::sync::OnceLock;
 
-use stillmap_perception::YoloSegmenter;
 use composite_run::{CompositeFrame, Schedule};
+use stillmap_perception::YoloSegmenter;
 
 /// The clip's frames, their composite with the board, and the ground truth.
 type Clip = (Vec<tum::TumFrame>, Vec<CompositeFrame>, Vec<(u64, nalgebra::Isometry3<f64>)>);
@@ -39,14 +39,27 @@ fn moving_board_is_found_while_the_camera_rotates() {
             let g0 = gt.iter().min_by_key(|(g, _)| g.abs_diff(s.trajectory[0].0)).expect("gt").1;
             let g = gt.iter().min_by_key(|(g, _)| g.abs_diff(*t)).expect("gt").1;
             let truth = g0.inverse() * g;
-            eprintln!("pose {t}: with {:.4} plain {:.4} (to truth from the first frame)", (a.translation.vector - truth.translation.vector).norm(), (b.translation.vector - truth.translation.vector).norm());
+            eprintln!(
+                "pose {t}: with {:.4} plain {:.4} (to truth from the first frame)",
+                (a.translation.vector - truth.translation.vector).norm(),
+                (b.translation.vector - truth.translation.vector).norm()
+            );
         }
     }
     let with_object = tum::score(gt, &s.trajectory);
     let without = tum::score(gt, &plain);
     eprintln!(
         "scored {} frames: IoU mean {:.3} min {:.3}; false-dynamic {:.4}; features on object {} eliminated {:.4}; ATE with object {:.4} m / without {:.4} m; RPE {:.4} / {:.4} m",
-        s.scored_frames, s.mean_iou, s.min_iou, s.false_dynamic, s.object_features, s.eliminated_fraction, with_object.ate_m, without.ate_m, with_object.rpe_m, without.rpe_m
+        s.scored_frames,
+        s.mean_iou,
+        s.min_iou,
+        s.false_dynamic,
+        s.object_features,
+        s.eliminated_fraction,
+        with_object.ate_m,
+        without.ate_m,
+        with_object.rpe_m,
+        without.rpe_m
     );
     if std::env::var_os("STILLMAP_VERBOSE").is_some() {
         // The same masker and tracker on the frames without the board: what
@@ -74,7 +87,12 @@ fn moving_board_is_found_while_the_camera_rotates() {
     assert!(on_board > 100 && removed * 2 >= on_board, "frame 1: {removed} of {on_board} board features removed");
     assert_eq!(s.trajectory.len(), frames.len(), "every composite frame tracked");
     assert!(with_object.ate_m <= 0.035, "ATE {:.4} vs {:.4}", with_object.ate_m, without.ate_m);
-    assert!(with_object.ate_m <= 1.2 * without.ate_m, "ATE with the board {:.4} m is over 120 % of {:.4} m without it", with_object.ate_m, without.ate_m);
+    assert!(
+        with_object.ate_m <= 1.2 * without.ate_m,
+        "ATE with the board {:.4} m is over 120 % of {:.4} m without it",
+        with_object.ate_m,
+        without.ate_m
+    );
 }
 
 /// Segmentation that arrives late (every third frame, two frames after its own) is

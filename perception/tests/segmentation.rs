@@ -152,7 +152,11 @@ fn padded_batches_give_the_same_results() {
     assert_eq!(padded.warm_up(3).expect("warm-up"), [1, 2, 4]);
     let (bus, bw, bh) = photo("bus.jpg");
     let (astronaut, aw, ah) = photo("astronaut.png");
-    let frames = [RgbFrame { rgb: &bus, width: bw, height: bh }, RgbFrame { rgb: &astronaut, width: aw, height: ah }, RgbFrame { rgb: &bus, width: bw, height: bh }];
+    let frames = [
+        RgbFrame { rgb: &bus, width: bw, height: bh },
+        RgbFrame { rgb: &astronaut, width: aw, height: ah },
+        RgbFrame { rgb: &bus, width: bw, height: bh },
+    ];
     let three = padded.segment_batch(&frames).expect("3 frames run as a batch of 4");
     assert_eq!(three, plain.segment_batch(&frames).expect("3 frames as 3"));
     assert_eq!(count(&three[0], "bus"), 1);

@@ -13,9 +13,9 @@
 
 use factrs::assign_symbols;
 use factrs::containers::{Graph, Values};
-use factrs::optimizers::{BaseOptParams, LevenParams, OptError};
 use factrs::core::{BetweenResidual, GaussianNoise, Huber, LevenMarquardt, PriorResidual, SE3, SO3};
 use factrs::linalg::Vector3 as FVector3;
+use factrs::optimizers::{BaseOptParams, LevenParams, OptError};
 use factrs::traits::Optimizer;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
@@ -100,7 +100,11 @@ impl PoseGraph {
         let mut graph = Graph::new();
         // The gauge: a tight prior on the fixed keyframe.
         let gauge = key(config.fixed)?;
-        graph.add_factor(factrs::fac![PriorResidual::new(se3(&self.poses[config.fixed])), gauge, GaussianNoise::<6>::from_split_sigma(1e-6, 1e-6)]);
+        graph.add_factor(factrs::fac![
+            PriorResidual::new(se3(&self.poses[config.fixed])),
+            gauge,
+            GaussianNoise::<6>::from_split_sigma(1e-6, 1e-6)
+        ]);
         for e in &self.edges {
             let noise = GaussianNoise::<6>::from_split_sigma(e.sigma_rotation_rad, e.sigma_translation_m);
             let (from, to) = (key(e.from)?, key(e.to)?);
@@ -113,7 +117,10 @@ impl PoseGraph {
                 }
             }
         }
-        let params = LevenParams { base: BaseOptParams { max_iterations: config.max_iterations, ..BaseOptParams::default() }, ..LevenParams::default() };
+        let params = LevenParams {
+            base: BaseOptParams { max_iterations: config.max_iterations, ..BaseOptParams::default() },
+            ..LevenParams::default()
+        };
         let mut optimizer = LevenMarquardt::new(params, graph);
         let result = match optimizer.optimize(values) {
             Ok(values) => values,
@@ -164,10 +171,20 @@ mod tests {
         let truth = [pose(0.0, 0.0, 0.0), pose(1.0, 0.0, 90.0), pose(1.0, 1.0, 180.0), pose(0.0, 1.0, 270.0)];
         let mut graph = PoseGraph::default();
         for (i, t) in truth.iter().enumerate() {
-            let off = if i == 0 { Isometry3::identity() } else { Isometry3::new(Vector3::new(0.1, -0.05, 0.03), Vector3::new(0.02, -0.05, 0.08)) };
+            let off = if i == 0 {
+                Isometry3::identity()
+            } else {
+                Isometry3::new(Vector3::new(0.1, -0.05, 0.03), Vector3::new(0.02, -0.05, 0.08))
+            };
             graph.add_pose(t * off);
         }
-        for (a, b, kind) in [(0, 1, EdgeKind::Odometry), (1, 2, EdgeKind::Odometry), (2, 3, EdgeKind::Odometry), (3, 0, EdgeKind::Loop), (0, 2, EdgeKind::InterSession)] {
+        for (a, b, kind) in [
+            (0, 1, EdgeKind::Odometry),
+            (1, 2, EdgeKind::Odometry),
+            (2, 3, EdgeKind::Odometry),
+            (3, 0, EdgeKind::Loop),
+            (0, 2, EdgeKind::InterSession),
+        ] {
             graph.add_edge(edge(a, b, truth[a].inverse() * truth[b], kind)).expect("edge");
         }
         let solved = graph.optimize(&SolveConfig::default()).expect("solved");
@@ -185,10 +202,12 @@ mod tests {
     #[test]
     fn a_loop_takes_the_drift_out_of_a_circle() {
         let n = 24;
-        let truth: Vec<Isometry3<f64>> = (0..n).map(|i| {
-            let a = (i as f64 / n as f64) * std::f64::consts::TAU;
-            Isometry3::new(Vector3::new(2.0 * a.sin(), 2.0 - 2.0 * a.cos(), 0.0), Vector3::new(0.0, 0.0, a))
-        }).collect();
+        let truth: Vec<Isometry3<f64>> = (0..n)
+            .map(|i| {
+                let a = (i as f64 / n as f64) * std::f64::consts::TAU;
+                Isometry3::new(Vector3::new(2.0 * a.sin(), 2.0 - 2.0 * a.cos(), 0.0), Vector3::new(0.0, 0.0, a))
+            })
+            .collect();
         let drift = Isometry3::new(Vector3::zeros(), Vector3::new(0.0, 0.0, 0.5f64.to_radians()));
         let mut graph = PoseGraph::default();
         let mut p = truth[0];
@@ -200,7 +219,9 @@ mod tests {
             graph.add_edge(edge(i - 1, i, step, EdgeKind::Odometry)).expect("odometry");
         }
         graph.add_edge(edge(n - 1, 0, truth[n - 1].inverse() * truth[0], EdgeKind::Loop)).expect("loop");
-        let error = |poses: &[Isometry3<f64>]| poses.iter().zip(&truth).map(|(p, t)| (p.translation.vector - t.translation.vector).norm()).fold(0.0, f64::max);
+        let error = |poses: &[Isometry3<f64>]| {
+            poses.iter().zip(&truth).map(|(p, t)| (p.translation.vector - t.translation.vector).norm()).fold(0.0, f64::max)
+        };
         let (before, after) = (error(&graph.poses), error(&graph.optimize(&SolveConfig::default()).expect("solved")));
         assert!(before > 0.3 && after < before / 5.0, "worst keyframe {before:.3} m before, {after:.3} m after");
     }
@@ -214,10 +235,28 @@ mod tests {
             graph.add_pose(Isometry3::new(Vector3::new(0.5 * i as f64, 0.0, 0.0), Vector3::zeros()));
         }
         for i in 0..7 {
-            graph.add_edge(Edge { from: i, to: i + 1, from_from_to: step, kind: EdgeKind::Odometry, sigma_rotation_rad: 0.01, sigma_translation_m: 0.01 }).expect("edge");
+            graph
+                .add_edge(Edge {
+                    from: i,
+                    to: i + 1,
+                    from_from_to: step,
+                    kind: EdgeKind::Odometry,
+                    sigma_rotation_rad: 0.01,
+                    sigma_translation_m: 0.01,
+                })
+                .expect("edge");
         }
         let wrong = Isometry3::new(Vector3::new(1.5, 2.0, 0.0), Vector3::zeros());
-        graph.add_edge(Edge { from: 0, to: 3, from_from_to: wrong, kind: EdgeKind::Loop, sigma_rotation_rad: 0.01, sigma_translation_m: 0.01 }).expect("edge");
+        graph
+            .add_edge(Edge {
+                from: 0,
+                to: 3,
+                from_from_to: wrong,
+                kind: EdgeKind::Loop,
+                sigma_rotation_rad: 0.01,
+                sigma_translation_m: 0.01,
+            })
+            .expect("edge");
         let solved = graph.optimize(&SolveConfig::default()).expect("solved");
         let worst = solved.iter().zip(&graph.poses).map(|(s, p)| (s.translation.vector - p.translation.vector).norm()).fold(0.0, f64::max);
         assert!(worst < 0.25, "the wrong loop moved a keyframe {worst:.3} m (it asks for 2 m)");

@@ -115,11 +115,8 @@ impl<K: Copy + Eq + Hash> PlaceIndex<K> {
                 *scores.entry(entry).or_insert(0.0) += v + x - (v - x).abs();
             }
         }
-        let mut ranked: Vec<(u32, f32)> = scores
-            .into_iter()
-            .map(|(e, s)| (e, 0.5 * s))
-            .filter(|&(e, s)| s >= min_score && accept(&self.entries[e as usize].0))
-            .collect();
+        let mut ranked: Vec<(u32, f32)> =
+            scores.into_iter().map(|(e, s)| (e, 0.5 * s)).filter(|&(e, s)| s >= min_score && accept(&self.entries[e as usize].0)).collect();
         ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
         ranked.truncate(max_results);
         ranked.into_iter().map(|(e, s)| (self.entries[e as usize].0, s)).collect()

@@ -27,7 +27,6 @@ pub use merge::{MergeConfig, MergeDetector, Merged, propose};
 pub use verify::{Place, Verified, VerifyConfig, verify};
 pub use vocabulary::{BowVector, TrainConfig, Vocabulary};
 
-
 /// Errors of the places crate.
 #[derive(Debug, thiserror::Error)]
 pub enum PlacesError {

@@ -52,7 +52,11 @@ pub struct Merged {
 /// A proposed `fleet_from_session` from one verified match: the fleet keyframe's
 /// pose, the verified relative pose, and the session keyframe's pose (composed
 /// right to left: session → query camera → candidate camera → fleet).
-pub fn propose(fleet_from_candidate: &Isometry3<f64>, query_from_candidate: &Isometry3<f64>, session_from_query: &Isometry3<f64>) -> Isometry3<f64> {
+pub fn propose(
+    fleet_from_candidate: &Isometry3<f64>,
+    query_from_candidate: &Isometry3<f64>,
+    session_from_query: &Isometry3<f64>,
+) -> Isometry3<f64> {
     fleet_from_candidate * query_from_candidate.inverse() * session_from_query.inverse()
 }
 

@@ -93,8 +93,15 @@ impl VerifyConfig {
         if !(self.ratio > 0.0 && self.ratio <= 1.0 && (0.0..=1.0).contains(&self.min_inlier_ratio)) {
             return Err(PlacesError::Config("verify: ratio must be in (0, 1] and min_inlier_ratio in [0, 1]".into()));
         }
-        if self.min_matches < 6 || self.min_inliers < 6 || self.pnp_threshold_px.is_nan() || self.pnp_threshold_px <= 0.0 || self.pnp_iterations < 1 {
-            return Err(PlacesError::Config("verify: min_matches and min_inliers must be at least 6, the PnP threshold and iterations positive".into()));
+        if self.min_matches < 6
+            || self.min_inliers < 6
+            || self.pnp_threshold_px.is_nan()
+            || self.pnp_threshold_px <= 0.0
+            || self.pnp_iterations < 1
+        {
+            return Err(PlacesError::Config(
+                "verify: min_matches and min_inliers must be at least 6, the PnP threshold and iterations positive".into(),
+            ));
         }
         if !(self.depth_baseline_m > 0.0 && self.scale_factor >= 1.0) {
             return Err(PlacesError::Config("verify: depth_baseline_m must be positive and scale_factor at least 1".into()));
@@ -207,7 +214,11 @@ mod tests {
         let v = verify(&camera, &pb, &pa, &config).expect("same room, verified");
         let truth = b.inverse() * a;
         let error = truth.inverse() * v.query_from_candidate;
-        assert!(error.translation.vector.norm() < 0.01 && error.rotation.angle() < 0.5f64.to_radians(), "{error:?} ({} inliers)", v.inliers);
+        assert!(
+            error.translation.vector.norm() < 0.01 && error.rotation.angle() < 0.5f64.to_radians(),
+            "{error:?} ({} inliers)",
+            v.inliers
+        );
         assert!(verify(&camera, &pb, &place(&Scene::room(8), &a), &config).is_none(), "another room's textures must not verify");
         assert!(verify(&camera, &pb, &Place::default(), &config).is_none());
         let pixels_dropped = Place { pixels: Vec::new(), octaves: Vec::new(), ..pa.clone() };

@@ -233,7 +233,10 @@ impl Vocabulary {
         }
         let u32_at = |o: usize| u32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
         let (branching, depth, node_count, word_count) = (u32_at(8), u32_at(12), u32_at(16) as usize, u32_at(20) as usize);
-        let expected = node_count.checked_mul(NODE_BYTES).and_then(|n| n.checked_add(word_count.checked_mul(4)?)).and_then(|n| n.checked_add(HEADER_BYTES));
+        let expected = node_count
+            .checked_mul(NODE_BYTES)
+            .and_then(|n| n.checked_add(word_count.checked_mul(4)?))
+            .and_then(|n| n.checked_add(HEADER_BYTES));
         if expected != Some(bytes.len()) || node_count == 0 || node_count > MAX_NODES || word_count > node_count {
             return Err(bad(format!("{} bytes, but the header declares {node_count} nodes and {word_count} words", bytes.len())));
         }
@@ -241,13 +244,19 @@ impl Vocabulary {
         for k in 0..node_count {
             let o = HEADER_BYTES + k * NODE_BYTES;
             let w = |i: usize| u64::from_le_bytes(bytes[o + 8 * i..o + 8 * i + 8].try_into().unwrap_or([0; 8]));
-            nodes.push(Node { descriptor: [w(0), w(1), w(2), w(3)], first_child: u32_at(o + 32), children: u32_at(o + 36), word: u32_at(o + 40) });
+            nodes.push(Node {
+                descriptor: [w(0), w(1), w(2), w(3)],
+                first_child: u32_at(o + 32),
+                children: u32_at(o + 36),
+                word: u32_at(o + 40),
+            });
         }
         let idf: Vec<f32> = (0..word_count).map(|k| f32::from_bits(u32_at(HEADER_BYTES + node_count * NODE_BYTES + 4 * k))).collect();
         let mut words_seen = vec![false; word_count];
         for (k, n) in nodes.iter().enumerate() {
             if n.children == 0 {
-                let seen = words_seen.get_mut(n.word as usize).ok_or_else(|| bad(format!("leaf {k} names word {} of {word_count}", n.word)))?;
+                let seen =
+                    words_seen.get_mut(n.word as usize).ok_or_else(|| bad(format!("leaf {k} names word {} of {word_count}", n.word)))?;
                 if std::mem::replace(seen, true) {
                     return Err(bad(format!("word {} has two leaves", n.word)));
                 }
@@ -418,7 +427,10 @@ mod tests {
         let err = Vocabulary::from_bytes(&bytes[..bytes.len() - 1]).expect_err("truncated");
         assert!(err.to_string().starts_with("bad vocabulary: "), "{err}");
         assert!(err.to_string().contains("header declares"), "{err}");
-        assert_eq!(Vocabulary::from_bytes(b"PNG").expect_err("junk").to_string(), "bad vocabulary: not a stillmap vocabulary (wrong header)");
+        assert_eq!(
+            Vocabulary::from_bytes(b"PNG").expect_err("junk").to_string(),
+            "bad vocabulary: not a stillmap vocabulary (wrong header)"
+        );
         // A header declaring 2^31 nodes in 24 bytes allocates nothing.
         let mut huge = bytes[..HEADER_BYTES].to_vec();
         huge[16..20].copy_from_slice(&(1u32 << 31).to_le_bytes());

@@ -39,7 +39,12 @@ fn track(camera: &Camera, frames: impl Iterator<Item = (u64, Vec<u8>, Vec<u16>)>
             trajectory.push((timestamp_ns, p));
         }
     }
-    let keyframes = tracker.map().keyframes.values().map(|kf| (kf.timestamp_ns, kf.world_from_camera, Place::from_features(camera, &kf.features))).collect();
+    let keyframes = tracker
+        .map()
+        .keyframes
+        .values()
+        .map(|kf| (kf.timestamp_ns, kf.world_from_camera, Place::from_features(camera, &kf.features)))
+        .collect();
     Session { keyframes, trajectory }
 }
 
@@ -198,8 +203,13 @@ fn robot_b_merges_into_robot_a_and_look_alikes_never_do() {
     println!("|---|---|");
     println!("| vocabulary (shipped: A's clip, 30 frames) | {} words, {} KB |", vocabulary.words(), vocabulary.to_bytes().len() / 1024);
     println!("| keyframes A / B | {} / {} |", a.keyframes.len(), b.keyframes.len());
-    println!("| index postings per keyframe | {:.0} ({:.1} KB with the entry's vector) |", index.postings() as f64 / index.len() as f64, index.postings() as f64 * 16.0 / index.len() as f64 / 1024.0);
-    let with_depth = a.keyframes.iter().map(|k| k.2.points.iter().filter(|p| p.is_some()).count()).sum::<usize>() as f64 / a.keyframes.len() as f64;
+    println!(
+        "| index postings per keyframe | {:.0} ({:.1} KB with the entry's vector) |",
+        index.postings() as f64 / index.len() as f64,
+        index.postings() as f64 * 16.0 / index.len() as f64 / 1024.0
+    );
+    let with_depth =
+        a.keyframes.iter().map(|k| k.2.points.iter().filter(|p| p.is_some()).count()).sum::<usize>() as f64 / a.keyframes.len() as f64;
     // A stored candidate keeps its features with depth: pixel, octave, point, descriptor.
     let per_feature = std::mem::size_of::<nalgebra::Point2<f64>>() + 1 + std::mem::size_of::<Option<nalgebra::Point3<f64>>>() + 32;
     println!("| stored place per keyframe | {with_depth:.0} features with depth, {:.1} KB |", with_depth * per_feature as f64 / 1024.0);
@@ -209,7 +219,12 @@ fn robot_b_merges_into_robot_a_and_look_alikes_never_do() {
     println!("| B: pairings verified / tried | {} / {} |", found.verified, found.pairings);
     println!("| query / verification per keyframe | {:.2} / {:.1} ms |", found.query_ms, found.verify_ms);
     println!("| mirrored B: verified / tried, merged | {} / {}, {} |", mirror.verified, mirror.pairings, mirror.merged.is_some());
-    println!("| synthetic room: verified / tried, merged | {} / {}, {} |", synthetic.verified, synthetic.pairings, synthetic.merged.is_some());
+    println!(
+        "| synthetic room: verified / tried, merged | {} / {}, {} |",
+        synthetic.verified,
+        synthetic.pairings,
+        synthetic.merged.is_some()
+    );
     println!("| synthetic room's own loops verified, worst error | {loops}, {:.1} mm |", 1000.0 * worst_loop_m);
 
     // Measured (2026-12-03): merged 0.20 s after B's first keyframe; 0.78 cm and

@@ -20,7 +20,8 @@ const FRAME_NS: u64 = 33_333_333;
 
 /// RMS position error of keyframe poses against the exact ones.
 fn rms(poses: &[Isometry3<f64>], truth: &[Isometry3<f64>]) -> f64 {
-    (poses.iter().zip(truth).map(|(p, t)| (p.translation.vector - t.translation.vector).norm_squared()).sum::<f64>() / poses.len() as f64).sqrt()
+    (poses.iter().zip(truth).map(|(p, t)| (p.translation.vector - t.translation.vector).norm_squared()).sum::<f64>() / poses.len() as f64)
+        .sqrt()
 }
 
 #[test]
@@ -33,8 +34,12 @@ fn loops_take_an_injected_drift_out() {
         let f = render(&scene, &camera, p);
         tracker.track(&FrameInput { timestamp_ns: k as u64 * FRAME_NS, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
     }
-    let keyframes: Vec<(usize, Isometry3<f64>, Place)> =
-        tracker.map().keyframes.values().map(|kf| ((kf.timestamp_ns / FRAME_NS) as usize, kf.world_from_camera, Place::from_features(&camera, &kf.features))).collect();
+    let keyframes: Vec<(usize, Isometry3<f64>, Place)> = tracker
+        .map()
+        .keyframes
+        .values()
+        .map(|kf| ((kf.timestamp_ns / FRAME_NS) as usize, kf.world_from_camera, Place::from_features(&camera, &kf.features)))
+        .collect();
     let truth: Vec<Isometry3<f64>> = keyframes.iter().map(|k| path[k.0]).collect();
     let tracked: Vec<Isometry3<f64>> = keyframes.iter().map(|k| k.1).collect();
 
@@ -53,7 +58,16 @@ fn loops_take_an_injected_drift_out() {
     }
     for i in 1..drifted.len() {
         let step = drifted[i - 1].inverse() * drifted[i];
-        graph.add_edge(Edge { from: i - 1, to: i, from_from_to: step, kind: EdgeKind::Odometry, sigma_rotation_rad: 0.01, sigma_translation_m: 0.01 }).expect("odometry");
+        graph
+            .add_edge(Edge {
+                from: i - 1,
+                to: i,
+                from_from_to: step,
+                kind: EdgeKind::Odometry,
+                sigma_rotation_rad: 0.01,
+                sigma_translation_m: 0.01,
+            })
+            .expect("odometry");
     }
     // Loops: each keyframe against the keyframes at least 2 s older.
     let vocabulary = Vocabulary::shipped();
@@ -68,7 +82,16 @@ fn loops_take_an_injected_drift_out() {
         for (j, _) in found {
             if let Some(v) = verify(&camera, place, &keyframes[j].2, &VerifyConfig::default()) {
                 // j_from_k: the query (k) in the candidate's (j) frame.
-                graph.add_edge(Edge { from: j, to: k, from_from_to: v.query_from_candidate.inverse(), kind: EdgeKind::Loop, sigma_rotation_rad: 0.002, sigma_translation_m: 0.005 }).expect("loop");
+                graph
+                    .add_edge(Edge {
+                        from: j,
+                        to: k,
+                        from_from_to: v.query_from_candidate.inverse(),
+                        kind: EdgeKind::Loop,
+                        sigma_rotation_rad: 0.002,
+                        sigma_translation_m: 0.005,
+                    })
+                    .expect("loop");
                 loops += 1;
             }
         }
@@ -105,23 +128,45 @@ fn pose_graph_cost() {
     println!("|---|---|---|");
     for n in [100usize, 1_000, 10_000] {
         let step = Isometry3::new(Vector3::new(0.01, 0.0, 0.0), Vector3::new(0.0, 1f64.to_radians(), 0.0));
-        let truth: Vec<Isometry3<f64>> = (0..n).scan(Isometry3::identity(), |p, _| {
-            let out = *p;
-            *p *= step;
-            Some(out)
-        }).collect();
+        let truth: Vec<Isometry3<f64>> = (0..n)
+            .scan(Isometry3::identity(), |p, _| {
+                let out = *p;
+                *p *= step;
+                Some(out)
+            })
+            .collect();
         let mut graph = PoseGraph::default();
-        let wobble = |i: usize| Isometry3::new(Vector3::new(0.001 * ((i * 7) % 5) as f64, 0.0, 0.0), Vector3::new(0.0, 0.001 * ((i * 3) % 4) as f64, 0.0));
+        let wobble = |i: usize| {
+            Isometry3::new(Vector3::new(0.001 * ((i * 7) % 5) as f64, 0.0, 0.0), Vector3::new(0.0, 0.001 * ((i * 3) % 4) as f64, 0.0))
+        };
         let mut p = truth[0];
         graph.add_pose(p);
         for i in 1..n {
             let measured = step * wobble(i);
             p *= measured;
             graph.add_pose(p);
-            graph.add_edge(Edge { from: i - 1, to: i, from_from_to: measured, kind: EdgeKind::Odometry, sigma_rotation_rad: 0.01, sigma_translation_m: 0.01 }).expect("edge");
+            graph
+                .add_edge(Edge {
+                    from: i - 1,
+                    to: i,
+                    from_from_to: measured,
+                    kind: EdgeKind::Odometry,
+                    sigma_rotation_rad: 0.01,
+                    sigma_translation_m: 0.01,
+                })
+                .expect("edge");
         }
         for i in (50..n).step_by(10) {
-            graph.add_edge(Edge { from: i - 50, to: i, from_from_to: truth[i - 50].inverse() * truth[i], kind: EdgeKind::Loop, sigma_rotation_rad: 0.002, sigma_translation_m: 0.005 }).expect("loop");
+            graph
+                .add_edge(Edge {
+                    from: i - 50,
+                    to: i,
+                    from_from_to: truth[i - 50].inverse() * truth[i],
+                    kind: EdgeKind::Loop,
+                    sigma_rotation_rad: 0.002,
+                    sigma_translation_m: 0.005,
+                })
+                .expect("loop");
         }
         let started = Instant::now();
         graph.optimize(&SolveConfig::default()).expect("solved");

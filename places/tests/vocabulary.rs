@@ -1,10 +1,10 @@
 //! The shipped vocabulary is what its build step makes: retrained from the public
 //! clip with the fixed seed, it is the same, byte for byte (a golden test).
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
 #[path = "support/training.rs"]
 mod training;
+#[path = "../../tracking/benches/support/tum.rs"]
+mod tum;
 
 use stillmap_places::Vocabulary;
 

@@ -107,10 +107,8 @@ pub fn decode_depth(encoding: DepthEncoding, payload: &[u8], width: u32, height:
         DepthEncoding::Zstd => {
             // Cap the output one byte past the expected size so an oversized payload is
             // reported as such, never allocated without bound.
-            let bytes = zstd::bulk::decompress(payload, want * 2 + 1).map_err(|e| CodecError::Undecodable {
-                encoding: "zstd depth",
-                detail: e.to_string(),
-            })?;
+            let bytes = zstd::bulk::decompress(payload, want * 2 + 1)
+                .map_err(|e| CodecError::Undecodable { encoding: "zstd depth", detail: e.to_string() })?;
             if bytes.len() != want * 2 {
                 let hint = if bytes.len() == want { " — looks like 8-bit depth" } else { "" };
                 return Err(CodecError::DepthLength { got: bytes.len(), want: want * 2, width, height, hint });
@@ -288,9 +286,7 @@ pub fn encode_jpeg(image: &ColorImage, quality: u8) -> Result<Vec<u8>, CodecErro
     let mut out = Vec::with_capacity(image.data.len() / 8);
     let mut encoder = jpeg_encoder::Encoder::new(&mut out, quality);
     encoder.set_sampling_factor(jpeg_encoder::SamplingFactor::R_4_2_0);
-    encoder
-        .encode(&image.data, w, h, jpeg_encoder::ColorType::Rgb)
-        .map_err(|e| CodecError::Encode(e.to_string()))?;
+    encoder.encode(&image.data, w, h, jpeg_encoder::ColorType::Rgb).map_err(|e| CodecError::Encode(e.to_string()))?;
     Ok(out)
 }
 
@@ -337,23 +333,17 @@ pub fn decode_color(encoding: ColorEncoding, payload: &[u8], width: u32, height:
 fn decode_jpeg(payload: &[u8], width: u32, height: u32) -> Result<ColorImage, CodecError> {
     use zune_jpeg::zune_core::{colorspace::ColorSpace, options::DecoderOptions};
     let undecodable = |detail: String| CodecError::Undecodable { encoding: "JPEG", detail };
-    let options = DecoderOptions::default()
-        .jpeg_set_out_colorspace(ColorSpace::RGB)
-        .set_max_width(width as usize)
-        .set_max_height(height as usize);
+    let options =
+        DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGB).set_max_width(width as usize).set_max_height(height as usize);
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(Cursor::new(payload), options);
     match decoder.decode_headers() {
         Ok(()) => {}
         Err(e) => {
             // The size limits make an oversized image fail here; report it as a size problem.
             return Err(match peek_jpeg_size(payload) {
-                Some((w, h)) if (w, h) != (width, height) => CodecError::SizeMismatch {
-                    what: "colour image",
-                    got_w: w,
-                    got_h: h,
-                    want_w: width,
-                    want_h: height,
-                },
+                Some((w, h)) if (w, h) != (width, height) => {
+                    CodecError::SizeMismatch { what: "colour image", got_w: w, got_h: h, want_w: width, want_h: height }
+                }
                 _ => undecodable(e.to_string()),
             });
         }
@@ -410,9 +400,7 @@ mod tests {
     use super::*;
 
     fn ramp_depth(w: u32, h: u32) -> DepthImage {
-        let data = (0..w * h)
-            .map(|i| if i % 7 == 0 || (i / w) < 2 { 0 } else { (1000 + (i * 37) % 9000) as u16 })
-            .collect();
+        let data = (0..w * h).map(|i| if i % 7 == 0 || (i / w) < 2 { 0 } else { (1000 + (i * 37) % 9000) as u16 }).collect();
         DepthImage { width: w, height: h, data }
     }
 
@@ -445,14 +433,8 @@ mod tests {
             rvl_decode(&bytes[..bytes.len() - 4], img.data.len()).unwrap_err(),
             CodecError::Rvl("payload ends before the image is complete")
         );
-        assert_eq!(
-            rvl_decode(&bytes, 10).unwrap_err(),
-            CodecError::Rvl("a run of zeros passes the end of the image")
-        );
-        assert_eq!(
-            rvl_decode(&rvl_encode(&[0, 5, 6, 7]), 2).unwrap_err(),
-            CodecError::Rvl("a run of values passes the end of the image")
-        );
+        assert_eq!(rvl_decode(&bytes, 10).unwrap_err(), CodecError::Rvl("a run of zeros passes the end of the image"));
+        assert_eq!(rvl_decode(&rvl_encode(&[0, 5, 6, 7]), 2).unwrap_err(), CodecError::Rvl("a run of values passes the end of the image"));
         assert!(rvl_decode(&[1, 2, 3], 4).is_err());
         assert!(rvl_decode(&[0xFF; 64], 4).is_err());
     }

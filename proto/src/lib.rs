@@ -110,10 +110,7 @@ mod tests {
     #[test]
     fn robot_id_rules() {
         assert!(validate_robot_id("turtle_01-a").is_ok());
-        assert_eq!(
-            validate_robot_id("a/b").unwrap_err(),
-            "robot_id \"a/b\" contains '/'; allowed are A-Z a-z 0-9 _ -"
-        );
+        assert_eq!(validate_robot_id("a/b").unwrap_err(), "robot_id \"a/b\" contains '/'; allowed are A-Z a-z 0-9 _ -");
         assert!(validate_robot_id("").unwrap_err().contains("1-64"));
         assert!(validate_robot_id(&"x".repeat(65)).is_err());
     }

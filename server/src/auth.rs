@@ -134,7 +134,10 @@ impl Auth {
         match self.find(hello.auth_token.as_bytes()) {
             None => Err(Status::unauthenticated("unknown auth token")),
             Some(g) if g.may_stream(&hello.robot_id) => Ok(()),
-            Some(_) => Err(Status::permission_denied(format!("this token may not stream as robot {:?} (its robot:<glob> scopes do not match)", hello.robot_id))),
+            Some(_) => Err(Status::permission_denied(format!(
+                "this token may not stream as robot {:?} (its robot:<glob> scopes do not match)",
+                hello.robot_id
+            ))),
         }
     }
 
@@ -172,7 +175,9 @@ fn parse_token_file(text: &str) -> Result<Vec<Grant>, String> {
                 "read" => grant.read = true,
                 "admin" => (grant.read, grant.admin) = (true, true),
                 _ => match scope.strip_prefix("robot:") {
-                    Some(g) if !g.is_empty() => grant.robots.push(glob::Pattern::new(g).map_err(|e| format!("line {}: bad robot glob {g:?}: {e}", n + 1))?),
+                    Some(g) if !g.is_empty() => {
+                        grant.robots.push(glob::Pattern::new(g).map_err(|e| format!("line {}: bad robot glob {g:?}: {e}", n + 1))?)
+                    }
                     _ => return Err(format!("line {}: unknown scope {scope:?} (robot:<glob>, read or admin)", n + 1)),
                 },
             }
@@ -265,7 +270,10 @@ mod tests {
         assert!(auth.check_hello(&hello("r", "alpha-1")).is_ok());
         assert!(auth.check_hello(&hello("r", "beta-22")).is_ok());
         let missing = auth.check_hello(&hello("r", "")).unwrap_err();
-        assert_eq!((missing.code(), missing.message()), (tonic::Code::Unauthenticated, "this server requires an auth token in the hello (stillmap-client --token)"));
+        assert_eq!(
+            (missing.code(), missing.message()),
+            (tonic::Code::Unauthenticated, "this server requires an auth token in the hello (stillmap-client --token)")
+        );
         for wrong in ["alpha-2", "alpha-1 ", "alpha", "beta-22x"] {
             let e = auth.check_hello(&hello("r", wrong)).unwrap_err();
             assert_eq!((e.code(), e.message()), (tonic::Code::Unauthenticated, "unknown auth token"), "{wrong:?}");
@@ -282,7 +290,11 @@ mod tests {
         let other = auth.check_hello(&hello("lab-1", "wh-token")).unwrap_err();
         assert_eq!(other.code(), tonic::Code::PermissionDenied);
         assert_eq!(other.message(), "this token may not stream as robot \"lab-1\" (its robot:<glob> scopes do not match)");
-        assert_eq!(auth.check_hello(&hello("lab-1", "viewer-token")).unwrap_err().code(), tonic::Code::PermissionDenied, "a read token on ingest");
+        assert_eq!(
+            auth.check_hello(&hello("lab-1", "viewer-token")).unwrap_err().code(),
+            tonic::Code::PermissionDenied,
+            "a read token on ingest"
+        );
         assert!(auth.check_hello(&hello("lab-1", "both-token")).is_ok());
         assert!(auth.check_hello(&hello("lab-12", "both-token")).is_err());
         assert!(auth.check_hello(&hello("anything", "any-robot")).is_ok());
@@ -298,7 +310,12 @@ mod tests {
         assert_eq!(auth.check(Some(b"root"), Need::Admin), Err(Refusal::Missing("admin")), "not a bearer header");
         assert_eq!(auth.check(Some(&bearer("roo")), Need::Read), Err(Refusal::Unknown));
         assert_eq!((Refusal::Unknown.http_status(), Refusal::Scope("read").http_status()), (401, 403));
-        assert!(auth.known(Some(&bearer("wh-token"))) && !auth.known(Some(&bearer("guess"))) && !auth.known(Some(b"wh-token")) && !auth.known(None));
+        assert!(
+            auth.known(Some(&bearer("wh-token")))
+                && !auth.known(Some(&bearer("guess")))
+                && !auth.known(Some(b"wh-token"))
+                && !auth.known(None)
+        );
     }
 
     #[test]

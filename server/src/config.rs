@@ -223,7 +223,14 @@ pub struct StoreConfig {
 
 impl Default for StoreConfig {
     fn default() -> Self {
-        Self { enabled: true, path: "stillmap-data/stillmap.redb".into(), import_max_bytes: 256 << 20, retry_max_s: 60.0, flush_interval_s: 5.0, cache_bytes: crate::store::DEFAULT_CACHE_BYTES }
+        Self {
+            enabled: true,
+            path: "stillmap-data/stillmap.redb".into(),
+            import_max_bytes: 256 << 20,
+            retry_max_s: 60.0,
+            flush_interval_s: 5.0,
+            cache_bytes: crate::store::DEFAULT_CACHE_BYTES,
+        }
     }
 }
 
@@ -376,18 +383,23 @@ pub enum OverloadPolicy {
 
 impl Default for GrpcConfig {
     fn default() -> Self {
-        Self {
-            listen: "127.0.0.1:50051".into(),
-            max_message_bytes: 8 * 1024 * 1024,
-            keepalive_interval_s: 10,
-            keepalive_timeout_s: 20,
-        }
+        Self { listen: "127.0.0.1:50051".into(), max_message_bytes: 8 * 1024 * 1024, keepalive_interval_s: 10, keepalive_timeout_s: 20 }
     }
 }
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:8080".into(), dashboard_dir: String::new(), max_event_viewers: 1024, pose_event_interval_ms: 250, blocking_threads: 32, header_timeout_s: 10.0, max_connections: 4096, worker_threads: 2, nice: 10 }
+        Self {
+            listen: "127.0.0.1:8080".into(),
+            dashboard_dir: String::new(),
+            max_event_viewers: 1024,
+            pose_event_interval_ms: 250,
+            blocking_threads: 32,
+            header_timeout_s: 10.0,
+            max_connections: 4096,
+            worker_threads: 2,
+            nice: 10,
+        }
     }
 }
 
@@ -457,7 +469,10 @@ impl ServerConfig {
             return bad(format!("http.blocking_threads must be in 1..={MAX_POOL_THREADS}, got {}", self.http.blocking_threads));
         }
         if !(self.http.header_timeout_s >= 0.1 && self.http.header_timeout_s <= 3600.0) || self.http.max_connections == 0 {
-            return bad(format!("http.header_timeout_s must be within 0.1..=3600 and http.max_connections at least 1, got {} and {}", self.http.header_timeout_s, self.http.max_connections));
+            return bad(format!(
+                "http.header_timeout_s must be within 0.1..=3600 and http.max_connections at least 1, got {} and {}",
+                self.http.header_timeout_s, self.http.max_connections
+            ));
         }
         if self.session.result_buffer == 0 {
             return bad("session.result_buffer must be at least 1".into());
@@ -474,7 +489,9 @@ impl ServerConfig {
         if !["peer", "client"].contains(&self.zenoh.mode.as_str()) {
             return bad(format!("zenoh.mode must be \"peer\" or \"client\", got {:?}", self.zenoh.mode));
         }
-        for (name, tokens) in [("tokens", &self.auth.tokens), ("admin_tokens", &self.auth.admin_tokens), ("read_tokens", &self.auth.read_tokens)] {
+        for (name, tokens) in
+            [("tokens", &self.auth.tokens), ("admin_tokens", &self.auth.admin_tokens), ("read_tokens", &self.auth.read_tokens)]
+        {
             if let Some(i) = tokens.iter().position(|t| t.trim().is_empty()) {
                 return bad(format!("auth.{name}[{i}] is empty"));
             }
@@ -483,10 +500,15 @@ impl ServerConfig {
             }
         }
         let a = &self.auth;
-        if a.admin_tokens.iter().chain(&a.read_tokens).any(|t| a.tokens.contains(t)) || a.admin_tokens.iter().any(|t| a.read_tokens.contains(t)) {
+        if a.admin_tokens.iter().chain(&a.read_tokens).any(|t| a.tokens.contains(t))
+            || a.admin_tokens.iter().any(|t| a.read_tokens.contains(t))
+        {
             return bad("a token is in two of auth.tokens, auth.read_tokens and auth.admin_tokens: give each role tokens of its own".into());
         }
-        if self.session.max_camera_pixels == 0 || self.session.max_sequence_jump == 0 || !(self.session.max_capture_gap_s > 0.0 && self.session.max_capture_gap_s.is_finite()) {
+        if self.session.max_camera_pixels == 0
+            || self.session.max_sequence_jump == 0
+            || !(self.session.max_capture_gap_s > 0.0 && self.session.max_capture_gap_s.is_finite())
+        {
             return bad("session.max_camera_pixels, max_sequence_jump and max_capture_gap_s must be positive".into());
         }
         if !(0.1..=3600.0).contains(&self.store.flush_interval_s) {
@@ -504,21 +526,33 @@ impl ServerConfig {
         let f = &self.fleet;
         stillmap_proto::validate_fleet(&f.default_fleet).map_err(|e| ServerError::Config(format!("fleet.default_fleet: {e}")))?;
         if !(1..=MAX_FLEET_CANDIDATES).contains(&f.candidates) || !(1..=MAX_FLEET_QUEUE).contains(&f.queue) || f.max_places == 0 {
-            return bad(format!("fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE} and fleet.max_places at least 1"));
+            return bad(format!(
+                "fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE} and fleet.max_places at least 1"
+            ));
         }
         if !(1..=MAX_FLEET_QUEUE).contains(&f.pending_keyframes) || !(1..=16).contains(&f.consistent_matches) || f.min_inliers < 6 {
-            return bad(format!("fleet.pending_keyframes must be in 1..={MAX_FLEET_QUEUE}, fleet.consistent_matches in 1..=16 and fleet.min_inliers at least 6"));
+            return bad(format!(
+                "fleet.pending_keyframes must be in 1..={MAX_FLEET_QUEUE}, fleet.consistent_matches in 1..=16 and fleet.min_inliers at least 6"
+            ));
         }
         if !(f.consistent_matches..=64).contains(&f.refine_support) {
             return bad(format!("fleet.refine_support must be in fleet.consistent_matches..=64, got {}", f.refine_support));
         }
         if !(f.agreement_m > 0.0 && f.agreement_m <= 1.0 && f.agreement_deg > 0.0 && f.agreement_deg <= 45.0) {
-            return bad(format!("fleet.agreement_m must be in (0, 1] and fleet.agreement_deg in (0, 45], got {} and {}", f.agreement_m, f.agreement_deg));
+            return bad(format!(
+                "fleet.agreement_m must be in (0, 1] and fleet.agreement_deg in (0, 45], got {} and {}",
+                f.agreement_m, f.agreement_deg
+            ));
         }
         if !(self.session.idle_evict_s >= 0.0 && self.session.idle_evict_s <= MAX_IDLE_DISCONNECT_S) {
-            return bad(format!("session.idle_evict_s must be 0 (only under the limits) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.session.idle_evict_s));
+            return bad(format!(
+                "session.idle_evict_s must be 0 (only under the limits) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}",
+                self.session.idle_evict_s
+            ));
         }
-        if self.tls.cert_path.is_empty() != self.tls.key_path.is_empty() || (self.tls.cert_path.is_empty() && !self.tls.client_ca_path.is_empty()) {
+        if self.tls.cert_path.is_empty() != self.tls.key_path.is_empty()
+            || (self.tls.cert_path.is_empty() && !self.tls.client_ca_path.is_empty())
+        {
             return bad("tls.cert_path and tls.key_path go together, and tls.client_ca_path needs them".into());
         }
         let l = &self.limits;
@@ -529,7 +563,10 @@ impl ServerConfig {
             return bad(format!("http.pose_event_interval_ms must be within 20..=5000, got {}", self.http.pose_event_interval_ms));
         }
         if self.http.worker_threads == 0 || !(0..=19).contains(&self.http.nice) {
-            return bad(format!("http.worker_threads must be at least 1 and http.nice within 0..=19; got {} and {}", self.http.worker_threads, self.http.nice));
+            return bad(format!(
+                "http.worker_threads must be at least 1 and http.nice within 0..=19; got {} and {}",
+                self.http.worker_threads, self.http.nice
+            ));
         }
         if !(l.frame_cpu_ms.is_finite() && l.frame_cpu_ms >= 0.0) || l.frame_cpu_strikes == 0 {
             return bad(format!(
@@ -544,7 +581,10 @@ impl ServerConfig {
             ));
         }
         if !(self.zenoh.idle_disconnect_s >= 0.0 && self.zenoh.idle_disconnect_s <= MAX_IDLE_DISCONNECT_S) {
-            return bad(format!("zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}", self.zenoh.idle_disconnect_s));
+            return bad(format!(
+                "zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}",
+                self.zenoh.idle_disconnect_s
+            ));
         }
         Ok(())
     }
@@ -571,7 +611,10 @@ mod tests {
         let err = ServerConfig::from_toml("[session]\nqueue_capacity = 0\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: session.queue_capacity must be at least 1");
         let err = ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = -1.0\n").unwrap_err().to_string();
-        assert_eq!(err, "invalid configuration: zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to 86400, got -1");
+        assert_eq!(
+            err,
+            "invalid configuration: zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to 86400, got -1"
+        );
         assert!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 1e300\n").is_err(), "would overflow a Duration");
         let err = ServerConfig::from_toml("[auth]\ntokens = [\"a\", \" b\"]\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: auth.tokens[1] has leading or trailing whitespace");
@@ -586,10 +629,19 @@ mod tests {
     fn fleet_limits_are_named_when_out_of_range() {
         let err = |toml: &str| ServerConfig::from_toml(toml).unwrap_err().to_string();
         assert_eq!(err("[session]\nmap_threads = 0\n"), "invalid configuration: session.map_threads must be in 1..=1024, got 0");
-        assert_eq!(err("[session]\npipeline_threads = 5000\n"), "invalid configuration: session.pipeline_threads must be at most 1024, got 5000");
-        assert_eq!(err("[session]\nopencv_threads = 2000\n"), "invalid configuration: session.opencv_threads must be at most 1024, got 2000");
+        assert_eq!(
+            err("[session]\npipeline_threads = 5000\n"),
+            "invalid configuration: session.pipeline_threads must be at most 1024, got 5000"
+        );
+        assert_eq!(
+            err("[session]\nopencv_threads = 2000\n"),
+            "invalid configuration: session.opencv_threads must be at most 1024, got 2000"
+        );
         assert_eq!(err("[session]\nmap_queue = 0\n"), "invalid configuration: session.map_queue must be in 1..=256, got 0");
-        assert_eq!(err("[fleet]\ndefault_fleet = \"a b\"\n"), "invalid configuration: fleet.default_fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -");
+        assert_eq!(
+            err("[fleet]\ndefault_fleet = \"a b\"\n"),
+            "invalid configuration: fleet.default_fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -"
+        );
         assert!(err("[fleet]\ncandidates = 0\n").contains("fleet.candidates must be in 1..=32"));
         assert!(err("[fleet]\nagreement_m = -1.0\n").contains("fleet.agreement_m must be in (0, 1]"));
         assert_eq!(

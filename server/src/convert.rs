@@ -38,7 +38,8 @@ pub fn pose_of(world_from_camera: &Isometry3<f64>) -> pb::Pose {
 /// A protobuf pose as an isometry (missing parts: identity).
 pub fn isometry_of(pose: &pb::Pose) -> Isometry3<f64> {
     let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
-    let rotation = nalgebra::UnitQuaternion::try_new(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z), 1e-12).unwrap_or_else(nalgebra::UnitQuaternion::identity);
+    let rotation = nalgebra::UnitQuaternion::try_new(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z), 1e-12)
+        .unwrap_or_else(nalgebra::UnitQuaternion::identity);
     Isometry3::from_parts(nalgebra::Translation3::new(t.x, t.y, t.z), rotation)
 }
 

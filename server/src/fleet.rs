@@ -243,7 +243,11 @@ impl FleetService {
 fn view(name: &str, f: &Fleet) -> FleetView {
     FleetView {
         name: name.to_string(),
-        members: f.members.iter().map(|m| MemberView { session_id: m.session_id.clone(), robot_id: m.robot_id.clone(), frame: m.frame.clone() }).collect(),
+        members: f
+            .members
+            .iter()
+            .map(|m| MemberView { session_id: m.session_id.clone(), robot_id: m.robot_id.clone(), frame: m.frame.clone() })
+            .collect(),
         indexed_keyframes: f.index.len(),
     }
 }
@@ -327,7 +331,8 @@ impl Shared {
                 .filter_map(|(k, _)| {
                     let r = k.0 as usize;
                     let (session_from_candidate, candidate) = f.places.get(k)?;
-                    let fleet_from_candidate = f.members[r].frame.as_ref().map(|fr| isometry(&fr.fleet_from_session) * session_from_candidate);
+                    let fleet_from_candidate =
+                        f.members[r].frame.as_ref().map(|fr| isometry(&fr.fleet_from_session) * session_from_candidate);
                     let fleet_from_query = m_frame.filter(|_| self.refining(f, r)).map(|t| t * session_from_query);
                     let fleet_from_candidate = fleet_from_candidate.filter(|_| m_refining);
                     Some((r, fleet_from_query, fleet_from_candidate, *session_from_candidate, candidate.clone()))

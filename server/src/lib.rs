@@ -39,6 +39,14 @@ pub(crate) fn read<T>(m: &RwLock<T>) -> RwLockReadGuard<'_, T> {
 pub(crate) fn write<T>(m: &RwLock<T>) -> RwLockWriteGuard<'_, T> {
     m.write().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
+
+/// Waits on `cv` (at most `timeout` when given), recovering a poisoned lock as [`lock`] does.
+pub(crate) fn wait<'a, T>(cv: &std::sync::Condvar, guard: MutexGuard<'a, T>, timeout: Option<Duration>) -> MutexGuard<'a, T> {
+    match timeout {
+        None => cv.wait(guard).unwrap_or_else(|poisoned| poisoned.into_inner()),
+        Some(t) => cv.wait_timeout(guard, t).unwrap_or_else(|poisoned| poisoned.into_inner()).0,
+    }
+}
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -158,7 +166,9 @@ fn perception_service(config: &ServerConfig, metrics: &Arc<metrics::Metrics>) ->
         return Ok(Some((p.clone(), None)));
     }
     if p.segmentation.model_path.is_empty() {
-        tracing::warn!("no segmentation model configured (perception.segmentation.model_path / --model): dynamic masks come from optical flow alone");
+        tracing::warn!(
+            "no segmentation model configured (perception.segmentation.model_path / --model): dynamic masks come from optical flow alone"
+        );
         return Ok(Some((p.clone(), None)));
     }
     let service = pipeline::segmentation::SegmentationService::start(p, metrics.clone())?;
@@ -180,7 +190,15 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .map_err(|e| ServerError::Config(format!("session.opencv_threads: {e}")))?;
     let pools = session::Pools::start(&config.session).map_err(ServerError::Threads)?;
     let perception = perception_service(&config, &metrics)?;
-    let store = if config.store.enabled { Some(Arc::new(store::Store::open_with_cache(std::path::Path::new(&config.store.path), config.store.cache_bytes)?.count_errors_in(metrics.store_errors()).retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s)))) } else { None };
+    let store = if config.store.enabled {
+        Some(Arc::new(
+            store::Store::open_with_cache(std::path::Path::new(&config.store.path), config.store.cache_bytes)?
+                .count_errors_in(metrics.store_errors())
+                .retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s)),
+        ))
+    } else {
+        None
+    };
     // What is stored is listed, not loaded: a query brings a session's map and
     // trajectory into memory when it needs them. Place recognition needs the
     // keyframe records (bounded per fleet by fleet.max_places).
@@ -189,19 +207,28 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         None => Vec::new(),
     };
     if config.fleet.enabled && !config.mapping.enabled {
-        tracing::warn!("fleet.enabled needs mapping.enabled: place recognition looks at the keyframes the map lane commits, so no session will merge");
+        tracing::warn!(
+            "fleet.enabled needs mapping.enabled: place recognition looks at the keyframes the map lane commits, so no session will merge"
+        );
     }
     let fleets = if config.fleet.enabled { Some(fleet::FleetService::start(&config.fleet, store.clone())?) } else { None };
     if let Some(f) = &fleets {
         f.restore(&stored);
     }
-    let registry = Arc::new(Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools).with_fleets(fleets).with_limits(config.limits.clone()));
+    let registry = Arc::new(
+        Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools)
+            .with_fleets(fleets)
+            .with_limits(config.limits.clone()),
+    );
     let auth = Arc::new(auth::AuthHandle::new(&config.auth).map_err(ServerError::Config)?);
     let rate_limits = Arc::new(ratelimit::RateLimits::new(&config.limits));
     let tls = tls::TlsFiles::load(&config.tls).map_err(ServerError::Config)?;
     let http_tls = tls.as_ref().map(tls::TlsFiles::http).transpose().map_err(ServerError::Config)?;
     if tls.is_some() {
-        tracing::info!(client_certificates = if config.tls.client_ca_path.is_empty() { "not asked" } else { "required" }, "TLS on the gRPC and HTTP ports");
+        tracing::info!(
+            client_certificates = if config.tls.client_ca_path.is_empty() { "not asked" } else { "required" },
+            "TLS on the gRPC and HTTP ports"
+        );
     }
     if !auth.get().required() {
         tracing::info!("no auth token configured: every robot's hello and every query is accepted");
@@ -219,9 +246,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
 
     #[cfg(feature = "zenoh")]
     let zenoh_task = if config.zenoh.enabled {
-        let z = zenoh::open(ingest::zenoh::zenoh_config(&config.zenoh)?)
-            .await
-            .map_err(|e| ServerError::Zenoh(format!("open: {e}")))?;
+        let z = zenoh::open(ingest::zenoh::zenoh_config(&config.zenoh)?).await.map_err(|e| ServerError::Zenoh(format!("open: {e}")))?;
         let settings = ingest::zenoh::Settings {
             result_buffer: config.session.result_buffer,
             max_message_bytes: config.grpc.max_message_bytes,
@@ -250,11 +275,12 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     .max_decoding_message_size(max);
     // Queries need a token with the read scope (when any token is configured).
     let query_auth = auth.clone();
-    let query = QueryServer::with_interceptor(api::query::QueryService { registry: registry.clone() }, move |request: tonic::Request<()>| {
-        let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
-        query_auth.get().check(authorization, auth::Need::Read).map_err(|r| r.grpc_status())?;
-        Ok(request)
-    });
+    let query =
+        QueryServer::with_interceptor(api::query::QueryService { registry: registry.clone() }, move |request: tonic::Request<()>| {
+            let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
+            query_auth.get().check(authorization, auth::Need::Read).map_err(|r| r.grpc_status())?;
+            Ok(request)
+        });
     // gRPC health checking (grpc.health.v1): the server ("") and both services are
     // SERVING while it runs and NOT_SERVING from the moment it starts shutting down,
     // so a load balancer drains it. Open like /healthz; reflection is open too (it
@@ -293,7 +319,13 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         .add_service(reflection)
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), grpc_shutdown);
     let dashboard_dir = api::dashboard::locate(&config.http.dashboard_dir);
-    let settings = Arc::new(api::http::HttpSettings { auth: auth.clone(), rate_limits: rate_limits.clone(), import_max_bytes: config.store.import_max_bytes, max_event_viewers: config.http.max_event_viewers, pose_event_interval: std::time::Duration::from_millis(config.http.pose_event_interval_ms) });
+    let settings = Arc::new(api::http::HttpSettings {
+        auth: auth.clone(),
+        rate_limits: rate_limits.clone(),
+        import_max_bytes: config.store.import_max_bytes,
+        max_event_viewers: config.http.max_event_viewers,
+        pose_event_interval: std::time::Duration::from_millis(config.http.pose_event_interval_ms),
+    });
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
         None => tracing::warn!("dashboard files not found (make dashboard, or http.dashboard_dir): / explains how to build them"),
@@ -304,7 +336,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let http_runtime = http_runtime(&config.http)?;
     let http_listener = http_listener.into_std().map_err(ServerError::Http)?;
     let http_app = api::http::router(registry.clone(), dashboard_dir, settings);
-    let http_options = api::serve::Options { header_timeout: Duration::from_secs_f64(config.http.header_timeout_s), max_connections: config.http.max_connections, tls: http_tls };
+    let http_options = api::serve::Options {
+        header_timeout: Duration::from_secs_f64(config.http.header_timeout_s),
+        max_connections: config.http.max_connections,
+        tls: http_tls,
+    };
     let (http_metrics, http_shutdown) = (registry.metrics().clone(), shutdown.clone());
     let http = async move {
         let listener = tokio::net::TcpListener::from_std(http_listener).map_err(ServerError::Http)?;

@@ -162,19 +162,22 @@ fn main() {
     }
 }
 
-
 fn real_main() -> anyhow::Result<()> {
     let args = Args::parse();
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("STILLMAP_LOG").unwrap_or_else(|_| "info,zenoh=warn".into()),
-        )
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("STILLMAP_LOG").unwrap_or_else(|_| "info,zenoh=warn".into()))
         .with_writer(std::io::stderr)
         .init();
     let config = effective_config(&args)?;
     if args.print_config {
         let mut shown = config.clone();
-        shown.auth.tokens.iter_mut().chain(shown.auth.admin_tokens.iter_mut()).chain(shown.auth.read_tokens.iter_mut()).for_each(|t| *t = "<redacted>".into());
+        shown
+            .auth
+            .tokens
+            .iter_mut()
+            .chain(shown.auth.admin_tokens.iter_mut())
+            .chain(shown.auth.read_tokens.iter_mut())
+            .for_each(|t| *t = "<redacted>".into());
         print!("{}", toml::to_string_pretty(&shown)?);
         return Ok(());
     }

@@ -23,7 +23,6 @@ use crate::convert::camera_of;
 use crate::lock;
 use crate::store::{Commit, KeyframeRecord, SessionMeta, Store, StoreError};
 
-
 pub struct SessionMap {
     pub(crate) builder: MapBuilder,
     pub(crate) class_names: Vec<String>,
@@ -110,7 +109,13 @@ impl SessionMap {
     }
 
     /// A map restored from the store: its blocks, keyframe count and map frame.
-    pub fn restore(&mut self, blocks: Vec<(BlockKey, Block)>, meta: &SessionMeta, poses: usize, last_camera: Option<nalgebra::Point3<f64>>) {
+    pub fn restore(
+        &mut self,
+        blocks: Vec<(BlockKey, Block)>,
+        meta: &SessionMeta,
+        poses: usize,
+        last_camera: Option<nalgebra::Point3<f64>>,
+    ) {
         for (k, b) in blocks {
             self.builder.restore_block(k, b);
         }
@@ -135,7 +140,10 @@ impl SessionMap {
     /// committed, map changes, keyframe records, or the session itself.
     pub fn uncommitted(&self, trajectory_len: usize) -> bool {
         self.persistence.as_ref().is_some_and(|p| {
-            p.committed_poses < trajectory_len || p.committed_stamp != self.builder.map().change_stamp() || !p.pending.is_empty() || p.unrecorded_camera.is_some()
+            p.committed_poses < trajectory_len
+                || p.committed_stamp != self.builder.map().change_stamp()
+                || !p.pending.is_empty()
+                || p.unrecorded_camera.is_some()
         })
     }
 
@@ -163,7 +171,8 @@ impl SessionMap {
         }
         // A block started where an evicted one was (fusion out of the camera's
         // reach): merge the stored one in before this commit overwrites it.
-        let reborn: Vec<BlockKey> = self.builder.map().changed_since(p.committed_stamp).map(|(k, _)| *k).filter(|k| p.cold.contains(k)).collect();
+        let reborn: Vec<BlockKey> =
+            self.builder.map().changed_since(p.committed_stamp).map(|(k, _)| *k).filter(|k| p.cold.contains(k)).collect();
         for key in reborn {
             if let Some(block) = p.store.block(&p.session_id, key)? {
                 self.builder.restore_block(key, block);
@@ -351,4 +360,3 @@ pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
     };
     (version, m.builder.keyframes(), occupied)
 }
-

@@ -78,7 +78,11 @@ impl Default for Metrics {
         let segmentation_batch_size = Histogram::new(exponential_buckets(1.0, 2.0, 7));
         registry.register("segmentation_batch_size", "Frames per segmentation inference", segmentation_batch_size.clone());
         let segmentation_batch_seconds = latency_histogram();
-        registry.register("segmentation_batch_seconds", "Time of one segmentation inference (a whole batch)", segmentation_batch_seconds.clone());
+        registry.register(
+            "segmentation_batch_seconds",
+            "Time of one segmentation inference (a whole batch)",
+            segmentation_batch_seconds.clone(),
+        );
         let segmentation_replaced = Counter::default();
         registry.register(
             "segmentation_replaced",
@@ -94,15 +98,31 @@ impl Default for Metrics {
             map_jobs_skipped.clone(),
         );
         let store_errors = Counter::default();
-        registry.register("store_errors", "Store operations that failed (a full disk, an I/O error); /healthz says 503 while writes fail", store_errors.clone());
+        registry.register(
+            "store_errors",
+            "Store operations that failed (a full disk, an I/O error); /healthz says 503 while writes fail",
+            store_errors.clone(),
+        );
         let sessions_resident = Gauge::default();
-        registry.register("sessions_resident", "Sessions in memory (live, and stored ones a query brought back)", sessions_resident.clone());
+        registry.register(
+            "sessions_resident",
+            "Sessions in memory (live, and stored ones a query brought back)",
+            sessions_resident.clone(),
+        );
         let sessions_evicted = Counter::default();
-        registry.register("sessions_evicted", "Sessions that left memory (idle, or to make room); the store keeps them", sessions_evicted.clone());
+        registry.register(
+            "sessions_evicted",
+            "Sessions that left memory (idle, or to make room); the store keeps them",
+            sessions_evicted.clone(),
+        );
         let sessions_loaded = Counter::default();
         registry.register("sessions_loaded", "Stored sessions brought back into memory by a query", sessions_loaded.clone());
         let frame_cpu_over_budget = Counter::default();
-        registry.register("frame_cpu_over_budget", "Frames that took more pipeline CPU than limits.frame_cpu_ms", frame_cpu_over_budget.clone());
+        registry.register(
+            "frame_cpu_over_budget",
+            "Frames that took more pipeline CPU than limits.frame_cpu_ms",
+            frame_cpu_over_budget.clone(),
+        );
         let sessions_ended = Family::<Labels, Counter>::default();
         registry.register("sessions_ended", "Session streams the server ended by a limit (frame_cpu_ms)", sessions_ended.clone());
         let sessions_refused = Family::<Labels, Counter>::default();

@@ -36,7 +36,6 @@ struct Shared {
     wake: Condvar,
 }
 
-
 pub struct Pool {
     shared: Arc<Shared>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
@@ -94,7 +93,7 @@ fn worker(shared: &Shared) {
                 if state.closed {
                     return;
                 }
-                state = shared.wake.wait(state).unwrap_or_else(|p| p.into_inner());
+                state = crate::wait(&shared.wake, state, None);
             }
         };
         lane.run_slice();
@@ -149,6 +148,7 @@ mod tests {
     /// Many lanes fed from several threads on a pool of 2: every item runs once,
     /// each lane's in order, and no lane runs on two threads at once.
     #[test]
+    #[allow(clippy::disallowed_methods)] // the test's feeder threads need no names
     fn lanes_run_in_order_and_never_twice_at_once() {
         let pool = Pool::new("test-pool", 2).expect("pool");
         let lanes: Vec<Arc<Numbers>> = (0..6).map(|_| Arc::default()).collect();

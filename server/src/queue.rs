@@ -28,7 +28,10 @@ pub struct QueuedFrame {
 pub enum Work {
     Frame(QueuedFrame),
     /// A frame the overload policy dropped: answer it, do not process it.
-    Dropped { sequence: u64, capture_time_ns: u64 },
+    Dropped {
+        sequence: u64,
+        capture_time_ns: u64,
+    },
 }
 
 #[derive(Debug, PartialEq, Eq, thiserror::Error)]
@@ -44,7 +47,9 @@ pub enum QueueError {
 pub enum PushOutcome {
     Queued,
     /// The frame was queued and this older one was dropped.
-    DroppedOldest { sequence: u64 },
+    DroppedOldest {
+        sequence: u64,
+    },
     /// The arriving frame itself was dropped.
     DroppedNewest,
 }
@@ -108,10 +113,7 @@ impl FrameQueue {
                     }
                 }
                 OverloadPolicy::DropNewest => {
-                    inner.items.push_back(Work::Dropped {
-                        sequence: frame.frame.sequence,
-                        capture_time_ns: frame.frame.capture_time_ns,
-                    });
+                    inner.items.push_back(Work::Dropped { sequence: frame.frame.sequence, capture_time_ns: frame.frame.capture_time_ns });
                     PushOutcome::DroppedNewest
                 }
             }
@@ -159,10 +161,7 @@ mod tests {
     use super::*;
 
     fn frame(sequence: u64) -> QueuedFrame {
-        QueuedFrame {
-            frame: pb::Frame { sequence, capture_time_ns: sequence * 10, ..Default::default() },
-            received_at: Instant::now(),
-        }
+        QueuedFrame { frame: pb::Frame { sequence, capture_time_ns: sequence * 10, ..Default::default() }, received_at: Instant::now() }
     }
 
     fn drain(q: &FrameQueue) -> Vec<String> {

@@ -26,8 +26,16 @@ fn limiter(per_minute: u32, burst: u32, what: String) -> Option<(DefaultKeyedRat
 impl RateLimits {
     pub fn new(l: &LimitsConfig) -> Self {
         Self {
-            hellos: limiter(l.hellos_per_minute, l.hello_burst, format!("limits.hellos_per_minute = {}, limits.hello_burst = {}", l.hellos_per_minute, l.hello_burst)),
-            http: limiter(l.http_requests_per_minute, l.http_burst, format!("limits.http_requests_per_minute = {}, limits.http_burst = {}", l.http_requests_per_minute, l.http_burst)),
+            hellos: limiter(
+                l.hellos_per_minute,
+                l.hello_burst,
+                format!("limits.hellos_per_minute = {}, limits.hello_burst = {}", l.hellos_per_minute, l.hello_burst),
+            ),
+            http: limiter(
+                l.http_requests_per_minute,
+                l.http_burst,
+                format!("limits.http_requests_per_minute = {}, limits.http_burst = {}", l.http_requests_per_minute, l.http_burst),
+            ),
         }
     }
 
@@ -64,11 +72,15 @@ mod tests {
 
     #[test]
     fn a_burst_passes_then_the_limit_names_itself_per_client() {
-        let limits = RateLimits::new(&LimitsConfig { hellos_per_minute: 1, hello_burst: 3, http_requests_per_minute: 0, ..LimitsConfig::default() });
+        let limits =
+            RateLimits::new(&LimitsConfig { hellos_per_minute: 1, hello_burst: 3, http_requests_per_minute: 0, ..LimitsConfig::default() });
         for _ in 0..3 {
             assert_eq!(limits.hello("ip 10.0.0.1"), Ok(()));
         }
-        assert_eq!(limits.hello("ip 10.0.0.1"), Err("too many hellos from ip 10.0.0.1: limits.hellos_per_minute = 1, limits.hello_burst = 3".into()));
+        assert_eq!(
+            limits.hello("ip 10.0.0.1"),
+            Err("too many hellos from ip 10.0.0.1: limits.hellos_per_minute = 1, limits.hello_burst = 3".into())
+        );
         assert_eq!(limits.hello("ip 10.0.0.2"), Ok(()), "another client has its own bucket");
         for _ in 0..10_000 {
             assert_eq!(limits.http("ip 10.0.0.1", "10.0.0.1"), Ok(()), "0: no limit");

@@ -27,7 +27,6 @@ use tokio::sync::{broadcast, mpsc, watch};
 use tonic::Status;
 
 use crate::config::{LimitsConfig, SessionConfig};
-use crate::{lock, read, write};
 use crate::map::{SessionMap, SharedMap};
 use crate::metrics::Metrics;
 use crate::pipeline::decode::validate_camera;
@@ -37,6 +36,7 @@ use crate::pipeline::{FrameOutcome, SessionPipeline, micros, stage};
 use crate::pool::{Lane, Pool};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
 use crate::store::{SessionHead, SessionMeta, Store, StoredSession};
+use crate::{lock, read, write};
 
 /// Where a connection's results go: the gRPC response stream, or the Zenoh
 /// publisher task (which turns an `Err` into a `ServerMessage.error`).
@@ -206,7 +206,9 @@ impl Lane for Session {
             let Some(work) = self.queue.try_pop() else { break };
             // Frames still queued when a limit ended the stream are not run.
             let work = match work {
-                Work::Frame(q) if self.cpu_budget.ended() => Work::Dropped { sequence: q.frame.sequence, capture_time_ns: q.frame.capture_time_ns },
+                Work::Frame(q) if self.cpu_budget.ended() => {
+                    Work::Dropped { sequence: q.frame.sequence, capture_time_ns: q.frame.capture_time_ns }
+                }
                 work => work,
             };
             let result = match work {
@@ -246,7 +248,6 @@ impl Lane for Session {
         &self.scheduled
     }
 }
-
 
 /// CPU time this thread has used (zero where the clock cannot be read).
 fn thread_cpu_time() -> Duration {
@@ -292,7 +293,13 @@ impl CpuBudget {
         }
         self.metrics.frame_cpu_over_budget();
         let in_row = self.over_in_row.fetch_add(1, Ordering::Relaxed) + 1;
-        tracing::warn!(sequence, cpu_ms = cpu.as_secs_f64() * 1e3, in_row, "frame over limits.frame_cpu_ms = {}", budget.as_secs_f64() * 1e3);
+        tracing::warn!(
+            sequence,
+            cpu_ms = cpu.as_secs_f64() * 1e3,
+            in_row,
+            "frame over limits.frame_cpu_ms = {}",
+            budget.as_secs_f64() * 1e3
+        );
         (in_row >= self.strikes && !self.ended.swap(true, Ordering::Relaxed)).then(|| {
             self.metrics.session_ended("frame_cpu_ms");
             tonic::Status::resource_exhausted(format!(
@@ -556,7 +563,14 @@ impl Session {
     }
 
     fn new_pipeline(&self) -> SessionPipeline {
-        SessionPipeline::new(&self.id, &self.camera, &self.tracker_config, self.perception.as_ref(), self.map.as_ref().map(fuse::refuse_window), self.order_window)
+        SessionPipeline::new(
+            &self.id,
+            &self.camera,
+            &self.tracker_config,
+            self.perception.as_ref(),
+            self.map.as_ref().map(fuse::refuse_window),
+            self.order_window,
+        )
     }
 
     /// Publishes what a processed frame changed (pose, counters, metrics) and
@@ -1057,17 +1071,28 @@ impl Registry {
             let resident = self.list();
             let live = || resident.iter().filter(|s| !s.archived);
             let (limit, mut candidates, message) = if resident.len() + new > l.max_sessions {
-                ("max_sessions", resident.clone(), format!("{} sessions in memory, limits.max_sessions = {}", resident.len(), l.max_sessions))
+                (
+                    "max_sessions",
+                    resident.clone(),
+                    format!("{} sessions in memory, limits.max_sessions = {}", resident.len(), l.max_sessions),
+                )
             } else if let Some(robot) = robot.filter(|r| live().filter(|s| s.robot_id == *r).count() + new > l.max_sessions_per_robot) {
                 let mine: Vec<_> = live().filter(|s| s.robot_id == robot).cloned().collect();
-                let message = format!("robot {robot:?} has {} sessions in memory, limits.max_sessions_per_robot = {}", mine.len(), l.max_sessions_per_robot);
+                let message = format!(
+                    "robot {robot:?} has {} sessions in memory, limits.max_sessions_per_robot = {}",
+                    mine.len(),
+                    l.max_sessions_per_robot
+                );
                 ("max_sessions_per_robot", mine, message)
             } else {
                 let used: u64 = live().map(|s| u64::from(s.camera.width) * u64::from(s.camera.height)).sum();
                 if used + pixels <= l.max_camera_pixels_total {
                     return Ok(());
                 }
-                let message = format!("{used} camera pixels in memory + {pixels} asked, limits.max_camera_pixels_total = {}", l.max_camera_pixels_total);
+                let message = format!(
+                    "{used} camera pixels in memory + {pixels} asked, limits.max_camera_pixels_total = {}",
+                    l.max_camera_pixels_total
+                );
                 ("max_camera_pixels_total", live().cloned().collect(), message)
             };
             // Stored sessions a query brought back go first, then the longest idle.
@@ -1118,7 +1143,8 @@ impl Registry {
             }
         };
         let started_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
-        let resume_secret = crate::auth::new_secret().map_err(|e| BadHello::Internal(format!("cannot make the session's resume secret: {e}")))?;
+        let resume_secret =
+            crate::auth::new_secret().map_err(|e| BadHello::Internal(format!("cannot make the session's resume secret: {e}")))?;
         let map = if self.mapping.enabled {
             let names = match &self.perception {
                 Some((_, Some(service))) => service.class_names().to_vec(),
@@ -1154,22 +1180,27 @@ impl Registry {
         if let Some(f) = &self.fleets {
             f.join(&fleet_name, &id, &hello.robot_id);
         }
-        let session = Arc::new_cyclic(|me| self.session(me, SessionParts {
-            id: id.clone(),
-            robot_id: hello.robot_id.clone(),
-            fleet_name,
-            transport,
-            camera,
-            started_unix_ns,
-            counters: Counters::default(),
-            queue: FrameQueue::new(self.config.queue_capacity, self.config.max_pending_drop_notices, self.config.overload_policy),
-            last_received_sequence: None,
-            track: TrackState { state: TrackingState::Initializing, ..Default::default() },
-            perception: self.perception.clone(),
-            map,
-            archived: false,
-            resume_secret,
-        }));
+        let session = Arc::new_cyclic(|me| {
+            self.session(
+                me,
+                SessionParts {
+                    id: id.clone(),
+                    robot_id: hello.robot_id.clone(),
+                    fleet_name,
+                    transport,
+                    camera,
+                    started_unix_ns,
+                    counters: Counters::default(),
+                    queue: FrameQueue::new(self.config.queue_capacity, self.config.max_pending_drop_notices, self.config.overload_policy),
+                    last_received_sequence: None,
+                    track: TrackState { state: TrackingState::Initializing, ..Default::default() },
+                    perception: self.perception.clone(),
+                    map,
+                    archived: false,
+                    resume_secret,
+                },
+            )
+        });
         session.attach(sink);
         write(&self.sessions).insert(id, session.clone());
         self.metrics.session_opened();
@@ -1222,7 +1253,10 @@ impl Registry {
                         if let Some(store) = &self.store {
                             m.attach_store(store.clone(), &id, s.meta.clone());
                         }
-                        let last_camera = s.keyframes.last().map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
+                        let last_camera = s
+                            .keyframes
+                            .last()
+                            .map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
                         m.restore(s.blocks, &s.meta, s.poses.len(), last_camera);
                     }
                     Some(map)
@@ -1243,22 +1277,27 @@ impl Registry {
         let queue = FrameQueue::new(1, 1, self.config.overload_policy);
         queue.close();
         let fleet_name = self.fleet_for(&s.meta.fleet);
-        Arc::new_cyclic(|me| self.session(me, SessionParts {
-            id,
-            robot_id: s.meta.robot_id.clone(),
-            fleet_name,
-            transport,
-            camera: s.camera,
-            started_unix_ns: s.meta.started_unix_ns,
-            counters,
-            queue,
-            last_received_sequence: latest.map(|p| p.sequence),
-            track: TrackState { state, latest, trajectory: s.poses },
-            perception: None,
-            map,
-            archived: true,
-            resume_secret: String::new(),
-        }))
+        Arc::new_cyclic(|me| {
+            self.session(
+                me,
+                SessionParts {
+                    id,
+                    robot_id: s.meta.robot_id.clone(),
+                    fleet_name,
+                    transport,
+                    camera: s.camera,
+                    started_unix_ns: s.meta.started_unix_ns,
+                    counters,
+                    queue,
+                    last_received_sequence: latest.map(|p| p.sequence),
+                    track: TrackState { state, latest, trajectory: s.poses },
+                    perception: None,
+                    map,
+                    archived: true,
+                    resume_secret: String::new(),
+                },
+            )
+        })
     }
 
     pub fn store(&self) -> Option<&Arc<Store>> {
@@ -1455,7 +1494,10 @@ mod tests {
         assert_eq!(validate_new_hello(&ok, 64 * 48).expect("valid").width, 64);
         let message = |r: Result<&pb::CameraInfo, BadHello>| r.expect_err("refused").status();
         let status = message(validate_new_hello(&ok, 64 * 48 - 1));
-        assert_eq!((status.code(), status.message()), (tonic::Code::ResourceExhausted, "camera of 64x48 = 3072 pixels is over session.max_camera_pixels = 3071"));
+        assert_eq!(
+            (status.code(), status.message()),
+            (tonic::Code::ResourceExhausted, "camera of 64x48 = 3072 pixels is over session.max_camera_pixels = 3071")
+        );
         let status = message(validate_new_hello(&pb::Hello { robot_id: "r/1".into(), ..hello("r1") }, u64::MAX));
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
         assert!(status.message().contains("robot_id \"r/1\" contains '/'"), "{}", status.message());
@@ -1467,7 +1509,8 @@ mod tests {
 
     #[test]
     fn limits_evict_idle_sessions_first_and_refuse_by_name() {
-        let limits = LimitsConfig { max_sessions: 3, max_sessions_per_robot: 1, max_camera_pixels_total: 64 * 48 * 2, ..LimitsConfig::default() };
+        let limits =
+            LimitsConfig { max_sessions: 3, max_sessions_per_robot: 1, max_camera_pixels_total: 64 * 48 * 2, ..LimitsConfig::default() };
         let registry = registry_with(Some("limits"), SessionConfig { idle_evict_s: 0.0, ..SessionConfig::default() }, limits.clone());
         let (sink, _rx) = mpsc::channel(4);
         let first = registry.open(&hello("a"), Transport::Grpc, sink.clone()).expect("open").session;
@@ -1479,7 +1522,10 @@ mod tests {
         let (limit, message) = limit_of(registry.open(&hello("a"), Transport::Grpc, sink.clone()));
         assert_eq!(limit, "max_sessions_per_robot");
         assert!(message.contains("limits.max_sessions_per_robot = 1"), "{message}");
-        assert_eq!(registry.open(&hello("a"), Transport::Grpc, sink.clone()).err().map(|e| e.status().code()), Some(tonic::Code::ResourceExhausted));
+        assert_eq!(
+            registry.open(&hello("a"), Transport::Grpc, sink.clone()).err().map(|e| e.status().code()),
+            Some(tonic::Code::ResourceExhausted)
+        );
         // Disconnected: the robot's next session takes its place.
         first.detach(&sink);
         let second = registry.open(&hello("a"), Transport::Grpc, sink.clone()).expect("room made").session;
@@ -1489,8 +1535,14 @@ mod tests {
         assert_eq!(limit, "max_camera_pixels_total");
         second.detach(&sink);
         let _c = registry.open(&hello("c"), Transport::Grpc, sink.clone()).expect("room made");
-        assert_eq!(metric(&registry, "stillmap_sessions_refused_total{limit=\"max_sessions_per_robot\"}").as_deref(), Some("stillmap_sessions_refused_total{limit=\"max_sessions_per_robot\"} 2"));
-        assert_eq!(metric(&registry, "stillmap_sessions_refused_total{limit=\"max_camera_pixels_total\"}").as_deref(), Some("stillmap_sessions_refused_total{limit=\"max_camera_pixels_total\"} 1"));
+        assert_eq!(
+            metric(&registry, "stillmap_sessions_refused_total{limit=\"max_sessions_per_robot\"}").as_deref(),
+            Some("stillmap_sessions_refused_total{limit=\"max_sessions_per_robot\"} 2")
+        );
+        assert_eq!(
+            metric(&registry, "stillmap_sessions_refused_total{limit=\"max_camera_pixels_total\"}").as_deref(),
+            Some("stillmap_sessions_refused_total{limit=\"max_camera_pixels_total\"} 1")
+        );
         registry.close_all();
         registry.join_workers();
 

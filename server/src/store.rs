@@ -141,7 +141,8 @@ impl KeyframeRecord {
         let features = (0..n)
             .map(|k| {
                 let o = 76 + k * 45;
-                let d = [u64_at(o + 13).unwrap_or(0), u64_at(o + 21).unwrap_or(0), u64_at(o + 29).unwrap_or(0), u64_at(o + 37).unwrap_or(0)];
+                let d =
+                    [u64_at(o + 13).unwrap_or(0), u64_at(o + 21).unwrap_or(0), u64_at(o + 29).unwrap_or(0), u64_at(o + 37).unwrap_or(0)];
                 ([f32_at(o).unwrap_or(0.0), f32_at(o + 4).unwrap_or(0.0)], b[o + 8], f32_at(o + 9).unwrap_or(f32::NAN), d)
             })
             .collect();
@@ -288,7 +289,7 @@ impl Store {
 
     /// The database for a read.
     fn db(&self) -> Result<Arc<Database>, StoreError> {
-        self.db.read().unwrap_or_else(|p| p.into_inner()).clone().ok_or_else(|| self.err("closed after an error; reopening"))
+        crate::read(&self.db).clone().ok_or_else(|| self.err("closed after an error; reopening"))
     }
 
     /// The database for a write: while failing, refused until the backoff has
@@ -299,7 +300,13 @@ impl Store {
             let mut h = crate::lock(&self.health);
             match (&h.failing, h.retry_at) {
                 (Some((_, error)), Some(at)) if Instant::now() < at => {
-                    return Err(StoreError::Db { path: self.path.display().to_string(), message: format!("failing, next try in {:.1} s: {error}", at.saturating_duration_since(Instant::now()).as_secs_f64()) });
+                    return Err(StoreError::Db {
+                        path: self.path.display().to_string(),
+                        message: format!(
+                            "failing, next try in {:.1} s: {error}",
+                            at.saturating_duration_since(Instant::now()).as_secs_f64()
+                        ),
+                    });
                 }
                 (Some(_), _) => {
                     // Claimed: other writers wait for this one's outcome.
@@ -311,7 +318,7 @@ impl Store {
             }
         };
         if retry {
-            let mut slot = self.db.write().unwrap_or_else(|p| p.into_inner());
+            let mut slot = crate::write(&self.db);
             // Ours must be dropped before the file can be opened again (readers
             // still holding it make the reopening fail, and the backoff retries).
             slot.take();
@@ -406,7 +413,8 @@ impl Store {
         let mut out = std::collections::HashMap::new();
         for entry in table.iter().map_err(|e| self.err(e))? {
             let (k, v) = entry.map_err(|e| self.err(e))?;
-            let frame: FleetFrame = serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("fleet frame of {}: {e}", k.value())))?;
+            let frame: FleetFrame =
+                serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("fleet frame of {}: {e}", k.value())))?;
             out.insert(k.value().to_string(), frame);
         }
         Ok(out)
@@ -426,7 +434,10 @@ impl Store {
         let json = serde_json::to_vec(c.meta).map_err(|e| self.err(e))?;
         tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json.as_slice()).map_err(|e| self.err(e))?;
         if let Some(camera) = c.camera {
-            tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(c.session_id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+            tx.open_table(CAMERAS)
+                .map_err(|e| self.err(e))?
+                .insert(c.session_id, camera.encode_to_vec().as_slice())
+                .map_err(|e| self.err(e))?;
         }
         let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
         for p in c.poses {
@@ -471,7 +482,10 @@ impl Store {
             let (id, meta) = entry.map_err(|e| self.err(e))?;
             let id = id.value().to_string();
             let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
-            let camera = cameras.get(id.as_str()).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
+            let camera = cameras
+                .get(id.as_str())
+                .map_err(|e| self.err(e))?
+                .ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
             let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
             let range = (id.as_str(), 0)..=(id.as_str(), u64::MAX);
             let (mut pose_count, mut last) = (0, None);
@@ -534,14 +548,25 @@ impl Store {
         let db = self.db_for_write()?;
         self.written((|| {
             let tx = db.begin_write().map_err(|e| self.err(e))?;
-            tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(s.id.as_str(), s.camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+            tx.open_table(CAMERAS)
+                .map_err(|e| self.err(e))?
+                .insert(s.id.as_str(), s.camera.encode_to_vec().as_slice())
+                .map_err(|e| self.err(e))?;
             {
                 let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
                 for k in &s.keyframes {
                     table.insert((s.id.as_str(), k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
                 }
             }
-            let commit = Commit { session_id: &s.id, meta: &s.meta, poses: &s.poses, keyframes: &[], camera: None, blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(), evicted: &[] };
+            let commit = Commit {
+                session_id: &s.id,
+                meta: &s.meta,
+                poses: &s.poses,
+                keyframes: &[],
+                camera: None,
+                blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(),
+                evicted: &[],
+            };
             self.write(&tx, &commit)?;
             tx.commit().map_err(|e| self.err(e))
         })())
@@ -562,7 +587,8 @@ pub fn export(s: &StoredSession) -> Result<Vec<u8>, StoreError> {
         body.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
         body.extend_from_slice(bytes);
     };
-    let header = serde_json::to_vec(&serde_json::json!({ "session_id": s.id, "meta": s.meta })).map_err(|e| StoreError::Corrupt(e.to_string()))?;
+    let header =
+        serde_json::to_vec(&serde_json::json!({ "session_id": s.id, "meta": s.meta })).map_err(|e| StoreError::Corrupt(e.to_string()))?;
     section(&header, &mut body);
     section(&s.camera.encode_to_vec(), &mut body);
     body.extend_from_slice(&(s.poses.len() as u32).to_le_bytes());
@@ -652,13 +678,19 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
     }
     let mut keyframes = Vec::new();
     for _ in 0..r.u32()? {
-        keyframes.push(KeyframeRecord::from_bytes(r.section()?).map_err(|e| file_error(e.to_string().trim_start_matches("store holds corrupt data: ")))?);
+        keyframes.push(
+            KeyframeRecord::from_bytes(r.section()?)
+                .map_err(|e| file_error(e.to_string().trim_start_matches("store holds corrupt data: ")))?,
+        );
     }
     let mut blocks = Vec::new();
     for _ in 0..r.u32()? {
         let key = [r.u32()? as i32, r.u32()? as i32, r.u32()? as i32];
         if !stillmap_mapping::voxel::block_in_range(key) {
-            return Err(file_error(format!("map block {key:?} is outside the map's range of ±{} blocks", stillmap_mapping::voxel::MAX_BLOCK_INDEX)));
+            return Err(file_error(format!(
+                "map block {key:?} is outside the map's range of ±{} blocks",
+                stillmap_mapping::voxel::MAX_BLOCK_INDEX
+            )));
         }
         blocks.push((key, Block::from_bytes(r.section()?).map_err(file_error)?));
     }
@@ -669,7 +701,8 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
 }
 
 fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
-    let raw = zstd::bulk::decompress(bytes, stillmap_mapping::voxel::BLOCK_BYTES).map_err(|e| StoreError::Corrupt(format!("map block: {e}")))?;
+    let raw =
+        zstd::bulk::decompress(bytes, stillmap_mapping::voxel::BLOCK_BYTES).map_err(|e| StoreError::Corrupt(format!("map block: {e}")))?;
     Block::from_bytes(&raw).map_err(|e| StoreError::Corrupt(e.to_string()))
 }
 
@@ -708,12 +741,25 @@ mod tests {
         let mut block = Block::default();
         block.voxels[7].log_odds = 1.5;
         block.voxels[7].hits = 2;
-        let kf = KeyframeRecord { id: 0, timestamp_ns: 9, world_from_camera: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0], features: vec![([1.5, 2.5], 1, f32::NAN, [1, 2, 3, 4]), ([3.0, 4.0], 0, 1.25, [5, 6, 7, 8])] };
+        let kf = KeyframeRecord {
+            id: 0,
+            timestamp_ns: 9,
+            world_from_camera: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0],
+            features: vec![([1.5, 2.5], 1, f32::NAN, [1, 2, 3, 4]), ([3.0, 4.0], 0, 1.25, [5, 6, 7, 8])],
+        };
         {
             let store = Store::open(&path).unwrap();
             store.put_session("s1", &meta, &camera).unwrap();
             store
-                .commit(&Commit { session_id: "s1", meta: &meta, poses: &[pose], keyframes: std::slice::from_ref(&kf), camera: None, blocks: vec![([1, -2, 3], &block)], evicted: &[([9, 9, 9], block.clone())] })
+                .commit(&Commit {
+                    session_id: "s1",
+                    meta: &meta,
+                    poses: &[pose],
+                    keyframes: std::slice::from_ref(&kf),
+                    camera: None,
+                    blocks: vec![([1, -2, 3], &block)],
+                    evicted: &[([9, 9, 9], block.clone())],
+                })
                 .unwrap();
         }
         let store = Store::open(&path).unwrap();
@@ -729,9 +775,28 @@ mod tests {
         assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
         // Heads: no blocks, no trajectory; the count and the latest pose.
         let heads = store.heads(false).unwrap();
-        assert_eq!(heads, vec![SessionHead { id: "s1".into(), meta: meta.clone(), camera: camera.clone(), pose_count: 1, latest: Some(pose), keyframes: vec![] }]);
+        assert_eq!(
+            heads,
+            vec![SessionHead {
+                id: "s1".into(),
+                meta: meta.clone(),
+                camera: camera.clone(),
+                pose_count: 1,
+                latest: Some(pose),
+                keyframes: vec![]
+            }]
+        );
         assert_eq!(store.heads(true).unwrap()[0].keyframes.len(), 1);
-        let frame = FleetFrame { fleet: "lab".into(), fleet_from_session: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0], anchor: false, support: 3, inliers: 120, merged_unix_ns: 7, first_merged_unix_ns: 5, merged_after_ns: 200_000_000 };
+        let frame = FleetFrame {
+            fleet: "lab".into(),
+            fleet_from_session: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0],
+            anchor: false,
+            support: 3,
+            inliers: 120,
+            merged_unix_ns: 7,
+            first_merged_unix_ns: 5,
+            merged_after_ns: 200_000_000,
+        };
         store.put_fleet_frame("s1", &frame).unwrap();
         assert_eq!(store.fleet_frames().unwrap().get("s1"), Some(&frame));
         // The one-file export round-trips exactly, and bad files are named.
@@ -795,14 +860,36 @@ mod tests {
     fn a_full_disk_marks_the_store_failing_until_a_retried_write_goes_through() {
         let disk = Disk::default();
         let backend = disk.clone();
-        let store = Store::with_opener(Path::new("memory"), Box::new(move || redb::Builder::new().create_with_backend(backend.clone()).map_err(|e| e.to_string()))).unwrap();
-        let meta = SessionMeta { robot_id: "r".into(), transport: "grpc".into(), started_unix_ns: 1, class_names: Vec::new(), up_in_world: None, up_source: None, keyframes: 1, map_stamp: 1, fleet: String::new() };
+        let store = Store::with_opener(
+            Path::new("memory"),
+            Box::new(move || redb::Builder::new().create_with_backend(backend.clone()).map_err(|e| e.to_string())),
+        )
+        .unwrap();
+        let meta = SessionMeta {
+            robot_id: "r".into(),
+            transport: "grpc".into(),
+            started_unix_ns: 1,
+            class_names: Vec::new(),
+            up_in_world: None,
+            up_source: None,
+            keyframes: 1,
+            map_stamp: 1,
+            fleet: String::new(),
+        };
         let camera = pb::CameraInfo { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5, ..Default::default() };
         store.put_session("s", &meta, &camera).unwrap();
         assert_eq!((store.failing(), store.errors()), (None, 0));
         let kf = KeyframeRecord { id: 4, timestamp_ns: 9, world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], features: Vec::new() };
         let pose = pb::PoseStamped { sequence: 7, ..Default::default() };
-        let commit = Commit { session_id: "s", meta: &meta, poses: std::slice::from_ref(&pose), keyframes: std::slice::from_ref(&kf), camera: None, blocks: Vec::new(), evicted: &[] };
+        let commit = Commit {
+            session_id: "s",
+            meta: &meta,
+            poses: std::slice::from_ref(&pose),
+            keyframes: std::slice::from_ref(&kf),
+            camera: None,
+            blocks: Vec::new(),
+            evicted: &[],
+        };
 
         disk.full.store(true, std::sync::atomic::Ordering::SeqCst);
         let e = store.commit(&commit).unwrap_err().to_string();
@@ -859,8 +946,29 @@ mod tests {
     fn a_map_block_beyond_the_maps_range_is_refused() {
         let s = StoredSession {
             id: "far".into(),
-            meta: SessionMeta { robot_id: "far".into(), transport: "grpc".into(), started_unix_ns: 5, class_names: Vec::new(), up_in_world: None, up_source: None, keyframes: 0, map_stamp: 0, fleet: String::new() },
-            camera: pb::CameraInfo { width: 640, height: 480, fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5, depth_units_per_metre: 5000.0, color_encoding: pb::ColorEncoding::Jpeg as i32, depth_encoding: pb::DepthEncoding::Zstd as i32, ..Default::default() },
+            meta: SessionMeta {
+                robot_id: "far".into(),
+                transport: "grpc".into(),
+                started_unix_ns: 5,
+                class_names: Vec::new(),
+                up_in_world: None,
+                up_source: None,
+                keyframes: 0,
+                map_stamp: 0,
+                fleet: String::new(),
+            },
+            camera: pb::CameraInfo {
+                width: 640,
+                height: 480,
+                fx: 525.0,
+                fy: 525.0,
+                cx: 319.5,
+                cy: 239.5,
+                depth_units_per_metre: 5000.0,
+                color_encoding: pb::ColorEncoding::Jpeg as i32,
+                depth_encoding: pb::DepthEncoding::Zstd as i32,
+                ..Default::default()
+            },
             poses: Vec::new(),
             keyframes: Vec::new(),
             blocks: vec![([1 << 27, 0, -(1 << 27)], Block::default())],
@@ -868,7 +976,10 @@ mod tests {
         let file = export(&s).unwrap();
         assert_eq!(
             import_file(&file, 1 << 20).unwrap_err().to_string(),
-            format!("bad map file: map block [134217728, 0, -134217728] is outside the map's range of ±{} blocks", stillmap_mapping::voxel::MAX_BLOCK_INDEX)
+            format!(
+                "bad map file: map block [134217728, 0, -134217728] is outside the map's range of ±{} blocks",
+                stillmap_mapping::voxel::MAX_BLOCK_INDEX
+            )
         );
         let near = StoredSession { blocks: vec![([3, 0, -2], Block::default())], ..s };
         assert_eq!(import_file(&export(&near).unwrap(), 1 << 20).unwrap().blocks.len(), 1);

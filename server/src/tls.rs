@@ -52,7 +52,9 @@ impl TlsFiles {
         }
         let key = PrivateKeyDer::from_pem_slice(&self.key).map_err(|e| format!("tls.key_path: {e}"))?;
         let provider = Arc::new(rustls::crypto::ring::default_provider());
-        let builder = rustls::ServerConfig::builder_with_provider(provider.clone()).with_safe_default_protocol_versions().map_err(|e| e.to_string())?;
+        let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
+            .with_safe_default_protocol_versions()
+            .map_err(|e| e.to_string())?;
         let builder = match &self.client_ca {
             None => builder.with_no_client_auth(),
             Some(ca) => {
@@ -60,7 +62,9 @@ impl TlsFiles {
                 for cert in CertificateDer::pem_slice_iter(ca) {
                     roots.add(cert.map_err(|e| format!("tls.client_ca_path: {e}"))?).map_err(|e| format!("tls.client_ca_path: {e}"))?;
                 }
-                let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider).build().map_err(|e| format!("tls.client_ca_path: {e}"))?;
+                let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider)
+                    .build()
+                    .map_err(|e| format!("tls.client_ca_path: {e}"))?;
                 builder.with_client_cert_verifier(verifier)
             }
         };

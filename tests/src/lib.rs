@@ -28,9 +28,9 @@ pub fn bin(name: &str) -> PathBuf {
 
 /// The real TUM clip beside the checkout.
 pub fn tum_dir() -> PathBuf {
-    let dir = std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(|| {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy")
-    });
+    let dir = std::env::var_os("TUM")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy"));
     assert!(dir.join("rgb.txt").exists(), "TUM clip not found at {}", dir.display());
     dir
 }
@@ -70,11 +70,8 @@ impl Server {
 
     /// `None` when the server exited before printing its ready line.
     fn try_start(extra: &[&str]) -> Option<Self> {
-        let (grpc, http, zenoh) = (
-            format!("127.0.0.1:{}", free_port()),
-            format!("127.0.0.1:{}", free_port()),
-            format!("tcp/127.0.0.1:{}", free_port()),
-        );
+        let (grpc, http, zenoh) =
+            (format!("127.0.0.1:{}", free_port()), format!("127.0.0.1:{}", free_port()), format!("tcp/127.0.0.1:{}", free_port()));
         // The real segmentation model from ../shared/models, unless a test says otherwise.
         let model = model_path();
         let mut command = Command::new(bin("stillmap-server"));
@@ -97,13 +94,16 @@ impl Server {
             .expect("spawn stillmap-server");
         let stdout = child.stdout.take().expect("server stdout");
         let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if line.contains("ready") {
-                    let _ = tx.send(line);
+        std::thread::Builder::new()
+            .name("server-stdout".into())
+            .spawn(move || {
+                for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                    if line.contains("ready") {
+                        let _ = tx.send(line);
+                    }
                 }
-            }
-        });
+            })
+            .expect("a thread reading the server's stdout");
         // Dropped on a failed start: killed, waited for, its own store removed.
         let token_after = |flag: &str| extra.iter().position(|a| *a == flag).and_then(|i| extra.get(i + 1)).map(|t| t.to_string());
         let token = token_after("--read-token").or_else(|| token_after("--admin-token"));
@@ -286,14 +286,73 @@ pub fn openssl(dir: &Path, args: &[&str]) {
 
 /// Makes a test CA in `dir` (`ca.pem`, `ca.key`), valid for a day.
 pub fn test_ca(dir: &Path) {
-    openssl(dir, &["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "1", "-subj", "/CN=stillmap test CA", "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign"]);
+    openssl(
+        dir,
+        &[
+            "req",
+            "-x509",
+            "-newkey",
+            "ec",
+            "-pkeyopt",
+            "ec_paramgen_curve:prime256v1",
+            "-nodes",
+            "-keyout",
+            "ca.key",
+            "-out",
+            "ca.pem",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=stillmap test CA",
+            "-addext",
+            "basicConstraints=critical,CA:TRUE",
+            "-addext",
+            "keyUsage=critical,keyCertSign",
+        ],
+    );
 }
 
 /// `<name>.pem` and `<name>.key` in `dir`: common name `name`, signed by the CA
 /// [`test_ca`] made there, for `usage` (serverAuth, clientAuth) and `san`.
 pub fn signed_certificate(dir: &Path, name: &str, usage: &str, san: &str) {
     let ext = format!("{name}.ext");
-    std::fs::write(dir.join(&ext), format!("basicConstraints=CA:FALSE\nextendedKeyUsage={usage}\nsubjectAltName={san}\n")).expect("ext file");
-    openssl(dir, &["req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", &format!("{name}.key"), "-out", &format!("{name}.csr"), "-subj", &format!("/CN={name}")]);
-    openssl(dir, &["x509", "-req", "-in", &format!("{name}.csr"), "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", &format!("{name}.pem"), "-days", "1", "-extfile", &ext]);
+    std::fs::write(dir.join(&ext), format!("basicConstraints=CA:FALSE\nextendedKeyUsage={usage}\nsubjectAltName={san}\n"))
+        .expect("ext file");
+    openssl(
+        dir,
+        &[
+            "req",
+            "-newkey",
+            "ec",
+            "-pkeyopt",
+            "ec_paramgen_curve:prime256v1",
+            "-nodes",
+            "-keyout",
+            &format!("{name}.key"),
+            "-out",
+            &format!("{name}.csr"),
+            "-subj",
+            &format!("/CN={name}"),
+        ],
+    );
+    openssl(
+        dir,
+        &[
+            "x509",
+            "-req",
+            "-in",
+            &format!("{name}.csr"),
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            &format!("{name}.pem"),
+            "-days",
+            "1",
+            "-extfile",
+            &ext,
+        ],
+    );
 }

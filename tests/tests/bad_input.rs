@@ -7,8 +7,7 @@ use std::time::Duration;
 use stillmap_e2e::{Server, first_tum_frame, tum_frame, tum_hello};
 use stillmap_proto::codec;
 use stillmap_proto::pb::{
-    self, FrameStatus, client_message::Msg as ClientMsg, ingest_client::IngestClient, query_client::QueryClient,
-    server_message::Msg,
+    self, FrameStatus, client_message::Msg as ClientMsg, ingest_client::IngestClient, query_client::QueryClient, server_message::Msg,
 };
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
@@ -33,10 +32,7 @@ impl Stream {
     }
 
     async fn next(&mut self) -> Result<pb::ServerMessage, tonic::Status> {
-        tokio::time::timeout(Duration::from_secs(20), self.rx.message())
-            .await
-            .expect("answer in time")
-            .map(|m| m.expect("stream open"))
+        tokio::time::timeout(Duration::from_secs(20), self.rx.message()).await.expect("answer in time").map(|m| m.expect("stream open"))
     }
 
     async fn hello(server: &Server, hello: pb::Hello) -> (Self, pb::SessionAccepted) {
@@ -118,7 +114,8 @@ async fn bad_frames_are_rejected_by_name_and_the_session_goes_on() {
         rejected(&s.result().await),
         (
             Code::InvalidArgument,
-            "frame 3: depth payload holds 307200 bytes after decompression, expected 614400 (16-bit, 640x480) — looks like 8-bit depth".into()
+            "frame 3: depth payload holds 307200 bytes after decompression, expected 614400 (16-bit, 640x480) — looks like 8-bit depth"
+                .into()
         )
     );
 
@@ -126,10 +123,7 @@ async fn bad_frames_are_rejected_by_name_and_the_session_goes_on() {
     s.send(ClientMsg::Frame(tum_frame(4, 500))).await;
     assert_eq!(
         rejected(&s.result().await),
-        (
-            Code::InvalidArgument,
-            "capture timestamp went backwards: frame 4 at 500 ns is not after the previous frame's 3000 ns".into()
-        )
+        (Code::InvalidArgument, "capture timestamp went backwards: frame 4 at 500 ns is not after the previous frame's 3000 ns".into())
     );
 
     // The session survives: a good frame is processed, bit-exact.
@@ -187,17 +181,26 @@ async fn a_resume_needs_the_sessions_resume_secret() {
     assert!(sessions.to_string().contains(&accepted.session_id) && !sessions.to_string().contains(&accepted.resume_secret));
     for secret in ["", "0123456789abcdef0123456789abcdef", other.resume_secret.as_str()] {
         let mut s = Stream::open(&server).await;
-        s.send(ClientMsg::Hello(pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: secret.into(), ..tum_hello("owner") })).await;
+        s.send(ClientMsg::Hello(pb::Hello {
+            resume_session_id: accepted.session_id.clone(),
+            resume_secret: secret.into(),
+            ..tum_hello("owner")
+        }))
+        .await;
         let status = s.next().await.expect_err("refused");
         assert_eq!(
             (status.code(), status.message().to_string()),
-            (Code::Unauthenticated, format!("resuming session {} needs the resume secret its accept returned (Hello.resume_secret)", accepted.session_id)),
+            (
+                Code::Unauthenticated,
+                format!("resuming session {} needs the resume secret its accept returned (Hello.resume_secret)", accepted.session_id)
+            ),
             "secret {secret:?}"
         );
     }
     assert!(server.get_text("/metrics").await.contains("stillmap_frames_rejected_total{reason=\"unauthenticated\"} 3"));
     // With it, the session comes back.
-    let hello = pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..tum_hello("owner") };
+    let hello =
+        pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..tum_hello("owner") };
     let (_, again) = Stream::hello(&server, hello).await;
     assert!(again.resumed);
     assert_eq!((again.session_id, again.resume_secret), (accepted.session_id, accepted.resume_secret));
@@ -246,7 +249,8 @@ async fn oversized_message_is_resource_exhausted_and_the_session_can_resume() {
     assert!(status.message().contains("200000"), "{}", status.message());
 
     // The session survives: resume it and go on after the last frame it received.
-    let hello = pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..tum_hello("big") };
+    let hello =
+        pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..tum_hello("big") };
     let (mut s2, again) = Stream::hello(&server, hello).await;
     assert!(again.resumed);
     assert_eq!(again.session_id, accepted.session_id);
@@ -268,10 +272,7 @@ async fn unknown_session_in_queries_is_not_found() {
     assert_eq!((status.code(), status.message()), (Code::NotFound, "unknown session \"nope\""));
     let status = q.subscribe_poses(r).await.expect_err("not found");
     assert_eq!(status.code(), Code::NotFound);
-    let status = q
-        .get_trajectory(pb::TrajectoryRequest { session_id: "nope".into(), ..Default::default() })
-        .await
-        .expect_err("not found");
+    let status = q.get_trajectory(pb::TrajectoryRequest { session_id: "nope".into(), ..Default::default() }).await.expect_err("not found");
     assert_eq!(status.code(), Code::NotFound);
     let (code, body) = server.get_json("/api/v1/sessions/nope").await;
     assert_eq!((code, body), (404, serde_json::json!({ "error": "unknown session \"nope\"" })));
@@ -307,10 +308,9 @@ async fn queries_answer_for_a_live_session() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_hello_without_a_configured_token_is_unauthenticated() {
     let server = Server::start(&["--auth-token", "fleet-secret-1", "--auth-token", "fleet-secret-2", "--read-token", "viewer-1"]);
-    for (token, message) in [
-        ("", "this server requires an auth token in the hello (stillmap-client --token)"),
-        ("fleet-secret-3", "unknown auth token"),
-    ] {
+    for (token, message) in
+        [("", "this server requires an auth token in the hello (stillmap-client --token)"), ("fleet-secret-3", "unknown auth token")]
+    {
         let mut s = Stream::open(&server).await;
         s.send(ClientMsg::Hello(pb::Hello { auth_token: token.into(), ..tum_hello("r") })).await;
         let status = s.next().await.expect_err("status");
@@ -350,7 +350,8 @@ async fn a_hello_without_a_configured_token_is_unauthenticated() {
 async fn tokens_carry_scopes_and_sighup_reloads_the_token_file() {
     let file = stillmap_e2e::tempfile_path("tokens.txt");
     std::fs::write(&file, "# robots of the warehouse\nwh-token robot:warehouse-*\nviewer-token read\n").expect("token file");
-    let server = Server::start(&["--no-zenoh", "--no-perception", "--token-file", file.to_str().expect("utf-8"), "--admin-token", "root-token"]);
+    let server =
+        Server::start(&["--no-zenoh", "--no-perception", "--token-file", file.to_str().expect("utf-8"), "--admin-token", "root-token"]);
     let http = reqwest::Client::new();
     let status = |path: &'static str, header: Option<&'static str>| {
         let mut r = http.get(format!("http://{}{path}", server.http));
@@ -360,10 +361,20 @@ async fn tokens_carry_scopes_and_sighup_reloads_the_token_file() {
         async move {
             let r = r.send().await.expect("GET");
             let code = r.status().as_u16();
-            (code, if code >= 400 { r.json::<serde_json::Value>().await.expect("JSON error")["error"].as_str().unwrap_or_default().to_string() } else { String::new() })
+            (
+                code,
+                if code >= 400 {
+                    r.json::<serde_json::Value>().await.expect("JSON error")["error"].as_str().unwrap_or_default().to_string()
+                } else {
+                    String::new()
+                },
+            )
         }
     };
-    assert_eq!(status("/api/v1/sessions", None).await, (401, "this needs a token with the read scope: Authorization: Bearer <token>".into()));
+    assert_eq!(
+        status("/api/v1/sessions", None).await,
+        (401, "this needs a token with the read scope: Authorization: Bearer <token>".into())
+    );
     assert_eq!(status("/api/v1/sessions", Some("wh-token")).await, (403, "this token lacks the read scope".into()));
     assert_eq!(status("/api/v1/sessions", Some("guess")).await, (401, "unknown token".into()));
     assert_eq!(status("/api/v1/sessions", Some("viewer-token")).await.0, 200);
@@ -399,7 +410,10 @@ async fn tokens_carry_scopes_and_sighup_reloads_the_token_file() {
     std::fs::write(&file, "viewer-2 read\n").expect("token file");
     let hup = || assert!(std::process::Command::new("kill").args(["-HUP", &server.pid().to_string()]).status().expect("kill").success());
     hup();
-    stillmap_e2e::eventually(Duration::from_secs(10), "the token file is reloaded", async || status("/api/v1/sessions", Some("viewer-token")).await.0 == 401).await;
+    stillmap_e2e::eventually(Duration::from_secs(10), "the token file is reloaded", async || {
+        status("/api/v1/sessions", Some("viewer-token")).await.0 == 401
+    })
+    .await;
     assert_eq!(status("/api/v1/sessions", Some("viewer-2")).await.0, 200);
     assert_eq!(status("/api/v1/sessions", Some("root-token")).await.0, 200, "the config's admin token stays (admin implies read)");
     // A broken file keeps the tokens in force.
@@ -568,7 +582,11 @@ async fn frames_over_the_cpu_budget_end_the_stream_naming_the_limit() {
     assert_eq!(s.result().await.sequence, 1);
     let status = s.next().await.expect_err("the stream ends");
     assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
-    assert!(status.message().starts_with("2 frames in a row took more than limits.frame_cpu_ms = 0.001 ms of CPU each (frame 1: "), "{}", status.message());
+    assert!(
+        status.message().starts_with("2 frames in a row took more than limits.frame_cpu_ms = 0.001 ms of CPU each (frame 1: "),
+        "{}",
+        status.message()
+    );
     let metrics = server.get_text("/metrics").await;
     assert!(metrics.contains("stillmap_frame_cpu_over_budget_total 2"), "{metrics}");
     assert!(metrics.contains("stillmap_sessions_ended_total{limit=\"frame_cpu_ms\"} 1"), "{metrics}");

@@ -18,7 +18,11 @@ impl Tmpfs {
     fn mount(size: &str) -> Option<Self> {
         let dir = tempfile_path("tmpfs");
         std::fs::create_dir_all(&dir).ok()?;
-        let ok = Command::new("mount").args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"]).arg(&dir).status().is_ok_and(|s| s.success());
+        let ok = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(&dir)
+            .status()
+            .is_ok_and(|s| s.success());
         if ok {
             Some(Self(dir))
         } else {
@@ -63,7 +67,16 @@ async fn a_full_disk_is_reported_and_only_what_is_on_disk_counts_as_committed() 
     let server = Server::start(&args);
     assert_eq!(healthz(&server).await.0, 200);
 
-    let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max", "--robot-id", "alpha"]);
+    let (out, summary) = run_client(&[
+        "--source",
+        &format!("tum:{}", tum_dir().display()),
+        "--server",
+        &server.grpc_url(),
+        "--rate",
+        "max",
+        "--robot-id",
+        "alpha",
+    ]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
 
@@ -73,7 +86,11 @@ async fn a_full_disk_is_reported_and_only_what_is_on_disk_counts_as_committed() 
     assert_eq!(health["status"], "unhealthy");
     assert!(health["store"]["error"].as_str().is_some_and(|e| e.contains("No space left on device")), "{health}");
     let metrics = server.get_text("/metrics").await;
-    let errors: u64 = metrics.lines().find_map(|l| l.strip_prefix("stillmap_store_errors_total ")).and_then(|v| v.trim().parse().ok()).expect("stillmap_store_errors_total");
+    let errors: u64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("stillmap_store_errors_total "))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("stillmap_store_errors_total");
     assert!(errors >= 1, "{errors}");
     let (status, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
     assert_eq!(status, 200);
@@ -96,7 +113,16 @@ async fn a_full_disk_is_reported_and_only_what_is_on_disk_counts_as_committed() 
     // The same again, and this time space comes back while the server runs: the
     // periodic flush retries, the store is healthy again, and everything is committed.
     let server = Server::start(&args);
-    let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max", "--robot-id", "beta"]);
+    let (out, summary) = run_client(&[
+        "--source",
+        &format!("tum:{}", tum_dir().display()),
+        "--server",
+        &server.grpc_url(),
+        "--rate",
+        "max",
+        "--robot-id",
+        "beta",
+    ]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let beta = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
     let (_, before) = server.get_json(&format!("/api/v1/maps/{beta}")).await;

@@ -20,9 +20,8 @@ fn run_fleet(server: &Server, args: &[&str]) -> (Output, serde_json::Value) {
         .env("STILLMAP_LOG", "warn")
         .output()
         .expect("run stillmap-client fleet");
-    let text = std::fs::read_to_string(&report).unwrap_or_else(|e| {
-        panic!("no report ({e}); client stderr: {}", String::from_utf8_lossy(&output.stderr))
-    });
+    let text = std::fs::read_to_string(&report)
+        .unwrap_or_else(|e| panic!("no report ({e}); client stderr: {}", String::from_utf8_lossy(&output.stderr)));
     let _ = std::fs::remove_file(&report);
     (output, serde_json::from_str(&text).expect("report JSON"))
 }
@@ -35,7 +34,13 @@ fn count(v: &serde_json::Value, key: &str) -> u64 {
 async fn a_fleet_of_three_keeps_every_session_apart() {
     let server = Server::start(&[]);
     let (out, report) = run_fleet(&server, &["--robots", "3", "--transport", "mixed", "--rate", "10", "--duration", "4"]);
-    assert!(out.status.success(), "fleet failed ({}): {}\n{}", out.status, String::from_utf8_lossy(&out.stderr), String::from_utf8_lossy(&out.stdout));
+    assert!(
+        out.status.success(),
+        "fleet failed ({}): {}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout)
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("| **total** |"), "{stdout}");
 

@@ -14,7 +14,11 @@ const MAGIC: &[u8] = b"STILLMAP-MAP\0\x01";
 /// The server's peak resident memory (VmHWM), bytes.
 fn peak_rss(pid: u32) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("/proc status");
-    let kb: u64 = status.lines().find_map(|l| l.strip_prefix("VmHWM:")).and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok()).expect("VmHWM");
+    let kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .expect("VmHWM");
     kb * 1024
 }
 
@@ -42,10 +46,25 @@ fn with_session_id(file: &[u8], id: &str) -> Vec<u8> {
 async fn import_and_export_need_an_admin_and_survive_bombs_and_id_theft() {
     let config = tempfile_path("import.toml");
     std::fs::write(&config, format!("[store]\nimport_max_bytes = {IMPORT_MAX_BYTES}\n")).expect("config");
-    let server = Server::start(&["--no-zenoh", "--no-perception", "--config", config.to_str().expect("utf-8"), "--auth-token", ROBOT_TOKEN, "--admin-token", ADMIN_TOKEN]);
+    let server = Server::start(&[
+        "--no-zenoh",
+        "--no-perception",
+        "--config",
+        config.to_str().expect("utf-8"),
+        "--auth-token",
+        ROBOT_TOKEN,
+        "--admin-token",
+        ADMIN_TOKEN,
+    ]);
     // Bombs first, while the server's peak memory is its start-up's.
     let bomb = |body: Vec<u8>| async {
-        let r = reqwest::Client::new().post(format!("http://{}/api/v1/maps/import", server.http)).bearer_auth(ADMIN_TOKEN).body(body).send().await.expect("POST");
+        let r = reqwest::Client::new()
+            .post(format!("http://{}/api/v1/maps/import", server.http))
+            .bearer_auth(ADMIN_TOKEN)
+            .body(body)
+            .send()
+            .await
+            .expect("POST");
         let status = r.status().as_u16();
         (status, r.json::<serde_json::Value>().await.expect("JSON error")["error"].as_str().unwrap_or_default().to_string())
     };
@@ -62,17 +81,27 @@ async fn import_and_export_need_an_admin_and_survive_bombs_and_id_theft() {
     assert!(declared.len() < 64 << 10 && undeclared.len() < 64 << 10);
     let before = peak_rss(server.pid());
     let limit = format!("imports are limited to {IMPORT_MAX_BYTES} bytes uncompressed (store.import_max_bytes)");
-    assert_eq!(
-        bomb(declared).await,
-        (400, format!("bad map file: the body declares {} bytes uncompressed; {limit}", 256 << 20))
-    );
+    assert_eq!(bomb(declared).await, (400, format!("bad map file: the body declares {} bytes uncompressed; {limit}", 256 << 20)));
     assert_eq!(bomb(undeclared).await, (400, format!("bad map file: the body decompresses to more; {limit}")));
     let after = peak_rss(server.pid());
     eprintln!("server peak RSS {} MB before the bombs, {} MB after", before >> 20, after >> 20);
     // At most the cap (32 MiB) and its vector's doubling on top of what it had.
     assert!(after < before + 3 * IMPORT_MAX_BYTES as u64, "peak RSS {} -> {} MB", before >> 20, after >> 20);
 
-    let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max", "--max-frames", "60", "--robot-id", "alpha", "--token", ROBOT_TOKEN]);
+    let (out, summary) = run_client(&[
+        "--source",
+        &format!("tum:{}", tum_dir().display()),
+        "--server",
+        &server.grpc_url(),
+        "--rate",
+        "max",
+        "--max-frames",
+        "60",
+        "--robot-id",
+        "alpha",
+        "--token",
+        ROBOT_TOKEN,
+    ]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let first = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
 
@@ -117,7 +146,20 @@ async fn import_and_export_need_an_admin_and_survive_bombs_and_id_theft() {
     assert_eq!(r.status(), 201);
     assert_eq!(r.json::<serde_json::Value>().await.expect("JSON")["session_id"], next.as_str());
     let (_, imported) = server.get_json(&format!("/api/v1/sessions/{next}/trajectory")).await;
-    let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max", "--max-frames", "10", "--robot-id", "alpha", "--token", ROBOT_TOKEN]);
+    let (out, summary) = run_client(&[
+        "--source",
+        &format!("tum:{}", tum_dir().display()),
+        "--server",
+        &server.grpc_url(),
+        "--rate",
+        "max",
+        "--max-frames",
+        "10",
+        "--robot-id",
+        "alpha",
+        "--token",
+        ROBOT_TOKEN,
+    ]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let live = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
     assert_ne!(live, next, "a live session took the imported map's id");

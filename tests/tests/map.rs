@@ -9,7 +9,8 @@ use stillmap_proto::pb::query_client::QueryClient;
 #[tokio::test(flavor = "multi_thread")]
 async fn the_streamed_clip_is_mapped_and_served() {
     let server = Server::start(&["--no-zenoh"]);
-    let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
+    let (out, summary) =
+        run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("session id").to_string();
 
@@ -109,7 +110,8 @@ async fn the_streamed_clip_is_mapped_and_served() {
 
     // gRPC equivalents.
     let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
-    let tile = q.get_map_tile(pb::MapTileRequest { session_id: id.clone(), zoom: max_zoom, x: tx, y: ty }).await.expect("tile").into_inner();
+    let tile =
+        q.get_map_tile(pb::MapTileRequest { session_id: id.clone(), zoom: max_zoom, x: tx, y: ty }).await.expect("tile").into_inner();
     assert_eq!(tile.etag, etag);
     assert_eq!(decode_png(&tile.png).2, rgba);
     let mut stream = q.get_map_cloud(pb::MapCloudRequest { session_id: id.clone(), bbox: None }).await.expect("cloud").into_inner();
@@ -133,7 +135,11 @@ async fn the_streamed_clip_is_mapped_and_served() {
         (format!("/api/v1/maps/{id}/tiles/3/99999999/0.png"), 400, "tile index (99999999, 0) is out of range ±1048576"),
         (format!("/api/v1/maps/{id}/cloud.ply?bbox=1,2,3"), 400, "bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got 3"),
         (format!("/api/v1/maps/{id}/occupancy.pgm?min_height=1&max_height=0"), 400, "height band [1, 0] is empty"),
-        (format!("/api/v1/maps/{id}/occupancy.pgm?resolution=fine"), 400, "Failed to deserialize query string: resolution: invalid float literal"),
+        (
+            format!("/api/v1/maps/{id}/occupancy.pgm?resolution=fine"),
+            400,
+            "Failed to deserialize query string: resolution: invalid float literal",
+        ),
         ("/api/v1/maps/nobody/tiles/0/0/0.png".to_string(), 404, "unknown session \"nobody\""),
         ("/api/v1/maps/nobody/cloud.ply".to_string(), 404, "unknown session \"nobody\""),
         ("/api/v1/maps/nobody".to_string(), 404, "unknown session \"nobody\""),
@@ -159,7 +165,8 @@ async fn a_map_over_its_memory_budget_evicts_to_the_store_and_loses_nothing() {
         let mut args = vec!["--no-zenoh", "--no-perception"];
         args.extend(extra.iter().copied());
         let server = Server::start(&args);
-        let (out, summary) = run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
+        let (out, summary) =
+            run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
         assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
         let summary = summary.expect("summary");
         assert_eq!(summary["frames_dropped"], 0);

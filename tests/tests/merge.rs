@@ -4,6 +4,7 @@
 //! frame; B is merged into it by place recognition, its poses are served in the
 //! fleet frame, they score against the ground truth with A's alignment alone,
 //! and the merge survives a restart.
+#![allow(clippy::disallowed_methods)] // a test's client threads need no names
 
 use std::time::{Duration, Instant};
 
@@ -48,10 +49,13 @@ async fn settled(server: &Server) -> serde_json::Value {
 /// The vertices of one of the server's binary PLY files (x, y, z float; rgb; class; confidence).
 fn ply_points(ply: &[u8]) -> Vec<[f64; 3]> {
     let end = ply.windows(11).position(|w| w == b"end_header\n").expect("PLY header") + 11;
-    ply[end..].chunks_exact(21).map(|v| {
-        let f = |o: usize| f64::from(f32::from_le_bytes([v[o], v[o + 1], v[o + 2], v[o + 3]]));
-        [f(0), f(4), f(8)]
-    }).collect()
+    ply[end..]
+        .chunks_exact(21)
+        .map(|v| {
+            let f = |o: usize| f64::from(f32::from_le_bytes([v[o], v[o + 1], v[o + 2], v[o + 3]]));
+            [f(0), f(4), f(8)]
+        })
+        .collect()
 }
 
 /// (A's desk thickness, the fleet map's on the same cells), metres; see the test.
@@ -87,7 +91,10 @@ fn desk_thickness(a: &[[f64; 3]], fleet: &[[f64; 3]]) -> (f64, f64) {
 }
 
 fn member<'a>(fleet: &'a serde_json::Value, session: &str) -> &'a serde_json::Value {
-    fleet["sessions"].as_array().and_then(|s| s.iter().find(|m| m["session_id"] == session)).unwrap_or_else(|| panic!("{session} not in {fleet}"))
+    fleet["sessions"]
+        .as_array()
+        .and_then(|s| s.iter().find(|m| m["session_id"] == session))
+        .unwrap_or_else(|| panic!("{session} not in {fleet}"))
 }
 
 /// Robot B joins a room robot A has mapped: the merge comes within 2 s of B's
@@ -98,7 +105,18 @@ async fn a_robot_joining_a_mapped_room_merges_within_two_seconds() {
     let a_dir = tum_dir();
     let b_dir = a_dir.with_file_name("rgbd_dataset_freiburg1_rpy_b");
     let grpc = server.grpc_url();
-    let (a, _) = run_client(&["--source", &format!("tum:{}", a_dir.display()), "--server", &grpc, "--rate", "max", "--robot-id", "alpha", "--fleet", "lab"]);
+    let (a, _) = run_client(&[
+        "--source",
+        &format!("tum:{}", a_dir.display()),
+        "--server",
+        &grpc,
+        "--rate",
+        "max",
+        "--robot-id",
+        "alpha",
+        "--fleet",
+        "lab",
+    ]);
     assert!(a.status.success(), "{}", String::from_utf8_lossy(&a.stderr));
     // A's keyframes all indexed.
     let deadline = Instant::now() + Duration::from_secs(60);
@@ -106,10 +124,26 @@ async fn a_robot_joining_a_mapped_room_merges_within_two_seconds() {
         assert!(Instant::now() < deadline, "place recognition never caught up");
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    let (b, summary) = run_client(&["--source", &format!("tum:{}", b_dir.display()), "--server", &grpc, "--rate", "max", "--max-frames", "90", "--robot-id", "beta", "--fleet", "lab"]);
+    let (b, summary) = run_client(&[
+        "--source",
+        &format!("tum:{}", b_dir.display()),
+        "--server",
+        &grpc,
+        "--rate",
+        "max",
+        "--max-frames",
+        "90",
+        "--robot-id",
+        "beta",
+        "--fleet",
+        "lab",
+    ]);
     assert!(b.status.success(), "{}", String::from_utf8_lossy(&b.stderr));
     let b_id = summary.expect("beta summary")["session_id"].as_str().expect("id").to_string();
-    let fleet = wait_for_fleet(&server, "lab", Duration::from_secs(60), |f| f["merged"] == 2 || f["sessions"].as_array().is_some_and(|s| s.iter().all(|m| m["merged"] == true))).await;
+    let fleet = wait_for_fleet(&server, "lab", Duration::from_secs(60), |f| {
+        f["merged"] == 2 || f["sessions"].as_array().is_some_and(|s| s.iter().all(|m| m["merged"] == true))
+    })
+    .await;
     let merge = &member(&fleet, &b_id)["fleet_from_session"];
     let merged_after_s = merge["merged_after_s"].as_f64().expect("merged_after_s");
     eprintln!("B merged {merged_after_s:.2} s into its keyframes: {merge}");
@@ -131,7 +165,9 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let b_dir = a_dir.with_file_name("rgbd_dataset_freiburg1_rpy_b");
     let stream = |dir: &std::path::Path, robot: &str| {
         let (src, grpc, robot) = (format!("tum:{}", dir.display()), server.grpc_url(), robot.to_string());
-        std::thread::spawn(move || run_client(&["--source", &src, "--server", &grpc, "--rate", "max", "--robot-id", &robot, "--fleet", "lab"]))
+        std::thread::spawn(move || {
+            run_client(&["--source", &src, "--server", &grpc, "--rate", "max", "--robot-id", &robot, "--fleet", "lab"])
+        })
     };
     // A first (its session anchors the fleet), then B while A still streams.
     let a = stream(&a_dir, "alpha");
@@ -153,11 +189,19 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     });
     let b = stream(&b_dir, "beta");
     let (a, b) = (a.join().expect("alpha"), b.join().expect("beta"));
-    assert!(a.0.status.success() && b.0.status.success(), "clients failed: {} {}", String::from_utf8_lossy(&a.0.stderr), String::from_utf8_lossy(&b.0.stderr));
+    assert!(
+        a.0.status.success() && b.0.status.success(),
+        "clients failed: {} {}",
+        String::from_utf8_lossy(&a.0.stderr),
+        String::from_utf8_lossy(&b.0.stderr)
+    );
     let a_id = a.1.expect("alpha summary")["session_id"].as_str().expect("id").to_string();
     let b_id = b.1.expect("beta summary")["session_id"].as_str().expect("id").to_string();
 
-    wait_for_fleet(&server, "lab", Duration::from_secs(60), |f| f["sessions"].as_array().is_some_and(|s| s.len() == 2 && s.iter().all(|m| m["merged"] == true))).await;
+    wait_for_fleet(&server, "lab", Duration::from_secs(60), |f| {
+        f["sessions"].as_array().is_some_and(|s| s.len() == 2 && s.iter().all(|m| m["merged"] == true))
+    })
+    .await;
     // Later keyframes refine the merge: wait until they are all looked up.
     let fleet = settled(&server).await;
     let seen = tokio::time::timeout(Duration::from_secs(30), watcher).await.expect("fleet poses in time").expect("watcher");
@@ -197,7 +241,12 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let (reference, b_estimate) = paired(&b_text);
     let estimate: Vec<_> = b_estimate.iter().map(|p| gt_from_a * p).collect();
     let (b_m, b_deg) = (rmse(&reference, &estimate, Relation::Translation), rmse(&reference, &estimate, Relation::RotationDeg));
-    eprintln!("A: {:.2} cm; B in the fleet frame with A's alignment: {:.2} cm, {b_deg:.2}° over {} poses; merge {merge}", 100.0 * a_m, 100.0 * b_m, reference.len());
+    eprintln!(
+        "A: {:.2} cm; B in the fleet frame with A's alignment: {:.2} cm, {b_deg:.2}° over {} poses; merge {merge}",
+        100.0 * a_m,
+        100.0 * b_m,
+        reference.len()
+    );
     // Measured (2026-12-03, twelve runs): 1.21–1.70 cm and 0.67–0.90°, with A itself
     // at 1.08 cm (B inherits A's error where they overlap). The goal is 2 cm
     // and 2°; the bound leaves room for the scatter of which keyframes pair up first.
@@ -206,14 +255,22 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     // One cloud for the fleet: both maps in the anchor's map frame, fused where they overlap.
     let vertices = |ply: &[u8]| {
         let header = String::from_utf8_lossy(&ply[..ply.len().min(4096)]).into_owned();
-        header.lines().find_map(|l| l.strip_prefix("element vertex ")).and_then(|n| n.trim().parse::<usize>().ok()).expect("PLY vertex count")
+        header
+            .lines()
+            .find_map(|l| l.strip_prefix("element vertex "))
+            .and_then(|n| n.trim().parse::<usize>().ok())
+            .expect("PLY vertex count")
     };
     let http = server.http.clone();
     let ply = |path: String| {
         let http = http.clone();
         async move { reqwest::get(format!("http://{http}{path}")).await.expect("GET").bytes().await.expect("body") }
     };
-    let (fleet_ply, a_ply, b_ply) = (ply("/api/v1/fleets/lab/cloud.ply".into()).await, ply(format!("/api/v1/maps/{a_id}/cloud.ply")).await, ply(format!("/api/v1/maps/{b_id}/cloud.ply")).await);
+    let (fleet_ply, a_ply, b_ply) = (
+        ply("/api/v1/fleets/lab/cloud.ply".into()).await,
+        ply(format!("/api/v1/maps/{a_id}/cloud.ply")).await,
+        ply(format!("/api/v1/maps/{b_id}/cloud.ply")).await,
+    );
     let (n_fleet, n_a, n_b) = (vertices(&fleet_ply), vertices(&a_ply), vertices(&b_ply));
     eprintln!("fleet cloud {n_fleet} voxels; A {n_a}, B {n_b}");
     // The desk: the plane through A's most populated 2 cm height layer, refit on its
@@ -248,7 +305,11 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let built = asked.elapsed();
     let asked = Instant::now();
     server.get_json("/api/v1/fleets/lab/legend").await;
-    eprintln!("fleet legend: {:.0} ms building the fleet map's top-down view, {:.1} ms from the cache", built.as_secs_f64() * 1e3, asked.elapsed().as_secs_f64() * 1e3);
+    eprintln!(
+        "fleet legend: {:.0} ms building the fleet map's top-down view, {:.1} ms from the cache",
+        built.as_secs_f64() * 1e3,
+        asked.elapsed().as_secs_f64() * 1e3
+    );
     assert!(legend["classes"].as_array().is_some_and(|c| c.iter().any(|e| e["name"] == "unlabelled")), "{legend}");
     let bounds: Vec<f64> = legend["bounds_xy"].as_array().expect("bounds").iter().filter_map(|v| v.as_f64()).collect();
     let max_zoom = fleet["tiles"]["max_zoom"].as_u64().expect("max zoom");
@@ -284,7 +345,13 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let mut robots: Vec<&str> = poses.poses.iter().map(|p| p.robot_id.as_str()).collect();
     robots.sort_unstable();
     assert_eq!(robots, ["alpha", "beta"]);
-    let b_grpc = poses.poses.iter().find(|p| p.session_id == b_id).and_then(|p| p.pose.as_ref()).and_then(|p| p.world_from_camera).expect("B's pose");
+    let b_grpc = poses
+        .poses
+        .iter()
+        .find(|p| p.session_id == b_id)
+        .and_then(|p| p.pose.as_ref())
+        .and_then(|p| p.world_from_camera)
+        .expect("B's pose");
     let (_, b_http) = server.get_json(&format!("/api/v1/sessions/{b_id}/pose?frame=fleet")).await;
     let t = b_grpc.translation.expect("translation");
     let http_t: Vec<f64> = b_http["pose"]["translation"].as_array().expect("translation").iter().filter_map(|v| v.as_f64()).collect();

@@ -102,7 +102,8 @@ async fn a_graceful_restart_keeps_every_pose_and_the_map() {
     let store = tempfile_path("restart.redb");
     let store_arg = store.to_str().expect("utf-8 path").to_string();
     let mut server = Server::start(&["--no-zenoh", "--store", &store_arg]);
-    let (out, summary) = stillmap_e2e::run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
+    let (out, summary) =
+        stillmap_e2e::run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
     let (_, before) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
@@ -116,8 +117,12 @@ async fn a_graceful_restart_keeps_every_pose_and_the_map() {
     for key in ["keyframes", "occupied_voxels", "blocks", "map_from_world_xyzw"] {
         assert_eq!(map[key], map_before[key], "{key}");
     }
-    let ply_size = reqwest::get(format!("http://{}/api/v1/maps/{id}/export", server.http)).await.expect("GET").bytes().await.expect("body").len();
-    eprintln!("store file {} bytes; the session exported as one file: {ply_size} bytes", std::fs::metadata(&store).map(|m| m.len()).unwrap_or(0));
+    let ply_size =
+        reqwest::get(format!("http://{}/api/v1/maps/{id}/export", server.http)).await.expect("GET").bytes().await.expect("body").len();
+    eprintln!(
+        "store file {} bytes; the session exported as one file: {ply_size} bytes",
+        std::fs::metadata(&store).map(|m| m.len()).unwrap_or(0)
+    );
     drop(server);
     let _ = std::fs::remove_file(&store);
 }
@@ -139,17 +144,32 @@ async fn idle_sessions_leave_memory_and_stored_ones_load_when_queried() {
     std::fs::write(&config, "[session]\nidle_evict_s = 1.0\n").expect("write config");
     let config_arg = config.to_str().expect("utf-8 path").to_string();
     let mut server = Server::start(&["--no-zenoh", "--store", &store_arg, "--config", &config_arg]);
-    let (out, summary) = stillmap_e2e::run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max", "--max-frames", "60"]);
+    let (out, summary) = stillmap_e2e::run_client(&[
+        "--source",
+        &format!("tum:{}", tum_dir().display()),
+        "--server",
+        &server.grpc_url(),
+        "--rate",
+        "max",
+        "--max-frames",
+        "60",
+    ]);
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
     let (_, poses_before) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
     let (_, map_before) = server.get_json(&format!("/api/v1/maps/{id}")).await;
     assert!(map_before["occupied_voxels"].as_u64().unwrap_or(0) > 1000, "{map_before}");
-    eventually(Duration::from_secs(20), "the idle session leaves memory", async || metric(&server, "stillmap_sessions_evicted_total").await == Some(1)).await;
+    eventually(Duration::from_secs(20), "the idle session leaves memory", async || {
+        metric(&server, "stillmap_sessions_evicted_total").await == Some(1)
+    })
+    .await;
     assert_eq!(metric(&server, "stillmap_sessions_resident").await, Some(0));
     let (_, listed) = server.get_json("/api/v1/sessions").await;
     let entry = &listed["sessions"][0];
-    assert_eq!((&entry["session_id"], &entry["resident"], &entry["archived"]), (&serde_json::json!(id), &serde_json::json!(false), &serde_json::json!(true)));
+    assert_eq!(
+        (&entry["session_id"], &entry["resident"], &entry["archived"]),
+        (&serde_json::json!(id), &serde_json::json!(false), &serde_json::json!(true))
+    );
     assert_eq!(entry["counters"]["frames_processed"], 60);
     // A query brings it back whole.
     let (status, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
@@ -161,7 +181,10 @@ async fn idle_sessions_leave_memory_and_stored_ones_load_when_queried() {
     assert_eq!(poses["poses"], poses_before["poses"]);
     assert_eq!(metric(&server, "stillmap_sessions_loaded_total").await, Some(1));
     // Not queried any more: it leaves again.
-    eventually(Duration::from_secs(20), "the loaded session leaves again", async || metric(&server, "stillmap_sessions_evicted_total").await == Some(2)).await;
+    eventually(Duration::from_secs(20), "the loaded session leaves again", async || {
+        metric(&server, "stillmap_sessions_evicted_total").await == Some(2)
+    })
+    .await;
     server.terminate();
 
     // Restarted on the same store (idle eviction at its default): listed, not loaded.

@@ -69,10 +69,9 @@ async fn client_reconnects_and_resumes_the_session() {
 
     let src = format!("tum:{}", tum_dir().display());
     let url = format!("http://127.0.0.1:{port}");
-    let (out, summary) =
-        tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &url, "--rate", "max"]))
-            .await
-            .expect("client thread");
+    let (out, summary) = tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &url, "--rate", "max"]))
+        .await
+        .expect("client thread");
     assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     let s = summary.expect("summary");
     assert!(s["reconnects"].as_u64() >= Some(1), "{s:#}");

@@ -1,4 +1,5 @@
 //! The real client streams real frames to the real server, over gRPC and Zenoh.
+#![allow(clippy::disallowed_methods)] // a test's client threads need no names
 
 use std::time::Duration;
 
@@ -86,8 +87,16 @@ async fn every_depth_codec_arrives_bit_exact() {
     let server = Server::start(&[]);
     for codec in ["rvl", "png16"] {
         let (out, summary) = run_client(&[
-            "--source", &tum_source(), "--server", &server.grpc_url(), "--rate", "max",
-            "--max-frames", "20", "--depth-codec", codec,
+            "--source",
+            &tum_source(),
+            "--server",
+            &server.grpc_url(),
+            "--rate",
+            "max",
+            "--max-frames",
+            "20",
+            "--depth-codec",
+            codec,
         ]);
         assert!(out.status.success(), "{codec}: {}", String::from_utf8_lossy(&out.stderr));
         assert_complete(&summary.expect("summary"), 20);
@@ -103,7 +112,14 @@ async fn openni2_dummy_device_streams_through_the_real_client() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("OpenNI2 device Dummy: the camera's calibration is not known; give --calibration FILE"), "{stderr}");
     let (out, summary) = run_client(&[
-        "--source", "openni2:Dummy", "--server", &server.grpc_url(), "--max-frames", "12", "--robot-id", "kinect",
+        "--source",
+        "openni2:Dummy",
+        "--server",
+        &server.grpc_url(),
+        "--max-frames",
+        "12",
+        "--robot-id",
+        "kinect",
         "--allow-default-intrinsics",
     ]);
     assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
@@ -144,8 +160,18 @@ async fn calibration_comes_from_a_file_or_a_named_camera_never_a_guess() {
     )
     .expect("write yaml");
     let (out, summary) = run_client(&[
-        "--source", &src, "--server", &server.grpc_url(), "--max-frames", "5", "--rate", "max", "--robot-id", "from-file",
-        "--calibration", &yaml.display().to_string(),
+        "--source",
+        &src,
+        "--server",
+        &server.grpc_url(),
+        "--max-frames",
+        "5",
+        "--rate",
+        "max",
+        "--robot-id",
+        "from-file",
+        "--calibration",
+        &yaml.display().to_string(),
     ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
@@ -156,8 +182,18 @@ async fn calibration_comes_from_a_file_or_a_named_camera_never_a_guess() {
     assert_eq!(session["camera"]["rolling_shutter_readout_s"], 0.0, "a file gives no timing");
 
     let (out, summary) = run_client(&[
-        "--source", &src, "--server", &server.grpc_url(), "--max-frames", "5", "--rate", "max", "--robot-id", "named",
-        "--camera", "tum-fr1",
+        "--source",
+        &src,
+        "--server",
+        &server.grpc_url(),
+        "--max-frames",
+        "5",
+        "--rate",
+        "max",
+        "--robot-id",
+        "named",
+        "--camera",
+        "tum-fr1",
     ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let id = summary.expect("summary")["session_id"].as_str().expect("id").to_string();
@@ -193,8 +229,18 @@ async fn two_robots_at_once_stay_separate() {
     };
     let b = std::thread::spawn(move || {
         run_client(&[
-            "--source", &src, "--transport", "zenoh", "--zenoh-connect", &zenoh, "--rate", "max",
-            "--max-frames", "40", "--robot-id", "beta",
+            "--source",
+            &src,
+            "--transport",
+            "zenoh",
+            "--zenoh-connect",
+            &zenoh,
+            "--rate",
+            "max",
+            "--max-frames",
+            "40",
+            "--robot-id",
+            "beta",
         ])
     });
     let (a, b) = (a.join().expect("alpha"), b.join().expect("beta"));
@@ -220,8 +266,16 @@ fn trajectory_file_holds_only_returned_poses() {
     let server = Server::start(&[]);
     let path = stillmap_e2e::tempfile_path("traj.txt");
     let (out, _) = run_client(&[
-        "--source", &tum_source(), "--server", &server.grpc_url(), "--rate", "max", "--max-frames", "5",
-        "--trajectory", path.to_str().expect("utf-8 path"),
+        "--source",
+        &tum_source(),
+        "--server",
+        &server.grpc_url(),
+        "--rate",
+        "max",
+        "--max-frames",
+        "5",
+        "--trajectory",
+        path.to_str().expect("utf-8 path"),
     ]);
     assert!(out.status.success());
     let text = std::fs::read_to_string(&path).expect("trajectory file");
@@ -236,9 +290,9 @@ fn trajectory_file_holds_only_returned_poses() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     use prost::Message;
+    use std::time::Duration;
     use stillmap_e2e::{eventually, tempfile_path, tum_frame};
     use stillmap_proto::{keys, pb};
-    use std::time::Duration;
 
     let config = tempfile_path("idle.toml");
     // Long enough that answering the next frame (debug build, with the model) cannot
@@ -246,8 +300,18 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     std::fs::write(&config, "[zenoh]\nidle_disconnect_s = 3.0\n").expect("write config");
     let server = Server::start(&["--config", config.to_str().expect("utf-8 path")]);
     let (out, summary) = run_client(&[
-        "--source", &tum_source(), "--transport", "zenoh", "--zenoh-connect", &server.zenoh, "--rate", "max",
-        "--max-frames", "10", "--robot-id", "quiet-bot",
+        "--source",
+        &tum_source(),
+        "--transport",
+        "zenoh",
+        "--zenoh-connect",
+        &server.zenoh,
+        "--rate",
+        "max",
+        "--max-frames",
+        "10",
+        "--robot-id",
+        "quiet-bot",
     ]);
     assert!(out.status.success(), "client failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     let summary = summary.expect("summary JSON");
@@ -300,10 +364,10 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
 async fn grpc_health_and_reflection_describe_the_server() {
     use tonic_health::pb::health_check_response::ServingStatus;
     use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    use tonic_reflection::pb::v1::ServerReflectionRequest;
     use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
     use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
     use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
-    use tonic_reflection::pb::v1::ServerReflectionRequest;
 
     let mut server = Server::start(&["--no-zenoh", "--no-perception"]);
     let channel = tonic::transport::Channel::from_shared(server.grpc_url()).expect("url").connect().await.expect("connect");

@@ -33,11 +33,33 @@ async fn grpc_and_http_over_tls_need_the_robots_certificate() {
     let dir = certificates();
     let path = |f: &str| dir.join(f).to_str().expect("utf-8").to_string();
     let config = dir.join("server.toml");
-    std::fs::write(&config, format!("[tls]\ncert_path = {:?}\nkey_path = {:?}\nclient_ca_path = {:?}\n", path("server.pem"), path("server.key"), path("ca.pem"))).expect("config");
+    std::fs::write(
+        &config,
+        format!(
+            "[tls]\ncert_path = {:?}\nkey_path = {:?}\nclient_ca_path = {:?}\n",
+            path("server.pem"),
+            path("server.key"),
+            path("ca.pem")
+        ),
+    )
+    .expect("config");
     let server = Server::start(&["--no-zenoh", "--no-perception", "--config", config.to_str().expect("utf-8")]);
     let https = format!("https://{}", server.grpc);
     let source = format!("tum:{}", tum_dir().display());
-    let base = ["--source", source.as_str(), "--max-frames", "5", "--rate", "max", "--server", https.as_str(), "--reconnect-attempts", "1", "--timeout", "5"];
+    let base = [
+        "--source",
+        source.as_str(),
+        "--max-frames",
+        "5",
+        "--rate",
+        "max",
+        "--server",
+        https.as_str(),
+        "--reconnect-attempts",
+        "1",
+        "--timeout",
+        "5",
+    ];
 
     // The robot with its certificate streams over TLS.
     let mut args = base.to_vec();

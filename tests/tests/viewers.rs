@@ -16,7 +16,11 @@ async fn viewer(http: &str) -> Result<tokio::task::JoinHandle<()>, (u16, String)
     }
     let mut seen = String::new();
     while !seen.contains("event: sessions") {
-        let chunk = tokio::time::timeout(Duration::from_secs(10), r.chunk()).await.expect("a sessions event in time").expect("stream open").expect("chunk");
+        let chunk = tokio::time::timeout(Duration::from_secs(10), r.chunk())
+            .await
+            .expect("a sessions event in time")
+            .expect("stream open")
+            .expect("chunk");
         seen.push_str(&String::from_utf8_lossy(&chunk));
     }
     Ok(tokio::spawn(async move { while let Ok(Some(_)) = r.chunk().await {} }))
@@ -55,13 +59,17 @@ async fn poses_reach_viewers_in_batches() {
     assert_eq!(r.status(), 200);
     let src = format!("tum:{}", tum_dir().display());
     let grpc = server.grpc_url();
-    let (out, _) = tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &grpc, "--max-frames", "30", "--rate", "max"])).await.expect("client");
+    let (out, _) =
+        tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &grpc, "--max-frames", "30", "--rate", "max"]))
+            .await
+            .expect("client");
     assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
     let (mut text, mut sequences, mut events) = (String::new(), Vec::new(), 0);
     let deadline = Instant::now() + Duration::from_secs(20);
     while sequences.len() < 20 {
         assert!(Instant::now() < deadline, "only {} poses in {events} events", sequences.len());
-        let chunk = tokio::time::timeout(Duration::from_secs(10), r.chunk()).await.expect("an event in time").expect("stream open").expect("chunk");
+        let chunk =
+            tokio::time::timeout(Duration::from_secs(10), r.chunk()).await.expect("an event in time").expect("stream open").expect("chunk");
         text.push_str(&String::from_utf8_lossy(&chunk));
         // Whole events end with a blank line.
         while let Some(end) = text.find("\n\n") {
@@ -157,7 +165,8 @@ impl Drop for ViewerProcess {
 async fn viewers_do_not_slow_a_streaming_robot() {
     // 500 dashboards on one address: the per-address request limit is lifted.
     let config = tempfile_path("viewers-bench.toml");
-    std::fs::write(&config, std::env::var("STILLMAP_BENCH_CONFIG").unwrap_or_else(|_| "[limits]\nhttp_requests_per_minute = 0\n".into())).expect("config");
+    std::fs::write(&config, std::env::var("STILLMAP_BENCH_CONFIG").unwrap_or_else(|_| "[limits]\nhttp_requests_per_minute = 0\n".into()))
+        .expect("config");
     // STILLMAP_BENCH_RUNS: pairs of runs (default 3); run-to-run spread on 2 cores is ±7 %.
     let runs: usize = std::env::var("STILLMAP_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
     let mut rows = Vec::new();
@@ -167,7 +176,9 @@ async fn viewers_do_not_slow_a_streaming_robot() {
             let mut readers = (viewers > 0).then(|| ViewerProcess::start(&server.http, viewers));
             let src = format!("tum:{}", tum_dir().display());
             let grpc = server.grpc_url();
-            let (out, summary) = tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &grpc, "--rate", "max"])).await.expect("client");
+            let (out, summary) = tokio::task::spawn_blocking(move || run_client(&["--source", &src, "--server", &grpc, "--rate", "max"]))
+                .await
+                .expect("client");
             assert!(out.status.success(), "client failed: {}", String::from_utf8_lossy(&out.stderr));
             let s = summary.expect("summary");
             let fps = s["frames_per_second"].as_f64().expect("fps");

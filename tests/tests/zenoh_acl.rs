@@ -52,7 +52,18 @@ async fn the_router_keeps_each_robot_on_its_own_keys() {
     let file = |f: &str| dir.join(f).to_str().expect("utf-8").to_string();
     let out = Command::new("python3")
         .arg(repo("deploy/zenoh/make-router-config.py"))
-        .args(["--robots", "robot-a,robot-b", "--listen", &endpoint, "--ca", &file("ca.pem"), "--cert", &file("router.pem"), "--key", &file("router.key")])
+        .args([
+            "--robots",
+            "robot-a,robot-b",
+            "--listen",
+            &endpoint,
+            "--ca",
+            &file("ca.pem"),
+            "--cert",
+            &file("router.pem"),
+            "--key",
+            &file("router.key"),
+        ])
         .output()
         .expect("run make-router-config.py");
     assert!(out.status.success(), "make-router-config.py: {}", String::from_utf8_lossy(&out.stderr));
@@ -92,8 +103,20 @@ async fn the_router_keeps_each_robot_on_its_own_keys() {
     let robot_a = from_template(&dir, "robot.json5", &endpoint, "robot-a", "robot-a");
     let source = format!("tum:{}", tum_dir().display());
     let (out, summary) = run_client(&[
-        "--source", &source, "--max-frames", "10", "--rate", "max", "--transport", "zenoh",
-        "--zenoh-config", robot_a.to_str().expect("utf-8"), "--robot-id", "robot-a", "--timeout", "20",
+        "--source",
+        &source,
+        "--max-frames",
+        "10",
+        "--rate",
+        "max",
+        "--transport",
+        "zenoh",
+        "--zenoh-config",
+        robot_a.to_str().expect("utf-8"),
+        "--robot-id",
+        "robot-a",
+        "--timeout",
+        "20",
     ]);
     assert!(out.status.success(), "robot A failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
     let summary = summary.expect("summary JSON");
@@ -111,7 +134,8 @@ async fn the_router_keeps_each_robot_on_its_own_keys() {
     // Without a certificate the router does not let a link up at all.
     let bare = dir.join("bare.json5");
     let text = std::fs::read_to_string(from_template(&dir, "robot.json5", &endpoint, "robot-b", "robot-a")).expect("read");
-    let text = text.lines().filter(|l| !l.contains("connect_certificate") && !l.contains("connect_private_key")).collect::<Vec<_>>().join("\n");
+    let text =
+        text.lines().filter(|l| !l.contains("connect_certificate") && !l.contains("connect_private_key")).collect::<Vec<_>>().join("\n");
     std::fs::write(&bare, text).expect("write");
     let refused = zenoh::open(zenoh::Config::from_file(&bare).expect("config")).await;
     assert!(refused.is_err(), "a client without a certificate opened a session through the router");

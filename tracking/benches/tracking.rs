@@ -71,7 +71,8 @@ fn print_stage_table(frames: &[tum::TumFrame], gt: &[(u64, nalgebra::Isometry3<f
     }
     let keyframes = outputs.iter().filter(|o| o.keyframe).count();
     let tracked = outputs.iter().filter(|o| matches!(o.state, TrackingState::Tracking | TrackingState::Relocalized)).count();
-    let est: Vec<_> = frames.iter().zip(&outputs).filter_map(|(f, o)| Some((tum::fr1_pose_time_ns(f.timestamp_ns), o.world_from_camera?))).collect();
+    let est: Vec<_> =
+        frames.iter().zip(&outputs).filter_map(|(f, o)| Some((tum::fr1_pose_time_ns(f.timestamp_ns), o.world_from_camera?))).collect();
     let s = tum::score(gt, &est);
     println!("(local_ba runs on keyframes only: {keyframes} of {})", frames.len());
     println!(

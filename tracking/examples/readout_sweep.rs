@@ -63,12 +63,6 @@ fn main() {
             ate += tum::score(&gt, &est).ate_m;
         }
         let n = FEATURE_COUNTS.len() as f64;
-        println!(
-            "| {readout_ms:.0} ms | {:.0} | {:.4} | {:.4} | {:.2} cm |",
-            observations / n,
-            median / n,
-            trimmed / n,
-            ate / n * 100.0
-        );
+        println!("| {readout_ms:.0} ms | {:.0} | {:.4} | {:.4} | {:.2} cm |", observations / n, median / n, trimmed / n, ate / n * 100.0);
     }
 }

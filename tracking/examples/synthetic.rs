@@ -25,10 +25,23 @@ fn main() {
             est.push((ts, p));
             if std::env::var_os("VERBOSE").is_some() {
                 let e = pose.inverse() * path[0] * p;
-                println!("{i} {:?} tracked {} err {:.4} m {:.3} deg", out.state, out.tracked_points, e.translation.vector.norm(), e.rotation.angle().to_degrees());
+                println!(
+                    "{i} {:?} tracked {} err {:.4} m {:.3} deg",
+                    out.state,
+                    out.tracked_points,
+                    e.translation.vector.norm(),
+                    e.rotation.angle().to_degrees()
+                );
             }
         }
     }
     let s = tum::score(&gt, &est);
-    println!("synthetic {} frames: ATE {:.2} mm {:.3} deg | RPE {:.2} mm {:.3} deg", s.pairs, s.ate_m * 1e3, s.ate_deg, s.rpe_m * 1e3, s.rpe_deg);
+    println!(
+        "synthetic {} frames: ATE {:.2} mm {:.3} deg | RPE {:.2} mm {:.3} deg",
+        s.pairs,
+        s.ate_m * 1e3,
+        s.ate_deg,
+        s.rpe_m * 1e3,
+        s.rpe_deg
+    );
 }

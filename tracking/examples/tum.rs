@@ -12,15 +12,15 @@ fn main() {
     let dir = std::env::args().nth(1).map(PathBuf::from).unwrap_or_else(tum::fr1_rpy_dir);
     let frames = tum::load(&dir, usize::MAX);
     let gt = tum::groundtruth(&dir);
-    let config: TrackerConfig = toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let config: TrackerConfig =
+        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
     let mut tracker = Tracker::new(tum::fr1_camera_with_readout_from_env(), config).expect("tracker");
     let mut est = Vec::new();
     let mut totals = Vec::new();
     let mut tracked = 0;
     for f in &frames {
-        let out = tracker
-            .track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None })
-            .expect("track");
+        let out =
+            tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
         if matches!(out.state, TrackingState::Tracking | TrackingState::Relocalized) {
             tracked += 1;
         }
@@ -47,7 +47,14 @@ fn main() {
                 }
                 _ => String::new(),
             };
-            println!("{:?} feats {} tracked {} kf {} {rel} {:.1}ms", out.state, out.features, out.tracked_points, out.keyframe, out.times.total.as_secs_f64() * 1e3);
+            println!(
+                "{:?} feats {} tracked {} kf {} {rel} {:.1}ms",
+                out.state,
+                out.features,
+                out.tracked_points,
+                out.keyframe,
+                out.times.total.as_secs_f64() * 1e3
+            );
         }
         totals.push(out.times.total.as_secs_f64() * 1e3);
     }

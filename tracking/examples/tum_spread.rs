@@ -20,7 +20,8 @@ fn main() {
     let dir = std::env::args().nth(1).map(PathBuf::from).unwrap_or_else(tum::fr1_rpy_dir);
     let frames = tum::load(&dir, usize::MAX);
     let gt = tum::groundtruth(&dir);
-    let base: TrackerConfig = toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let base: TrackerConfig =
+        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
     println!("| features | tracked | ATE (cm) | ATE rot, origin-aligned (deg) | RPE (mm) | RPE (deg) |");
     println!("|---|---|---|---|---|---|");
     let mut ates = Vec::new();
@@ -31,14 +32,23 @@ fn main() {
         let mut tracker = Tracker::new(tum::fr1_camera_with_readout_from_env(), config).expect("tracker");
         let (mut est, mut tracked) = (Vec::new(), 0);
         for f in &frames {
-            let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
+            let out = tracker
+                .track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None })
+                .expect("track");
             tracked += usize::from(matches!(out.state, TrackingState::Tracking | TrackingState::Relocalized));
             if let Some(p) = out.world_from_camera {
                 est.push((tum::fr1_pose_time_ns_from_env(f.timestamp_ns), p));
             }
         }
         let s = tum::score(&gt, &est);
-        println!("| {features} | {tracked}/{} | {:.2} | {:.2} | {:.2} | {:.3} |", frames.len(), s.ate_m * 100.0, s.ate_origin_deg, s.rpe_m * 1000.0, s.rpe_deg);
+        println!(
+            "| {features} | {tracked}/{} | {:.2} | {:.2} | {:.2} | {:.3} |",
+            frames.len(),
+            s.ate_m * 100.0,
+            s.ate_origin_deg,
+            s.rpe_m * 1000.0,
+            s.rpe_deg
+        );
         ates.push(s.ate_m * 100.0);
         rpes.push(s.rpe_m * 1000.0);
     }
@@ -48,5 +58,8 @@ fn main() {
     };
     let (ate_median, ate_min, ate_max) = spread(&mut ates);
     let (rpe_median, rpe_min, rpe_max) = spread(&mut rpes);
-    println!("\nATE median {ate_median:.2} cm (min {ate_min:.2}, max {ate_max:.2}); RPE median {rpe_median:.2} mm (min {rpe_min:.2}, max {rpe_max:.2}) over {} runs", NUDGES.len());
+    println!(
+        "\nATE median {ate_median:.2} cm (min {ate_min:.2}, max {ate_max:.2}); RPE median {rpe_median:.2} mm (min {rpe_min:.2}, max {rpe_max:.2}) over {} runs",
+        NUDGES.len()
+    );
 }

@@ -119,8 +119,7 @@ pub fn solve(camera: &Camera, bf: f64, problem: &mut Problem, iterations: u32) -
         });
         let (hpp, bp, hll, bl, hpl) = (&*hpp, &*bp, &*hll, &*bl, &*hpl);
         let lam = *lambda.get_or_insert_with(|| {
-            let diag: f64 = (0..n).map(|i| hpp[(i, i)]).sum::<f64>()
-                + hll.iter().map(|h| h.trace()).sum::<f64>();
+            let diag: f64 = (0..n).map(|i| hpp[(i, i)]).sum::<f64>() + hll.iter().map(|h| h.trace()).sum::<f64>();
             let count = (n + 3 * problem.points.len()).max(1) as f64;
             INITIAL_LAMBDA * diag / count
         });
@@ -212,8 +211,7 @@ pub fn outliers(camera: &Camera, bf: f64, problem: &Problem) -> Vec<usize> {
         .iter()
         .enumerate()
         .filter(|(_, (ci, pi, m))| {
-            residual(camera, bf, &problem.poses[*ci], &problem.points[*pi], m)
-                .is_none_or(|r| r.chi2(m.information) > m.chi2_threshold())
+            residual(camera, bf, &problem.poses[*ci], &problem.points[*pi], m).is_none_or(|r| r.chi2(m.information) > m.chi2_threshold())
         })
         .map(|(k, _)| k)
         .collect()

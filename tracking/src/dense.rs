@@ -76,7 +76,16 @@ impl DenseOdometry {
                 let coefficients = Mat::from_slice(&d)?.try_clone()?;
                 let (mut map_x, mut map_y) = (Mat::default(), Mat::default());
                 let size = Size::new((w / SCALE) as i32, (h / SCALE) as i32);
-                calib3d::init_undistort_rectify_map(&reduced, &coefficients, &Mat::default(), &reduced, size, core::CV_32FC1, &mut map_x, &mut map_y)?;
+                calib3d::init_undistort_rectify_map(
+                    &reduced,
+                    &coefficients,
+                    &Mat::default(),
+                    &reduced,
+                    size,
+                    core::CV_32FC1,
+                    &mut map_x,
+                    &mut map_y,
+                )?;
                 Some((map_x, map_y))
             }
             None => None,

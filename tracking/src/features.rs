@@ -85,13 +85,7 @@ impl Extractor {
 
     /// Extracts features from a grey image; `dynamic` (same size, nonzero = dynamic)
     /// removes keypoints before descriptors are computed.
-    pub fn extract(
-        &mut self,
-        camera: &Camera,
-        gray: &[u8],
-        depth: &[u16],
-        dynamic: Option<&[u8]>,
-    ) -> Result<FrameFeatures, TrackingError> {
+    pub fn extract(&mut self, camera: &Camera, gray: &[u8], depth: &[u16], dynamic: Option<&[u8]>) -> Result<FrameFeatures, TrackingError> {
         let (w, h) = (camera.width as usize, camera.height as usize);
         let image = Mat::new_rows_cols_with_data(h as i32, w as i32, gray)?;
         let mut detected = Vector::<KeyPoint>::new();
@@ -301,16 +295,22 @@ mod tests {
         // 100°/s and 0.5 m/s, as one 33 ms frame step.
         let interval_s = 0.033;
         let (angular_velocity, linear_velocity) = (Vector3::new(0.6, -1.6, 0.3), Vector3::new(0.4, -0.1, 0.3));
-        let step = |t: f64| Isometry3::from_parts(Translation3::from(linear_velocity * t), UnitQuaternion::from_scaled_axis(angular_velocity * t));
+        let step =
+            |t: f64| Isometry3::from_parts(Translation3::from(linear_velocity * t), UnitQuaternion::from_scaled_axis(angular_velocity * t));
         let world_from_camera_at = |t: f64| world_from_middle * step(t);
         let image = render_rolling_shutter(&scene, &camera, world_from_camera_at, &RenderOptions::default());
-        let mut features = Extractor::new(&config).expect("extractor").extract(&camera, &to_gray(&image.rgb), &image.depth, None).expect("extract").features;
+        let mut features = Extractor::new(&config)
+            .expect("extractor")
+            .extract(&camera, &to_gray(&image.rgb), &image.depth, None)
+            .expect("extract")
+            .features;
         // Where the middle row's camera sees each keypoint's scene point (the render
         // gave every band of rows the pose of its middle row).
         let truth: Vec<Option<Point2<f64>>> = features
             .iter()
             .map(|f| {
-                let band_row = (f.raw.y.round() as usize / ROLLING_SHUTTER_BAND_ROWS * ROLLING_SHUTTER_BAND_ROWS) as f64 + (ROLLING_SHUTTER_BAND_ROWS as f64 - 1.0) / 2.0;
+                let band_row = (f.raw.y.round() as usize / ROLLING_SHUTTER_BAND_ROWS * ROLLING_SHUTTER_BAND_ROWS) as f64
+                    + (ROLLING_SHUTTER_BAND_ROWS as f64 - 1.0) / 2.0;
                 let point_in_world = world_from_camera_at(camera.row_time_s(band_row)) * camera.unproject(&f.ideal, f.depth?);
                 camera.project(&(world_from_middle.inverse() * point_in_world))
             })

@@ -95,7 +95,13 @@ fn project_linearised(camera: &Camera, bf: f64, point_in_camera: &Point3<f64>, m
 /// The residual of a measurement of `point_in_world` seen from
 /// `camera_from_world` (the same numbers as [`linearise`]'s, without the pose and
 /// point Jacobians).
-pub fn residual(camera: &Camera, bf: f64, camera_from_world: &Isometry3<f64>, point_in_world: &Point3<f64>, m: &Measurement) -> Option<Residual> {
+pub fn residual(
+    camera: &Camera,
+    bf: f64,
+    camera_from_world: &Isometry3<f64>,
+    point_in_world: &Point3<f64>,
+    m: &Measurement,
+) -> Option<Residual> {
     project_linearised(camera, bf, &(camera_from_world * point_in_world), m).map(|(r, _)| r)
 }
 
@@ -236,19 +242,9 @@ mod tests {
     #[test]
     fn residual_and_pose_linearisation_match_the_full_one() {
         let camera = Camera::pinhole(640, 480, 520.0, 521.0, 320.0, 240.0, 5000.0);
-        let pose = Isometry3::new(
-            Vector3::new(0.1, -0.05, 0.2),
-            Vector3::new(0.03, -0.02, 0.01),
-        );
-        for (pw, disparity) in [
-            (Point3::new(0.3, -0.2, 2.0), Some(20.0)),
-            (Point3::new(-0.4, 0.1, 1.2), None),
-        ] {
-            let m = Measurement {
-                ideal: Point2::new(400.0, 200.0),
-                disparity,
-                information: 0.7,
-            };
+        let pose = Isometry3::new(Vector3::new(0.1, -0.05, 0.2), Vector3::new(0.03, -0.02, 0.01));
+        for (pw, disparity) in [(Point3::new(0.3, -0.2, 2.0), Some(20.0)), (Point3::new(-0.4, 0.1, 1.2), None)] {
+            let m = Measurement { ideal: Point2::new(400.0, 200.0), disparity, information: 0.7 };
             let full = linearise(&camera, 41.6, &pose, &pw, &m).unwrap();
             let r = residual(&camera, 41.6, &pose, &pw, &m).unwrap();
             let (p, d_pose) = linearise_pose(&camera, 41.6, &pose, &pw, &m).unwrap();
@@ -257,11 +253,7 @@ mod tests {
             assert_eq!(r.chi2(m.information), full.chi2(m.information));
         }
         let behind = Point3::new(0.0, 0.0, -0.5);
-        let m = Measurement {
-            ideal: Point2::new(0.0, 0.0),
-            disparity: None,
-            information: 1.0,
-        };
+        let m = Measurement { ideal: Point2::new(0.0, 0.0), disparity: None, information: 1.0 };
         assert!(residual(&camera, 41.6, &Isometry3::identity(), &behind, &m).is_none());
         assert!(linearise_pose(&camera, 41.6, &Isometry3::identity(), &behind, &m).is_none());
     }

@@ -40,4 +40,6 @@ pub enum TrackingError {
     Input(String),
     #[error("bad tracking configuration: {0}")]
     Config(String),
+    #[error("cannot start a tracking thread: {0}")]
+    Thread(std::io::Error),
 }

@@ -112,11 +112,8 @@ impl Map {
     /// Picks the observation descriptor with the least median distance to the others.
     fn update_descriptor(&mut self, point: PointId) {
         let Some(mp) = self.points.get(&point) else { return };
-        let descriptors: Vec<Descriptor> = mp
-            .observations
-            .iter()
-            .filter_map(|&(kf, f)| self.keyframes.get(&kf).map(|k| k.features.descriptors[f]))
-            .collect();
+        let descriptors: Vec<Descriptor> =
+            mp.observations.iter().filter_map(|&(kf, f)| self.keyframes.get(&kf).map(|k| k.features.descriptors[f])).collect();
         if descriptors.len() < 3 {
             return;
         }

@@ -60,12 +60,7 @@ impl PosePrior {
 }
 
 /// Optimises `camera_from_world` from 3D–2D(+depth) correspondences.
-pub fn optimize_pose(
-    camera: &Camera,
-    bf: f64,
-    initial: Isometry3<f64>,
-    correspondences: &[(Point3<f64>, Measurement)],
-) -> PoseEstimate {
+pub fn optimize_pose(camera: &Camera, bf: f64, initial: Isometry3<f64>, correspondences: &[(Point3<f64>, Measurement)]) -> PoseEstimate {
     optimize_pose_with_prior(camera, bf, initial, correspondences, None)
 }
 
@@ -85,18 +80,19 @@ pub fn optimize_pose_with_prior(
             // The prior stays robust in every round: it is one measurement, and
             // a wrong one must not outweigh the features in the last round.
             let prior_cost = prior.map_or(0.0, |p| robust_cost(p.residual(pose).1, CHI2_6DOF));
-            prior_cost + correspondences
-                .iter()
-                .zip(inliers)
-                .filter(|(_, i)| **i)
-                .map(|((pw, m), _)| match residual(camera, bf, pose, pw, m) {
-                    Some(r) => {
-                        let chi2 = r.chi2(m.information);
-                        if robust { robust_cost(chi2, m.chi2_threshold()) } else { chi2 }
-                    }
-                    None => 2.0 * m.chi2_threshold(),
-                })
-                .sum::<f64>()
+            prior_cost
+                + correspondences
+                    .iter()
+                    .zip(inliers)
+                    .filter(|(_, i)| **i)
+                    .map(|((pw, m), _)| match residual(camera, bf, pose, pw, m) {
+                        Some(r) => {
+                            let chi2 = r.chi2(m.information);
+                            if robust { robust_cost(chi2, m.chi2_threshold()) } else { chi2 }
+                        }
+                        None => 2.0 * m.chi2_threshold(),
+                    })
+                    .sum::<f64>()
         };
         let mut current = cost(&pose, &inliers);
         let mut lambda = INITIAL_LAMBDA;

@@ -130,10 +130,8 @@ enum Shape {
 impl Shape {
     /// The shape of cell `cell` of `layer`.
     fn of_cell(layer: &PosterLayer, cell: [i64; 2]) -> Self {
-        let key = layer
-            .seed
-            .wrapping_add((cell[0] as u64).wrapping_mul(CELL_KEY_S))
-            .wrapping_add((cell[1] as u64).wrapping_mul(CELL_KEY_T));
+        let key =
+            layer.seed.wrapping_add((cell[0] as u64).wrapping_mul(CELL_KEY_S)).wrapping_add((cell[1] as u64).wrapping_mul(CELL_KEY_T));
         let hash = mix64(key);
         if bit_field(hash, 0, FILL_BITS) >= layer.fill_threshold {
             return Self::Empty;
@@ -276,12 +274,8 @@ const ROOM_Y: (f64, f64) = (-1.6, 0.9);
 const ROOM_Z: (f64, f64) = (-0.5, 3.5);
 /// [`Scene::room`]: boxes standing on the floor, as (centre x, centre z, yaw in degrees,
 /// width x, height y, depth z), in metres.
-const ROOM_BOXES: [[f64; 6]; 4] = [
-    [-0.6, 1.5, 20.0, 0.5, 0.9, 0.5],
-    [0.6, 2.0, -15.0, 0.6, 1.1, 0.5],
-    [-0.1, 2.9, 5.0, 1.0, 0.6, 0.4],
-    [1.2, 2.8, 40.0, 0.5, 0.8, 0.5],
-];
+const ROOM_BOXES: [[f64; 6]; 4] =
+    [[-0.6, 1.5, 20.0, 0.5, 0.9, 0.5], [0.6, 2.0, -15.0, 0.6, 1.1, 0.5], [-0.1, 2.9, 5.0, 1.0, 0.6, 0.4], [1.2, 2.8, 40.0, 0.5, 0.8, 0.5]];
 
 impl Scene {
     /// An empty scene.
@@ -586,7 +580,12 @@ pub fn render_rolling_shutter(
 pub const ROLLING_SHUTTER_BAND_ROWS: usize = TILE;
 
 /// Renders with `world_from_camera_of_band(first_row)` for each band of [`TILE`] rows.
-fn render_bands(scene: &Scene, camera: &Camera, options: &RenderOptions, world_from_camera_of_band: impl Fn(usize) -> Isometry3<f64>) -> Rendered {
+fn render_bands(
+    scene: &Scene,
+    camera: &Camera,
+    options: &RenderOptions,
+    world_from_camera_of_band: impl Fn(usize) -> Isometry3<f64>,
+) -> Rendered {
     let (width, height) = (camera.width as usize, camera.height as usize);
     if width == 0 || height == 0 {
         return Rendered { width: camera.width, height: camera.height, rgb: Vec::new(), depth: Vec::new() };
@@ -603,11 +602,8 @@ fn render_bands(scene: &Scene, camera: &Camera, options: &RenderOptions, world_f
     };
     // One renderer per distinct pose: a global shutter shares one for every band.
     let poses: Vec<Isometry3<f64>> = (0..height.div_ceil(TILE)).map(|band| world_from_camera_of_band(band * TILE)).collect();
-    let renderers: Vec<Renderer> = if poses.windows(2).all(|p| p[0] == p[1]) {
-        vec![renderer_at(&poses[0])]
-    } else {
-        poses.iter().map(renderer_at).collect()
-    };
+    let renderers: Vec<Renderer> =
+        if poses.windows(2).all(|p| p[0] == p[1]) { vec![renderer_at(&poses[0])] } else { poses.iter().map(renderer_at).collect() };
     let renderer_of = |band: usize| &renderers[band.min(renderers.len() - 1)];
     let renderer = &renderers[0];
     // Linear colour (0–255 per channel) before blur, noise and quantisation.
@@ -631,14 +627,17 @@ fn render_bands(scene: &Scene, camera: &Camera, options: &RenderOptions, world_f
             shares[i % threads].push(band);
         }
         std::thread::scope(|scope| {
-            for share in shares {
+            for (n, share) in shares.into_iter().enumerate() {
                 let renderer_of = &renderer_of;
-                scope.spawn(move || {
-                    let mut scratch = Scratch::default();
-                    for (band, (colour, depth)) in share {
-                        renderer_of(band).render_band(band * TILE, colour, depth, &mut scratch);
-                    }
-                });
+                std::thread::Builder::new()
+                    .name(format!("synthetic-{n}"))
+                    .spawn_scoped(scope, move || {
+                        let mut scratch = Scratch::default();
+                        for (band, (colour, depth)) in share {
+                            renderer_of(band).render_band(band * TILE, colour, depth, &mut scratch);
+                        }
+                    })
+                    .expect("a thread for rendering the synthetic frame (test data)");
             }
         });
     }
@@ -758,10 +757,9 @@ impl Renderer<'_> {
                     depth[pixel] = self.depth(centre, &scratch.candidates);
                     let mut sum = [0.0; 3];
                     for r in colour_rays {
-                        let sample =
-                            nearest_hit(&self.quads, &scratch.candidates, r).map_or(BACKGROUND_RGB, |(_, quad, a, b)| {
-                                quad.texture.sample_cached(a * quad.length_u, b * quad.length_v, &mut scratch.texture_cache)
-                            });
+                        let sample = nearest_hit(&self.quads, &scratch.candidates, r).map_or(BACKGROUND_RGB, |(_, quad, a, b)| {
+                            quad.texture.sample_cached(a * quad.length_u, b * quad.length_v, &mut scratch.texture_cache)
+                        });
                         for (c, s) in sum.iter_mut().zip(sample) {
                             *c += s;
                         }
@@ -935,8 +933,7 @@ mod tests {
         let path = sway_path(SWAY_PERIOD_FRAMES as usize);
         for (i, pose) in path.iter().enumerate().step_by(30) {
             let frame = render(&scene, &camera, pose);
-            let in_band =
-                frame.depth.iter().filter(|&&d| (0.5..5.0).contains(&(f64::from(d) / camera.depth_units_per_metre))).count();
+            let in_band = frame.depth.iter().filter(|&&d| (0.5..5.0).contains(&(f64::from(d) / camera.depth_units_per_metre))).count();
             let valid = frame.depth.iter().filter(|&&d| d > 0).count();
             assert!(valid as f64 >= 0.95 * frame.depth.len() as f64, "frame {i}: {valid} valid");
             assert!(in_band as f64 >= 0.95 * frame.depth.len() as f64, "frame {i}: {in_band} within 0.5-5 m");

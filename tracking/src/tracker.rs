@@ -10,10 +10,10 @@ use crate::TrackingError;
 use crate::ba;
 use crate::camera::Camera;
 use crate::config::TrackerConfig;
+use crate::dense::DenseOdometry;
 use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales, rectify_rolling_shutter};
 use crate::geometry::{Measurement, PnpRansac, pnp_ransac};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
-use crate::dense::DenseOdometry;
 use crate::optimize::{PosePrior, optimize_pose_with_prior};
 
 /// The state of tracking for one frame.
@@ -233,20 +233,21 @@ impl Tracker {
         let (feats, step) = std::thread::scope(|scope| {
             let dense = self.dense.as_mut().map(|dense| {
                 let gray = &gray;
-                scope.spawn(move || {
+                std::thread::Builder::new().name("dense-odometry".into()).spawn_scoped(scope, move || {
                     let t = Instant::now();
                     (dense.push(gray, frame.depth, frame.dynamic_mask), t.elapsed())
                 })
             });
             let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask);
             times.extraction = t.elapsed();
-            let step = match dense.map(|handle| handle.join()) {
-                Some(Ok((step, elapsed))) => {
+            let step = match dense.map(|spawned| spawned.map(|handle| handle.join())) {
+                Some(Ok(Ok((step, elapsed)))) => {
                     times.dense = elapsed;
                     step
                 }
                 // A panic there is a bug, as it would be inline: pass it on.
-                Some(Err(panic)) => std::panic::resume_unwind(panic),
+                Some(Ok(Err(panic))) => std::panic::resume_unwind(panic),
+                Some(Err(e)) => Err(TrackingError::Thread(e)),
                 None => Ok(None),
             };
             (feats, step)
@@ -354,7 +355,9 @@ impl Tracker {
             // features alone, and moving the keyframe to them would undo the
             // prior's smoothing for this frame and the next (README, "Tracking
             // accuracy"); the map takes BA's result either way.
-            if self.prior.is_none() && let Some(kf) = self.reference.and_then(|r| self.map.keyframes.get(&r)) {
+            if self.prior.is_none()
+                && let Some(kf) = self.reference.and_then(|r| self.map.keyframes.get(&r))
+            {
                 out.world_from_camera = Some(kf.world_from_camera);
             }
             points
@@ -556,18 +559,20 @@ impl Tracker {
 
     /// Global recovery: brute-force matching against the most similar keyframes,
     /// PnP-RANSAC, pose optimisation and the local map.
-    fn relocalize(&mut self, feats: &FrameFeatures, index: &GridIndex, gray: &[u8], times: &mut StageTimes) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
+    fn relocalize(
+        &mut self,
+        feats: &FrameFeatures,
+        index: &GridIndex,
+        gray: &[u8],
+        times: &mut StageTimes,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>)> {
         if feats.features.len() < RELOC_MIN_MATCHES {
             return None;
         }
         let t = Instant::now();
         let thumb = thumbnail(gray, self.camera.width as usize, self.camera.height as usize);
-        let mut ranked: Vec<(f32, KeyframeId)> = self
-            .map
-            .keyframes
-            .values()
-            .map(|kf| (-kf.thumbnail.iter().zip(&thumb).map(|(a, b)| a * b).sum::<f32>(), kf.id))
-            .collect();
+        let mut ranked: Vec<(f32, KeyframeId)> =
+            self.map.keyframes.values().map(|kf| (-kf.thumbnail.iter().zip(&thumb).map(|(a, b)| a * b).sum::<f32>(), kf.id)).collect();
         ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
         let mut candidates: Vec<KeyframeId> = ranked.iter().take(self.config.relocalization_candidates).map(|r| r.1).collect();
         if let Some(r) = self.reference
@@ -580,12 +585,8 @@ impl Tracker {
         for kf_id in candidates {
             let t = Instant::now();
             let Some(kf) = self.map.keyframes.get(&kf_id) else { continue };
-            let kf_points: Vec<(Descriptor, PointId)> = kf
-                .points
-                .iter()
-                .enumerate()
-                .filter_map(|(i, p)| p.map(|id| (kf.features.descriptors[i], id)))
-                .collect();
+            let kf_points: Vec<(Descriptor, PointId)> =
+                kf.points.iter().enumerate().filter_map(|(i, p)| p.map(|id| (kf.features.descriptors[i], id))).collect();
             let pairs = brute_force_match(&feats.descriptors, &kf_points, self.config.max_descriptor_distance);
             if pairs.len() < RELOC_MIN_MATCHES {
                 times.matching += t.elapsed();

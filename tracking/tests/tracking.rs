@@ -238,7 +238,8 @@ fn fr1_rpy_is_tracked_accurately_and_deterministically() {
         assert!(a.world_from_camera.is_some(), "frame {i}");
         assert_eq!((a.state, a.world_from_camera, a.tracked_points), (b.state, b.world_from_camera, b.tracked_points), "frame {i}");
     }
-    let est: Vec<_> = clip.frames.iter().zip(&first).filter_map(|(f, o)| Some((tum::fr1_pose_time_ns(f.timestamp_ns), o.world_from_camera?))).collect();
+    let est: Vec<_> =
+        clip.frames.iter().zip(&first).filter_map(|(f, o)| Some((tum::fr1_pose_time_ns(f.timestamp_ns), o.world_from_camera?))).collect();
     let s = tum::score(&clip.gt, &est);
     println!(
         "fr1_rpy: {} frames | ATE {:.2} cm {:.2}° (origin-aligned {:.2}°) | RPE {:.2} mm {:.3}°",

@@ -55,7 +55,11 @@ pub fn align_orientations(reference: &[Isometry3<f64>], estimate: &[Isometry3<f6
     if reference.len() != estimate.len() || reference.is_empty() {
         return None;
     }
-    let m: Matrix3<f64> = reference.iter().zip(estimate).map(|(r, e)| r.rotation.to_rotation_matrix().into_inner() * e.rotation.to_rotation_matrix().into_inner().transpose()).sum();
+    let m: Matrix3<f64> = reference
+        .iter()
+        .zip(estimate)
+        .map(|(r, e)| r.rotation.to_rotation_matrix().into_inner() * e.rotation.to_rotation_matrix().into_inner().transpose())
+        .sum();
     let svd = m.svd(true, true);
     let (u, v_t) = (svd.u?, svd.v_t?);
     let mut s = Matrix3::identity();
@@ -77,7 +81,11 @@ mod tests {
     #[test]
     fn orientation_alignment_recovers_a_known_transform() {
         let truth = known();
-        let estimate: Vec<Isometry3<f64>> = (0..30).map(|i| Isometry3::new(Vector3::new(0.002 * (i as f64).sin(), 0.0, 0.001), Vector3::new(0.1 * i as f64, 0.05, -0.02 * i as f64))).collect();
+        let estimate: Vec<Isometry3<f64>> = (0..30)
+            .map(|i| {
+                Isometry3::new(Vector3::new(0.002 * (i as f64).sin(), 0.0, 0.001), Vector3::new(0.1 * i as f64, 0.05, -0.02 * i as f64))
+            })
+            .collect();
         let reference: Vec<Isometry3<f64>> = estimate.iter().map(|e| truth * e).collect();
         let found = align_orientations(&reference, &estimate).expect("aligned");
         let error = truth.inverse() * found;

@@ -7,12 +7,7 @@ use super::{EvalError, Trajectory};
 /// `matching_time_indices`: binary search when `stamps_2` is sorted, otherwise a
 /// linear search; a match is kept when it is at most `max_diff` seconds away.
 /// Several stamps of `stamps_1` may match the same stamp of `stamps_2`.
-pub fn matching_time_indices(
-    stamps_1: &[f64],
-    stamps_2: &[f64],
-    max_diff: f64,
-    offset_2: f64,
-) -> (Vec<usize>, Vec<usize>) {
+pub fn matching_time_indices(stamps_1: &[f64], stamps_2: &[f64], max_diff: f64, offset_2: f64) -> (Vec<usize>, Vec<usize>) {
     let stamps_2: Vec<f64> = stamps_2.iter().map(|t| t + offset_2).collect();
     let (mut matches_1, mut matches_2) = (Vec::new(), Vec::new());
     let (Some(&first), Some(&last)) = (stamps_2.first(), stamps_2.last()) else {
@@ -77,19 +72,14 @@ pub fn associate(
 ) -> Result<Associated, EvalError> {
     let stamps = |t: &[(f64, _)]| t.iter().map(|p| p.0).collect::<Vec<f64>>();
     let second_longer = estimate.len() > reference.len();
-    let (short, long, long_offset) =
-        if second_longer { (reference, estimate, offset) } else { (estimate, reference, -offset) };
+    let (short, long, long_offset) = if second_longer { (reference, estimate, offset) } else { (estimate, reference, -offset) };
     let (ids_short, ids_long) = matching_time_indices(&stamps(short), &stamps(long), max_diff, long_offset);
     if ids_short.is_empty() {
         return Err(EvalError::NoMatches { max_diff, offset });
     }
     let short: Trajectory = ids_short.iter().map(|&i| short[i]).collect();
     let long: Trajectory = ids_long.iter().map(|&i| long[i]).collect();
-    Ok(if second_longer {
-        Associated { reference: short, estimate: long }
-    } else {
-        Associated { reference: long, estimate: short }
-    })
+    Ok(if second_longer { Associated { reference: short, estimate: long } } else { Associated { reference: long, estimate: short } })
 }
 
 #[cfg(test)]

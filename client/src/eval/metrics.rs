@@ -62,12 +62,7 @@ pub fn id_pairs(poses: usize, delta: usize) -> Vec<(usize, usize)> {
 
 /// Relative pose errors over [`id_pairs`]: `E = (Q_i⁻¹ Q_j)⁻¹ (P_i⁻¹ P_j)` with `Q`
 /// the reference and `P` the estimate (evo's `RPE.rpe_base`).
-pub fn rpe(
-    reference: &[Isometry3<f64>],
-    estimate: &[Isometry3<f64>],
-    relation: Relation,
-    delta: usize,
-) -> Result<Vec<f64>, EvalError> {
+pub fn rpe(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>], relation: Relation, delta: usize) -> Result<Vec<f64>, EvalError> {
     if delta == 0 {
         return Err(EvalError::NoPairs { delta, poses: reference.len() });
     }

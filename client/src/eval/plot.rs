@@ -150,8 +150,7 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, evaluation: &Evaluati
 
     let (a, b) = top_view_axes(reference);
     let all = || reference.iter().chain(estimate.iter());
-    let (ra, rb) =
-        equal_spans(range(all().map(|p| p.1.translation.vector[a])), range(all().map(|p| p.1.translation.vector[b])));
+    let (ra, rb) = equal_spans(range(all().map(|p| p.1.translation.vector[a])), range(all().map(|p| p.1.translation.vector[b])));
     let mut builder = ChartBuilder::on(&left);
     builder.margin(15).x_label_area_size(40).y_label_area_size(60);
     if text {
@@ -166,13 +165,10 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, evaluation: &Evaluati
     }
     mesh.draw().map_err(err)?;
     // The reference last, on top of a possibly noisy estimate.
-    for (trajectory, color, name) in [(estimate, ESTIMATE_COLOR, "estimate"), (reference, REFERENCE_COLOR, "reference")]
-    {
+    for (trajectory, color, name) in [(estimate, ESTIMATE_COLOR, "estimate"), (reference, REFERENCE_COLOR, "reference")] {
         let points = trajectory.iter().map(|p| (p.1.translation.vector[a], p.1.translation.vector[b]));
         let series = chart.draw_series(LineSeries::new(points, color.stroke_width(LINE_PX))).map_err(err)?;
-        series
-            .label(name)
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(LINE_PX + 1)));
+        series.label(name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(LINE_PX + 1)));
     }
     if text {
         chart
@@ -230,8 +226,7 @@ mod tests {
 
     #[test]
     fn top_view_uses_the_two_widest_axes() {
-        let t: Trajectory =
-            (0..10).map(|i| (i as f64, Isometry3::translation(i as f64, 0.01 * i as f64, -2.0 * i as f64))).collect();
+        let t: Trajectory = (0..10).map(|i| (i as f64, Isometry3::translation(i as f64, 0.01 * i as f64, -2.0 * i as f64))).collect();
         assert_eq!(top_view_axes(&t), (0, 2));
         let (a, b) = equal_spans(0.0..1.0, 5.0..9.0);
         assert_eq!((a, b), (-1.5..2.5, 5.0..9.0));

@@ -33,10 +33,7 @@ pub fn parse_tum(text: &str, path: &Path) -> Result<Trajectory, EvalError> {
         let parse_error = |message: String| EvalError::Parse { path: path.to_owned(), line: index + 1, message };
         let fields: Vec<&str> = line.split_whitespace().collect();
         if fields.len() != FIELDS {
-            return Err(parse_error(format!(
-                "expected {FIELDS} values (timestamp tx ty tz qx qy qz qw), found {}",
-                fields.len()
-            )));
+            return Err(parse_error(format!("expected {FIELDS} values (timestamp tx ty tz qx qy qz qw), found {}", fields.len())));
         }
         let mut v = [0.0f64; FIELDS];
         for (slot, field) in v.iter_mut().zip(&fields) {

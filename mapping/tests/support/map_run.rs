@@ -40,13 +40,26 @@ pub struct Fused {
 /// Runs perception and tracking over `frames`, fusing the tracker's keyframes at
 /// the ground-truth poses. `segment_every`: frames k with k % n == 0 are segmented
 /// (their result arrives for that frame; the masker warps it forward until the next).
-pub fn fuse(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, segmenter: Option<(&mut YoloSegmenter, usize)>, snapshot_at: &[usize]) -> Fused {
+pub fn fuse(
+    frames: &[Frame],
+    poses: &[Isometry3<f64>],
+    masking: Masking,
+    segmenter: Option<(&mut YoloSegmenter, usize)>,
+    snapshot_at: &[usize],
+) -> Fused {
     fuse_debug(frames, poses, masking, segmenter, snapshot_at, None)
 }
 
 /// [`fuse`], printing per keyframe how much of `debug_truth` (each frame's exact
 /// object pixels) the mapping mask kept out.
-pub fn fuse_debug(frames: &[Frame], poses: &[Isometry3<f64>], masking: Masking, mut segmenter: Option<(&mut YoloSegmenter, usize)>, snapshot_at: &[usize], debug_truth: Option<&[Vec<u8>]>) -> Fused {
+pub fn fuse_debug(
+    frames: &[Frame],
+    poses: &[Isometry3<f64>],
+    masking: Masking,
+    mut segmenter: Option<(&mut YoloSegmenter, usize)>,
+    snapshot_at: &[usize],
+    debug_truth: Option<&[Vec<u8>]>,
+) -> Fused {
     let camera = tum::fr1_camera();
     let names: Vec<String> = segmenter.as_ref().map(|(s, _)| s.class_names().to_vec()).unwrap_or_default();
     let mut pipeline = composite_run::MaskedTracking::new(&names);
@@ -107,4 +120,3 @@ pub fn distance_to_board(p: &Point3<f64>, world_from_plane: &Isometry3<f64>, pla
 
 /// A voxel "is the board" when its centre lies within 1.5 voxels of the board at some frame.
 pub const ON_BOARD_M: f64 = 0.03;
-

@@ -69,7 +69,12 @@ pub fn composite_with(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)], pl
 pub fn without_object(frames: &[tum::TumFrame]) -> Vec<CompositeFrame> {
     frames
         .iter()
-        .map(|f| CompositeFrame { timestamp_ns: f.timestamp_ns, rgb: f.rgb.clone(), depth: f.depth.clone(), object_mask: vec![0; f.depth.len()] })
+        .map(|f| CompositeFrame {
+            timestamp_ns: f.timestamp_ns,
+            rgb: f.rgb.clone(),
+            depth: f.depth.clone(),
+            object_mask: vec![0; f.depth.len()],
+        })
         .collect()
 }
 
@@ -154,7 +159,14 @@ impl MaskedTracking {
     }
 
     /// One frame: (the tracking mask, tracking's output, the fused mask).
-    pub fn step(&mut self, sequence: u64, timestamp_ns: u64, rgb: &[u8], depth: &[u16], segmentation: Option<(u64, Segmentation)>) -> (Vec<u8>, TrackOutput, MaskOutput) {
+    pub fn step(
+        &mut self,
+        sequence: u64,
+        timestamp_ns: u64,
+        rgb: &[u8],
+        depth: &[u16],
+        segmentation: Option<(u64, Segmentation)>,
+    ) -> (Vec<u8>, TrackOutput, MaskOutput) {
         let tracking_mask = self.masker.prepare(MaskerInput { sequence, rgb, depth, segmentation, motion_prior: None }).expect("prepare");
         let track = self.tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: Some(&tracking_mask) }).expect("track");
         let motion = match (self.last_pose, track.world_from_camera) {
@@ -222,7 +234,13 @@ pub fn run_with(
                 f.object_mask.iter().filter(|&&m| m != 0).count(),
                 out.fused.flow_regions,
                 out.fused.rejected_regions,
-                out.ego.map(|e| (e.refined, e.inliers, e.samples, e.previous_from_current.translation.vector.norm(), e.previous_from_current.rotation.angle().to_degrees()))
+                out.ego.map(|e| (
+                    e.refined,
+                    e.inliers,
+                    e.samples,
+                    e.previous_from_current.translation.vector.norm(),
+                    e.previous_from_current.rotation.angle().to_degrees()
+                ))
             );
         }
         if matches!(out.source, MaskSource::Warped { .. }) {
@@ -246,7 +264,15 @@ pub fn run_with(
             if let Some(person) = out.fused.instances.iter().find(|i| i.class_name == "person" && on_object(i.id) * 2 > i.pixels as usize) {
                 s.person_frames += 1;
                 s.moving_person_frames += usize::from(person.moving == Some(true));
-                if verbose { eprintln!("frame {k}: person {:?} fraction {:.2} pixels {} on board {}", person.moving, person.moving_fraction, person.pixels, on_object(person.id)); }
+                if verbose {
+                    eprintln!(
+                        "frame {k}: person {:?} fraction {:.2} pixels {} on board {}",
+                        person.moving,
+                        person.moving_fraction,
+                        person.pixels,
+                        on_object(person.id)
+                    );
+                }
             }
         }
         let feats = extractor.extract(&camera, &to_gray(&f.rgb), &f.depth, None).expect("extract");
@@ -302,11 +328,17 @@ pub fn track_unmasked(frames: &[CompositeFrame]) -> Vec<(u64, Isometry3<f64>)> {
 
 /// The tracker alone with the given per-frame masks (exact ones, for the headroom): stamped poses.
 pub fn track_masked(frames: &[CompositeFrame], masks: &[Vec<u8>]) -> Vec<(u64, Isometry3<f64>)> {
-    track_images(frames.iter().zip(masks).map(|(f, m)| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), Some(m.as_slice()))), TrackerConfig::default())
+    track_images(
+        frames.iter().zip(masks).map(|(f, m)| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), Some(m.as_slice()))),
+        TrackerConfig::default(),
+    )
 }
 
 /// Tracks (timestamp, colour, depth, mask) frames; poses stamped at the ground truth's time base.
-fn track_images<'a>(frames: impl Iterator<Item = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>)>, config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
+fn track_images<'a>(
+    frames: impl Iterator<Item = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>)>,
+    config: TrackerConfig,
+) -> Vec<(u64, Isometry3<f64>)> {
     let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
     frames
         .filter_map(|(timestamp_ns, rgb, depth, dynamic_mask)| {

@@ -19,9 +19,8 @@ pub fn model(name: &str) -> PathBuf {
 
 /// `ORT_DYLIB_PATH`, else the library `deploy/install-deps.sh` puts in `.deps/ort`.
 pub fn onnxruntime_library() -> String {
-    std::env::var("ORT_DYLIB_PATH").unwrap_or_else(|_| {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../.deps/ort/libonnxruntime.so.1.31.1").display().to_string()
-    })
+    std::env::var("ORT_DYLIB_PATH")
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("../.deps/ort/libonnxruntime.so.1.31.1").display().to_string())
 }
 
 pub fn segmentation_config(model_file: &str) -> SegmentationConfig {

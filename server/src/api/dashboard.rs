@@ -15,8 +15,8 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{Html, IntoResponse, Response};
 use serde_json::{Value, json};
 use stillmap_proto::pb;
-use tokio_stream::StreamExt;
 use tokio::sync::{broadcast, watch};
+use tokio_stream::StreamExt;
 use tokio_stream::wrappers::{BroadcastStream, WatchStream};
 
 use crate::session::Registry;
@@ -67,7 +67,9 @@ pub async fn asset(State(state): State<DashboardState>, UrlPath(path): UrlPath<S
     };
     // Only plain names: no "..", no absolute paths, no hidden files.
     let ok = !path.is_empty()
-        && path.split('/').all(|c| !c.is_empty() && !c.starts_with('.') && c.chars().all(|ch| ch.is_ascii_alphanumeric() || "._-".contains(ch)));
+        && path
+            .split('/')
+            .all(|c| !c.is_empty() && !c.starts_with('.') && c.chars().all(|ch| ch.is_ascii_alphanumeric() || "._-".contains(ch)));
     if !ok {
         return (StatusCode::BAD_REQUEST, axum::Json(json!({ "error": format!("bad asset path {path:?}") }))).into_response();
     }
@@ -102,7 +104,10 @@ fn not_found(name: &str) -> Response {
 /// What one session in memory looks like on the dashboard.
 fn session_json(s: &crate::session::Session, fps: f64) -> Value {
     let latency: HashMap<_, _> = s.last_latency().iter().map(|l| (l.stage.clone(), f64::from(l.micros) / 1000.0)).collect();
-    let map = s.map().map(crate::map::summary).map(|(version, keyframes, occupied)| json!({ "version": version, "keyframes": keyframes, "occupied_voxels": occupied }));
+    let map = s
+        .map()
+        .map(crate::map::summary)
+        .map(|(version, keyframes, occupied)| json!({ "version": version, "keyframes": keyframes, "occupied_voxels": occupied }));
     listed_json(&s.info(), fps, json!(latency), map.unwrap_or(Value::Null))
 }
 
@@ -273,7 +278,8 @@ pub async fn events(State(state): State<DashboardState>) -> Response {
     let viewer = Viewer(feed.viewers.clone());
     feed.start();
     let sessions = WatchStream::new(feed.snapshot.subscribe()).map(|text| Event::default().event("sessions").data(&*text));
-    let poses = BroadcastStream::new(feed.poses.subscribe()).filter_map(|p| p.ok().map(|text| Event::default().event("poses").data(&*text)));
+    let poses =
+        BroadcastStream::new(feed.poses.subscribe()).filter_map(|p| p.ok().map(|text| Event::default().event("poses").data(&*text)));
     let stream = sessions.merge(poses).map(move |event| {
         let _counted = &viewer;
         Ok::<_, Infallible>(event)

@@ -2,11 +2,11 @@
 
 use std::sync::Arc;
 
+use axum::Extension;
+use axum::extract::DefaultBodyLimit;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use axum::extract::DefaultBodyLimit;
-use axum::Extension;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::{Value, json};
@@ -175,7 +175,8 @@ fn pose_json(p: &pb::PoseStamped) -> Value {
 }
 
 /// What the pose endpoints say about the frame of reference.
-const WORLD_FRAME: &str = "world = the camera frame of the session's first tracked frame (x right, y down, z forward); poses are world_from_camera";
+const WORLD_FRAME: &str =
+    "world = the camera frame of the session's first tracked frame (x right, y down, z forward); poses are world_from_camera";
 
 /// What the pose endpoints say about the fleet frame.
 const FLEET_FRAME: &str = "fleet = the world of the session that anchors the fleet; poses are fleet_from_camera";
@@ -230,11 +231,7 @@ async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>,
     .into_response()
 }
 
-async fn get_trajectory(
-    State(registry): State<Arc<Registry>>,
-    Path(id): Path<String>,
-    JsonQuery(q): JsonQuery<FrameQuery>,
-) -> Response {
+async fn get_trajectory(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<FrameQuery>) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     };
@@ -339,7 +336,11 @@ fn fleet_parts(registry: &Registry, name: &str) -> Result<Vec<(crate::map::Share
     let Some(fleet) = registry.fleets().and_then(|f| f.get(name)) else {
         return Err(error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")));
     };
-    let mut members: Vec<_> = fleet.members.iter().filter_map(|m| m.frame.as_ref().map(|fr| (fr.anchor, m.session_id.clone(), crate::fleet::isometry(&fr.fleet_from_session)))).collect();
+    let mut members: Vec<_> = fleet
+        .members
+        .iter()
+        .filter_map(|m| m.frame.as_ref().map(|fr| (fr.anchor, m.session_id.clone(), crate::fleet::isometry(&fr.fleet_from_session))))
+        .collect();
     members.sort_by_key(|(anchor, _, _)| !anchor);
     let anchor_has_map = members.first().is_some_and(|(anchor, id, _)| *anchor && registry.get(id).is_some_and(|s| s.map().is_some()));
     if !anchor_has_map {
@@ -366,24 +367,41 @@ async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<Str
     };
     let fleet_name = name.clone();
     match blocking(move || mapping::fleet_ply(&fleet, &fleet_name, n)).await {
-        Ok(ply) => ([(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, format!("attachment; filename=\"fleet-{name}.ply\""))], ply).into_response(),
+        Ok(ply) => (
+            [
+                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+                (header::CONTENT_DISPOSITION, format!("attachment; filename=\"fleet-{name}.ply\"")),
+            ],
+            ply,
+        )
+            .into_response(),
         Err(r) => r,
     }
 }
 
 async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
     let (fleet, _) = fleet_map(registry, name).await?;
-    blocking(move || mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution)).await?.map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
+    blocking(move || mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution))
+        .await?
+        .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
-async fn fleet_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(name): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
+async fn fleet_occupancy_pgm(
+    State(registry): State<Arc<Registry>>,
+    Path(name): Path<String>,
+    JsonQuery(q): JsonQuery<OccupancyQuery>,
+) -> Response {
     match fleet_occupancy(&registry, &name, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "image/x-portable-graymap")], grid.to_pgm()).into_response(),
         Err(r) => r,
     }
 }
 
-async fn fleet_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(name): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
+async fn fleet_occupancy_yaml(
+    State(registry): State<Arc<Registry>>,
+    Path(name): Path<String>,
+    JsonQuery(q): JsonQuery<OccupancyQuery>,
+) -> Response {
     match fleet_occupancy(&registry, &name, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "application/yaml")], grid.to_yaml("occupancy.pgm")).into_response(),
         Err(r) => r,
@@ -396,7 +414,9 @@ async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<S
         Err(r) => return r,
     };
     match blocking(move || (stillmap_mapping::export::objects(&fleet.map, &fleet.map_from_fleet), fleet.class_names)).await {
-        Ok((objects, names)) => Json(json!({ "fleet": name, "frame": FLEET_MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response(),
+        Ok((objects, names)) => {
+            Json(json!({ "fleet": name, "frame": FLEET_MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response()
+        }
         Err(r) => r,
     }
 }
@@ -417,11 +437,17 @@ type FleetParts = Vec<(SharedMap, nalgebra::Isometry3<f64>)>;
 /// The fleet map's top-down view for `parts` in the state `tag` (cached per fleet until a part changes).
 async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: u64) -> Result<Arc<mapping::FleetTop>, Response> {
     let fleet = name.to_string();
-    blocking(move || registry.fleet_tops().get(&fleet, &parts, tag)).await?.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet")))
+    blocking(move || registry.fleet_tops().get(&fleet, &parts, tag))
+        .await?
+        .ok_or_else(|| error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet")))
 }
 
 /// A tile of the fleet map: the session tiles' scheme, in the fleet's map frame.
-async fn fleet_tile(State(registry): State<Arc<Registry>>, Path((name, z, x, y)): Path<(String, String, String, String)>, headers: HeaderMap) -> Response {
+async fn fleet_tile(
+    State(registry): State<Arc<Registry>>,
+    Path((name, z, x, y)): Path<(String, String, String, String)>,
+    headers: HeaderMap,
+) -> Response {
     let (z, x, y) = match tile_coordinates(&z, &x, &y) {
         Ok(c) => c,
         Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
@@ -502,11 +528,7 @@ async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
 }
 
 async fn metrics(State(registry): State<Arc<Registry>>) -> Response {
-    (
-        [(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")],
-        registry.metrics().render(),
-    )
-        .into_response()
+    ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], registry.metrics().render()).into_response()
 }
 
 /// The session's map, or the 404 to answer.
@@ -579,7 +601,11 @@ fn tile_coordinates(z: &str, x: &str, y: &str) -> Result<(u8, i64, i64), BadQuer
     Ok((z, x, y))
 }
 
-async fn map_tile(State(registry): State<Arc<Registry>>, Path((id, z, x, y)): Path<(String, String, String, String)>, headers: HeaderMap) -> Response {
+async fn map_tile(
+    State(registry): State<Arc<Registry>>,
+    Path((id, z, x, y)): Path<(String, String, String, String)>,
+    headers: HeaderMap,
+) -> Response {
     let map = match session_map(&registry, &id) {
         Ok(m) => m,
         Err(r) => return r,
@@ -601,14 +627,20 @@ const TILE_CACHE_CONTROL: &str = "no-cache";
 /// 304 when the request's `If-None-Match` names `etag`.
 fn not_modified(headers: &HeaderMap, etag: String) -> Option<Response> {
     let matches = headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| v.split(',').any(|t| t.trim() == etag));
-    matches.then(|| (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response())
+    matches.then(|| {
+        (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())]).into_response()
+    })
 }
 
 /// A rendered tile as the response (PNG with its ETag), or its error.
 fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) -> Response {
     match rendered {
         Ok(Ok(tile)) => (
-            [(header::CONTENT_TYPE, "image/png".to_string()), (header::ETAG, tile.etag), (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string())],
+            [
+                (header::CONTENT_TYPE, "image/png".to_string()),
+                (header::ETAG, tile.etag),
+                (header::CACHE_CONTROL, TILE_CACHE_CONTROL.to_string()),
+            ],
             tile.png,
         )
             .into_response(),
@@ -641,17 +673,27 @@ struct OccupancyQuery {
 
 async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
     let map = session_map(&registry, &id)?;
-    blocking(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution)).await?.map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
+    blocking(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution))
+        .await?
+        .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
-async fn map_occupancy_pgm(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
+async fn map_occupancy_pgm(
+    State(registry): State<Arc<Registry>>,
+    Path(id): Path<String>,
+    JsonQuery(q): JsonQuery<OccupancyQuery>,
+) -> Response {
     match occupancy(registry, id, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "image/x-portable-graymap")], grid.to_pgm()).into_response(),
         Err(r) => r,
     }
 }
 
-async fn map_occupancy_yaml(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<OccupancyQuery>) -> Response {
+async fn map_occupancy_yaml(
+    State(registry): State<Arc<Registry>>,
+    Path(id): Path<String>,
+    JsonQuery(q): JsonQuery<OccupancyQuery>,
+) -> Response {
     match occupancy(registry, id, q).await {
         Ok(grid) => ([(header::CONTENT_TYPE, "application/yaml")], grid.to_yaml("occupancy.pgm")).into_response(),
         Err(r) => r,
@@ -674,7 +716,14 @@ async fn map_cloud(State(registry): State<Arc<Registry>>, Path(id): Path<String>
     };
     let session = id.clone();
     match blocking(move || mapping::ply(&map, &session, bbox.as_ref())).await {
-        Ok(ply) => ([(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.ply\""))], ply).into_response(),
+        Ok(ply) => (
+            [
+                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+                (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.ply\"")),
+            ],
+            ply,
+        )
+            .into_response(),
         Err(r) => r,
     }
 }
@@ -702,7 +751,9 @@ async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<Strin
         Err(r) => return r,
     };
     match blocking(move || mapping::map_objects(&map)).await {
-        Ok((objects, names)) => Json(json!({ "session_id": id, "frame": MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response(),
+        Ok((objects, names)) => {
+            Json(json!({ "session_id": id, "frame": MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response()
+        }
         Err(r) => r,
     }
 }
@@ -755,7 +806,11 @@ async fn rate_limit(State(settings): State<Arc<HttpSettings>>, request: axum::ex
 }
 
 /// The query APIs' layer: a token with the `read` scope.
-async fn require_read(State(settings): State<Arc<HttpSettings>>, request: axum::extract::Request, next: axum::middleware::Next) -> Response {
+async fn require_read(
+    State(settings): State<Arc<HttpSettings>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
     match authorize(&settings, request.headers(), request.uri(), crate::auth::Need::Read) {
         Ok(()) => next.run(request).await,
         Err(refused) => refused,
@@ -792,7 +847,10 @@ async fn map_export(State(registry): State<Arc<Registry>>, AdminOnly(_): AdminOn
     let file = blocking(move || store.load(&key).and_then(|s| s.map(|s| crate::store::export(&s)).transpose())).await;
     match file {
         Ok(Ok(Some(bytes))) => (
-            [(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.stillmap\""))],
+            [
+                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+                (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.stillmap\"")),
+            ],
             bytes,
         )
             .into_response(),

@@ -2,16 +2,15 @@
 //! points and objects, computed from a session's [`SharedMap`] (render outside the
 //! lock: the top-down index is shared per map version).
 
-
-use stillmap_mapping::MappingError;
-use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
 use std::collections::HashMap;
 use std::hash::{Hash, Hasher};
 use std::sync::{Arc, Mutex};
+use stillmap_mapping::MappingError;
+use stillmap_mapping::export::{Aabb, MapObject, cloud, objects, to_ply};
 
 use nalgebra::Isometry3;
-use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, TopDown, class_color, encode_png_rgba};
 use stillmap_mapping::NO_CLASS;
+use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, TopDown, class_color, encode_png_rgba};
 
 use crate::lock;
 use crate::map::SharedMap;
@@ -84,7 +83,12 @@ pub fn legend_of(top: &TopDown, class_names: &[String]) -> Vec<LegendEntry> {
         .collect()
 }
 
-pub fn occupancy(map: &SharedMap, min_height: Option<f64>, max_height: Option<f64>, resolution: Option<f64>) -> Result<OccupancyGrid, BadQuery> {
+pub fn occupancy(
+    map: &SharedMap,
+    min_height: Option<f64>,
+    max_height: Option<f64>,
+    resolution: Option<f64>,
+) -> Result<OccupancyGrid, BadQuery> {
     let m = lock(map);
     let cfg = m.builder.config();
     let grid = OccupancyGrid::build(
@@ -167,9 +171,20 @@ pub fn fleet_ply(fleet: &FleetMap, name: &str, sessions: usize) -> Vec<u8> {
 }
 
 /// The fleet map's occupancy grid (the anchor's defaults where a parameter is absent).
-pub fn fleet_occupancy(fleet: &FleetMap, min_height: Option<f64>, max_height: Option<f64>, resolution: Option<f64>) -> Result<OccupancyGrid, BadQuery> {
+pub fn fleet_occupancy(
+    fleet: &FleetMap,
+    min_height: Option<f64>,
+    max_height: Option<f64>,
+    resolution: Option<f64>,
+) -> Result<OccupancyGrid, BadQuery> {
     let (lo, hi, res) = fleet.occupancy;
-    Ok(OccupancyGrid::build(&fleet.map, &fleet.map_from_fleet, min_height.unwrap_or(lo), max_height.unwrap_or(hi), resolution.unwrap_or(res))?)
+    Ok(OccupancyGrid::build(
+        &fleet.map,
+        &fleet.map_from_fleet,
+        min_height.unwrap_or(lo),
+        max_height.unwrap_or(hi),
+        resolution.unwrap_or(res),
+    )?)
 }
 
 /// A fleet map's top-down view (tiles and legend), in the anchor's map frame.

@@ -51,7 +51,11 @@ impl Query for QueryService {
             let Some(session) = self.registry.get(&m.session_id) else { continue };
             let latest = session.tracking().latest;
             if let Some(p) = latest {
-                out.poses.push(pb::FleetPose { session_id: m.session_id.clone(), robot_id: m.robot_id.clone(), pose: Some(crate::convert::pose_in(&p, &fleet_from_session)) });
+                out.poses.push(pb::FleetPose {
+                    session_id: m.session_id.clone(),
+                    robot_id: m.robot_id.clone(),
+                    pose: Some(crate::convert::pose_in(&p, &fleet_from_session)),
+                });
             }
         }
         Ok(Response::new(out))
@@ -66,7 +70,11 @@ impl Query for QueryService {
             let (session_id, pose) = r.ok()?;
             let session = registry.get(&session_id).filter(|s| s.fleet_name == name)?;
             let fleet_from_session = fleets.fleet_from_session(&name, &session_id)?;
-            Some(Ok(pb::FleetPose { session_id: session_id.to_string(), robot_id: session.robot_id.clone(), pose: Some(crate::convert::pose_in(&pose, &fleet_from_session)) }))
+            Some(Ok(pb::FleetPose {
+                session_id: session_id.to_string(),
+                robot_id: session.robot_id.clone(),
+                pose: Some(crate::convert::pose_in(&pose, &fleet_from_session)),
+            }))
         });
         Ok(Response::new(Box::pin(stream)))
     }
@@ -89,13 +97,7 @@ impl Query for QueryService {
         if r.start_ns > end {
             return Err(Status::invalid_argument(format!("start_ns {} is after end_ns {}", r.start_ns, r.end_ns)));
         }
-        let poses = session
-            .tracking()
-            .trajectory
-            .iter()
-            .filter(|p| (r.start_ns..=end).contains(&p.capture_time_ns))
-            .cloned()
-            .collect();
+        let poses = session.tracking().trajectory.iter().filter(|p| (r.start_ns..=end).contains(&p.capture_time_ns)).cloned().collect();
         Ok(Response::new(pb::Trajectory { poses }))
     }
 
@@ -109,7 +111,8 @@ impl Query for QueryService {
     async fn get_map_tile(&self, request: Request<pb::MapTileRequest>) -> Result<Response<pb::MapTile>, Status> {
         let r = request.into_inner();
         let map = self.map(&r.session_id)?;
-        let zoom = u8::try_from(r.zoom).map_err(|_| Status::invalid_argument(format!("zoom {} is out of range 0..={}", r.zoom, stillmap_mapping::tiles::MAX_ZOOM)))?;
+        let zoom = u8::try_from(r.zoom)
+            .map_err(|_| Status::invalid_argument(format!("zoom {} is out of range 0..={}", r.zoom, stillmap_mapping::tiles::MAX_ZOOM)))?;
         let tile = tokio::task::spawn_blocking(move || crate::api::map_queries::tile(&map, zoom, r.x, r.y))
             .await
             .map_err(|e| Status::internal(format!("map query failed: {e}")))?

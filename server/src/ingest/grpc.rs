@@ -23,7 +23,6 @@ pub struct IngestService {
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
-
 #[tonic::async_trait]
 impl Ingest for IngestService {
     type StreamStream = BoxStream<pb::ServerMessage>;
@@ -71,13 +70,9 @@ async fn serve_stream(
         }
     };
     auth.get().check_hello(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
-    let opened = registry
-        .open(&hello, Transport::Grpc, sink.clone())
-        .map_err(|e| refusal(&e, &metrics))?;
+    let opened = registry.open(&hello, Transport::Grpc, sink.clone()).map_err(|e| refusal(&e, &metrics))?;
     let session = opened.session.clone();
-    sink.send(Ok(accepted_message(&opened, max_message_bytes)))
-        .await
-        .map_err(|_| Status::cancelled("client went away"))?;
+    sink.send(Ok(accepted_message(&opened, max_message_bytes))).await.map_err(|_| Status::cancelled("client went away"))?;
     let outcome = read_frames(&mut inbound, &session, &metrics).await;
     if outcome.is_ok() {
         // The client finished sending: answer everything it sent before closing.
@@ -127,4 +122,3 @@ fn oversized_as_resource_exhausted(status: Status, metrics: &crate::metrics::Met
     }
     status
 }
-

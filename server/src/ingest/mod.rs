@@ -16,16 +16,16 @@ use crate::session::{BadHello, Opened};
 
 /// Status for a frame that arrived before any hello.
 pub fn frame_before_hello(sequence: u64) -> Status {
-    Status::failed_precondition(format!(
-        "frame {sequence} arrived before the hello: the first message of a session must be a hello"
-    ))
+    Status::failed_precondition(format!("frame {sequence} arrived before the hello: the first message of a session must be a hello"))
 }
 
 /// Status for a queue that can no longer take frames.
 pub fn queue_status(e: QueueError) -> Status {
     match e {
         QueueError::Overloaded(_) => Status::resource_exhausted(e.to_string()),
-        QueueError::Closed => Status::unavailable("session closed (the server is shutting down, or the session left memory after session.idle_evict_s): send a hello for a new one"),
+        QueueError::Closed => Status::unavailable(
+            "session closed (the server is shutting down, or the session left memory after session.idle_evict_s): send a hello for a new one",
+        ),
     }
 }
 
@@ -125,6 +125,9 @@ mod tests {
         let (label, code, message) = rejection(parse_zenoh_message("r1", &[0xff, 0xff], 1000));
         assert_eq!((label, code), (Some("malformed"), Code::InvalidArgument));
         assert!(message.starts_with("undecodable message: "), "{message}");
-        assert_eq!(rejection(parse_zenoh_message("r1", &encoded(None), 1000)), (Some("malformed"), Code::InvalidArgument, "empty client message".into()));
+        assert_eq!(
+            rejection(parse_zenoh_message("r1", &encoded(None), 1000)),
+            (Some("malformed"), Code::InvalidArgument, "empty client message".into())
+        );
     }
 }

@@ -15,9 +15,9 @@ use tokio::sync::mpsc;
 use tonic::Status;
 use zenoh::qos::CongestionControl;
 
+use super::{ZenohMessage, ZenohRejection, accepted_message, frame_before_hello, parse_zenoh_message, queue_status, refusal};
 use crate::ServerError;
 use crate::config::ZenohConfig;
-use super::{ZenohMessage, ZenohRejection, accepted_message, frame_before_hello, parse_zenoh_message, queue_status, refusal};
 use crate::session::{Registry, ResultSink, Session, Transport};
 
 /// Builds the Zenoh configuration of the server from its config section: the
@@ -88,12 +88,15 @@ const MAX_IDLE_CHECK: Duration = Duration::from_secs(1);
 
 /// Subscribes to every robot's frames until `shutdown` fires. A robot silent for
 /// `idle_disconnect` (zero: never) counts as disconnected until it sends again.
-pub async fn serve(zenoh: zenoh::Session, registry: Arc<Registry>, settings: Settings, mut shutdown: tokio::sync::watch::Receiver<bool>) -> Result<(), ServerError> {
+pub async fn serve(
+    zenoh: zenoh::Session,
+    registry: Arc<Registry>,
+    settings: Settings,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), ServerError> {
     let Settings { result_buffer, max_message_bytes, idle_disconnect, auth, rate_limits } = settings;
-    let subscriber = zenoh
-        .declare_subscriber(keys::ALL_FRAMES)
-        .await
-        .map_err(|e| ServerError::Zenoh(format!("subscribe {}: {e}", keys::ALL_FRAMES)))?;
+    let subscriber =
+        zenoh.declare_subscriber(keys::ALL_FRAMES).await.map_err(|e| ServerError::Zenoh(format!("subscribe {}: {e}", keys::ALL_FRAMES)))?;
     let mut links: HashMap<String, Link> = HashMap::new();
     let mut idle_check = tokio::time::interval((idle_disconnect / 2).clamp(Duration::from_millis(10), MAX_IDLE_CHECK));
     idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -213,9 +216,7 @@ pub async fn serve(zenoh: zenoh::Session, registry: Arc<Registry>, settings: Set
 }
 
 fn error_message(status: Status) -> pb::ServerMessage {
-    pb::ServerMessage {
-        msg: Some(Msg::Error(pb::RpcStatus { code: status.code() as i32, message: status.message().to_string() })),
-    }
+    pb::ServerMessage { msg: Some(Msg::Error(pb::RpcStatus { code: status.code() as i32, message: status.message().to_string() })) }
 }
 
 async fn publish(zenoh: &zenoh::Session, key: &str, message: &pb::ServerMessage) {

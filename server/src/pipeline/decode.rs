@@ -135,7 +135,10 @@ impl Decoder {
         let jumped = !self.window.sequence_fits(self.last_sequence, frame.sequence)
             || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns.saturating_sub(last) > self.window.max_capture_gap_ns);
         if self.jumps.restart(jumped) {
-            tracing::warn!(sequence = frame.sequence, "{RESYNC_AFTER_JUMPS} frames in a row jumped past the order window: taking the new sequence and clock");
+            tracing::warn!(
+                sequence = frame.sequence,
+                "{RESYNC_AFTER_JUMPS} frames in a row jumped past the order window: taking the new sequence and clock"
+            );
             self.last_sequence = None;
             self.last_capture_time_ns = None;
         }
@@ -228,10 +231,7 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
         return Err(format!("rolling_shutter_readout_s must be within 0..={MAX_ROLLING_SHUTTER_READOUT_S} s, got {readout}"));
     }
     if c.nominal_rate_hz > 0.0 && readout > 1.0 / c.nominal_rate_hz {
-        return Err(format!(
-            "rolling_shutter_readout_s {readout} s is longer than one frame at the nominal {} Hz",
-            c.nominal_rate_hz
-        ));
+        return Err(format!("rolling_shutter_readout_s {readout} s is longer than one frame at the nominal {} Hz", c.nominal_rate_hz));
     }
     let offset = c.exposure_time_offset_s;
     if !(-MAX_EXPOSURE_TIME_OFFSET_S..=MAX_EXPOSURE_TIME_OFFSET_S).contains(&offset) {
@@ -240,10 +240,7 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
         ));
     }
     if c.calibration_source.len() > MAX_CALIBRATION_SOURCE_BYTES {
-        return Err(format!(
-            "calibration_source is {} bytes, more than {MAX_CALIBRATION_SOURCE_BYTES}",
-            c.calibration_source.len()
-        ));
+        return Err(format!("calibration_source is {} bytes, more than {MAX_CALIBRATION_SOURCE_BYTES}", c.calibration_source.len()));
     }
     if !finite_positive(c.depth_units_per_metre) {
         return Err(format!("depth_units_per_metre must be positive, got {}", c.depth_units_per_metre));
@@ -386,7 +383,10 @@ mod tests {
         }
         c.rolling_shutter_readout_s = 0.05;
         c.nominal_rate_hz = 30.0;
-        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz");
+        assert_eq!(
+            validate_camera(Some(&c)).unwrap_err(),
+            "rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz"
+        );
         let mut c = camera();
         for good in [-0.0125, 0.0, 0.1, -0.1] {
             c.exposure_time_offset_s = good;
@@ -404,10 +404,16 @@ mod tests {
         // Positive but absurd focal lengths: a field of view of 180° or of nothing.
         let mut c = camera();
         (c.width, c.fx) = (640, 1e-300);
-        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera fx = 1e-300 over 640 pixels is a field of view of 180.000°, outside 0.5-170°");
+        assert_eq!(
+            validate_camera(Some(&c)).unwrap_err(),
+            "camera fx = 1e-300 over 640 pixels is a field of view of 180.000°, outside 0.5-170°"
+        );
         let mut c = camera();
         (c.height, c.fy) = (480, 1e9);
-        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera fy = 1000000000.0 over 480 pixels is a field of view of 0.000°, outside 0.5-170°");
+        assert_eq!(
+            validate_camera(Some(&c)).unwrap_err(),
+            "camera fy = 1000000000.0 over 480 pixels is a field of view of 0.000°, outside 0.5-170°"
+        );
         let mut c = camera();
         (c.width, c.height, c.fx, c.fy) = (640, 480, 517.3, 516.5);
         assert!(validate_camera(Some(&c)).is_ok(), "TUM freiburg1");

@@ -76,11 +76,16 @@ pub struct SessionPerception {
 }
 
 impl SessionPerception {
-    pub fn new(camera: &pb::CameraInfo, config: &PerceptionConfig, service: Option<&Arc<SegmentationService>>) -> Result<Self, PerceptionError> {
+    pub fn new(
+        camera: &pb::CameraInfo,
+        config: &PerceptionConfig,
+        service: Option<&Arc<SegmentationService>>,
+    ) -> Result<Self, PerceptionError> {
         let names = service.map(|s| s.class_names().to_vec()).unwrap_or_default();
         let masker = DynamicMasker::new(camera_of(camera), config.clone(), &names)?;
         let seg = &config.segmentation;
-        let deterministic = (seg.deterministic_every_frames > 0).then_some((seg.deterministic_every_frames, seg.deterministic_delay_frames));
+        let deterministic =
+            (seg.deterministic_every_frames > 0).then_some((seg.deterministic_every_frames, seg.deterministic_delay_frames));
         Ok(Self {
             masker,
             segmentation: service.map(|s| s.client()),
@@ -196,4 +201,3 @@ impl SessionPerception {
         self.masker.segmentation().map(|s| s.class_map())
     }
 }
-

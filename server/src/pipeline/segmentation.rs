@@ -26,7 +26,6 @@ use stillmap_proto::codec::ColorImage;
 use crate::lock;
 use crate::metrics::Metrics;
 
-
 /// A finished segmentation: the frame it was computed on, the result, the inference time.
 pub(crate) type Finished = (u64, Segmentation, Duration);
 
@@ -108,9 +107,18 @@ impl SegmentationService {
         let mut segmenters = segmenters;
         let started = Instant::now();
         let warmed = std::thread::scope(|scope| {
-            let runs: Vec<_> = segmenters.iter_mut().map(|s| scope.spawn(move || s.warm_up(max_batch))).collect();
+            let runs: Vec<_> = segmenters
+                .iter_mut()
+                .enumerate()
+                .map(|(n, s)| {
+                    std::thread::Builder::new().name(format!("seg-warm-up-{n}")).spawn_scoped(scope, move || s.warm_up(max_batch))
+                })
+                .collect();
             runs.into_iter()
-                .map(|r| r.join().unwrap_or_else(|_| Err(PerceptionError::Runtime("a segmentation warm-up panicked".into()))))
+                .map(|r| match r {
+                    Ok(handle) => handle.join().unwrap_or_else(|_| Err(PerceptionError::Runtime("a segmentation warm-up panicked".into()))),
+                    Err(e) => Err(PerceptionError::Runtime(format!("cannot start a segmentation warm-up thread: {e}"))),
+                })
                 .collect::<Result<Vec<_>, _>>()
         })?;
         if let Some(shapes) = warmed.first().filter(|s| !s.is_empty()) {
@@ -178,13 +186,13 @@ fn next_batch(shared: &Shared) -> Option<Vec<(u64, Job)>> {
         if state.closed {
             return None;
         }
-        state = shared.wake.wait(state).unwrap_or_else(|p| p.into_inner());
+        state = crate::wait(&shared.wake, state, None);
     }
     if shared.max_batch > 1 && state.ready.len() < shared.max_batch && !state.closed {
         let deadline = Instant::now() + shared.max_queue_delay;
         while state.ready.len() < shared.max_batch && !state.closed {
             let Some(left) = deadline.checked_duration_since(Instant::now()).filter(|d| !d.is_zero()) else { break };
-            state = shared.wake.wait_timeout(state, left).unwrap_or_else(|p| p.into_inner()).0;
+            state = crate::wait(&shared.wake, state, Some(left));
         }
     }
     let mut batch = Vec::new();
@@ -429,7 +437,8 @@ mod tests {
     #[test]
     fn every_worker_warms_up_before_the_first_frame() {
         let warmed = Arc::new(Mutex::new(Vec::new()));
-        let workers = (0..2).map(|_| Box::new(Warming { warmed: warmed.clone(), done: false, fail: false }) as Box<dyn Segmenter>).collect();
+        let workers =
+            (0..2).map(|_| Box::new(Warming { warmed: warmed.clone(), done: false, fail: false }) as Box<dyn Segmenter>).collect();
         let service = SegmentationService::with_segmenters(workers, &config(6, 1), Arc::default()).expect("service");
         assert_eq!(*lock(&warmed), [6, 6], "both workers warmed up for max_batch = 6 before the service started");
         let client = service.client();

@@ -123,6 +123,11 @@ impl SessionTracker {
             .zip(&k.features.descriptors)
             .map(|(f, d)| ([f.raw.x, f.raw.y], f.octave, f.depth.map_or(f32::NAN, |z| z as f32), *d))
             .collect();
-        Some(crate::store::KeyframeRecord { id, timestamp_ns: k.timestamp_ns, world_from_camera: [t.x, t.y, t.z, q.x, q.y, q.z, q.w], features })
+        Some(crate::store::KeyframeRecord {
+            id,
+            timestamp_ns: k.timestamp_ns,
+            world_from_camera: [t.x, t.y, t.z, q.x, q.y, q.z, q.w],
+            features,
+        })
     }
 }

@@ -125,11 +125,17 @@ pub fn load(dir: &Path, max_frames: usize) -> Vec<TumFrame> {
 /// Tracks `frames` with a fresh tracker; returns it (with its map) and the poses,
 /// each at `pose_time_ns` of its frame's timestamp.
 #[allow(dead_code)]
-pub fn track_clip(camera: Camera, config: TrackerConfig, frames: &[TumFrame], pose_time_ns: impl Fn(u64) -> u64) -> (Tracker, Vec<(u64, Isometry3<f64>)>) {
+pub fn track_clip(
+    camera: Camera,
+    config: TrackerConfig,
+    frames: &[TumFrame],
+    pose_time_ns: impl Fn(u64) -> u64,
+) -> (Tracker, Vec<(u64, Isometry3<f64>)>) {
     let mut tracker = Tracker::new(camera, config).expect("tracker");
     let mut est = Vec::new();
     for f in frames {
-        let out = tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
+        let out =
+            tracker.track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None }).expect("track");
         if let Some(p) = out.world_from_camera {
             est.push((pose_time_ns(f.timestamp_ns), p));
         }
