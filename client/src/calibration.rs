@@ -26,7 +26,7 @@ pub const TUM_RATE_HZ: f64 = 30.0;
 
 /// Rolling-shutter readout of the freiburg1 Kinect's colour camera (seconds): not
 /// published with the dataset; measured without ground truth as the readout at
-/// which the tracker's map is most consistent (README, "Rolling shutter";
+/// which the tracker's map is most consistent (docs/tracking.md, "Rolling shutter";
 /// `cargo run --release -p stillmap-tracking --example readout_sweep`).
 pub const TUM_FREIBURG1_READOUT_S: f64 = 0.025;
 

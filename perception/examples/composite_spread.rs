@@ -1,6 +1,6 @@
 //! The moving-board composite (the `dynamic` test's) over five runs with the
 //! tracker's ORB feature count nudged by ±1–2 %: tracking on fr1_rpy swings by
-//! centimetres under such tiny changes (README, "Tracking accuracy"), so the
+//! centimetres under such tiny changes (docs/tracking.md, "Tracking accuracy"), so the
 //! issue's "tracking error with the object within 20 % of the same frames
 //! without it" is judged on medians, not on one run. Per run: the mask's scores,
 //! then ATE of the masker + tracker on the composite, of the same masker + tracker

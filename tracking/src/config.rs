@@ -46,7 +46,7 @@ pub struct TrackerConfig {
     /// Predict each frame's pose with a constant-velocity model (else: the last pose).
     /// Off by default: on real handheld data (TUM fr1_rpy) and on the synthetic
     /// sequence the prediction fed its own error back through the motion-model
-    /// search and made tracking worse (README, "Tracking accuracy").
+    /// search and made tracking worse (docs/tracking.md, "Tracking accuracy").
     pub constant_velocity: bool,
     /// Dense RGB-D odometry (photometric + point-to-plane ICP, OpenCV's
     /// RgbdICPOdometry at half resolution) from the previous frame predicts each

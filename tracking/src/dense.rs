@@ -6,7 +6,7 @@
 //! previous frame and this one. Features constrain the pose only through a few
 //! hundred corners, and on rotation-heavy hand-held motion the solution slides
 //! along the direction where a sideways translation and a rotation look alike
-//! (README, "Tracking accuracy"); every surface the depth camera sees pins that
+//! (docs/tracking.md, "Tracking accuracy"); every surface the depth camera sees pins that
 //! direction down. Frame to frame it drifts, so it does not replace the map: its
 //! motion predicts the pose for the projection search and enters the pose
 //! optimisation as a robust prior (see `optimize::optimize_pose_with_prior`).

@@ -21,7 +21,7 @@ pub fn fr1_rpy_dir() -> PathBuf {
 }
 
 /// Rolling-shutter readout of the freiburg1 Kinect's colour camera, as the client's
-/// TUM source declares it (`client/src/tum.rs`; README, "Rolling shutter").
+/// TUM source declares it (`client/src/tum.rs`; docs/tracking.md, "Rolling shutter").
 pub const FR1_READOUT_S: f64 = 0.025;
 
 /// TUM freiburg1 calibration (intrinsics from the dataset's documentation, readout
