@@ -30,6 +30,9 @@ export class Map2D {
     this.info = null;
     this.view = { x: 0, y: 0, pxPerM: 60 }; // centre (map metres) and scale
     this.tiles = new Map(); // url -> { img, ready, filtered }
+    // Tile position (url without the version) -> its newest loaded tile: shown while the
+    // map's next version loads, so a live map never blinks to the background.
+    this.shown = new Map();
     this.hidden = new Set(); // legend colours switched off
     this.legend = [];
     this.tilesDrawn = 0;
@@ -87,7 +90,7 @@ export class Map2D {
     this.session = session;
     this.info = info;
     this.legend = legend;
-    if (changed) this.tiles.clear();
+    if (changed) { this.tiles.clear(); this.shown.clear(); }
     if (fit || changed) this.fit();
   }
 
@@ -142,17 +145,28 @@ export class Map2D {
       const span = TILE_PX * zooms[zoom].metres_per_pixel;
       const [x0, y1] = this.toMap(0, 0);
       const [x1, y0] = this.toMap(canvas.width, canvas.height);
+      const visible = new Set();
       for (let tx = Math.floor(x0 / span); tx <= Math.floor(x1 / span); tx++) {
         for (let ty = Math.floor(-y1 / span); ty <= Math.floor(-y0 / span); ty++) {
-          const url = `/api/v1/maps/${encodeURIComponent(this.session)}/tiles/${zoom}/${tx}/${ty}.png?v=${info.version}`;
+          const position = `/api/v1/maps/${encodeURIComponent(this.session)}/tiles/${zoom}/${tx}/${ty}.png`;
+          const url = `${position}?v=${info.version}`;
           let tile = this.tiles.get(url);
           if (!tile) {
-            tile = { img: new Image(), ready: false, filtered: null };
-            tile.img.onload = () => { tile.ready = true; this.onChange(); };
+            tile = { img: new Image(), ready: false, filtered: null, version: info.version };
+            const session = this.session;
+            tile.img.onload = () => {
+              tile.ready = true;
+              const current = this.shown.get(position);
+              if (session === this.session && !(current && current.version > tile.version)) this.shown.set(position, tile);
+              this.onChange();
+            };
             tile.img.src = authed(url);
             this.tiles.set(url, tile);
           }
-          if (!tile.ready) continue;
+          visible.add(position);
+          const show = tile.ready ? tile : this.shown.get(position);
+          if (!show) continue;
+          tile = show;
           const [sx, sy] = this.toScreen(tx * span, -ty * span);
           const size = span * this.view.pxPerM;
           ctx.imageSmoothingEnabled = false;
@@ -160,8 +174,9 @@ export class Map2D {
           this.tilesDrawn++;
         }
       }
-      // Keep the cache to the current version.
+      // Keep the cache to the current version, and the stand-ins to the view.
       for (const key of this.tiles.keys()) if (!key.endsWith(`?v=${info.version}`)) this.tiles.delete(key);
+      for (const key of this.shown.keys()) if (!visible.has(key)) this.shown.delete(key);
     }
     // Trajectory and current pose.
     if (path.length > 1) {

@@ -68,15 +68,21 @@ try {
   // The first session is selected: its map tiles, trajectory and cloud get drawn.
   await page.click(rowA);
   await page.waitForFunction(() => window.__stillmap.tilesDrawn > 0 && window.__stillmap.trajectoryPoints >= 100 && window.__stillmap.cloudPoints > 1000, null, { timeout: 30000 });
-  const drawn = await page.evaluate(() => {
+  // Map pixels that differ from the background (#0c1014). The map lane may still be
+  // committing versions after the streams end (its tiles then reload): wait for it.
+  const mapPixels = () => {
     const c = document.querySelector("#map2d");
     const px = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
     let n = 0;
-    // Background is #0c1014.
     for (let i = 0; i < px.length; i += 4) if (Math.abs(px[i] - 12) + Math.abs(px[i + 1] - 16) + Math.abs(px[i + 2] - 20) > 30) n++;
     return n;
-  });
-  if (drawn < 2000) fail(`only ${drawn} map pixels differ from the background`);
+  };
+  try {
+    await page.waitForFunction(`(${mapPixels.toString()})() >= 2000`, null, { timeout: 15000 });
+  } catch {
+    fail(`only ${await page.evaluate(mapPixels)} map pixels differ from the background`);
+  }
+  const drawn = await page.evaluate(mapPixels);
   // The default fleet: its anchor (the first robot) drawn with its whole trajectory
   // over the fleet map's tiles.
   await page.waitForFunction(() => window.__stillmap.fleets >= 1 && window.__stillmap.fleetRobots >= 1 && window.__stillmap.fleetPoints >= 100 && window.__stillmap.fleetTilesDrawn >= 1, null, { timeout: 30000 });
