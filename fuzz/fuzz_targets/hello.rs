@@ -8,7 +8,7 @@
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
 use stillmap_proto::pb;
-use stillmap_server::pipeline::decode::MAX_IMAGE_SIDE;
+use stillmap_server::pipeline::decode::{MAX_IMAGE_SIDE, MIN_IMAGE_SIDE};
 use stillmap_server::session::validate_new_hello;
 
 /// The server's default `session.max_camera_pixels`.
@@ -74,7 +74,7 @@ fuzz_target!(|data: &[u8]| {
     };
     match validate_new_hello(&hello, MAX_PIXELS) {
         Ok(camera) => {
-            assert!((1..=MAX_IMAGE_SIDE).contains(&camera.width) && (1..=MAX_IMAGE_SIDE).contains(&camera.height));
+            assert!((MIN_IMAGE_SIDE..=MAX_IMAGE_SIDE).contains(&camera.width) && (MIN_IMAGE_SIDE..=MAX_IMAGE_SIDE).contains(&camera.height));
             assert!(u64::from(camera.width) * u64::from(camera.height) <= MAX_PIXELS);
             assert!(camera.fx.is_finite() && camera.fx > 0.0 && camera.fy.is_finite() && camera.fy > 0.0);
             assert!(camera.cx.is_finite() && camera.cy.is_finite());

@@ -118,6 +118,10 @@ pub struct FleetConfig {
     pub queue: usize,
     /// Keyframes indexed per fleet (about 60 KB each); the oldest are forgotten first.
     pub max_places: usize,
+    /// Fleets held at once (each with its own place index of up to `max_places`
+    /// keyframes: about 300 MB at the defaults); a hello naming one more is refused
+    /// (RESOURCE_EXHAUSTED naming `fleet.max_fleets`). Fleets restored from the store count.
+    pub max_fleets: usize,
     /// An unmerged session's latest keyframes kept in the index (looked up again as
     /// merged sessions' keyframes arrive).
     pub pending_keyframes: usize,
@@ -142,6 +146,7 @@ impl Default for FleetConfig {
             candidates: 3,
             queue: 256,
             max_places: 5000,
+            max_fleets: 16,
             pending_keyframes: 64,
             consistent_matches: 3,
             agreement_m: 0.05,
@@ -525,9 +530,13 @@ impl ServerConfig {
         }
         let f = &self.fleet;
         stillmap_proto::validate_fleet(&f.default_fleet).map_err(|e| ServerError::Config(format!("fleet.default_fleet: {e}")))?;
-        if !(1..=MAX_FLEET_CANDIDATES).contains(&f.candidates) || !(1..=MAX_FLEET_QUEUE).contains(&f.queue) || f.max_places == 0 {
+        if !(1..=MAX_FLEET_CANDIDATES).contains(&f.candidates)
+            || !(1..=MAX_FLEET_QUEUE).contains(&f.queue)
+            || f.max_places == 0
+            || f.max_fleets == 0
+        {
             return bad(format!(
-                "fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE} and fleet.max_places at least 1"
+                "fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE}, fleet.max_places and fleet.max_fleets at least 1"
             ));
         }
         if !(1..=MAX_FLEET_QUEUE).contains(&f.pending_keyframes) || !(1..=16).contains(&f.consistent_matches) || f.min_inliers < 6 {

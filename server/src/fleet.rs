@@ -175,6 +175,14 @@ impl FleetService {
         self.backlog.load(std::sync::atomic::Ordering::SeqCst)
     }
 
+    /// Whether a new session may join `fleet`: it exists, or there is room for one
+    /// more under `fleet.max_fleets`. `Err` carries the fleets held and the limit.
+    pub fn admits(&self, fleet: &str) -> Result<(), (usize, usize)> {
+        let fleets = lock(&self.shared.fleets);
+        let max = self.shared.config.max_fleets;
+        if fleets.contains_key(fleet) || fleets.len() < max { Ok(()) } else { Err((fleets.len(), max)) }
+    }
+
     /// Registers a new session in its fleet (the fleet's first anchors it).
     pub fn join(&self, fleet: &str, session_id: &str, robot_id: &str) {
         let mut fleets = lock(&self.shared.fleets);

@@ -1127,6 +1127,15 @@ impl Registry {
         let camera = validate_new_hello(hello, self.config.max_camera_pixels)?.clone();
         let pixels = u64::from(camera.width) * u64::from(camera.height);
         let fleet_name = self.fleet_for(&hello.fleet);
+        if let Some(fleets) = &self.fleets
+            && let Err((held, max)) = fleets.admits(&fleet_name)
+        {
+            self.metrics.session_refused("max_fleets");
+            return Err(BadHello::Limit {
+                limit: "max_fleets",
+                message: format!("hello names a new fleet {fleet_name:?}; the server holds {held} fleets, fleet.max_fleets = {max}"),
+            });
+        }
         self.check_capacity()?;
         if let Err(e) = self.make_room(Some(&hello.robot_id), 1, pixels, None) {
             if let BadHello::Limit { limit, .. } = &e {
@@ -1505,6 +1514,35 @@ mod tests {
         assert!(status.message().contains("fleet \"a b\" contains ' '"), "{}", status.message());
         let status = message(validate_new_hello(&pb::Hello { camera: None, ..hello("r1") }, u64::MAX));
         assert!(status.message().contains("hello has no camera info"), "{}", status.message());
+    }
+
+    /// A hello naming a fleet beyond `fleet.max_fleets` is refused by name and counted;
+    /// fleets already held (and the default one) still take sessions.
+    #[test]
+    fn fleets_beyond_the_limit_are_refused_by_name() {
+        let fleets = crate::fleet::FleetService::start(&crate::config::FleetConfig { max_fleets: 2, ..Default::default() }, None)
+            .expect("fleet service");
+        let registry = registry_with(None, SessionConfig::default(), LimitsConfig::default()).with_fleets(Some(fleets.clone()));
+        let (sink, _rx) = mpsc::channel(4);
+        let in_fleet = |robot: &str, fleet: &str| pb::Hello { fleet: fleet.into(), ..hello(robot) };
+        registry.open(&in_fleet("a", "north"), Transport::Grpc, sink.clone()).expect("first fleet");
+        registry.open(&hello("b"), Transport::Grpc, sink.clone()).expect("the default fleet, second");
+        let refused = registry.open(&in_fleet("c", "south"), Transport::Grpc, sink.clone()).err().expect("a third fleet is refused");
+        let status = refused.status();
+        assert_eq!(
+            (status.code(), status.message()),
+            (
+                tonic::Code::ResourceExhausted,
+                "server full: hello names a new fleet \"south\"; the server holds 2 fleets, fleet.max_fleets = 2"
+            )
+        );
+        registry.open(&in_fleet("d", "north"), Transport::Grpc, sink.clone()).expect("a fleet already held");
+        assert_eq!(
+            metric(&registry, "stillmap_sessions_refused_total{limit=\"max_fleets\"}").as_deref(),
+            Some("stillmap_sessions_refused_total{limit=\"max_fleets\"} 1")
+        );
+        assert_eq!(fleets.list().len(), 2);
+        fleets.close();
     }
 
     #[test]

@@ -99,33 +99,8 @@ struct ViewerProcess {
     viewers: usize,
 }
 
-const VIEWERS_PY: &str = r#"
-import asyncio, sys
-host, port, n = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-ready = 0
-async def viewer():
-    global ready
-    r, w = await asyncio.open_connection(host, port)
-    w.write(f"GET /api/v1/events HTTP/1.1\r\nHost: {host}\r\nAccept: text/event-stream\r\n\r\n".encode())
-    await w.drain()
-    seen = b""
-    while b"event: sessions" not in seen:
-        chunk = await r.read(65536)
-        if not chunk:
-            sys.exit(f"a viewer's stream closed: {seen[:200]!r}")
-        seen += chunk
-        if len(seen) >= 12 and not seen.startswith(b"HTTP/1.1 200"):
-            sys.exit(f"a viewer was refused: {seen[:200]!r}")
-    ready += 1
-    if ready == n:
-        print("ready", flush=True)
-    while await r.read(65536):
-        pass
-    sys.exit("a viewer's stream closed")
-async def main():
-    await asyncio.gather(*(viewer() for _ in range(n)))
-asyncio.run(main())
-"#;
+/// The viewers themselves: one asyncio process, shared with `deploy/bench-viewers.sh`.
+const VIEWERS_PY: &str = include_str!("../../deploy/viewers.py");
 
 impl ViewerProcess {
     /// Opens `viewers` event streams and returns once each has its first snapshot.

@@ -204,11 +204,16 @@ pub const MAX_FIELD_OF_VIEW_DEG: f64 = 170.0;
 /// Largest image side the server accepts in a hello.
 pub const MAX_IMAGE_SIDE: u32 = 8192;
 
+/// Smallest image side: ORB's 31-pixel patch and the flow's pyramid need at least
+/// this much; a smaller camera (1×1) would track nothing.
+pub const MIN_IMAGE_SIDE: u32 = 32;
+
 /// Checks a hello's camera; the message names the first problem.
 pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInfo, String> {
     let c = camera.ok_or("hello has no camera info")?;
-    if c.width == 0 || c.height == 0 || c.width > MAX_IMAGE_SIDE || c.height > MAX_IMAGE_SIDE {
-        return Err(format!("camera size {}x{} is outside 1..={MAX_IMAGE_SIDE}", c.width, c.height));
+    let side = MIN_IMAGE_SIDE..=MAX_IMAGE_SIDE;
+    if !side.contains(&c.width) || !side.contains(&c.height) {
+        return Err(format!("camera size {}x{} is outside {MIN_IMAGE_SIDE}..={MAX_IMAGE_SIDE} per side", c.width, c.height));
     }
     let finite_positive = |v: f64| v.is_finite() && v > 0.0;
     if !finite_positive(c.fx) || !finite_positive(c.fy) {
@@ -363,18 +368,25 @@ mod tests {
 
     #[test]
     fn camera_validation() {
-        assert!(validate_camera(Some(&camera())).is_ok());
+        // The decoding tests' 8x4 camera, at the smallest size a hello may declare.
+        let hello_camera = || pb::CameraInfo { width: 32, height: 32, fx: 20.0, fy: 20.0, cx: 16.0, cy: 16.0, ..camera() };
+        assert!(validate_camera(Some(&hello_camera())).is_ok());
         assert_eq!(validate_camera(None).unwrap_err(), "hello has no camera info");
-        let mut c = camera();
+        let mut c = hello_camera();
         c.width = 0;
-        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera size 0x4 is outside 1..=8192");
-        let mut c = camera();
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera size 0x32 is outside 32..=8192 per side");
+        let mut c = hello_camera();
+        (c.width, c.height) = (1, 1);
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera size 1x1 is outside 32..=8192 per side");
+        (c.width, c.height) = (640, 8193);
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "camera size 640x8193 is outside 32..=8192 per side");
+        let mut c = hello_camera();
         c.depth_encoding = 0;
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "unknown or unspecified depth encoding 0");
-        let mut c = camera();
+        let mut c = hello_camera();
         c.distortion_model = pb::DistortionModel::PlumbBob as i32;
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "plumb_bob distortion needs 5 coefficients, got 0");
-        let mut c = camera();
+        let mut c = hello_camera();
         c.rolling_shutter_readout_s = 0.03;
         assert!(validate_camera(Some(&c)).is_ok(), "a 30 ms readout");
         for bad in [-0.001, 0.2, f64::NAN] {
@@ -387,7 +399,7 @@ mod tests {
             validate_camera(Some(&c)).unwrap_err(),
             "rolling_shutter_readout_s 0.05 s is longer than one frame at the nominal 30 Hz"
         );
-        let mut c = camera();
+        let mut c = hello_camera();
         for good in [-0.0125, 0.0, 0.1, -0.1] {
             c.exposure_time_offset_s = good;
             assert!(validate_camera(Some(&c)).is_ok(), "offset {good}");
@@ -396,25 +408,25 @@ mod tests {
             c.exposure_time_offset_s = bad;
             assert_eq!(validate_camera(Some(&c)).unwrap_err(), format!("exposure_time_offset_s must be within -0.1..=0.1 s, got {bad}"));
         }
-        let mut c = camera();
+        let mut c = hello_camera();
         c.calibration_source = "x".repeat(512);
         assert!(validate_camera(Some(&c)).is_ok());
         c.calibration_source.push('x');
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "calibration_source is 513 bytes, more than 512");
         // Positive but absurd focal lengths: a field of view of 180° or of nothing.
-        let mut c = camera();
+        let mut c = hello_camera();
         (c.width, c.fx) = (640, 1e-300);
         assert_eq!(
             validate_camera(Some(&c)).unwrap_err(),
             "camera fx = 1e-300 over 640 pixels is a field of view of 180.000°, outside 0.5-170°"
         );
-        let mut c = camera();
+        let mut c = hello_camera();
         (c.height, c.fy) = (480, 1e9);
         assert_eq!(
             validate_camera(Some(&c)).unwrap_err(),
             "camera fy = 1000000000.0 over 480 pixels is a field of view of 0.000°, outside 0.5-170°"
         );
-        let mut c = camera();
+        let mut c = hello_camera();
         (c.width, c.height, c.fx, c.fy) = (640, 480, 517.3, 516.5);
         assert!(validate_camera(Some(&c)).is_ok(), "TUM freiburg1");
     }
