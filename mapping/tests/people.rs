@@ -144,16 +144,17 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
         .map(|(k, (f, world_from_camera))| {
             let (mut rgb, mut depth) = (f.rgb.clone(), f.depth.clone());
             // Farthest first, so nearer objects cover farther ones.
-            let mut order: Vec<&Actor> = actors.iter().collect();
-            order.sort_by(|a, b| {
+            let mut order: Vec<(usize, &Actor)> = actors.iter().enumerate().collect();
+            order.sort_by(|(_, a), (_, b)| {
                 let d = |x: &Actor| (x.motion.world_from_plane(time(k)).translation.vector - world_from_camera.translation.vector).norm();
                 d(b).total_cmp(&d(a))
             });
+            // Bit i: actor i was pasted there (a nearer one may cover it since).
             let mut t = vec![0u8; depth.len()];
-            for a in order {
+            for (i, a) in order {
                 let m = paste(&camera, &a.plane, &(world_from_camera.inverse() * a.motion.world_from_plane(time(k))), &mut rgb, &mut depth);
                 for (t, m) in t.iter_mut().zip(m) {
-                    *t |= m;
+                    *t |= m << i;
                 }
             }
             truth.push(t);
@@ -280,8 +281,13 @@ const STANDING_RPY_B: [usize; 2] = [560, 650];
 fn moving_people_stay_out_of_the_map() {
     let mut segmenter = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     let dirs = [tum::fr1_rpy_dir(), tum::fr1_rpy_dir().with_file_name("rgbd_dataset_freiburg1_rpy_b")];
+    // STILLMAP_PEOPLE_CLIP=<folder name>: only that clip (while investigating one).
+    let only = std::env::var("STILLMAP_PEOPLE_CLIP").ok();
     for dir in &dirs {
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        if only.as_ref().is_some_and(|o| *o != name) {
+            continue;
+        }
         let s = score_clip(dir, &mut segmenter);
         eprintln!(
             "{name}: {} ghost voxels of {} ({:.3} %; without the mask {}); per object {:?}; at the resting places (end of the rest, end of the clip) {:?}; \

@@ -633,7 +633,7 @@ impl DynamicMasker {
         for i in &seg.instances {
             if self.is_prior_dynamic(&seg, i.id) {
                 let pixels: Vec<usize> = bbox_pixels(&i.bbox, w, h).filter(|&p| seg.instance_map[p] == i.id).collect();
-                tracks.push(self.track_from(i.id, (i.class_id, i.score), k, &pixels, depth, pose.as_ref(), None));
+                tracks.push(self.track_from(i.id, (i.class_id, i.score), k, (&pixels, &pixels), depth, pose.as_ref(), None));
             }
         }
         let offscreen = std::mem::take(&mut self.offscreen);
@@ -642,7 +642,9 @@ impl DynamicMasker {
         }
         // Candidates: the previous segmentation's tracks with their carried pixels
         // (none when they left the view), and tracks already out of view, projected.
-        let mut candidates: Vec<(Track, Vec<usize>)> = Vec::new();
+        // (track, pixels carried by the flow or projected from out of view, pixels
+        // where its remembered points still lie on the measured surface).
+        let mut candidates: Vec<(Track, Vec<usize>, Vec<usize>)> = Vec::new();
         if let Some(prev) = self.carried.as_ref().filter(|c| c.at_sequence == now) {
             for t in &prev.tracks {
                 let pixels = prev
@@ -650,12 +652,13 @@ impl DynamicMasker {
                     .instance(t.id)
                     .map(|i| bbox_pixels(&i.bbox, w, h).filter(|&p| prev.segmentation.instance_map[p] == t.id).collect())
                     .unwrap_or_default();
-                candidates.push((t.clone(), pixels));
+                let agreeing = pose.as_ref().map(|p| self.agreeing_pixels(t, p, depth, w, h)).unwrap_or_default();
+                candidates.push((t.clone(), pixels, agreeing));
             }
         }
         for t in offscreen {
             let pixels = pose.as_ref().map(|p| self.project_track(&t, p, w, h)).unwrap_or_default();
-            candidates.push((t, pixels));
+            candidates.push((t, pixels, Vec::new()));
         }
         let claimed: Vec<bool> = {
             let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
@@ -670,10 +673,22 @@ impl DynamicMasker {
         let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
         let mut next_id = seg.instances.iter().map(|i| i.id).max().unwrap_or(0);
         let mut coasted = false;
-        for (track, pixels) in candidates {
+        for (track, sampled, agreeing) in candidates {
             if now.saturating_sub(track.detected_at) > limit {
                 continue;
             }
+            // A standing person the flow's carried mask erodes from is still where his
+            // points are: their pixels join the mask (but new points are sampled only
+            // from the carried pixels, so the mask cannot creep over the floor).
+            let pixels: Vec<usize> = if agreeing.is_empty() {
+                sampled.clone()
+            } else {
+                let mut all = sampled.clone();
+                all.extend_from_slice(&agreeing);
+                all.sort_unstable();
+                all.dedup();
+                all
+            };
             let covered = pixels.iter().filter(|&&i| claimed(seg.instance_map[i])).count();
             if !pixels.is_empty() && covered as f64 >= COAST_MATCH_FRACTION * pixels.len() as f64 {
                 continue; // found again: the new detection takes over
@@ -683,6 +698,7 @@ impl DynamicMasker {
                 _ => true,
             };
             let kept: Vec<usize> = pixels.into_iter().filter(|&i| !claimed(seg.instance_map[i]) && near(i)).collect();
+            let sampled: Vec<usize> = sampled.into_iter().filter(|&i| !claimed(seg.instance_map[i]) && near(i)).collect();
             let with_depth = kept.iter().filter(|&&i| depth_of(i).is_some()).count();
             if kept.len() < MIN_COAST_PX || (track.depth_m.is_some() && with_depth == 0) {
                 // Out of view (or nothing of it left): remembered by its points.
@@ -712,7 +728,7 @@ impl DynamicMasker {
                 id,
                 (track.class_id, track.score),
                 track.detected_at,
-                &kept,
+                (&kept, &sampled),
                 depth,
                 pose.as_ref(),
                 track.points.as_ref(),
@@ -740,26 +756,28 @@ impl DynamicMasker {
     }
 
     /// A track of instance `id` (class and score) with these pixels of the current
-    /// frame: its median depth, and 3D points (a grid sample of at most
-    /// [`MAX_TRACK_POINTS`]) in the pose chain's frame when the camera pose is known,
-    /// plus the `previous` points that lie out of the current view (the part of a
-    /// person the camera does not see now is remembered, not forgotten).
+    /// frame: its median depth over `pixels`, and 3D points (a grid sample of
+    /// `sample`, at most [`MAX_TRACK_POINTS`]) in the pose chain's frame when the
+    /// camera pose is known, plus the `previous` points that lie out of the current
+    /// view (the part of a person the camera does not see now is remembered, not
+    /// forgotten) or still on the measured surface (see [`Self::agreeing_pixels`]).
     #[allow(clippy::too_many_arguments)]
     fn track_from(
         &self,
         id: u16,
         (class_id, score): (u16, f32),
         detected_at: u64,
-        pixels: &[usize],
+        (pixels, sample): (&[usize], &[usize]),
         depth: &[u16],
         pose: Option<&(u32, Isometry3<f64>)>,
         previous: Option<&TrackPoints>,
     ) -> Track {
         let w = self.camera.width as usize;
         let metres = 1.0 / self.camera.depth_units_per_metre;
-        let valid: Vec<usize> = pixels.iter().copied().filter(|&i| depth.get(i).is_some_and(|&d| d != 0)).collect();
-        let mut d: Vec<f32> = valid.iter().map(|&i| (f64::from(depth[i]) * metres) as f32).collect();
+        let has_depth = |i: &usize| depth.get(*i).is_some_and(|&d| d != 0);
+        let mut d: Vec<f32> = pixels.iter().filter(|i| has_depth(i)).map(|&i| (f64::from(depth[i]) * metres) as f32).collect();
         let depth_m = median(&mut d);
+        let valid: Vec<usize> = sample.iter().copied().filter(has_depth).collect();
         let spacing = ((valid.len() as f64 / MAX_TRACK_POINTS as f64).sqrt().ceil() as usize).max(1);
         let points = pose.map(|(epoch, anchor_from_camera)| {
             let points = valid
@@ -781,14 +799,17 @@ impl DynamicMasker {
             if let Some(prev) = previous.filter(|p| p.epoch == *epoch) {
                 let camera_from_anchor = anchor_from_camera.inverse();
                 let (wf, hf) = (f64::from(self.camera.width), f64::from(self.camera.height));
-                let out_of_view = |p: &&[f32; 3]| {
+                let kept = |p: &&[f32; 3]| {
                     let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-                    self.camera
-                        .project(&q)
-                        .map(|ideal| self.camera.distort(&ideal))
-                        .is_none_or(|r| r.x < 0.0 || r.y < 0.0 || r.x >= wf || r.y >= hf)
+                    match self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) {
+                        Some(r) if r.x >= 0.0 && r.y >= 0.0 && r.x < wf && r.y < hf => {
+                            let (x, y) = ((r.x.round() as usize).min(w - 1), (r.y.round() as usize).min(hf as usize - 1));
+                            self.on_surface(q.z, depth.get(y * w + x).copied().unwrap_or(0))
+                        }
+                        _ => true, // out of view
+                    }
                 };
-                tp.points.extend(prev.points.iter().filter(out_of_view));
+                tp.points.extend(prev.points.iter().filter(kept));
                 tp.spacing_px = tp.spacing_px.max(prev.spacing_px);
                 if tp.points.len() > 2 * MAX_TRACK_POINTS {
                     let keep = tp.points.len().div_ceil(2 * MAX_TRACK_POINTS);
@@ -822,6 +843,47 @@ impl DynamicMasker {
             for yy in (y - r).max(0)..=(y + r).min(h as i64 - 1) {
                 for xx in (x - r).max(0)..=(x + r).min(w as i64 - 1) {
                     hit[yy as usize * w + xx as usize] = true;
+                }
+            }
+        }
+        hit.iter().enumerate().filter(|(_, h)| **h).map(|(i, _)| i).collect()
+    }
+
+    /// Whether a remembered point at depth `z_m` (camera frame) lies on the surface
+    /// the camera measures at its pixel (`raw` depth units; 0: no depth, no).
+    fn on_surface(&self, z_m: f64, raw: u16) -> bool {
+        let d = f64::from(raw) / self.camera.depth_units_per_metre;
+        raw != 0 && (d - z_m).abs() <= f64::from(COAST_DEPTH_GATE) * z_m
+    }
+
+    /// The pixels of a track's 3D points, projected at the camera pose, where the
+    /// measured depth agrees with the point (within [`COAST_DEPTH_GATE`] of its
+    /// depth): the person is still there. Each point marks the grid cell it was
+    /// sampled for (`spacing_px` square from its pixel), no more, so the mask does
+    /// not grow from frame to frame. Points that now lie in front of the background
+    /// (he walked off) mark nothing.
+    fn agreeing_pixels(&self, track: &Track, pose: &(u32, Isometry3<f64>), depth: &[u16], w: usize, h: usize) -> Vec<usize> {
+        let Some(tp) = track.points.as_ref().filter(|tp| tp.epoch == pose.0) else { return Vec::new() };
+        let camera_from_anchor = pose.1.inverse();
+        let mut hit = vec![false; w * h];
+        let s = tp.spacing_px as usize;
+        for p in &tp.points {
+            let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let Some(raw) = self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) else { continue };
+            let (x, y) = (raw.x.round(), raw.y.round());
+            if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
+                continue;
+            }
+            let (x, y) = (x as usize, y as usize);
+            if !self.on_surface(q.z, depth.get(y * w + x).copied().unwrap_or(0)) {
+                continue;
+            }
+            for yy in y..(y + s).min(h) {
+                for xx in x..(x + s).min(w) {
+                    let i = yy * w + xx;
+                    if self.on_surface(q.z, depth.get(i).copied().unwrap_or(0)) {
+                        hit[i] = true;
+                    }
                 }
             }
         }
@@ -1116,7 +1178,7 @@ mod tests {
         // A person over columns 40..56, rows 20..60, seen at the identity pose.
         let pixels: Vec<usize> = (20..60).flat_map(|y| (40..56).map(move |x| y * w + x)).collect();
         let here = (1u32, Isometry3::identity());
-        let track = masker.track_from(1, (0, 0.9), 5, &pixels, &depth, Some(&here), None);
+        let track = masker.track_from(1, (0, 0.9), 5, (&pixels, &pixels), &depth, Some(&here), None);
         assert_eq!(track.depth_m, Some(1.0));
         let back = masker.project_track(&track, &here, w, h);
         assert!(pixels.iter().all(|p| back.contains(p)), "every pixel of the person is covered again");
@@ -1125,11 +1187,48 @@ mod tests {
         // track with no visible pixels keeps every point.
         let away = (1u32, Isometry3::rotation(nalgebra::Vector3::y() * 60f64.to_radians()));
         assert!(masker.project_track(&track, &away, w, h).is_empty());
-        let kept = masker.track_from(1, (0, 0.9), 5, &[], &depth, Some(&away), track.points.as_ref());
+        let kept = masker.track_from(1, (0, 0.9), 5, (&[], &[]), &depth, Some(&away), track.points.as_ref());
         assert_eq!(kept.points.as_ref().map(|p| p.points.len()), track.points.as_ref().map(|p| p.points.len()));
         // Turning back finds him where he was; another epoch (tracking was lost) does not.
         assert_eq!(masker.project_track(&kept, &here, w, h), back);
         assert!(masker.project_track(&kept, &(2, Isometry3::identity()), w, h).is_empty());
+    }
+
+    /// A person the carried mask lost while he stands is still where his points are:
+    /// exactly his pixels agree with the measured depth, and a refresh keeps every
+    /// point. Once he has walked off (the wall behind him is measured there), no
+    /// pixel agrees and a refresh drops the points.
+    #[test]
+    fn a_standing_track_is_kept_where_its_points_lie_on_the_measured_surface() {
+        let (w, h) = (96usize, 72usize);
+        let camera = Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: 80.0,
+            fy: 80.0,
+            cx: 48.0,
+            cy: 36.0,
+            distortion: None,
+            depth_units_per_metre: 1000.0,
+            readout_s: 0.0,
+        };
+        let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        let pixels: Vec<usize> = (20..60).flat_map(|y| (40..56).map(move |x| y * w + x)).collect();
+        let mut standing = vec![3000u16; w * h];
+        for &i in &pixels {
+            standing[i] = 1000;
+        }
+        let here = (1u32, Isometry3::identity());
+        let track = masker.track_from(1, (0, 0.9), 5, (&pixels, &pixels), &standing, Some(&here), None);
+        let agreeing = masker.agreeing_pixels(&track, &here, &standing, w, h);
+        assert_eq!(agreeing, pixels);
+        let kept = masker.track_from(1, (0, 0.9), 5, (&agreeing, &[]), &standing, Some(&here), track.points.as_ref());
+        assert_eq!(kept.depth_m, Some(1.0));
+        assert_eq!(kept.points.as_ref().map(|p| p.points.len()), Some(pixels.len()));
+        let wall = vec![3000u16; w * h];
+        assert!(masker.agreeing_pixels(&track, &here, &wall, w, h).is_empty());
+        let gone = masker.track_from(1, (0, 0.9), 5, (&[], &[]), &wall, Some(&here), track.points.as_ref());
+        assert_eq!(gone.points.as_ref().map(|p| p.points.len()), Some(0));
     }
 
     /// The map's kept-out pixels grow over the surface they stand on (a person's

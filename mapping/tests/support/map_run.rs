@@ -89,8 +89,11 @@ pub fn fuse_debug(
             if let Some(truth) = debug_truth.and_then(|t| t.get(k)) {
                 let n = truth.iter().filter(|&&t| t != 0).count();
                 let kept = truth.iter().zip(&exclude).filter(|&(&t, &e)| t != 0 && e == 0).count();
+                // Per object (bit i of the truth: object i), pixels not excluded.
+                let per_object: Vec<usize> =
+                    (0..3).map(|i| truth.iter().zip(&exclude).filter(|&(&t, &e)| t & (1 << i) != 0 && e == 0).count()).collect();
                 let persons: Vec<_> = mask.fused.instances.iter().map(|i| (i.class_name.clone(), i.pixels, i.moving)).collect();
-                eprintln!("kf {k:3}: truth {n} px, not excluded {kept}; source {:?}; instances {persons:?}", mask.source);
+                eprintln!("kf {k:3}: truth {n} px, not excluded {kept} {per_object:?}; source {:?}; instances {persons:?}", mask.source);
             }
             let classes = pipeline.masker.segmentation().map(|s| s.class_map());
             let view = DepthView {
