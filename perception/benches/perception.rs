@@ -125,7 +125,14 @@ fn table() {
     let mut last_pose: Option<nalgebra::Isometry3<f64>> = None;
     for (k, f) in frames.iter().enumerate() {
         let mask = masker
-            .prepare(MaskerInput { sequence: k as u64, rgb: &f.rgb, depth: &f.depth, segmentation: None, motion_prior: None })
+            .prepare(MaskerInput {
+                sequence: k as u64,
+                rgb: &f.rgb,
+                depth: &f.depth,
+                segmentation: None,
+                motion_prior: None,
+                accel_in_camera: None,
+            })
             .expect("prepare");
         let track = tracker
             .track(&FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: Some(&mask) })
@@ -186,7 +193,16 @@ fn benches(c: &mut Criterion) {
         b.iter(|| {
             let f = &frames[(k % 2) as usize];
             k += 1;
-            masker.process(MaskerInput { sequence: k, rgb: &f.rgb, depth: &f.depth, segmentation: None, motion_prior: None }).expect("mask")
+            masker
+                .process(MaskerInput {
+                    sequence: k,
+                    rgb: &f.rgb,
+                    depth: &f.depth,
+                    segmentation: None,
+                    motion_prior: None,
+                    accel_in_camera: None,
+                })
+                .expect("mask")
         })
     });
 }

@@ -113,6 +113,13 @@ pub struct SegmentationConfig {
     /// and a missed person must neither be mapped nor feed the camera's motion.
     /// A new detection overlapping it takes over. 0 disables it.
     pub track_coast_frames: u32,
+    /// A coasting *person* (the class named "person") is a vertical body at most
+    /// this tall (metres) standing where his remembered points are: the pixels
+    /// whose 3D points fall in that upright cylinder (his points' horizontal
+    /// spread plus 0.1 m, at most 0.6 m in radius) are his, so legs the detector
+    /// never saw are kept out of the map while he stands. Needs the accelerometer
+    /// (`accel_in_camera` on the frames) for the up direction. 0 disables it.
+    pub person_height_m: f32,
     /// Server: 0 (default) runs segmentation beside the pipeline, its results used
     /// whenever they are ready — the real-time mode, whose masks (and so poses)
     /// depend on thread timing. n > 0 makes a session reproducible: every n-th
@@ -277,6 +284,9 @@ impl PerceptionConfig {
         if s.max_instances == 0 || s.max_instances > usize::from(u16::MAX) {
             return Err("perception.segmentation.max_instances must be in 1..=65535".into());
         }
+        if !(0.0..=3.0).contains(&s.person_height_m) {
+            return Err(format!("perception.segmentation.person_height_m must be in 0..=3 m, got {}", s.person_height_m));
+        }
         if s.max_mask_age_frames == 0 {
             return Err("perception.segmentation.max_mask_age_frames must be at least 1".into());
         }
@@ -426,6 +436,7 @@ impl Default for SegmentationConfig {
             worker_nice: 0,
             max_mask_age_frames: 15,
             track_coast_frames: 60,
+            person_height_m: 2.0,
             deterministic_every_frames: 0,
             deterministic_delay_frames: 0,
         }

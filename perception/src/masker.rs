@@ -10,7 +10,7 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3, Vector3};
 use stillmap_tracking::Camera;
 
 use crate::PerceptionError;
@@ -46,6 +46,9 @@ pub struct MaskerInput<'a> {
     /// The camera motion `previous_from_current` ([`process`](DynamicMasker::process)
     /// only; the two-phase API takes the tracked motion in `finish`).
     pub motion_prior: Option<Isometry3<f64>>,
+    /// The accelerometer at this frame, in the camera frame (m/s²; at rest it points
+    /// up): the up direction of a person's body (`segmentation.person_height_m`).
+    pub accel_in_camera: Option<Vector3<f64>>,
 }
 
 /// Time per perception stage on one frame.
@@ -118,6 +121,62 @@ struct Track {
     score: f32,
     /// Where it was last seen, in the pose chain's frame.
     points: Option<TrackPoints>,
+    /// Seen moving at some frame (a detection that takes it over inherits this).
+    moved: bool,
+    /// A person who moved, once coasting: the upright volume his body stands in.
+    body: Option<Body>,
+}
+
+/// An upright cylinder in the pose chain's frame: where a person's body is, from
+/// the part of him that was seen (`segmentation.person_height_m`).
+#[derive(Debug, Clone, Copy)]
+struct Body {
+    epoch: u32,
+    /// Unit vectors: up, and two horizontal axes.
+    up: Vector3<f64>,
+    e1: Vector3<f64>,
+    e2: Vector3<f64>,
+    /// The axis' horizontal position along `e1`, `e2`.
+    centre: (f64, f64),
+    radius_m: f64,
+    /// Lowest and highest height along `up` the body may take.
+    heights: (f64, f64),
+}
+
+impl Body {
+    /// The volume a body at most `height_m` tall takes when `points` are part of it:
+    /// their horizontal spread (90th percentile from their median) plus
+    /// [`BODY_MARGIN_M`], at most [`MAX_BODY_RADIUS_M`]; vertically every placement
+    /// of the body that contains the points. `None` with fewer than
+    /// [`MIN_BODY_POINTS`] points.
+    fn around(epoch: u32, points: &[[f32; 3]], up: Vector3<f64>, height_m: f64) -> Option<Self> {
+        if points.len() < MIN_BODY_POINTS {
+            return None;
+        }
+        let up = up.try_normalize(1e-9)?;
+        let helper = if up.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+        let e1 = up.cross(&helper).normalize();
+        let e2 = up.cross(&e1);
+        let p = |q: &[f32; 3]| Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
+        let mut xs: Vec<f32> = points.iter().map(|q| p(q).dot(&e1) as f32).collect();
+        let mut ys: Vec<f32> = points.iter().map(|q| p(q).dot(&e2) as f32).collect();
+        let centre = (f64::from(median(&mut xs)?), f64::from(median(&mut ys)?));
+        let mut spread: Vec<f64> =
+            points.iter().map(|q| ((p(q).dot(&e1) - centre.0).powi(2) + (p(q).dot(&e2) - centre.1).powi(2)).sqrt()).collect();
+        spread.sort_by(f64::total_cmp);
+        let p90 = spread[(spread.len() * 9 / 10).min(spread.len() - 1)];
+        let radius_m = (p90 + BODY_MARGIN_M).min(MAX_BODY_RADIUS_M);
+        let (lo, hi) = points.iter().map(|q| p(q).dot(&up)).fold((f64::MAX, f64::MIN), |(lo, hi), h| (lo.min(h), hi.max(h)));
+        let extra = (height_m - (hi - lo)).max(0.0);
+        Some(Self { epoch, up, e1, e2, centre, radius_m, heights: (lo - extra, hi + extra) })
+    }
+
+    fn contains(&self, p: &Point3<f64>) -> bool {
+        let v = p.coords;
+        let h = v.dot(&self.up);
+        let (dx, dy) = (v.dot(&self.e1) - self.centre.0, v.dot(&self.e2) - self.centre.1);
+        h >= self.heights.0 && h <= self.heights.1 && dx * dx + dy * dy <= self.radius_m * self.radius_m
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -127,6 +186,9 @@ struct TrackPoints {
     /// Pixel spacing of the grid they were sampled on.
     spacing_px: u32,
     points: Vec<[f32; 3]>,
+    /// The first `fresh` points were sampled on the latest frame (the rest are
+    /// remembered from earlier ones, where the person may have stood elsewhere).
+    fresh: usize,
 }
 
 /// The camera's pose chained from the tracked motions: `anchor_from_camera` at
@@ -163,6 +225,9 @@ pub struct DynamicMasker {
     offscreen: Vec<Track>,
     chain: Option<PoseChain>,
     epochs: u32,
+    /// The accelerometer's direction in the pose chain's frame, decaying sum over
+    /// recent frames (motion accelerations average out), with its epoch.
+    up: Option<(u32, Vector3<f64>)>,
 }
 
 struct Pending {
@@ -208,6 +273,7 @@ impl DynamicMasker {
             offscreen: Vec::new(),
             chain: None,
             epochs: 0,
+            up: None,
         })
     }
 
@@ -339,6 +405,16 @@ impl DynamicMasker {
             while self.flows.len() > max_age as usize {
                 self.flows.pop_front();
             }
+        }
+        // Up, in the pose chain's frame, for the bodies of coasting people.
+        if let (Some(a), Some((epoch, anchor_from_camera))) = (input.accel_in_camera, self.predicted_pose(input.sequence))
+            && let Some(u) = a.try_normalize(1e-6)
+        {
+            let u = anchor_from_camera.rotation * u;
+            self.up = Some(match self.up {
+                Some((e, sum)) if e == epoch => (e, sum * UP_DECAY + u),
+                _ => (epoch, u),
+            });
         }
         if let Some((k, seg)) = input.segmentation {
             let newer = self.carried.as_ref().is_none_or(|c| c.source_sequence < k);
@@ -529,6 +605,11 @@ impl DynamicMasker {
             }
         };
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
+        if let Some(c) = self.carried.as_mut() {
+            for t in &mut c.tracks {
+                t.moved |= fused.instances.iter().any(|i| i.id == t.id && i.moving == Some(true));
+            }
+        }
         self.dynamic_grid = Some((sequence, cells));
         let retractions = if self.origins.is_empty() {
             Vec::new()
@@ -673,9 +754,24 @@ impl DynamicMasker {
         let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
         let mut next_id = seg.instances.iter().map(|i| i.id).max().unwrap_or(0);
         let mut coasted = false;
-        for (track, sampled, agreeing) in candidates {
+        let height_m = f64::from(self.config.segmentation.person_height_m);
+        for (mut track, sampled, agreeing) in candidates {
             if now.saturating_sub(track.detected_at) > limit {
                 continue;
+            }
+            // A person seen moving, coasting: his body's volume, from the part of him
+            // seen so far (kept while he coasts).
+            if track.body.is_none()
+                && track.moved
+                && height_m > 0.0
+                && self.class_names.get(usize::from(track.class_id)).is_some_and(|n| n == "person")
+                && let (Some(tp), Some((epoch, up))) = (&track.points, self.up)
+                && tp.epoch == epoch
+            {
+                // Where he is now: the latest frame's points, unless too few were left.
+                let latest = &tp.points[..tp.fresh.min(tp.points.len())];
+                let points = if latest.len() >= MIN_BODY_POINTS { latest } else { &tp.points[..] };
+                track.body = Body::around(epoch, points, up, height_m);
             }
             // A standing person the flow's carried mask erodes from is still where his
             // points are: their pixels join the mask (but new points are sampled only
@@ -691,8 +787,32 @@ impl DynamicMasker {
             };
             let covered = pixels.iter().filter(|&&i| claimed(seg.instance_map[i])).count();
             if !pixels.is_empty() && covered as f64 >= COAST_MATCH_FRACTION * pixels.len() as f64 {
-                continue; // found again: the new detection takes over
+                // Found again: the new detection takes over, and knows he moved.
+                if track.moved {
+                    let mut counts = std::collections::HashMap::<u16, usize>::new();
+                    for &i in &pixels {
+                        if claimed(seg.instance_map[i]) {
+                            *counts.entry(seg.instance_map[i]).or_default() += 1;
+                        }
+                    }
+                    if let Some((id, _)) = counts.into_iter().max_by_key(|&(id, n)| (n, id))
+                        && let Some(t) = tracks.iter_mut().find(|t| t.id == id)
+                    {
+                        t.moved = true;
+                    }
+                }
+                continue;
             }
+            let pixels = match (&track.body, pose.as_ref()) {
+                (Some(body), Some(pose)) => {
+                    let mut all = pixels;
+                    all.extend(self.body_pixels(body, pose, depth, w, h));
+                    all.sort_unstable();
+                    all.dedup();
+                    all
+                }
+                _ => pixels,
+            };
             let near = |i: usize| match (track.depth_m, depth_of(i)) {
                 (Some(reference), Some(d)) => (d - reference).abs() <= COAST_DEPTH_GATE * reference,
                 _ => true,
@@ -724,7 +844,7 @@ impl DynamicMasker {
                 bbox,
                 pixels: kept.len() as u32,
             });
-            tracks.push(self.track_from(
+            let mut coasting = self.track_from(
                 id,
                 (track.class_id, track.score),
                 track.detected_at,
@@ -732,7 +852,9 @@ impl DynamicMasker {
                 depth,
                 pose.as_ref(),
                 track.points.as_ref(),
-            ));
+            );
+            (coasting.moved, coasting.body) = (track.moved, track.body);
+            tracks.push(coasting);
             coasted = true;
         }
         if !coasted {
@@ -780,7 +902,7 @@ impl DynamicMasker {
         let valid: Vec<usize> = sample.iter().copied().filter(has_depth).collect();
         let spacing = ((valid.len() as f64 / MAX_TRACK_POINTS as f64).sqrt().ceil() as usize).max(1);
         let points = pose.map(|(epoch, anchor_from_camera)| {
-            let points = valid
+            let points: Vec<[f32; 3]> = valid
                 .iter()
                 .filter(|&&i| (i % w).is_multiple_of(spacing) && (i / w).is_multiple_of(spacing))
                 .map(|&i| {
@@ -795,7 +917,8 @@ impl DynamicMasker {
                     [p.x as f32, p.y as f32, p.z as f32]
                 })
                 .collect();
-            let mut tp = TrackPoints { epoch: *epoch, spacing_px: spacing as u32, points };
+            let fresh = points.len();
+            let mut tp = TrackPoints { epoch: *epoch, spacing_px: spacing as u32, points, fresh };
             if let Some(prev) = previous.filter(|p| p.epoch == *epoch) {
                 let camera_from_anchor = anchor_from_camera.inverse();
                 let (wf, hf) = (f64::from(self.camera.width), f64::from(self.camera.height));
@@ -814,11 +937,12 @@ impl DynamicMasker {
                 if tp.points.len() > 2 * MAX_TRACK_POINTS {
                     let keep = tp.points.len().div_ceil(2 * MAX_TRACK_POINTS);
                     tp.points = tp.points.into_iter().step_by(keep).collect();
+                    tp.fresh = tp.fresh.div_ceil(keep);
                 }
             }
             tp
         });
-        Track { id, detected_at, depth_m, class_id, score, points }
+        Track { id, detected_at, depth_m, class_id, score, points, moved: false, body: None }
     }
 
     /// The pixels where a track's 3D points land at the camera pose
@@ -888,6 +1012,62 @@ impl DynamicMasker {
             }
         }
         hit.iter().enumerate().filter(|(_, h)| **h).map(|(i, _)| i).collect()
+    }
+
+    /// The pixels whose measured 3D points lie in `body` at the camera pose
+    /// `anchor_from_camera` (through the pinhole, lens distortion left out: the
+    /// volume has a margin of its own). Only the pixels inside the projection of
+    /// the cylinder's outline are looked at (the whole image when part of it is
+    /// behind the camera).
+    fn body_pixels(&self, body: &Body, pose: &(u32, Isometry3<f64>), depth: &[u16], w: usize, h: usize) -> Vec<usize> {
+        if body.epoch != pose.0 {
+            return Vec::new();
+        }
+        let c = &self.camera;
+        let camera_from_anchor = pose.1.inverse();
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        let mut behind = false;
+        for k in 0..16 {
+            let a = f64::from(k) * std::f64::consts::TAU / 16.0;
+            let (dx, dy) = (body.radius_m * a.cos(), body.radius_m * a.sin());
+            for height in [body.heights.0, body.heights.1] {
+                let p = body.up * height + body.e1 * (body.centre.0 + dx) + body.e2 * (body.centre.1 + dy);
+                let q = camera_from_anchor * Point3::from(p);
+                if q.z <= 0.05 {
+                    behind = true;
+                    continue;
+                }
+                let (x, y) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
+                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+            }
+        }
+        // The outline's projection misses the cylinder's bulge between its 16 points: a pixel of margin per side is plenty.
+        let (x0, y0, x1, y1) = if behind {
+            (0, 0, w, h)
+        } else if x1 < 0.0 || y1 < 0.0 || x0 >= w as f64 || y0 >= h as f64 {
+            return Vec::new();
+        } else {
+            let margin = 0.05 * (x1 - x0).max(y1 - y0) + 2.0;
+            let clip = |v: f64, n: usize| (v.max(0.0) as usize).min(n);
+            (clip(x0 - margin, w), clip(y0 - margin, h), clip(x1 + margin + 1.0, w), clip(y1 + margin + 1.0, h))
+        };
+        let metres = 1.0 / c.depth_units_per_metre;
+        let mut out = Vec::new();
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let i = y * w + x;
+                let d = depth.get(i).copied().unwrap_or(0);
+                if d == 0 {
+                    continue;
+                }
+                let z = f64::from(d) * metres;
+                let q = Point3::new((x as f64 - c.cx) / c.fx * z, (y as f64 - c.cy) / c.fy * z, z);
+                if body.contains(&(pose.1 * q)) {
+                    out.push(i);
+                }
+            }
+        }
+        out
     }
 
     /// The camera pose at frame `now` predicted from the chain (constant velocity), with its epoch.
@@ -960,6 +1140,13 @@ impl DynamicMasker {
 const COAST_MATCH_FRACTION: f64 = 0.3;
 /// A coasting instance keeps the pixels within this fraction of its median depth.
 const COAST_DEPTH_GATE: f32 = 0.15;
+/// A body's horizontal margin around its seen points, and its largest radius (metres).
+const BODY_MARGIN_M: f64 = 0.05;
+const MAX_BODY_RADIUS_M: f64 = 0.45;
+/// Points a track needs before its body's volume is estimated.
+const MIN_BODY_POINTS: usize = 20;
+/// Per frame, the weight left to earlier accelerometer samples in the up estimate.
+const UP_DECAY: f64 = 0.9;
 /// A coasting track with fewer pixels than this is out of view.
 const MIN_COAST_PX: usize = 100;
 /// Tracks remembered out of view, at most (per session).
@@ -1127,8 +1314,15 @@ mod tests {
             m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>())
         };
         let step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
-            m.prepare(MaskerInput { sequence: k, rgb: &rgb, depth: &depth, segmentation: seg.map(|s| (k, s)), motion_prior: None })
-                .expect("prepare");
+            m.prepare(MaskerInput {
+                sequence: k,
+                rgb: &rgb,
+                depth: &depth,
+                segmentation: seg.map(|s| (k, s)),
+                motion_prior: None,
+                accel_in_camera: None,
+            })
+            .expect("prepare");
             m.finish(&depth, Some(Isometry3::identity())).expect("finish")
         };
         // Frame 0 has no person detected and becomes keyframe 100: the person is fused.
@@ -1229,6 +1423,42 @@ mod tests {
         assert!(masker.agreeing_pixels(&track, &here, &wall, w, h).is_empty());
         let gone = masker.track_from(1, (0, 0.9), 5, (&[], &[]), &wall, Some(&here), track.points.as_ref());
         assert_eq!(gone.points.as_ref().map(|p| p.points.len()), Some(0));
+    }
+
+    /// A person seen from the hips up: his body's volume reaches down to his legs
+    /// (at his depth) and leaves the wall behind him out; too few points give no body.
+    #[test]
+    fn a_body_reaches_the_legs_that_were_never_seen() {
+        let (w, h) = (96usize, 72usize);
+        let camera = Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: 40.0,
+            fy: 40.0,
+            cx: 48.0,
+            cy: 36.0,
+            distortion: None,
+            depth_units_per_metre: 1000.0,
+            readout_s: 0.0,
+        };
+        let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        // At 2 m a pixel is 5 cm. The person: columns 44..52 (0.4 m wide), rows 20..55
+        // (1.75 m tall); the wall 4 m away. Up is the camera's -y.
+        let person = |x: usize, y: usize| (44..52).contains(&x) && (20..55).contains(&y);
+        let depth: Vec<u16> = (0..w * h).map(|i| if person(i % w, i / w) { 2000 } else { 4000 }).collect();
+        let point = |x: usize, y: usize| [((x as f64 - 48.0) / 20.0) as f32, ((y as f64 - 36.0) / 20.0) as f32, 2.0f32];
+        // Seen: the upper body only (rows 20..36).
+        let seen: Vec<[f32; 3]> = (20..36).flat_map(|y| (44..52).map(move |x| point(x, y))).collect();
+        let up = -Vector3::y();
+        let body = Body::around(1, &seen, up, 2.0).expect("a body");
+        assert!((body.radius_m - 0.25).abs() < 0.06, "radius {}", body.radius_m);
+        let pixels = masker.body_pixels(&body, &(1, Isometry3::identity()), &depth, w, h);
+        let legs: Vec<usize> = (36..55).flat_map(|y| (45..51).map(move |x| y * w + x)).collect();
+        assert!(legs.iter().all(|i| pixels.contains(i)), "every leg pixel is his");
+        assert!(pixels.iter().all(|&i| person(i % w, i / w)), "no wall pixel is");
+        // Another epoch (tracking was lost) marks nothing; nor do 19 points make a body.
+        assert!(masker.body_pixels(&body, &(2, Isometry3::identity()), &depth, w, h).is_empty());
+        assert!(Body::around(1, &seen[..19], up, 2.0).is_none());
     }
 
     /// The map's kept-out pixels grow over the surface they stand on (a person's

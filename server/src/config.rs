@@ -670,6 +670,14 @@ mod tests {
             "invalid configuration: perception.segmentation.tensorrt_cache_dir must name a folder with execution_provider = \"tensorrt\""
         );
         assert!(err("[perception.segmentation]\nexecution_provider = \"rocm\"\n").contains("unknown variant `rocm`"));
+        assert_eq!(
+            err("[perception.segmentation]\nperson_height_m = 5.0\n"),
+            "invalid configuration: perception.segmentation.person_height_m must be in 0..=3 m, got 5"
+        );
+        assert_eq!(
+            err("[fleet]\nmax_fleets = 0\n"),
+            "invalid configuration: fleet.candidates must be in 1..=32, fleet.queue in 1..=4096, fleet.max_places and fleet.max_fleets at least 1"
+        );
         let c = ServerConfig::from_toml("[session]\npipeline_threads = 3\nmax_connected = 0\n").unwrap();
         assert_eq!((c.session.pipeline_threads, c.session.max_connected), (3, 0));
     }

@@ -68,12 +68,13 @@ pub fn fuse_debug(
     let (mut fuse_time, mut retract_time) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
     for (k, (f, gt_pose)) in frames.iter().zip(poses).enumerate() {
         // Gravity from the ground truth's up (+z), as an accelerometer at rest reports it.
-        builder.observe_accel(gt_pose, &(gt_pose.rotation.inverse() * Vector3::z() * 9.81));
+        let accel = gt_pose.rotation.inverse() * Vector3::z() * 9.81;
+        builder.observe_accel(gt_pose, &accel);
         let segmentation = match segmenter.as_mut() {
             Some((s, every)) if k % *every == 0 => Some((k as u64, s.segment(&f.rgb, 640, 480).expect("segment"))),
             _ => None,
         };
-        let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation);
+        let (_, track, mask) = pipeline.step(k as u64, f.timestamp_ns, &f.rgb, &f.depth, segmentation, Some(accel));
         if let Some(p) = track.world_from_camera {
             trajectory.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
         }

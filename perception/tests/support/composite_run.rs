@@ -166,8 +166,10 @@ impl MaskedTracking {
         rgb: &[u8],
         depth: &[u16],
         segmentation: Option<(u64, Segmentation)>,
+        accel_in_camera: Option<nalgebra::Vector3<f64>>,
     ) -> (Vec<u8>, TrackOutput, MaskOutput) {
-        let tracking_mask = self.masker.prepare(MaskerInput { sequence, rgb, depth, segmentation, motion_prior: None }).expect("prepare");
+        let tracking_mask =
+            self.masker.prepare(MaskerInput { sequence, rgb, depth, segmentation, motion_prior: None, accel_in_camera }).expect("prepare");
         let track = self.tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: Some(&tracking_mask) }).expect("track");
         let motion = match (self.last_pose, track.world_from_camera) {
             (Some(prev), Some(cur)) => Some(prev.inverse() * cur),
@@ -219,7 +221,7 @@ pub fn run_with(
                 }
             }
         }
-        let (tracking_mask, track, out) = pipeline.step(sequence, f.timestamp_ns, &f.rgb, &f.depth, arrived);
+        let (tracking_mask, track, out) = pipeline.step(sequence, f.timestamp_ns, &f.rgb, &f.depth, arrived, None);
         if let Some(p) = track.world_from_camera {
             s.trajectory.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
         }

@@ -99,8 +99,15 @@ impl SessionPerception {
         })
     }
 
-    /// First phase: returns the mask tracking must use for this frame.
-    pub fn prepare(&mut self, sequence: u64, color: &ColorImage, depth: &DepthImage) -> Option<&[u8]> {
+    /// First phase: returns the mask tracking must use for this frame (`accel`: the
+    /// frame's accelerometer in the camera frame, when the robot sends one).
+    pub fn prepare(
+        &mut self,
+        sequence: u64,
+        color: &ColorImage,
+        depth: &DepthImage,
+        accel: Option<nalgebra::Vector3<f64>>,
+    ) -> Option<&[u8]> {
         self.fused = None;
         let index = self.frames;
         self.frames += 1;
@@ -130,6 +137,7 @@ impl SessionPerception {
             depth: &depth.data,
             segmentation: finished.map(|(k, seg, _)| (k, seg)),
             motion_prior: None,
+            accel_in_camera: accel,
         };
         match self.masker.prepare(input) {
             Ok(mask) => {

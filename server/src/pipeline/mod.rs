@@ -146,7 +146,8 @@ impl SessionPipeline {
         outcome.total = start.elapsed();
         let Some(tracker) = self.tracker.as_mut() else { return outcome };
         let (color, depth) = (&decoded.color, &decoded.depth);
-        let mask = self.perception.as_mut().and_then(|p| p.prepare(frame.sequence, color, depth));
+        let accel = frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
+        let mask = self.perception.as_mut().and_then(|p| p.prepare(frame.sequence, color, depth, accel));
         let track = tracker.track(frame.sequence, frame.capture_time_ns, color, depth, mask);
         outcome.stages.extend(track.stages());
         outcome.total += track.times.total;
@@ -158,7 +159,6 @@ impl SessionPipeline {
             outcome.mask = Some(mask);
         }
         if let (Some(handoff), Some(pose)) = (self.handoff.as_mut(), track.world_from_camera) {
-            let accel = frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
             // The decoded images are not needed after this: a keyframe takes them.
             let retractions = self.perception.as_mut().map(SessionPerception::take_retractions).unwrap_or_default();
             let keyframe = track.new_keyframe.map(|id| {
