@@ -171,6 +171,22 @@ impl Body {
         Some(Self { epoch, up, e1, e2, centre, radius_m, heights: (lo - extra, hi + extra) })
     }
 
+    /// Moves the axis towards the median of `points` (horizontally), by at most
+    /// `max_step_m`; too few points leave it.
+    fn follow(&mut self, points: &[[f32; 3]], max_step_m: f64) {
+        if points.len() < MIN_BODY_POINTS {
+            return;
+        }
+        let p = |q: &[f32; 3]| Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
+        let mut xs: Vec<f32> = points.iter().map(|q| p(q).dot(&self.e1) as f32).collect();
+        let mut ys: Vec<f32> = points.iter().map(|q| p(q).dot(&self.e2) as f32).collect();
+        let (Some(x), Some(y)) = (median(&mut xs), median(&mut ys)) else { return };
+        let (dx, dy) = (f64::from(x) - self.centre.0, f64::from(y) - self.centre.1);
+        let d = (dx * dx + dy * dy).sqrt();
+        let k = if d > max_step_m { max_step_m / d } else { 1.0 };
+        self.centre = (self.centre.0 + k * dx, self.centre.1 + k * dy);
+    }
+
     fn contains(&self, p: &Point3<f64>) -> bool {
         let v = p.coords;
         let h = v.dot(&self.up);
@@ -854,6 +870,14 @@ impl DynamicMasker {
                 track.points.as_ref(),
             );
             (coasting.moved, coasting.body) = (track.moved, track.body);
+            // The body follows him (a walking pace at most per refresh): its axis moves
+            // to where his latest points are.
+            if let (Some(body), Some(tp)) = (coasting.body.as_mut(), coasting.points.as_ref())
+                && tp.epoch == body.epoch
+            {
+                let frames = now.saturating_sub(self.carried.as_ref().map_or(now, |c| c.source_sequence)).max(1);
+                body.follow(&tp.points[..tp.fresh.min(tp.points.len())], BODY_STEP_M_PER_FRAME * frames as f64);
+            }
             tracks.push(coasting);
             coasted = true;
         }
@@ -1143,6 +1167,8 @@ const COAST_DEPTH_GATE: f32 = 0.15;
 /// A body's horizontal margin around its seen points, and its largest radius (metres).
 const BODY_MARGIN_M: f64 = 0.05;
 const MAX_BODY_RADIUS_M: f64 = 0.45;
+/// How far a body's axis may follow its points per frame (a brisk walk, 1.5 m/s at 30 Hz).
+const BODY_STEP_M_PER_FRAME: f64 = 0.05;
 /// Points a track needs before its body's volume is estimated.
 const MIN_BODY_POINTS: usize = 20;
 /// Per frame, the weight left to earlier accelerometer samples in the up estimate.
@@ -1459,6 +1485,16 @@ mod tests {
         // Another epoch (tracking was lost) marks nothing; nor do 19 points make a body.
         assert!(masker.body_pixels(&body, &(2, Isometry3::identity()), &depth, w, h).is_empty());
         assert!(Body::around(1, &seen[..19], up, 2.0).is_none());
+        // He walks 0.3 m away from the camera: the axis follows by at most the step.
+        let farther: Vec<[f32; 3]> = seen.iter().map(|p| [p[0], p[1], p[2] + 0.3]).collect();
+        let mut moved = body;
+        moved.follow(&farther, 0.1);
+        let shift = (moved.centre.0 - body.centre.0).hypot(moved.centre.1 - body.centre.1);
+        assert!((shift - 0.1).abs() < 1e-9, "moved {shift} m");
+        moved.follow(&farther, 1.0);
+        let shift = (moved.centre.0 - body.centre.0).hypot(moved.centre.1 - body.centre.1);
+        assert!((shift - 0.3).abs() < 1e-6, "moved {shift} m in all");
+        assert_eq!((moved.radius_m, moved.heights), (body.radius_m, body.heights), "its size stays");
     }
 
     /// The map's kept-out pixels grow over the surface they stand on (a person's
