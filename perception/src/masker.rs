@@ -790,8 +790,8 @@ impl DynamicMasker {
                 track.body = Body::around(epoch, points, up, height_m);
             }
             // A standing person the flow's carried mask erodes from is still where his
-            // points are: their pixels join the mask (but new points are sampled only
-            // from the carried pixels, so the mask cannot creep over the floor).
+            // points are: their pixels join the mask (each point marks only its own
+            // grid cell, so the mask does not grow from one refresh to the next).
             let pixels: Vec<usize> = if agreeing.is_empty() {
                 sampled.clone()
             } else {
