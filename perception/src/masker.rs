@@ -611,7 +611,7 @@ impl DynamicMasker {
         };
 
         let t = Instant::now();
-        let (fused, cells) = match fused {
+        let (mut fused, cells) = match fused {
             Some(labelled) => labelled,
             None => {
                 let segmentation = self.carried.as_ref().map(|c| &c.segmentation);
@@ -620,6 +620,9 @@ impl DynamicMasker {
                 (fused, cells)
             }
         };
+        // People's bodies (`segmentation.person_height_m`) leave the map, not tracking:
+        // labelled after the tracking mask and the dynamic cells were made.
+        self.label_bodies(&mut fused.labels, sequence, depth);
         let dynamic_fraction = dynamic_fraction(&fused.labels, depth);
         if let Some(c) = self.carried.as_mut() {
             for t in &mut c.tracks {
@@ -819,16 +822,6 @@ impl DynamicMasker {
                 }
                 continue;
             }
-            let pixels = match (&track.body, pose.as_ref()) {
-                (Some(body), Some(pose)) => {
-                    let mut all = pixels;
-                    all.extend(self.body_pixels(body, pose, depth, w, h));
-                    all.sort_unstable();
-                    all.dedup();
-                    all
-                }
-                _ => pixels,
-            };
             let near = |i: usize| match (track.depth_m, depth_of(i)) {
                 (Some(reference), Some(d)) => (d - reference).abs() <= COAST_DEPTH_GATE * reference,
                 _ => true,
@@ -1036,6 +1029,27 @@ impl DynamicMasker {
             }
         }
         hit.iter().enumerate().filter(|(_, h)| **h).map(|(i, _)| i).collect()
+    }
+
+    /// Labels prior-dynamic (kept out of the map, and taken back out of recent
+    /// keyframes) the static pixels in the bodies of the coasting people, carried or
+    /// out of view, that lie within [`COAST_DEPTH_GATE`] of their depth, at the pose
+    /// chain's pose of frame `sequence`.
+    fn label_bodies(&self, labels: &mut [u8], sequence: u64, depth: &[u16]) {
+        let Some(chain) = self.chain.filter(|c| c.sequence == sequence) else { return };
+        let limit = u64::from(self.config.segmentation.track_coast_frames);
+        let carried = self.carried.as_ref().map(|c| c.tracks.as_slice()).unwrap_or_default();
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
+        for t in carried.iter().chain(&self.offscreen) {
+            let Some(body) = t.body.as_ref().filter(|_| sequence.saturating_sub(t.detected_at) <= limit) else { continue };
+            for i in self.body_pixels(body, &(chain.epoch, chain.anchor_from_camera), depth, w, h) {
+                let near = t.depth_m.is_none_or(|r| (f32::from(depth[i]) * metres - r).abs() <= COAST_DEPTH_GATE * r);
+                if near && labels[i] == PixelLabel::Static as u8 {
+                    labels[i] = PixelLabel::PriorDynamic as u8;
+                }
+            }
+        }
     }
 
     /// The pixels whose measured 3D points lie in `body` at the camera pose
