@@ -1262,6 +1262,21 @@ mod tests {
     /// A board at 0.8 m in front of a wall at 2 m, on a 12×5 grid; one cell of the
     /// board is flagged. Growth covers the board within reach, never the wall, and
     /// stops at cells without depth.
+    /// A `w × h` pinhole camera with focal length `f` pixels, centred, depth in millimetres.
+    fn pinhole(w: usize, h: usize, f: f64) -> Camera {
+        Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: f,
+            fy: f,
+            cx: w as f64 / 2.0,
+            cy: h as f64 / 2.0,
+            distortion: None,
+            depth_units_per_metre: 1000.0,
+            readout_s: 0.0,
+        }
+    }
+
     #[test]
     fn growth_follows_the_surface_and_stops_at_depth_edges_holes_and_its_reach() {
         let (w, h) = (12, 5);
@@ -1313,17 +1328,7 @@ mod tests {
     #[test]
     fn a_missed_person_coasts_near_his_depth_and_is_taken_out_of_earlier_keyframes() {
         let (w, h) = (96usize, 72usize);
-        let camera = Camera {
-            width: w as u32,
-            height: h as u32,
-            fx: 80.0,
-            fy: 80.0,
-            cx: 48.0,
-            cy: 36.0,
-            distortion: None,
-            depth_units_per_metre: 1000.0,
-            readout_s: 0.0,
-        };
+        let camera = pinhole(w, h, 80.0);
         let mut config = PerceptionConfig::default();
         config.segmentation.track_coast_frames = 4;
         let mut masker = DynamicMasker::new(camera, config, &["person".to_string()]).expect("masker");
@@ -1396,17 +1401,7 @@ mod tests {
     #[test]
     fn a_track_out_of_view_is_remembered_by_its_points() {
         let (w, h) = (96usize, 72usize);
-        let camera = Camera {
-            width: w as u32,
-            height: h as u32,
-            fx: 80.0,
-            fy: 80.0,
-            cx: 48.0,
-            cy: 36.0,
-            distortion: None,
-            depth_units_per_metre: 1000.0,
-            readout_s: 0.0,
-        };
+        let camera = pinhole(w, h, 80.0);
         let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
         let depth = vec![1000u16; w * h];
         // A person over columns 40..56, rows 20..60, seen at the identity pose.
@@ -1435,17 +1430,7 @@ mod tests {
     #[test]
     fn a_standing_track_is_kept_where_its_points_lie_on_the_measured_surface() {
         let (w, h) = (96usize, 72usize);
-        let camera = Camera {
-            width: w as u32,
-            height: h as u32,
-            fx: 80.0,
-            fy: 80.0,
-            cx: 48.0,
-            cy: 36.0,
-            distortion: None,
-            depth_units_per_metre: 1000.0,
-            readout_s: 0.0,
-        };
+        let camera = pinhole(w, h, 80.0);
         let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
         let pixels: Vec<usize> = (20..60).flat_map(|y| (40..56).map(move |x| y * w + x)).collect();
         let mut standing = vec![3000u16; w * h];
@@ -1470,17 +1455,7 @@ mod tests {
     #[test]
     fn a_body_reaches_the_legs_that_were_never_seen() {
         let (w, h) = (96usize, 72usize);
-        let camera = Camera {
-            width: w as u32,
-            height: h as u32,
-            fx: 40.0,
-            fy: 40.0,
-            cx: 48.0,
-            cy: 36.0,
-            distortion: None,
-            depth_units_per_metre: 1000.0,
-            readout_s: 0.0,
-        };
+        let camera = pinhole(w, h, 40.0);
         let masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
         // At 2 m a pixel is 5 cm. The person: columns 44..52 (0.4 m wide), rows 20..55
         // (1.75 m tall); the wall 4 m away. Up is the camera's -y.
@@ -1516,17 +1491,7 @@ mod tests {
     #[test]
     fn the_mapping_mask_grows_over_its_surface_and_dilates() {
         let (w, h) = (80usize, 40usize);
-        let camera = Camera {
-            width: w as u32,
-            height: h as u32,
-            fx: 60.0,
-            fy: 60.0,
-            cx: 40.0,
-            cy: 20.0,
-            distortion: None,
-            depth_units_per_metre: 1000.0,
-            readout_s: 0.0,
-        };
+        let camera = pinhole(w, h, 60.0);
         let mut config = PerceptionConfig::default();
         config.fusion.mapping_mask_growth_px = 10;
         config.fusion.mapping_mask_dilation_px = 2;
