@@ -157,10 +157,8 @@ impl Body {
         let helper = if up.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
         let e1 = up.cross(&helper).normalize();
         let e2 = up.cross(&e1);
-        let p = |q: &[f32; 3]| Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
-        let mut xs: Vec<f32> = points.iter().map(|q| p(q).dot(&e1) as f32).collect();
-        let mut ys: Vec<f32> = points.iter().map(|q| p(q).dot(&e2) as f32).collect();
-        let centre = (f64::from(median(&mut xs)?), f64::from(median(&mut ys)?));
+        let centre = horizontal_median(points, &e1, &e2)?;
+        let p = |q: &[f32; 3]| stored_point(q).coords;
         let mut spread: Vec<f64> =
             points.iter().map(|q| ((p(q).dot(&e1) - centre.0).powi(2) + (p(q).dot(&e2) - centre.1).powi(2)).sqrt()).collect();
         spread.sort_by(f64::total_cmp);
@@ -177,11 +175,8 @@ impl Body {
         if points.len() < MIN_BODY_POINTS {
             return;
         }
-        let p = |q: &[f32; 3]| Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
-        let mut xs: Vec<f32> = points.iter().map(|q| p(q).dot(&self.e1) as f32).collect();
-        let mut ys: Vec<f32> = points.iter().map(|q| p(q).dot(&self.e2) as f32).collect();
-        let (Some(x), Some(y)) = (median(&mut xs), median(&mut ys)) else { return };
-        let (dx, dy) = (f64::from(x) - self.centre.0, f64::from(y) - self.centre.1);
+        let Some((x, y)) = horizontal_median(points, &self.e1, &self.e2) else { return };
+        let (dx, dy) = (x - self.centre.0, y - self.centre.1);
         let d = (dx * dx + dy * dy).sqrt();
         let k = if d > max_step_m { max_step_m / d } else { 1.0 };
         self.centre = (self.centre.0 + k * dx, self.centre.1 + k * dy);
@@ -193,6 +188,18 @@ impl Body {
         let (dx, dy) = (v.dot(&self.e1) - self.centre.0, v.dot(&self.e2) - self.centre.1);
         h >= self.heights.0 && h <= self.heights.1 && dx * dx + dy * dy <= self.radius_m * self.radius_m
     }
+}
+
+/// A track point as stored (`f32`, the pose chain's frame).
+fn stored_point(p: &[f32; 3]) -> Point3<f64> {
+    Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+}
+
+/// The median of `points` along the horizontal axes `e1` and `e2`.
+fn horizontal_median(points: &[[f32; 3]], e1: &Vector3<f64>, e2: &Vector3<f64>) -> Option<(f64, f64)> {
+    let mut xs: Vec<f32> = points.iter().map(|q| stored_point(q).coords.dot(e1) as f32).collect();
+    let mut ys: Vec<f32> = points.iter().map(|q| stored_point(q).coords.dot(e2) as f32).collect();
+    Some((f64::from(median(&mut xs)?), f64::from(median(&mut ys)?)))
 }
 
 #[derive(Debug, Clone)]
@@ -924,13 +931,7 @@ impl DynamicMasker {
                 .filter(|&&i| (i % w).is_multiple_of(spacing) && (i / w).is_multiple_of(spacing))
                 .map(|&i| {
                     let ideal = self.camera.undistort(&nalgebra::Point2::new((i % w) as f64, (i / w) as f64));
-                    let z = f64::from(depth[i]) * metres;
-                    let p = anchor_from_camera
-                        * nalgebra::Point3::new(
-                            (ideal.x - self.camera.cx) / self.camera.fx * z,
-                            (ideal.y - self.camera.cy) / self.camera.fy * z,
-                            z,
-                        );
+                    let p = anchor_from_camera * self.camera.unproject(&ideal, f64::from(depth[i]) * metres);
                     [p.x as f32, p.y as f32, p.z as f32]
                 })
                 .collect();
@@ -940,7 +941,7 @@ impl DynamicMasker {
                 let camera_from_anchor = anchor_from_camera.inverse();
                 let (wf, hf) = (f64::from(self.camera.width), f64::from(self.camera.height));
                 let kept = |p: &&[f32; 3]| {
-                    let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                    let q = camera_from_anchor * stored_point(p);
                     match self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) {
                         Some(r) if r.x >= 0.0 && r.y >= 0.0 && r.x < wf && r.y < hf => {
                             let (x, y) = ((r.x.round() as usize).min(w - 1), (r.y.round() as usize).min(hf as usize - 1));
@@ -973,7 +974,7 @@ impl DynamicMasker {
         let mut hit = vec![false; w * h];
         let r = i64::from(tp.spacing_px);
         for p in &tp.points {
-            let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let q = camera_from_anchor * stored_point(p);
             let Some(ideal) = self.camera.project(&q) else { continue };
             let raw = self.camera.distort(&ideal);
             let margin = f64::from(tp.spacing_px);
@@ -1009,7 +1010,7 @@ impl DynamicMasker {
         let mut hit = vec![false; w * h];
         let s = tp.spacing_px as usize;
         for p in &tp.points {
-            let q = camera_from_anchor * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let q = camera_from_anchor * stored_point(p);
             let Some(raw) = self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) else { continue };
             let (x, y) = (raw.x.round(), raw.y.round());
             if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
@@ -1071,12 +1072,10 @@ impl DynamicMasker {
             for height in [body.heights.0, body.heights.1] {
                 let p = body.up * height + body.e1 * (body.centre.0 + dx) + body.e2 * (body.centre.1 + dy);
                 let q = camera_from_anchor * Point3::from(p);
-                if q.z <= 0.05 {
-                    behind = true;
-                    continue;
+                match c.project(&q).filter(|_| q.z > 0.05) {
+                    Some(r) => (x0, y0, x1, y1) = (x0.min(r.x), y0.min(r.y), x1.max(r.x), y1.max(r.y)),
+                    None => behind = true,
                 }
-                let (x, y) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
-                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
             }
         }
         // The outline's projection misses the cylinder's bulge between its 16 points: a pixel of margin per side is plenty.
@@ -1098,8 +1097,7 @@ impl DynamicMasker {
                 if d == 0 {
                     continue;
                 }
-                let z = f64::from(d) * metres;
-                let q = Point3::new((x as f64 - c.cx) / c.fx * z, (y as f64 - c.cy) / c.fy * z, z);
+                let q = c.unproject(&nalgebra::Point2::new(x as f64, y as f64), f64::from(d) * metres);
                 if body.contains(&(pose.1 * q)) {
                     out.push(i);
                 }
@@ -1264,17 +1262,7 @@ mod tests {
     /// stops at cells without depth.
     /// A `w × h` pinhole camera with focal length `f` pixels, centred, depth in millimetres.
     fn pinhole(w: usize, h: usize, f: f64) -> Camera {
-        Camera {
-            width: w as u32,
-            height: h as u32,
-            fx: f,
-            fy: f,
-            cx: w as f64 / 2.0,
-            cy: h as f64 / 2.0,
-            distortion: None,
-            depth_units_per_metre: 1000.0,
-            readout_s: 0.0,
-        }
+        Camera::pinhole(w as u32, h as u32, f, f, w as f64 / 2.0, h as f64 / 2.0, 1000.0)
     }
 
     #[test]
