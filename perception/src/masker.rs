@@ -743,6 +743,7 @@ impl DynamicMasker {
                 tracks.push(self.track_from(i.id, (i.class_id, i.score), k, (&pixels, &pixels), depth, pose.as_ref(), None));
             }
         }
+        let detected = tracks.len();
         let offscreen = std::mem::take(&mut self.offscreen);
         if limit == 0 {
             return (seg, tracks);
@@ -780,24 +781,14 @@ impl DynamicMasker {
         let depth_of = |i: usize| depth.get(i).filter(|&&d| d != 0).map(|&d| f32::from(d) * metres);
         let mut next_id = seg.instances.iter().map(|i| i.id).max().unwrap_or(0);
         let mut coasted = false;
-        let height_m = f64::from(self.config.segmentation.person_height_m);
         for (mut track, sampled, agreeing) in candidates {
             if now.saturating_sub(track.detected_at) > limit {
                 continue;
             }
             // A person seen moving, coasting: his body's volume, from the part of him
             // seen so far (kept while he coasts).
-            if track.body.is_none()
-                && track.moved
-                && height_m > 0.0
-                && self.class_names.get(usize::from(track.class_id)).is_some_and(|n| n == "person")
-                && let (Some(tp), Some((epoch, up))) = (&track.points, self.up)
-                && tp.epoch == epoch
-            {
-                // Where he is now: the latest frame's points, unless too few were left.
-                let latest = &tp.points[..tp.fresh.min(tp.points.len())];
-                let points = if latest.len() >= MIN_BODY_POINTS { latest } else { &tp.points[..] };
-                track.body = Body::around(epoch, points, up, height_m);
+            if track.body.is_none() {
+                track.body = self.body_of(&track);
             }
             // A standing person the flow's carried mask erodes from is still where his
             // points are: their pixels join the mask (each point marks only its own
@@ -881,6 +872,14 @@ impl DynamicMasker {
             tracks.push(coasting);
             coasted = true;
         }
+        // A detected person who moved (known once a detection took over a track that
+        // had): his body too, from the detection's points; the segmenter's mask misses
+        // his feet and rim, the body does not.
+        for t in tracks.iter_mut().take(detected) {
+            if t.moved && t.body.is_none() {
+                t.body = self.body_of(t);
+            }
+        }
         if !coasted {
             return (seg, tracks);
         }
@@ -899,6 +898,24 @@ impl DynamicMasker {
             None => false,
         });
         (seg, tracks)
+    }
+
+    /// The body of a person who moved (`segmentation.person_height_m`; `None` for
+    /// other classes, people who never moved, without an up direction or with too
+    /// few points): around his latest frame's points, or all his points when too few
+    /// of those were left.
+    fn body_of(&self, track: &Track) -> Option<Body> {
+        let height_m = f64::from(self.config.segmentation.person_height_m);
+        if !track.moved || height_m <= 0.0 || self.class_names.get(usize::from(track.class_id)).is_none_or(|n| n != "person") {
+            return None;
+        }
+        let (tp, (epoch, up)) = (track.points.as_ref()?, self.up?);
+        if tp.epoch != epoch {
+            return None;
+        }
+        let latest = &tp.points[..tp.fresh.min(tp.points.len())];
+        let points = if latest.len() >= MIN_BODY_POINTS { latest } else { &tp.points[..] };
+        Body::around(epoch, points, up, height_m)
     }
 
     /// A track of instance `id` (class and score) with these pixels of the current
@@ -1472,6 +1489,32 @@ mod tests {
         let shift = (moved.centre.0 - body.centre.0).hypot(moved.centre.1 - body.centre.1);
         assert!((shift - 0.3).abs() < 1e-6, "moved {shift} m in all");
         assert_eq!((moved.radius_m, moved.heights), (body.radius_m, body.heights), "its size stays");
+    }
+
+    /// A person gets a body once he was seen moving, detected or coasting; a person
+    /// who never moved (the seated man) and other classes never do, nor does anyone
+    /// without an up direction.
+    #[test]
+    fn only_people_who_moved_get_a_body() {
+        let (w, h) = (96usize, 72usize);
+        let mut masker = DynamicMasker::new(pinhole(w, h, 40.0), PerceptionConfig::default(), &["person".to_string(), "chair".to_string()])
+            .expect("masker");
+        let depth = vec![2000u16; w * h];
+        let pixels: Vec<usize> = (20..36).flat_map(|y| (44..52).map(move |x| y * w + x)).collect();
+        let here = (1u32, Isometry3::identity());
+        let mut person = masker.track_from(1, (0, 0.9), 5, (&pixels, &pixels), &depth, Some(&here), None);
+        assert!(masker.body_of(&person).is_none(), "no up direction yet");
+        masker.up = Some((1, -Vector3::y()));
+        assert!(masker.body_of(&person).is_none(), "never moved");
+        person.moved = true;
+        let body = masker.body_of(&person).expect("a body");
+        // 0.75 m of him seen (rows 20..=35 at 5 cm): a 2 m body may reach 1.25 m above or below.
+        assert!((body.heights.1 - body.heights.0 - 3.25).abs() < 1e-6, "heights {:?}", body.heights);
+        let mut chair = masker.track_from(2, (1, 0.9), 5, (&pixels, &pixels), &depth, Some(&here), None);
+        chair.moved = true;
+        assert!(masker.body_of(&chair).is_none(), "a chair has no body");
+        masker.up = Some((2, -Vector3::y()));
+        assert!(masker.body_of(&person).is_none(), "points of another epoch");
     }
 
     /// The map's kept-out pixels grow over the surface they stand on (a person's
