@@ -382,6 +382,11 @@ async fn tokens_carry_scopes_and_sighup_reloads_the_token_file() {
     assert_eq!(status("/api/v1/events?access_token=wh-token", None).await.0, 403);
     assert_eq!(status("/metrics", None).await.0, 401);
     assert_eq!(status("/healthz", None).await.0, 200);
+    // The API's OpenAPI document is open too: it holds no data.
+    let doc: serde_json::Value =
+        http.get(format!("http://{}/api/v1/openapi.json", server.http)).send().await.expect("GET").json().await.expect("JSON");
+    assert_eq!(doc["openapi"], "3.1.0");
+    assert!(doc["paths"]["/api/v1/sessions/{id}/pose"]["get"]["responses"]["200"].is_object(), "{doc}");
 
     // Ingest: a robot token streams only as its robots; a read token not at all.
     let hello = |robot: &str, token: &str| pb::Hello { auth_token: token.into(), ..tum_hello(robot) };

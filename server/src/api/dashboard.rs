@@ -48,6 +48,15 @@ pub struct DashboardState {
     pub feed: Arc<EventFeed>,
 }
 
+#[utoipa::path(
+    get,
+    path = "/",
+    tag = "server",
+    security(()),
+    responses(
+        (status = 200, description = "The dashboard", content_type = "text/html"),
+    )
+)]
 pub async fn index(State(state): State<DashboardState>) -> Response {
     let Some(dir) = &state.dir else {
         return (StatusCode::NOT_FOUND, Html(NOT_BUILT.to_string())).into_response();
@@ -61,6 +70,20 @@ pub async fn index(State(state): State<DashboardState>) -> Response {
 const NOT_BUILT: &str = "<!doctype html><title>stillmap</title><h1>stillmap</h1><p>The dashboard files were not found: run <code>make dashboard</code> in the repository, or set <code>http.dashboard_dir</code>.</p>";
 
 /// `/assets/<path>`: `src/` of the dashboard, and `vendor/three/...` from its node_modules.
+#[utoipa::path(
+    get,
+    path = "/assets/{path}",
+    tag = "server",
+    security(()),
+    params(
+        ("path" = String, Path, description = "A file of the dashboard"),
+    ),
+    responses(
+        (status = 200, description = "The file"),
+        (status = 400, description = "Not a plain file name", body = crate::api::openapi::ApiError),
+        (status = 404, description = "No such file", body = crate::api::openapi::ApiError),
+    )
+)]
 pub async fn asset(State(state): State<DashboardState>, UrlPath(path): UrlPath<String>) -> Response {
     let Some(dir) = &state.dir else {
         return not_found(&path);
@@ -265,6 +288,15 @@ impl Drop for Viewer {
 /// map versions) and `poses` every `http.pose_event_interval_ms` (250) while there are new ones (a JSON array of
 /// every session's new poses, oldest first). Beyond
 /// `http.max_event_viewers` at once: 503.
+#[utoipa::path(
+    get,
+    path = "/api/v1/events",
+    tag = "sessions",
+    responses(
+        (status = 200, description = "Server-sent events: sessions every 500 ms, poses as they come", content_type = "text/event-stream"),
+        (status = 503, description = "Too many viewers (http.max_event_viewers)", body = crate::api::openapi::ApiError),
+    )
+)]
 pub async fn events(State(state): State<DashboardState>) -> Response {
     let feed = state.feed.clone();
     if feed.viewers.fetch_add(1, Ordering::SeqCst) >= feed.max_viewers {

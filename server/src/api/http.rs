@@ -13,12 +13,13 @@ use serde_json::{Value, json};
 use stillmap_proto::pb;
 
 use crate::api::map_queries::{self as mapping, BadQuery};
+use crate::api::openapi::{ApiError, Health, Imported, PoseReply, PoseView, SessionList, SessionView, StoreHealth, Trajectory};
 use crate::map::SharedMap;
-use crate::session::{Registry, Session, SessionInfo};
+use crate::session::{Registry, Session};
 
 /// `Query<T>` whose rejection (bad query-string syntax, a wrong type) is the API's
 /// JSON error with 400, like every other error, instead of axum's plain text.
-struct JsonQuery<T>(T);
+pub(crate) struct JsonQuery<T>(T);
 
 impl<T, S> axum::extract::FromRequestParts<S> for JsonQuery<T>
 where
@@ -90,6 +91,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/metrics", get(metrics))
         .route_layer(read)
         .route("/healthz", get(healthz))
+        .route("/api/v1/openapi.json", get(openapi))
         .with_state(registry)
         .merge(admin)
         .merge(ui)
@@ -98,80 +100,38 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
 }
 
 fn error(code: StatusCode, message: String) -> Response {
-    (code, Json(json!({ "error": message }))).into_response()
+    (code, Json(ApiError { error: message })).into_response()
 }
 
-fn enum_name<E: TryFrom<i32>>(v: i32, name: impl Fn(E) -> &'static str) -> &'static str {
-    E::try_from(v).map(name).unwrap_or("UNKNOWN")
+#[utoipa::path(
+    get,
+    path = "/api/v1/sessions",
+    tag = "sessions",
+    responses(
+        (status = 200, description = "Every session, live and stored", body = SessionList),
+    )
+)]
+pub(crate) async fn list_sessions(State(registry): State<Arc<Registry>>) -> Json<SessionList> {
+    Json(SessionList { sessions: registry.list_info().iter().map(|s| SessionView::from(s, false)).collect() })
 }
 
-fn camera_json(c: &pb::CameraInfo) -> Value {
-    json!({
-        "width": c.width, "height": c.height,
-        "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
-        "distortion_model": enum_name(c.distortion_model, |m: pb::DistortionModel| m.as_str_name()),
-        "distortion_coeffs": c.distortion_coeffs,
-        "depth_units_per_metre": c.depth_units_per_metre,
-        "color_encoding": enum_name(c.color_encoding, |e: pb::ColorEncoding| e.as_str_name()),
-        "depth_encoding": enum_name(c.depth_encoding, |e: pb::DepthEncoding| e.as_str_name()),
-        "nominal_rate_hz": c.nominal_rate_hz,
-        "rolling_shutter_readout_s": c.rolling_shutter_readout_s,
-        "exposure_time_offset_s": c.exposure_time_offset_s,
-        "calibration_source": if c.calibration_source.is_empty() { "unstated" } else { c.calibration_source.as_str() },
-    })
-}
-
-fn session_json(s: &SessionInfo, detail: bool) -> Value {
-    let sum = &s.summary;
-    let mut v = json!({
-        "session_id": sum.session_id,
-        "robot_id": sum.robot_id,
-        "transport": sum.transport,
-        "connected": sum.connected,
-        "archived": s.archived,
-        "resident": s.resident,
-        "fleet": s.fleet,
-        "tracking_state": enum_name(sum.tracking_state, |t: pb::TrackingState| t.as_str_name()),
-        "started_unix_ns": sum.started_unix_ns,
-        "counters": {
-            "frames_received": sum.frames_received,
-            "frames_processed": sum.frames_processed,
-            "frames_dropped": sum.frames_dropped,
-            "frames_rejected": sum.frames_rejected,
-            "bytes_received": s.bytes_received,
-            "last_received_sequence": s.last_received_sequence,
-        },
-    });
-    if detail && let Some(c) = &sum.camera {
-        v["camera"] = camera_json(c);
-    }
-    v
-}
-
-async fn list_sessions(State(registry): State<Arc<Registry>>) -> Json<Value> {
-    let sessions: Vec<Value> = registry.list_info().iter().map(|s| session_json(s, false)).collect();
-    Json(json!({ "sessions": sessions }))
-}
-
-async fn get_session(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/sessions/{id}",
+    tag = "sessions",
+    params(
+        ("id" = String, Path, description = "Session id"),
+    ),
+    responses(
+        (status = 200, description = "The session with its camera", body = SessionView),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn get_session(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
     match registry.info(&id) {
-        Some(s) => Json(session_json(&s, true)).into_response(),
+        Some(s) => Json(SessionView::from(&s, true)).into_response(),
         None => error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")),
     }
-}
-
-fn pose_json(p: &pb::PoseStamped) -> Value {
-    let pose = p.world_from_camera.unwrap_or_default();
-    let t = pose.translation.unwrap_or_default();
-    let q = pose.rotation.unwrap_or_default();
-    json!({
-        "sequence": p.sequence,
-        "capture_time_ns": p.capture_time_ns,
-        "pose_time_ns": p.time_ns(),
-        "tracking_state": enum_name(p.tracking_state, |t: pb::TrackingState| t.as_str_name()),
-        "translation": [t.x, t.y, t.z],
-        "rotation_xyzw": [q.x, q.y, q.z, q.w],
-    })
 }
 
 /// What the pose endpoints say about the frame of reference.
@@ -182,7 +142,7 @@ const WORLD_FRAME: &str =
 const FLEET_FRAME: &str = "fleet = the world of the session that anchors the fleet; poses are fleet_from_camera";
 
 #[derive(serde::Deserialize)]
-struct FrameQuery {
+pub(crate) struct FrameQuery {
     /// `world` (the session's own, the default) or `fleet`.
     frame: Option<String>,
     format: Option<String>,
@@ -213,7 +173,26 @@ fn in_frame(p: &pb::PoseStamped, fleet_from_world: Option<&nalgebra::Isometry3<f
     fleet_from_world.map_or(*p, |t| crate::convert::pose_in(p, t))
 }
 
-async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<FrameQuery>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/sessions/{id}/pose",
+    tag = "sessions",
+    params(
+        ("id" = String, Path, description = "Session id"),
+        ("frame" = Option<String>, Query, description = "world (the session's own, default) or fleet"),
+    ),
+    responses(
+        (status = 200, description = "The latest pose", body = PoseReply),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 409, description = "Not merged into its fleet yet (frame=fleet)", body = ApiError),
+    )
+)]
+pub(crate) async fn get_pose(
+    State(registry): State<Arc<Registry>>,
+    Path(id): Path<String>,
+    JsonQuery(q): JsonQuery<FrameQuery>,
+) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     };
@@ -222,16 +201,37 @@ async fn get_pose(State(registry): State<Arc<Registry>>, Path(id): Path<String>,
         Err((code, message)) => return error(code, message),
     };
     let track = s.tracking();
-    Json(json!({
-        "session_id": s.id,
-        "tracking_state": track.state.as_str_name(),
-        "frame": frame,
-        "pose": track.latest.as_ref().map(|p| pose_json(&in_frame(p, transform.as_ref()))),
-    }))
+    Json(PoseReply {
+        session_id: s.id.clone(),
+        tracking_state: track.state.as_str_name().to_string(),
+        frame: frame.to_string(),
+        pose: track.latest.as_ref().map(|p| PoseView::from(&in_frame(p, transform.as_ref()))),
+    })
     .into_response()
 }
 
-async fn get_trajectory(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<FrameQuery>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/sessions/{id}/trajectory",
+    tag = "sessions",
+    params(
+        ("id" = String, Path, description = "Session id"),
+        ("frame" = Option<String>, Query, description = "world (the session's own, default) or fleet"),
+        ("format" = Option<String>, Query, description = "json (default) or tum (text: timestamp tx ty tz qx qy qz qw)"),
+    ),
+    responses(
+        (status = 200, description = "Every pose, oldest first", body = Trajectory, content_type = "application/json"),
+        (status = 200, description = "TUM trajectory text", body = String, content_type = "text/plain"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 409, description = "Not merged into its fleet yet (frame=fleet)", body = ApiError),
+    )
+)]
+pub(crate) async fn get_trajectory(
+    State(registry): State<Arc<Registry>>,
+    Path(id): Path<String>,
+    JsonQuery(q): JsonQuery<FrameQuery>,
+) -> Response {
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     };
@@ -241,12 +241,10 @@ async fn get_trajectory(State(registry): State<Arc<Registry>>, Path(id): Path<St
     };
     let poses: Vec<pb::PoseStamped> = s.tracking().trajectory.iter().map(|p| in_frame(p, transform.as_ref())).collect();
     match q.format.as_deref() {
-        None | Some("json") => Json(json!({
-            "session_id": s.id,
-            "frame": frame,
-            "poses": poses.iter().map(pose_json).collect::<Vec<_>>(),
-        }))
-        .into_response(),
+        None | Some("json") => {
+            Json(Trajectory { session_id: s.id.clone(), frame: frame.to_string(), poses: poses.iter().map(PoseView::from).collect() })
+                .into_response()
+        }
         Some("tum") => {
             let mut text = format!("# timestamp tx ty tz qx qy qz qw ({frame}; timestamp = pose_time_ns)\n");
             for p in &poses {
@@ -318,7 +316,15 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
     v
 }
 
-async fn list_fleets(State(registry): State<Arc<Registry>>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets",
+    tag = "fleets",
+    responses(
+        (status = 200, description = "Every fleet: anchor, members, merged or not", body = Object),
+    )
+)]
+pub(crate) async fn list_fleets(State(registry): State<Arc<Registry>>) -> Response {
     let Some(fleets) = registry.fleets() else {
         return Json(json!({ "fleets": [] })).into_response();
     };
@@ -360,7 +366,20 @@ async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap
 }
 
 /// The fleet's merged sessions' maps as one PLY in the fleet's map frame.
-async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}/cloud.ply",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+    ),
+    responses(
+        (status = 200, description = "The fleet map as a binary PLY, class colours", content_type = "application/octet-stream"),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+        (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+    )
+)]
+pub(crate) async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
     let (fleet, n) = match fleet_map(&registry, &name).await {
         Ok(f) => f,
         Err(r) => return r,
@@ -386,7 +405,24 @@ async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> 
         .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
-async fn fleet_occupancy_pgm(
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}/occupancy.pgm",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
+        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
+        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+    ),
+    responses(
+        (status = 200, description = "ROS map_server occupancy image", content_type = "image/x-portable-graymap"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+        (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+    )
+)]
+pub(crate) async fn fleet_occupancy_pgm(
     State(registry): State<Arc<Registry>>,
     Path(name): Path<String>,
     JsonQuery(q): JsonQuery<OccupancyQuery>,
@@ -397,7 +433,24 @@ async fn fleet_occupancy_pgm(
     }
 }
 
-async fn fleet_occupancy_yaml(
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}/occupancy.yaml",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
+        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
+        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+    ),
+    responses(
+        (status = 200, description = "ROS map_server parameters", body = String, content_type = "application/yaml"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+        (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+    )
+)]
+pub(crate) async fn fleet_occupancy_yaml(
     State(registry): State<Arc<Registry>>,
     Path(name): Path<String>,
     JsonQuery(q): JsonQuery<OccupancyQuery>,
@@ -408,7 +461,20 @@ async fn fleet_occupancy_yaml(
     }
 }
 
-async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}/objects",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+    ),
+    responses(
+        (status = 200, description = "Objects of the fleet map with class and box", body = Object),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+        (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+    )
+)]
+pub(crate) async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
     let (fleet, _) = match fleet_map(&registry, &name).await {
         Ok(f) => f,
         Err(r) => return r,
@@ -443,7 +509,25 @@ async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: 
 }
 
 /// A tile of the fleet map: the session tiles' scheme, in the fleet's map frame.
-async fn fleet_tile(
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}/tiles/{z}/{x}/{y}",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+        ("z" = u8, Path, description = "Zoom level"),
+        ("x" = i64, Path, description = "Tile column"),
+        ("y" = String, Path, description = "Tile row followed by .png, e.g. 3.png"),
+    ),
+    responses(
+        (status = 200, description = "Top-down PNG tile (ETag)", content_type = "image/png"),
+        (status = 304, description = "Not modified (If-None-Match)"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+        (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+    )
+)]
+pub(crate) async fn fleet_tile(
     State(registry): State<Arc<Registry>>,
     Path((name, z, x, y)): Path<(String, String, String, String)>,
     headers: HeaderMap,
@@ -467,7 +551,20 @@ async fn fleet_tile(
 }
 
 /// The fleet map's legend, with the extent its tiles cover.
-async fn fleet_legend(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}/legend",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+    ),
+    responses(
+        (status = 200, description = "Classes and colours of the fleet tiles, and their extent", body = Object),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+        (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+    )
+)]
+pub(crate) async fn fleet_legend(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
     let (parts, tag) = match fleet_state(&registry, &name).await {
         Ok(s) => s,
         Err(r) => return r,
@@ -504,7 +601,19 @@ fn legend_json(entries: &[mapping::LegendEntry]) -> Vec<Value> {
 /// The fleet map's frame.
 const FLEET_MAP_FRAME: &str = "the fleet's map frame = the anchor session's map frame (its world rotated so that +z is up; origin at its first camera's centre); metres";
 
-async fn get_fleet(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/fleets/{fleet}",
+    tag = "fleets",
+    params(
+        ("fleet" = String, Path, description = "Fleet name"),
+    ),
+    responses(
+        (status = 200, description = "Sessions, merged or not, fleet_from_session transforms, tiles", body = Object),
+        (status = 404, description = "Unknown fleet", body = ApiError),
+    )
+)]
+pub(crate) async fn get_fleet(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
     match registry.fleets().and_then(|f| f.get(&name)) {
         Some(f) => Json(fleet_json(&f, true)).into_response(),
         None => error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")),
@@ -513,21 +622,53 @@ async fn get_fleet(State(registry): State<Arc<Registry>>, Path(name): Path<Strin
 
 /// 200 `{"status": "ok"}`; 503 with the reason while the store fails to write
 /// (the server goes on serving from memory).
-async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "server",
+    security(()),
+    responses(
+        (status = 200, description = "Serving", body = Health),
+        (status = 503, description = "The store fails to write (still serving from memory)", body = Health),
+    )
+)]
+pub(crate) async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
     match registry.store().and_then(|s| s.failing().map(|f| (f, s.errors()))) {
-        None => Json(json!({ "status": "ok" })).into_response(),
+        None => Json(Health { status: "ok".into(), store: None }).into_response(),
         Some((f, errors)) => (
             StatusCode::SERVICE_UNAVAILABLE,
-            Json(json!({
-                "status": "unhealthy",
-                "store": { "error": f.error, "failing_since_unix_ns": f.since_unix_ns, "errors_total": errors },
-            })),
+            Json(Health {
+                status: "unhealthy".into(),
+                store: Some(StoreHealth { error: f.error, failing_since_unix_ns: f.since_unix_ns, errors_total: errors }),
+            }),
         )
             .into_response(),
     }
 }
 
-async fn metrics(State(registry): State<Arc<Registry>>) -> Response {
+/// The API's OpenAPI 3.1 document (open: it holds no data).
+#[utoipa::path(
+    get,
+    path = "/api/v1/openapi.json",
+    tag = "server",
+    security(()),
+    responses(
+        (status = 200, description = "This document", body = Object),
+    )
+)]
+pub(crate) async fn openapi() -> Json<utoipa::openapi::OpenApi> {
+    Json(crate::api::openapi::document())
+}
+
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "server",
+    responses(
+        (status = 200, description = "OpenMetrics text", body = String, content_type = "application/openmetrics-text"),
+    )
+)]
+pub(crate) async fn metrics(State(registry): State<Arc<Registry>>) -> Response {
     ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], registry.metrics().render()).into_response()
 }
 
@@ -548,7 +689,19 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
 
 const MAP_FRAME: &str = "map = world rotated so that +z is up (gravity); origin at the first camera's centre; metres";
 
-async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+    ),
+    responses(
+        (status = 200, description = "Map frame, extent, voxel counts, zoom levels", body = Object),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
     let map = match session_map(&registry, &id) {
         Ok(m) => m,
         Err(r) => return r,
@@ -601,7 +754,24 @@ fn tile_coordinates(z: &str, x: &str, y: &str) -> Result<(u8, i64, i64), BadQuer
     Ok((z, x, y))
 }
 
-async fn map_tile(
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/tiles/{z}/{x}/{y}",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+        ("z" = u8, Path, description = "Zoom level"),
+        ("x" = i64, Path, description = "Tile column"),
+        ("y" = String, Path, description = "Tile row followed by .png, e.g. 3.png"),
+    ),
+    responses(
+        (status = 200, description = "Top-down PNG tile (ETag)", content_type = "image/png"),
+        (status = 304, description = "Not modified (If-None-Match)"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_tile(
     State(registry): State<Arc<Registry>>,
     Path((id, z, x, y)): Path<(String, String, String, String)>,
     headers: HeaderMap,
@@ -649,7 +819,19 @@ fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) ->
     }
 }
 
-async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/legend",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+    ),
+    responses(
+        (status = 200, description = "Classes and colours of the tiles", body = Object),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
     let map = match session_map(&registry, &id) {
         Ok(m) => m,
         Err(r) => return r,
@@ -665,7 +847,7 @@ async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String
 }
 
 #[derive(serde::Deserialize)]
-struct OccupancyQuery {
+pub(crate) struct OccupancyQuery {
     min_height: Option<f64>,
     max_height: Option<f64>,
     resolution: Option<f64>,
@@ -678,7 +860,23 @@ async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Re
         .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
-async fn map_occupancy_pgm(
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/occupancy.pgm",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
+        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
+        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+    ),
+    responses(
+        (status = 200, description = "ROS map_server occupancy image", content_type = "image/x-portable-graymap"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_occupancy_pgm(
     State(registry): State<Arc<Registry>>,
     Path(id): Path<String>,
     JsonQuery(q): JsonQuery<OccupancyQuery>,
@@ -689,7 +887,23 @@ async fn map_occupancy_pgm(
     }
 }
 
-async fn map_occupancy_yaml(
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/occupancy.yaml",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
+        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
+        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+    ),
+    responses(
+        (status = 200, description = "ROS map_server parameters", body = String, content_type = "application/yaml"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_occupancy_yaml(
     State(registry): State<Arc<Registry>>,
     Path(id): Path<String>,
     JsonQuery(q): JsonQuery<OccupancyQuery>,
@@ -701,11 +915,29 @@ async fn map_occupancy_yaml(
 }
 
 #[derive(serde::Deserialize)]
-struct CloudQuery {
+pub(crate) struct CloudQuery {
     bbox: Option<String>,
 }
 
-async fn map_cloud(State(registry): State<Arc<Registry>>, Path(id): Path<String>, JsonQuery(q): JsonQuery<CloudQuery>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/cloud.ply",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+        ("bbox" = Option<String>, Query, description = "min_x,min_y,min_z,max_x,max_y,max_z in the map frame, metres"),
+    ),
+    responses(
+        (status = 200, description = "Binary PLY point cloud with class colours", content_type = "application/octet-stream"),
+        (status = 400, description = "Bad query", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_cloud(
+    State(registry): State<Arc<Registry>>,
+    Path(id): Path<String>,
+    JsonQuery(q): JsonQuery<CloudQuery>,
+) -> Response {
     let map = match session_map(&registry, &id) {
         Ok(m) => m,
         Err(r) => return r,
@@ -745,7 +977,19 @@ fn objects_json(objects: &[stillmap_mapping::export::MapObject], names: &[String
         .collect()
 }
 
-async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/objects",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+    ),
+    responses(
+        (status = 200, description = "Objects of the map with class and box", body = Object),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+    )
+)]
+pub(crate) async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
     let map = match session_map(&registry, &id) {
         Ok(m) => m,
         Err(r) => return r,
@@ -819,7 +1063,7 @@ async fn require_read(
 
 /// The admin check as an extractor: it runs on the request's head, before a body
 /// extractor reads (up to 1 GiB of) the body.
-struct AdminOnly(Arc<HttpSettings>);
+pub(crate) struct AdminOnly(Arc<HttpSettings>);
 
 impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
     type Rejection = Response;
@@ -836,7 +1080,22 @@ impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
 }
 
 /// The session as one file (everything committed to the store: up to its last keyframe).
-async fn map_export(State(registry): State<Arc<Registry>>, AdminOnly(_): AdminOnly, Path(id): Path<String>) -> Response {
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{id}/export",
+    tag = "maps",
+    params(
+        ("id" = String, Path, description = "Session id"),
+    ),
+    responses(
+        (status = 200, description = "The session as one .stillmap file (admin scope)", content_type = "application/octet-stream"),
+        (status = 401, description = "No token", body = ApiError),
+        (status = 403, description = "Not admin", body = ApiError),
+        (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 409, description = "No store", body = ApiError),
+    )
+)]
+pub(crate) async fn map_export(State(registry): State<Arc<Registry>>, AdminOnly(_): AdminOnly, Path(id): Path<String>) -> Response {
     if registry.get(&id).is_none() {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     }
@@ -861,7 +1120,20 @@ async fn map_export(State(registry): State<Arc<Registry>>, AdminOnly(_): AdminOn
 }
 
 /// Adds a map file as a new (read-only) session: 201 with its id.
-async fn map_import(State(registry): State<Arc<Registry>>, AdminOnly(transfer): AdminOnly, body: axum::body::Bytes) -> Response {
+#[utoipa::path(
+    post,
+    path = "/api/v1/maps/import",
+    tag = "maps",
+    request_body(content = Vec<u8>, description = "A .stillmap file", content_type = "application/octet-stream"),
+    responses(
+        (status = 201, description = "Imported as a new read-only session", body = Imported),
+        (status = 400, description = "Not a valid map file", body = ApiError),
+        (status = 401, description = "No token", body = ApiError),
+        (status = 403, description = "Not admin", body = ApiError),
+        (status = 409, description = "Exists already, or no store", body = ApiError),
+    )
+)]
+pub(crate) async fn map_import(State(registry): State<Arc<Registry>>, AdminOnly(transfer): AdminOnly, body: axum::body::Bytes) -> Response {
     let max_bytes = transfer.import_max_bytes;
     let parsed = match blocking(move || crate::store::import_file(&body, max_bytes)).await {
         Ok(p) => p,
@@ -873,7 +1145,7 @@ async fn map_import(State(registry): State<Arc<Registry>>, AdminOnly(transfer): 
     };
     let r = registry.clone();
     match blocking(move || r.import(stored)).await {
-        Ok(Ok(id)) => (StatusCode::CREATED, Json(json!({ "session_id": id }))).into_response(),
+        Ok(Ok(id)) => (StatusCode::CREATED, Json(Imported { session_id: id })).into_response(),
         Ok(Err(e @ crate::session::ImportError::Exists(_))) => error(StatusCode::CONFLICT, e.to_string()),
         Ok(Err(e @ crate::session::ImportError::NoStore)) => error(StatusCode::CONFLICT, e.to_string()),
         Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),

@@ -4,5 +4,6 @@
 pub mod dashboard;
 pub mod http;
 pub mod map_queries;
+pub mod openapi;
 pub mod query;
 pub mod serve;
