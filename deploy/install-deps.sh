@@ -69,6 +69,16 @@ if [ ! -x .deps/evo/bin/evo_ape ]; then
   test -x .deps/evo/bin/evo_ape
 fi
 
+# The Python client example's gRPC stack (examples/python, run by tests/tests/python_client.rs),
+# pinned in its requirements file: ~5 s, ~60 MB. Reinstalled when the pins change.
+if [ ! -x .deps/pyclient/bin/python ] || [ examples/python/requirements.txt -nt .deps/pyclient/installed ]; then
+  echo "install-deps: installing the Python client's packages into .deps/pyclient"
+  rm -rf .deps/pyclient
+  python3 -m venv .deps/pyclient
+  .deps/pyclient/bin/pip install -q --disable-pip-version-check -r examples/python/requirements.txt
+  touch .deps/pyclient/installed
+fi
+
 # The dashboard's npm packages, exactly as locked: three.js (served to browsers by the
 # server) and playwright-core (drives chromium in tests/tests/dashboard.rs).
 if [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwright-core ] || [ dashboard/package-lock.json -nt dashboard/node_modules ]; then
