@@ -79,6 +79,16 @@ if [ ! -x .deps/pyclient/bin/python ] || [ examples/python/requirements.txt -nt 
   touch .deps/pyclient/installed
 fi
 
+# The ROS 2 recording writer of the mcap: source tests (tests/scripts/write-mcap.py:
+# rosbags, Pillow, numpy), pinned: ~5 s, ~80 MB.
+if [ ! -x .deps/bagtools/bin/python ] || [ tests/scripts/requirements.txt -nt .deps/bagtools/installed ]; then
+  echo "install-deps: installing the recording writer's packages into .deps/bagtools"
+  rm -rf .deps/bagtools
+  python3 -m venv .deps/bagtools
+  .deps/bagtools/bin/pip install -q --disable-pip-version-check -r tests/scripts/requirements.txt
+  touch .deps/bagtools/installed
+fi
+
 # The dashboard's npm packages, exactly as locked: three.js (served to browsers by the
 # server) and playwright-core (drives chromium in tests/tests/dashboard.rs).
 if [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwright-core ] || [ dashboard/package-lock.json -nt dashboard/node_modules ]; then

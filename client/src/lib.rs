@@ -2,6 +2,7 @@
 //! `openni`) and their calibration ([`calibration`]), the transport links ([`link`]), the streaming core ([`streamer`]) and
 //! trajectory evaluation like evo ([`eval`]).
 
+pub mod bag;
 pub mod bench;
 pub mod calibration;
 pub mod eval;

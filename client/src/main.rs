@@ -132,6 +132,23 @@ struct CalibrationArgs {
     allow_default_intrinsics: bool,
 }
 
+/// Which topics of an `mcap:` recording to read (unset: the one topic of each kind).
+#[derive(clap::Args)]
+struct TopicArgs {
+    /// Colour images (sensor_msgs/msg/Image rgb8 or bgr8, or CompressedImage).
+    #[arg(long)]
+    color_topic: Option<String>,
+    /// Depth images (sensor_msgs/msg/Image 16UC1 in mm or 32FC1 in m), registered to colour.
+    #[arg(long)]
+    depth_topic: Option<String>,
+    /// sensor_msgs/msg/CameraInfo of the colour camera (its calibration).
+    #[arg(long)]
+    camera_info_topic: Option<String>,
+    /// sensor_msgs/msg/Imu in the colour camera's frame (its accelerometer).
+    #[arg(long)]
+    imu_topic: Option<String>,
+}
+
 impl From<CalibrationArgs> for CameraOptions {
     fn from(a: CalibrationArgs) -> Self {
         Self { calibration: a.calibration, camera: a.camera, allow_default_intrinsics: a.allow_default_intrinsics }
@@ -142,9 +159,12 @@ impl From<CalibrationArgs> for CameraOptions {
 enum Command {
     /// Stream a source to the server and print a summary.
     Stream {
-        /// tum:<dir> (a TUM RGB-D folder), openni2 (first device) or openni2:<uri> (e.g. openni2:Dummy).
+        /// tum:<dir> (a TUM RGB-D folder), mcap:<file> (a ROS 2 recording), openni2 (first
+        /// device) or openni2:<uri> (e.g. openni2:Dummy).
         #[arg(long)]
         source: SourceSpec,
+        #[command(flatten)]
+        topics: TopicArgs,
         #[arg(long, value_enum, default_value = "grpc")]
         transport: TransportArg,
         #[command(flatten)]
@@ -323,7 +343,8 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Stream {
-            source,
+            mut source,
+            topics,
             transport,
             endpoints,
             robot_id,
@@ -346,6 +367,24 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             calibration,
         } => {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
+            let named = [&topics.color_topic, &topics.depth_topic, &topics.camera_info_topic, &topics.imu_topic];
+            match &mut source {
+                SourceSpec::Mcap(_, t) => {
+                    *t = stillmap_client::bag::BagTopics {
+                        color: topics.color_topic,
+                        depth: topics.depth_topic,
+                        camera_info: topics.camera_info_topic,
+                        imu: topics.imu_topic,
+                    }
+                }
+                _ if named.iter().any(|t| t.is_some()) => {
+                    return Err(ClientError::Usage(
+                        "--color-topic, --depth-topic, --camera-info-topic and --imu-topic are for mcap: sources".into(),
+                    )
+                    .into());
+                }
+                _ => {}
+            }
             if let Some(f) = &fleet {
                 stillmap_proto::validate_fleet(f).map_err(ClientError::Usage)?;
             }

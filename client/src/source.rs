@@ -35,6 +35,8 @@ pub enum SourceSpec {
     Tum(std::path::PathBuf),
     /// `openni2` or `openni2:<uri>`: a device (`Dummy` is OpenNI2's hardware-free one).
     OpenNi2(Option<String>),
+    /// `mcap:<file>`: a ROS 2 recording, and which of its topics to read.
+    Mcap(std::path::PathBuf, crate::bag::BagTopics),
 }
 
 impl std::str::FromStr for SourceSpec {
@@ -46,13 +48,19 @@ impl std::str::FromStr for SourceSpec {
             }
             return Ok(Self::Tum(dir.into()));
         }
+        if let Some(file) = s.strip_prefix("mcap:") {
+            if file.is_empty() {
+                return Err("mcap: needs a file, e.g. mcap:recording.mcap".into());
+            }
+            return Ok(Self::Mcap(file.into(), crate::bag::BagTopics::default()));
+        }
         if s == "openni2" {
             return Ok(Self::OpenNi2(None));
         }
         if let Some(uri) = s.strip_prefix("openni2:") {
             return Ok(Self::OpenNi2((!uri.is_empty()).then(|| uri.to_string())));
         }
-        Err(format!("unknown source {s:?}: use tum:<dir>, openni2 or openni2:<uri>"))
+        Err(format!("unknown source {s:?}: use tum:<dir>, mcap:<file>, openni2 or openni2:<uri>"))
     }
 }
 
@@ -60,6 +68,7 @@ impl std::str::FromStr for SourceSpec {
 pub fn open(spec: &SourceSpec, max_frames: Option<usize>, camera: &CameraOptions) -> Result<Box<dyn FrameSource>, ClientError> {
     match spec {
         SourceSpec::Tum(dir) => Ok(Box::new(crate::tum::TumSource::open(dir, max_frames, camera)?)),
+        SourceSpec::Mcap(file, topics) => Ok(Box::new(crate::bag::McapSource::open(file, topics, max_frames, camera)?)),
         #[cfg(feature = "openni2")]
         SourceSpec::OpenNi2(uri) => Ok(Box::new(crate::openni::OpenNiSource::open(uri.as_deref(), max_frames, camera)?)),
         #[cfg(not(feature = "openni2"))]
@@ -76,6 +85,8 @@ mod tests {
         assert_eq!("tum:/a/b".parse(), Ok(SourceSpec::Tum("/a/b".into())));
         assert_eq!("openni2".parse(), Ok(SourceSpec::OpenNi2(None)));
         assert_eq!("openni2:Dummy".parse(), Ok(SourceSpec::OpenNi2(Some("Dummy".into()))));
+        assert_eq!("mcap:a.mcap".parse(), Ok(SourceSpec::Mcap("a.mcap".into(), crate::bag::BagTopics::default())));
+        assert!("mcap:".parse::<SourceSpec>().is_err());
         assert!("kinect".parse::<SourceSpec>().unwrap_err().contains("unknown source \"kinect\""));
     }
 }
