@@ -1,13 +1,16 @@
-//! ROS 2 recordings: `--source mcap:FILE` streams `sensor_msgs/msg/Image` (or
+//! ROS recordings: `--source mcap:FILE` (ROS 2, read with Foxglove's `mcap` crate,
+//! messages decoded from CDR with `cdr-encoding`) and `--source rosbag:FILE` (ROS 1
+//! bags such as TUM's and Bonn's own downloads, read with `rosbag`, messages
+//! decoded with rosrust's `serde_rosmsg`) stream `sensor_msgs` `Image` (or
 //! `CompressedImage`) colour, `Image` depth (`16UC1` millimetres or `32FC1` metres),
-//! `CameraInfo` for the calibration and `Imu` for the accelerometer, read with
-//! Foxglove's `mcap` crate and decoded from CDR with `cdr-encoding`.
+//! `CameraInfo` for the calibration and `Imu` for the accelerometer.
 //!
 //! Two passes over the file, each streaming (memory is one chunk and the frames
 //! waiting for their other half, not the file): the first lists the topics and
 //! every image's timestamp, pairs colour with depth exactly as the TUM source does
 //! (`tum::associate`, 20 ms) and keeps the camera info and accelerometer samples;
-//! the second decodes the paired images in order.
+//! the second, on a reader thread, decodes the paired images in order and hands
+//! frames over a bounded channel.
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -132,6 +135,208 @@ fn decode<'de, T: Deserialize<'de>>(bytes: &'de [u8], what: &str) -> Result<T, C
     result.map(|(v, _)| v).map_err(|e| bad(format!("bad CDR: {e}")))
 }
 
+/// How a file's messages are serialized.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BagFormat {
+    /// ROS 2 in MCAP (CDR).
+    Mcap,
+    /// ROS 1 bag (ROS 1 serialization).
+    Ros1,
+}
+
+#[derive(Deserialize)]
+struct Time1 {
+    sec: u32,
+    nsec: u32,
+}
+
+#[derive(Deserialize)]
+struct Header1 {
+    _seq: u32,
+    stamp: Time1,
+    frame_id: String,
+}
+
+impl From<Header1> for Header {
+    fn from(h: Header1) -> Self {
+        // ROS 1 stamps are unsigned; seconds beyond i32 are out of any recording's range.
+        Self { stamp: Time { sec: i32::try_from(h.stamp.sec).unwrap_or(-1), nanosec: h.stamp.nsec }, frame_id: h.frame_id }
+    }
+}
+
+#[derive(Deserialize)]
+struct ImageHead1 {
+    header: Header1,
+    height: u32,
+    width: u32,
+    encoding: String,
+}
+
+#[derive(Deserialize)]
+struct Image1 {
+    _header: Header1,
+    height: u32,
+    width: u32,
+    encoding: String,
+    is_bigendian: u8,
+    step: u32,
+    data: Vec<u8>,
+}
+
+#[derive(Deserialize)]
+struct CompressedImage1 {
+    _header: Header1,
+    format: String,
+    data: Vec<u8>,
+}
+
+#[derive(Deserialize)]
+struct CameraInfo1 {
+    header: Header1,
+    height: u32,
+    width: u32,
+    distortion_model: String,
+    d: Vec<f64>,
+    k: [f64; 9],
+}
+
+#[derive(Deserialize)]
+struct Imu1 {
+    header: Header1,
+    _orientation: [f64; 4],
+    _orientation_covariance: [f64; 9],
+    _angular_velocity: Vector3,
+    _angular_velocity_covariance: [f64; 9],
+    linear_acceleration: Vector3,
+}
+
+/// A ROS 1 message from its bytes (no length prefix in a bag's message records).
+fn decode1<'de, T: Deserialize<'de>>(bytes: &[u8], what: &str) -> Result<T, ClientError> {
+    let length = u32::try_from(bytes.len()).map_err(|_| ClientError::Source(format!("{what}: larger than 4 GiB")))?;
+    let mut de = serde_rosmsg::de::Deserializer::new(std::io::Cursor::new(bytes), length);
+    T::deserialize(&mut de).map_err(|e| ClientError::Source(format!("{what}: bad ROS 1 message: {e}")))
+}
+
+fn image_head(format: BagFormat, bytes: &[u8], what: &str) -> Result<ImageHead, ClientError> {
+    match format {
+        BagFormat::Mcap => decode(bytes, what),
+        BagFormat::Ros1 => decode1::<ImageHead1>(bytes, what).map(|m| ImageHead {
+            header: m.header.into(),
+            height: m.height,
+            width: m.width,
+            encoding: m.encoding,
+        }),
+    }
+}
+
+fn image(format: BagFormat, bytes: &[u8], what: &str) -> Result<Image, ClientError> {
+    match format {
+        BagFormat::Mcap => decode(bytes, what),
+        BagFormat::Ros1 => decode1::<Image1>(bytes, what).map(|m| Image {
+            _header: m._header.into(),
+            height: m.height,
+            width: m.width,
+            encoding: m.encoding,
+            is_bigendian: m.is_bigendian,
+            step: m.step,
+            data: m.data,
+        }),
+    }
+}
+
+fn compressed(format: BagFormat, bytes: &[u8], what: &str) -> Result<CompressedImage, ClientError> {
+    match format {
+        BagFormat::Mcap => decode(bytes, what),
+        BagFormat::Ros1 => {
+            decode1::<CompressedImage1>(bytes, what).map(|m| CompressedImage { _header: m._header.into(), format: m.format, data: m.data })
+        }
+    }
+}
+
+fn compressed_header(format: BagFormat, bytes: &[u8], what: &str) -> Result<Header, ClientError> {
+    match format {
+        BagFormat::Mcap => decode(bytes, what),
+        BagFormat::Ros1 => decode1::<Header1>(bytes, what).map(Header::from),
+    }
+}
+
+fn camera_info(format: BagFormat, bytes: &[u8], what: &str) -> Result<CameraInfo, ClientError> {
+    match format {
+        BagFormat::Mcap => decode(bytes, what),
+        BagFormat::Ros1 => decode1::<CameraInfo1>(bytes, what).map(|m| CameraInfo {
+            header: m.header.into(),
+            height: m.height,
+            width: m.width,
+            distortion_model: m.distortion_model,
+            d: m.d,
+            k: m.k,
+        }),
+    }
+}
+
+fn imu(format: BagFormat, bytes: &[u8], what: &str) -> Result<(Header, Vector3), ClientError> {
+    match format {
+        BagFormat::Mcap => decode::<Imu>(bytes, what).map(|m| (m.header, m.linear_acceleration)),
+        BagFormat::Ros1 => decode1::<Imu1>(bytes, what).map(|m| (m.header.into(), m.linear_acceleration)),
+    }
+}
+
+/// ROS 1 type names (`sensor_msgs/Image`) as ROS 2's (`sensor_msgs/msg/Image`).
+fn ros2_name(ros1: &str) -> String {
+    match ros1.split_once('/') {
+        Some((package, name)) if !name.contains('/') => format!("{package}/msg/{name}"),
+        _ => ros1.to_string(),
+    }
+}
+
+/// Sees one message (topic, schema, bytes); `false` stops the reading.
+type Visitor<'a> = dyn FnMut(&str, &str, &[u8]) -> Result<bool, ClientError> + 'a;
+
+/// Calls `f(topic, schema, bytes)` for every message of the file in file order, until
+/// it returns `false`; messages in encodings other than the format's are skipped.
+fn visit(path: &Path, format: BagFormat, f: &mut Visitor<'_>) -> Result<(), ClientError> {
+    let bad = |e: String| ClientError::Source(format!("{}: {e}", path.display()));
+    match format {
+        BagFormat::Mcap => {
+            for message in open_reader(path)? {
+                let message = message.map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
+                if message.channel.message_encoding != "cdr" {
+                    continue;
+                }
+                let schema = message.channel.schema.as_ref().map(|s| s.name.as_str()).unwrap_or_default();
+                if !f(&message.channel.topic, schema, &message.data)? {
+                    break;
+                }
+            }
+        }
+        BagFormat::Ros1 => {
+            let bag = rosbag::RosBag::new(path).map_err(|e| bad(format!("not a readable ROS 1 bag: {e}")))?;
+            let mut connections: HashMap<u32, (String, String)> = HashMap::new();
+            for record in bag.chunk_records() {
+                let rosbag::ChunkRecord::Chunk(chunk) = record.map_err(|e| bad(format!("not a readable ROS 1 bag: {e}")))? else {
+                    continue;
+                };
+                for message in chunk.messages() {
+                    match message.map_err(|e| bad(format!("bad chunk: {e}")))? {
+                        rosbag::MessageRecord::Connection(c) => {
+                            connections.insert(c.id, (c.topic.to_string(), ros2_name(c.tp)));
+                        }
+                        rosbag::MessageRecord::MessageData(m) => {
+                            let Some((topic, schema)) = connections.get(&m.conn_id) else {
+                                return Err(bad(format!("a message on connection {} before its connection record", m.conn_id)));
+                            };
+                            if !f(topic, schema, m.data)? {
+                                return Ok(());
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
 /// What the first pass saw of one topic.
 #[derive(Debug, Default)]
 struct TopicStats {
@@ -141,21 +346,26 @@ struct TopicStats {
     encoding: Option<String>,
 }
 
-pub struct McapSource {
-    path: PathBuf,
+pub struct BagSource {
     camera: pb::CameraInfo,
-    topics: (String, String),
-    /// (colour message ordinal, depth message ordinal, capture time, accelerometer).
-    pairs: Vec<(usize, usize, u64, Option<[f64; 3]>)>,
-    next: usize,
-    reader: Option<mcap::io::MessageReader<BufReader<File>>>,
-    /// Ordinals of the colour and depth messages seen so far in the second pass.
-    seen: (usize, usize),
-    /// The colour and depth ordinals some frame uses.
-    needed: (std::collections::HashSet<usize>, std::collections::HashSet<usize>),
-    pending_color: HashMap<usize, ColorImage>,
-    pending_depth: HashMap<usize, DepthImage>,
+    frames: usize,
+    /// Frames from the reader thread (started by the first `next_frame`).
+    reader: Option<std::sync::mpsc::Receiver<Result<RawFrame, ClientError>>>,
+    /// What the reader thread needs: the file, its format, the colour and depth
+    /// topics and the pairs (colour ordinal, depth ordinal, time, accelerometer).
+    plan: Option<ReadPlan>,
 }
+
+struct ReadPlan {
+    path: PathBuf,
+    format: BagFormat,
+    topics: (String, String),
+    pairs: Vec<(usize, usize, u64, Option<[f64; 3]>)>,
+    camera: pb::CameraInfo,
+}
+
+/// Frames decoded ahead of the streamer, at most.
+const READ_AHEAD_FRAMES: usize = 4;
 
 fn open_reader(path: &Path) -> Result<mcap::io::MessageReader<BufReader<File>>, ClientError> {
     let file = File::open(path).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
@@ -198,54 +408,55 @@ fn is_depth_encoding(e: &str) -> bool {
     matches!(e, "16UC1" | "mono16" | "32FC1")
 }
 
-impl McapSource {
-    pub fn open(path: &Path, topics: &BagTopics, max_frames: Option<usize>, options: &CameraOptions) -> Result<Self, ClientError> {
+impl BagSource {
+    pub fn open(
+        path: &Path,
+        format: BagFormat,
+        topics: &BagTopics,
+        max_frames: Option<usize>,
+        options: &CameraOptions,
+    ) -> Result<Self, ClientError> {
         let source_error = |m: String| ClientError::Source(format!("{}: {m}", path.display()));
         // First pass: the topics, every image's stamp, the calibration, the accelerometer.
         let mut stats: BTreeMap<String, TopicStats> = BTreeMap::new();
         let mut stamps: HashMap<String, Vec<u64>> = HashMap::new();
         let mut infos: HashMap<String, CameraInfo> = HashMap::new();
-        let mut imu: HashMap<String, Vec<(u64, [f64; 3], String)>> = HashMap::new();
+        let mut imu_samples: HashMap<String, Vec<(u64, [f64; 3], String)>> = HashMap::new();
         let mut image_frames: HashMap<String, String> = HashMap::new();
-        for message in open_reader(path)? {
-            let message = message.map_err(|e| source_error(format!("not a readable MCAP file: {e}")))?;
-            let topic = &message.channel.topic;
-            let schema = message.channel.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default();
-            let entry = stats.entry(topic.clone()).or_insert_with(|| TopicStats { schema: schema.clone(), ..Default::default() });
+        visit(path, format, &mut |topic, schema, data| {
+            let entry = stats.entry(topic.to_string()).or_insert_with(|| TopicStats { schema: schema.to_string(), ..Default::default() });
             entry.messages += 1;
-            let cdr = message.channel.message_encoding == "cdr";
-            let what = || format!("{topic} message {}", entry.messages);
-            match schema.as_str() {
-                IMAGE if cdr => {
-                    let head: ImageHead = decode(&message.data, &what())?;
+            let what = format!("{topic} message {}", entry.messages);
+            let negative = || source_error(format!("{what}: negative time stamp"));
+            match schema {
+                IMAGE => {
+                    let head = image_head(format, data, &what)?;
                     entry.encoding.get_or_insert(head.encoding);
-                    image_frames.entry(topic.clone()).or_insert(head.header.frame_id.clone());
-                    let stamp = head.header.stamp_ns().ok_or_else(|| source_error(format!("{}: negative time stamp", what())))?;
-                    stamps.entry(topic.clone()).or_default().push(stamp);
+                    image_frames.entry(topic.to_string()).or_insert(head.header.frame_id.clone());
+                    stamps.entry(topic.to_string()).or_default().push(head.header.stamp_ns().ok_or_else(negative)?);
                 }
-                COMPRESSED if cdr => {
-                    let head: Header = decode(&message.data, &what())?;
-                    image_frames.entry(topic.clone()).or_insert(head.frame_id.clone());
-                    let stamp = head.stamp_ns().ok_or_else(|| source_error(format!("{}: negative time stamp", what())))?;
-                    stamps.entry(topic.clone()).or_default().push(stamp);
+                COMPRESSED => {
+                    let head = compressed_header(format, data, &what)?;
+                    image_frames.entry(topic.to_string()).or_insert(head.frame_id.clone());
+                    stamps.entry(topic.to_string()).or_default().push(head.stamp_ns().ok_or_else(negative)?);
                 }
-                CAMERA_INFO if cdr && !infos.contains_key(topic) => {
-                    infos.insert(topic.clone(), decode(&message.data, &what())?);
+                CAMERA_INFO if !infos.contains_key(topic) => {
+                    infos.insert(topic.to_string(), camera_info(format, data, &what)?);
                 }
-                IMU if cdr => {
-                    let m: Imu = decode(&message.data, &what())?;
-                    let samples = imu.entry(topic.clone()).or_default();
+                IMU => {
+                    let (header, a) = imu(format, data, &what)?;
+                    let samples = imu_samples.entry(topic.to_string()).or_default();
                     if samples.len() >= MAX_IMU_SAMPLES {
                         return Err(source_error(format!("{topic}: more than {MAX_IMU_SAMPLES} IMU samples")));
                     }
-                    if let Some(t) = m.header.stamp_ns() {
-                        let a = &m.linear_acceleration;
-                        samples.push((t, [a.x, a.y, a.z], m.header.frame_id));
+                    if let Some(t) = header.stamp_ns() {
+                        samples.push((t, [a.x, a.y, a.z], header.frame_id));
                     }
                 }
                 _ => {}
             }
-        }
+            Ok(true)
+        })?;
         let chosen = (|| -> Result<_, String> {
             let color = pick(&topics.color, "colour images", &stats, |s| {
                 s.schema == COMPRESSED || (s.schema == IMAGE && !s.encoding.as_deref().is_some_and(is_depth_encoding))
@@ -282,7 +493,7 @@ impl McapSource {
 
         // The accelerometer only when it is in the colour camera's frame (no TF here).
         let color_frame = image_frames.get(&color).cloned().unwrap_or_default();
-        let accel: Vec<(u64, [f64; 3])> = match imu_topic.and_then(|t| imu.remove(&t).map(|s| (t, s))) {
+        let accel: Vec<(u64, [f64; 3])> = match imu_topic.and_then(|t| imu_samples.remove(&t).map(|s| (t, s))) {
             Some((t, samples)) => {
                 if samples.iter().all(|s| s.2 == color_frame) {
                     let mut v: Vec<(u64, [f64; 3])> = samples.into_iter().map(|s| (s.0, s.1)).collect();
@@ -316,16 +527,20 @@ impl McapSource {
         }
 
         let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let (scheme, kind) = match format {
+            BagFormat::Mcap => ("mcap", "MCAP file"),
+            BagFormat::Ros1 => ("rosbag", "ROS 1 bag"),
+        };
         let first = infos.remove(info_topic.as_deref().unwrap_or_default());
         let source_camera = match first {
             Some(ci) => SourceCamera {
                 info: camera_from_info(&ci, &depth_encoding).map_err(source_error)?,
-                known: Some(format!("mcap:{name} {} ({})", info_topic.unwrap_or_default(), ci.header.frame_id)),
-                what: format!("MCAP file {name}"),
+                known: Some(format!("{scheme}:{name} {} ({})", info_topic.unwrap_or_default(), ci.header.frame_id)),
+                what: format!("{kind} {name}"),
             },
             None => {
                 // Size from the first colour image; nominal intrinsics, marked unknown.
-                let (w, h) = first_size(path, &color)?;
+                let (w, h) = first_size(path, format, &color)?;
                 SourceCamera {
                     info: pb::CameraInfo {
                         width: w,
@@ -339,34 +554,26 @@ impl McapSource {
                         ..Default::default()
                     },
                     known: None,
-                    what: format!("MCAP file {name} (no CameraInfo topic)"),
+                    what: format!("{kind} {name} (no CameraInfo topic)"),
                 }
             }
         };
         let camera = crate::calibration::resolve(source_camera, options)?;
-        Ok(Self {
-            path: path.to_path_buf(),
-            camera,
-            topics: (color, depth),
-            next: 0,
-            reader: None,
-            seen: (0, 0),
-            needed: (pairs.iter().map(|p| p.0).collect(), pairs.iter().map(|p| p.1).collect()),
-            pairs,
-            pending_color: HashMap::new(),
-            pending_depth: HashMap::new(),
-        })
+        let plan = ReadPlan { path: path.to_path_buf(), format, topics: (color, depth), pairs, camera: camera.clone() };
+        Ok(Self { camera, frames: plan.pairs.len(), reader: None, plan: Some(plan) })
     }
+}
 
-    fn decode_color(&self, data: &[u8], compressed: bool, what: &str) -> Result<ColorImage, ClientError> {
+impl ReadPlan {
+    fn decode_color(&self, data: &[u8], compressed_image: bool, what: &str) -> Result<ColorImage, ClientError> {
         let (w, h) = (self.camera.width, self.camera.height);
         let bad = |m: String| ClientError::Source(format!("{what}: {m}"));
-        if compressed {
-            let m: CompressedImage = decode(data, what)?;
+        if compressed_image {
+            let m = compressed(self.format, data, what)?;
             let encoding = if m.format.contains("png") { pb::ColorEncoding::Png } else { pb::ColorEncoding::Jpeg };
             return codec::decode_color(encoding, &m.data, w, h).map_err(|e| bad(e.to_string()));
         }
-        let m: Image = decode(data, what)?;
+        let m = image(self.format, data, what)?;
         check_size(&m, w, h, 3, what)?;
         let row = 3 * w as usize;
         let mut rgb = Vec::with_capacity(row * h as usize);
@@ -384,7 +591,7 @@ impl McapSource {
     fn decode_depth(&self, data: &[u8], what: &str) -> Result<DepthImage, ClientError> {
         let (w, h) = (self.camera.width, self.camera.height);
         let bad = |m: String| ClientError::Source(format!("{what}: {m}"));
-        let m: Image = decode(data, what)?;
+        let m = image(self.format, data, what)?;
         let bytes = if m.encoding == "32FC1" { 4 } else { 2 };
         check_size(&m, w, h, bytes, what)?;
         let scale = self.camera.depth_units_per_metre;
@@ -462,77 +669,105 @@ fn camera_from_info(ci: &CameraInfo, depth_encoding: &str) -> Result<pb::CameraI
 }
 
 /// The size of the first image on `topic`.
-fn first_size(path: &Path, topic: &str) -> Result<(u32, u32), ClientError> {
-    for message in open_reader(path)? {
-        let message = message.map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
-        if message.channel.topic == topic {
-            let what = format!("{topic} message 1");
-            return match message.channel.schema.as_ref().map(|s| s.name.as_str()) {
-                Some(IMAGE) => decode::<ImageHead>(&message.data, &what).map(|h| (h.width, h.height)),
-                _ => Err(ClientError::Source(format!(
-                    "{topic}: a compressed colour topic and no CameraInfo: give --calibration (it states the image size)"
-                ))),
-            };
+fn first_size(path: &Path, format: BagFormat, topic: &str) -> Result<(u32, u32), ClientError> {
+    let mut size: Option<Result<(u32, u32), ClientError>> = None;
+    visit(path, format, &mut |t, schema, data| {
+        if t != topic {
+            return Ok(true);
         }
-    }
-    Err(ClientError::Source(format!("{}: no message on {topic}", path.display())))
+        size = Some(match schema {
+            IMAGE => image_head(format, data, &format!("{topic} message 1")).map(|h| (h.width, h.height)),
+            _ => Err(ClientError::Source(format!(
+                "{topic}: a compressed colour topic and no CameraInfo: give --calibration (it states the image size)"
+            ))),
+        });
+        Ok(false)
+    })?;
+    size.unwrap_or_else(|| Err(ClientError::Source(format!("{}: no message on {topic}", path.display()))))
 }
 
-impl FrameSource for McapSource {
-    fn camera(&self) -> pb::CameraInfo {
-        self.camera.clone()
-    }
-
-    fn len_hint(&self) -> Option<usize> {
-        Some(self.pairs.len())
-    }
-
-    fn next_frame(&mut self) -> Result<Option<RawFrame>, ClientError> {
-        let Some(&(ci, di, ts, accel)) = self.pairs.get(self.next) else {
-            return Ok(None);
-        };
-        if self.reader.is_none() {
-            self.reader = Some(open_reader(&self.path)?);
-        }
-        while !(self.pending_color.contains_key(&ci) && self.pending_depth.contains_key(&di)) {
-            let Some(message) = self.reader.as_mut().and_then(Iterator::next) else {
-                return Err(ClientError::Source(format!(
-                    "{}: ended before frame {} (changed while read?)",
-                    self.path.display(),
-                    self.next
-                )));
-            };
-            let message = message.map_err(|e| ClientError::Source(format!("{}: {e}", self.path.display())))?;
-            let topic = message.channel.topic.as_str();
-            let compressed = message.channel.schema.as_ref().is_some_and(|s| s.name == COMPRESSED);
-            // Only images some frame needs are decoded and kept.
-            let wanted = |k: usize, colour: bool| if colour { self.needed.0.contains(&k) } else { self.needed.1.contains(&k) };
+impl ReadPlan {
+    /// The second pass: decodes the paired images in file order and sends the frames
+    /// in pair order (each image kept only until its frame is sent; at most
+    /// [`MAX_PENDING_IMAGES`] waiting). Stops when the receiver is gone.
+    fn run(self, out: &std::sync::mpsc::SyncSender<Result<RawFrame, ClientError>>) {
+        let needed: (std::collections::HashSet<usize>, std::collections::HashSet<usize>) =
+            (self.pairs.iter().map(|p| p.0).collect(), self.pairs.iter().map(|p| p.1).collect());
+        let (mut seen, mut next) = ((0usize, 0usize), 0usize);
+        let mut pending_color: HashMap<usize, ColorImage> = HashMap::new();
+        let mut pending_depth: HashMap<usize, DepthImage> = HashMap::new();
+        let mut receiver_gone = false;
+        let result = visit(&self.path, self.format, &mut |topic, schema, data| {
             if topic == self.topics.0 {
-                let k = self.seen.0;
-                self.seen.0 += 1;
-                if wanted(k, true) {
-                    let image = self.decode_color(&message.data, compressed, &format!("{topic} message {}", k + 1))?;
-                    self.pending_color.insert(k, image);
+                let k = seen.0;
+                seen.0 += 1;
+                if needed.0.contains(&k) {
+                    let what = format!("{topic} message {}", k + 1);
+                    pending_color.insert(k, self.decode_color(data, schema == COMPRESSED, &what)?);
                 }
             } else if topic == self.topics.1 {
-                let k = self.seen.1;
-                self.seen.1 += 1;
-                if wanted(k, false) {
-                    let image = self.decode_depth(&message.data, &format!("{topic} message {}", k + 1))?;
-                    self.pending_depth.insert(k, image);
+                let k = seen.1;
+                seen.1 += 1;
+                if needed.1.contains(&k) {
+                    pending_depth.insert(k, self.decode_depth(data, &format!("{topic} message {}", k + 1))?);
+                }
+            } else {
+                return Ok(true);
+            }
+            while let Some(&(ci, di, ts, accel)) = self.pairs.get(next) {
+                if !(pending_color.contains_key(&ci) && pending_depth.contains_key(&di)) {
+                    break;
+                }
+                next += 1;
+                let (Some(color), Some(depth)) = (pending_color.remove(&ci), pending_depth.remove(&di)) else { break };
+                if out.send(Ok(RawFrame { capture_time_ns: ts, color, depth, accel_in_camera: accel })).is_err() {
+                    receiver_gone = true;
+                    return Ok(false);
                 }
             }
-            if self.pending_color.len() + self.pending_depth.len() > MAX_PENDING_IMAGES {
+            if pending_color.len() + pending_depth.len() > MAX_PENDING_IMAGES {
                 return Err(ClientError::Source(format!(
                     "{}: colour and depth of one frame lie more than {MAX_PENDING_IMAGES} images apart in the file",
                     self.path.display()
                 )));
             }
-        }
-        self.next += 1;
-        let (Some(color), Some(depth)) = (self.pending_color.remove(&ci), self.pending_depth.remove(&di)) else {
-            return Err(ClientError::Source("frame pairing lost its images".into()));
+            Ok(next < self.pairs.len())
+        });
+        let ended = match result {
+            Err(e) => Some(e),
+            Ok(()) if !receiver_gone && next < self.pairs.len() => {
+                Some(ClientError::Source(format!("{}: ended before frame {next} (changed while read?)", self.path.display())))
+            }
+            Ok(()) => None,
         };
-        Ok(Some(RawFrame { capture_time_ns: ts, color, depth, accel_in_camera: accel }))
+        if let Some(e) = ended {
+            let _ = out.send(Err(e));
+        }
+    }
+}
+
+impl FrameSource for BagSource {
+    fn camera(&self) -> pb::CameraInfo {
+        self.camera.clone()
+    }
+
+    fn len_hint(&self) -> Option<usize> {
+        Some(self.frames)
+    }
+
+    fn next_frame(&mut self) -> Result<Option<RawFrame>, ClientError> {
+        if let Some(plan) = self.plan.take() {
+            let (tx, rx) = std::sync::mpsc::sync_channel(READ_AHEAD_FRAMES);
+            std::thread::Builder::new()
+                .name("bag-reader".into())
+                .spawn(move || plan.run(&tx))
+                .map_err(|e| ClientError::Source(format!("cannot start the recording's reader thread: {e}")))?;
+            self.reader = Some(rx);
+        }
+        match self.reader.as_ref().map(std::sync::mpsc::Receiver::recv) {
+            Some(Ok(frame)) => frame.map(Some),
+            // The reader sent every frame and ended.
+            Some(Err(_)) | None => Ok(None),
+        }
     }
 }

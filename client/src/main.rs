@@ -132,7 +132,7 @@ struct CalibrationArgs {
     allow_default_intrinsics: bool,
 }
 
-/// Which topics of an `mcap:` recording to read (unset: the one topic of each kind).
+/// Which topics of an `mcap:` or `rosbag:` recording to read (unset: the one topic of each kind).
 #[derive(clap::Args)]
 struct TopicArgs {
     /// Colour images (sensor_msgs/msg/Image rgb8 or bgr8, or CompressedImage).
@@ -159,8 +159,8 @@ impl From<CalibrationArgs> for CameraOptions {
 enum Command {
     /// Stream a source to the server and print a summary.
     Stream {
-        /// tum:<dir> (a TUM RGB-D folder), mcap:<file> (a ROS 2 recording), openni2 (first
-        /// device) or openni2:<uri> (e.g. openni2:Dummy).
+        /// tum:<dir> (a TUM RGB-D folder), mcap:<file> (a ROS 2 recording), rosbag:<file> (a
+        /// ROS 1 bag), openni2 (first device) or openni2:<uri> (e.g. openni2:Dummy).
         #[arg(long)]
         source: SourceSpec,
         #[command(flatten)]
@@ -369,7 +369,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             stillmap_proto::validate_robot_id(&robot_id).map_err(ClientError::Usage)?;
             let named = [&topics.color_topic, &topics.depth_topic, &topics.camera_info_topic, &topics.imu_topic];
             match &mut source {
-                SourceSpec::Mcap(_, t) => {
+                SourceSpec::Bag(_, _, t) => {
                     *t = stillmap_client::bag::BagTopics {
                         color: topics.color_topic,
                         depth: topics.depth_topic,
@@ -379,7 +379,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 _ if named.iter().any(|t| t.is_some()) => {
                     return Err(ClientError::Usage(
-                        "--color-topic, --depth-topic, --camera-info-topic and --imu-topic are for mcap: sources".into(),
+                        "--color-topic, --depth-topic, --camera-info-topic and --imu-topic are for mcap: and rosbag: sources".into(),
                     )
                     .into());
                 }

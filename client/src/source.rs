@@ -35,8 +35,8 @@ pub enum SourceSpec {
     Tum(std::path::PathBuf),
     /// `openni2` or `openni2:<uri>`: a device (`Dummy` is OpenNI2's hardware-free one).
     OpenNi2(Option<String>),
-    /// `mcap:<file>`: a ROS 2 recording, and which of its topics to read.
-    Mcap(std::path::PathBuf, crate::bag::BagTopics),
+    /// `mcap:<file>` (ROS 2) or `rosbag:<file>` (ROS 1): a recording, and which of its topics to read.
+    Bag(crate::bag::BagFormat, std::path::PathBuf, crate::bag::BagTopics),
 }
 
 impl std::str::FromStr for SourceSpec {
@@ -48,11 +48,15 @@ impl std::str::FromStr for SourceSpec {
             }
             return Ok(Self::Tum(dir.into()));
         }
-        if let Some(file) = s.strip_prefix("mcap:") {
-            if file.is_empty() {
-                return Err("mcap: needs a file, e.g. mcap:recording.mcap".into());
+        for (scheme, format, example) in
+            [("mcap:", crate::bag::BagFormat::Mcap, "recording.mcap"), ("rosbag:", crate::bag::BagFormat::Ros1, "recording.bag")]
+        {
+            if let Some(file) = s.strip_prefix(scheme) {
+                if file.is_empty() {
+                    return Err(format!("{scheme} needs a file, e.g. {scheme}{example}"));
+                }
+                return Ok(Self::Bag(format, file.into(), crate::bag::BagTopics::default()));
             }
-            return Ok(Self::Mcap(file.into(), crate::bag::BagTopics::default()));
         }
         if s == "openni2" {
             return Ok(Self::OpenNi2(None));
@@ -60,7 +64,7 @@ impl std::str::FromStr for SourceSpec {
         if let Some(uri) = s.strip_prefix("openni2:") {
             return Ok(Self::OpenNi2((!uri.is_empty()).then(|| uri.to_string())));
         }
-        Err(format!("unknown source {s:?}: use tum:<dir>, mcap:<file>, openni2 or openni2:<uri>"))
+        Err(format!("unknown source {s:?}: use tum:<dir>, mcap:<file>, rosbag:<file>, openni2 or openni2:<uri>"))
     }
 }
 
@@ -68,7 +72,7 @@ impl std::str::FromStr for SourceSpec {
 pub fn open(spec: &SourceSpec, max_frames: Option<usize>, camera: &CameraOptions) -> Result<Box<dyn FrameSource>, ClientError> {
     match spec {
         SourceSpec::Tum(dir) => Ok(Box::new(crate::tum::TumSource::open(dir, max_frames, camera)?)),
-        SourceSpec::Mcap(file, topics) => Ok(Box::new(crate::bag::McapSource::open(file, topics, max_frames, camera)?)),
+        SourceSpec::Bag(format, file, topics) => Ok(Box::new(crate::bag::BagSource::open(file, *format, topics, max_frames, camera)?)),
         #[cfg(feature = "openni2")]
         SourceSpec::OpenNi2(uri) => Ok(Box::new(crate::openni::OpenNiSource::open(uri.as_deref(), max_frames, camera)?)),
         #[cfg(not(feature = "openni2"))]
@@ -85,7 +89,9 @@ mod tests {
         assert_eq!("tum:/a/b".parse(), Ok(SourceSpec::Tum("/a/b".into())));
         assert_eq!("openni2".parse(), Ok(SourceSpec::OpenNi2(None)));
         assert_eq!("openni2:Dummy".parse(), Ok(SourceSpec::OpenNi2(Some("Dummy".into()))));
-        assert_eq!("mcap:a.mcap".parse(), Ok(SourceSpec::Mcap("a.mcap".into(), crate::bag::BagTopics::default())));
+        let bag = |f, p: &str| SourceSpec::Bag(f, p.into(), crate::bag::BagTopics::default());
+        assert_eq!("mcap:a.mcap".parse(), Ok(bag(crate::bag::BagFormat::Mcap, "a.mcap")));
+        assert_eq!("rosbag:a.bag".parse(), Ok(bag(crate::bag::BagFormat::Ros1, "a.bag")));
         assert!("mcap:".parse::<SourceSpec>().is_err());
         assert!("kinect".parse::<SourceSpec>().unwrap_err().contains("unknown source \"kinect\""));
     }

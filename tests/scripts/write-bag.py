@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""Writes a TUM RGB-D folder as a ROS 2 recording (rosbag2 with MCAP storage) the way a
-ROS camera driver would publish it, for the client's `mcap:` source tests:
+"""Writes a TUM RGB-D folder as a ROS 2 recording (rosbag2 with MCAP storage) or, with
+--ros1, a ROS 1 bag, the way a ROS camera driver would publish it, for the client's
+`mcap:` and `rosbag:` source tests:
 
   /camera/color/image_raw   sensor_msgs/msg/Image rgb8 (every rgb.txt frame)
   /camera/depth/image_raw   sensor_msgs/msg/Image 32FC1 metres (or 16UC1 mm with --depth-mm)
@@ -9,8 +10,8 @@ ROS camera driver would publish it, for the client's `mcap:` source tests:
                             optical frame (x right, y down, z forward), same frame_id as the images
 
 Stamps are the TUM timestamps. Deterministic: the same folder gives the same file.
-Usage: write-mcap.py TUM_DIR OUT_DIR [--frames N] [--depth-mm]
-(OUT_DIR is the rosbag2 folder; the .mcap file is inside it.)
+Usage: write-bag.py TUM_DIR OUT [--frames N] [--depth-mm] [--ros1]
+(OUT is the rosbag2 folder, the .mcap file inside it; with --ros1 the .bag file.)
 """
 
 import argparse
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image as PilImage
+from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -48,14 +50,16 @@ def main():
     p.add_argument("out", type=Path)
     p.add_argument("--frames", type=int)
     p.add_argument("--depth-mm", action="store_true", help="16UC1 millimetres instead of 32FC1 metres")
+    p.add_argument("--ros1", action="store_true", help="a ROS 1 bag instead of a ROS 2 recording")
     a = p.parse_args()
-    ts = get_typestore(Stores.ROS2_HUMBLE)
+    ts = get_typestore(Stores.ROS1_NOETIC if a.ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
     Time = T["builtin_interfaces/msg/Time"]
     Header = T["std_msgs/msg/Header"]
 
     def header(ns):
-        return Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=FRAME_ID)
+        stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        return Header(seq=0, stamp=stamp, frame_id=FRAME_ID) if a.ros1 else Header(stamp=stamp, frame_id=FRAME_ID)
 
     rgb = read_list(a.tum / "rgb.txt")[: a.frames]
     depth = read_list(a.tum / "depth.txt")[: a.frames]
@@ -69,10 +73,13 @@ def main():
             header=header(ns), height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w,
             data=img.reshape(-1).copy())))
         Roi = T["sensor_msgs/msg/RegionOfInterest"]
+        matrices = {"d": np.array(FR1_D), "k": np.array(FR1_K), "r": np.eye(3).reshape(-1),
+                    "p": np.array([FR1_K[0], 0, FR1_K[2], 0, 0, FR1_K[4], FR1_K[5], 0, 0, 0, 1, 0], dtype=float)}
+        if a.ros1:  # ROS 1 spells them D, K, R, P
+            matrices = {k.upper(): v for k, v in matrices.items()}
         messages.append((ns, 1, "/camera/color/camera_info", T["sensor_msgs/msg/CameraInfo"](
-            header=header(ns), height=h, width=w, distortion_model="plumb_bob", d=np.array(FR1_D),
-            k=np.array(FR1_K), r=np.eye(3).reshape(-1), p=np.array([FR1_K[0], 0, FR1_K[2], 0, 0, FR1_K[4], FR1_K[5], 0, 0, 0, 1, 0], dtype=float),
-            binning_x=0, binning_y=0, roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))))
+            header=header(ns), height=h, width=w, distortion_model="plumb_bob", binning_x=0, binning_y=0,
+            roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False), **matrices)))
     for t, (name,) in depth:
         ns = stamp_ns(t)
         raw = np.asarray(PilImage.open(a.tum / name), dtype=np.uint16)  # 1/5000 m
@@ -92,13 +99,19 @@ def main():
             angular_velocity=Vector3(x=0.0, y=0.0, z=0.0), angular_velocity_covariance=np.full(9, -1.0),
             linear_acceleration=Vector3(x=-x, y=-y, z=z), linear_acceleration_covariance=np.zeros(9))))
     messages.sort(key=lambda m: (m[0], m[1]))
-    with Writer(a.out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    if a.ros1:
+        writer = Writer1(a.out)
+        serialize = ts.serialize_ros1
+    else:
+        writer = Writer(a.out, version=9, storage_plugin=StoragePlugin.MCAP)
+        serialize = ts.serialize_cdr
+    with writer:
         conns = {}
         for topic, kind in [("/camera/color/image_raw", "sensor_msgs/msg/Image"), ("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo"),
                             ("/camera/depth/image_raw", "sensor_msgs/msg/Image"), ("/camera/imu", "sensor_msgs/msg/Imu")]:
             conns[topic] = writer.add_connection(topic, kind, typestore=ts)
         for ns, _, topic, msg in messages:
-            writer.write(conns[topic], ns, ts.serialize_cdr(msg, msg.__msgtype__))
+            writer.write(conns[topic], ns, serialize(msg, msg.__msgtype__))
 
 
 if __name__ == "__main__":

@@ -1,13 +1,14 @@
-//! `--source mcap:` against the TUM folder it was written from: a ROS 2 recording
-//! (rosbag2, MCAP storage) made by `tests/scripts/write-mcap.py` from the shared clip
-//! streams the same frames bit for bit (colour, depth, timestamps, accelerometer)
-//! with the calibration of its `CameraInfo`; a file without depth is refused naming
-//! what it holds. The writer's Python is `.deps/bagtools` (`make deps`).
+//! `--source mcap:` and `--source rosbag:` against the TUM folder they were written
+//! from: a ROS 2 recording (rosbag2, MCAP storage) and a ROS 1 bag made by
+//! `tests/scripts/write-bag.py` (rosbags) from the shared clip stream the same frames
+//! bit for bit (colour, depth, timestamps, accelerometer) with the calibration of
+//! their `CameraInfo`; a topic that does not fit is refused naming what the file
+//! holds. The writer's Python is `.deps/bagtools` (`make deps`).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use stillmap_client::bag::{BagTopics, McapSource};
+use stillmap_client::bag::{BagFormat, BagSource, BagTopics};
 use stillmap_client::calibration::CameraOptions;
 use stillmap_client::source::FrameSource;
 use stillmap_client::tum::TumSource;
@@ -22,30 +23,37 @@ fn tum() -> PathBuf {
     repo().join("../shared/data/tum/rgbd_dataset_freiburg1_rpy")
 }
 
-/// Writes the first `FRAMES` frames of the clip as a recording; the .mcap file inside it.
-fn write_recording(name: &str, extra: &[&str]) -> PathBuf {
+/// Writes the first `FRAMES` frames of the clip as a recording: the .mcap file
+/// (inside its rosbag2 folder) or the ROS 1 .bag file.
+/// Returns (the folder to remove, the file).
+fn write_recording(name: &str, format: BagFormat, frames: Option<usize>, extra: &[&str]) -> (PathBuf, PathBuf) {
     let python = repo().join(".deps/bagtools/bin/python");
     assert!(python.exists(), "{} is missing: run `make deps`", python.display());
-    let dir = std::env::temp_dir().join(format!("stillmap-mcap-{}-{name}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("stillmap-bag-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let out = Command::new(python)
-        .arg(repo().join("tests/scripts/write-mcap.py"))
+    std::fs::create_dir_all(&dir).expect("temporary folder");
+    let (out, file) = match format {
+        BagFormat::Mcap => (dir.join("recording"), dir.join("recording/recording.mcap")),
+        BagFormat::Ros1 => (dir.join("recording.bag"), dir.join("recording.bag")),
+    };
+    let run = Command::new(python)
+        .arg(repo().join("tests/scripts/write-bag.py"))
         .arg(tum())
-        .arg(&dir)
-        .args(["--frames", &FRAMES.to_string()])
+        .arg(&out)
+        .args(frames.map(|n| ["--frames".to_string(), n.to_string()]).into_iter().flatten())
+        .args(if format == BagFormat::Ros1 { &["--ros1"][..] } else { &[][..] })
         .args(extra)
         .output()
-        .expect("run write-mcap.py");
-    assert!(out.status.success(), "write-mcap.py: {}", String::from_utf8_lossy(&out.stderr));
-    let file = dir.join(format!("{}.mcap", dir.file_name().and_then(|n| n.to_str()).expect("name")));
+        .expect("run write-bag.py");
+    assert!(run.status.success(), "write-bag.py: {}", String::from_utf8_lossy(&run.stderr));
     assert!(file.exists(), "{} was not written", file.display());
-    file
+    (dir, file)
 }
 
-#[test]
-fn a_recording_streams_the_tum_frames_bit_for_bit() {
-    let file = write_recording("metres", &[]);
-    let mut bag = McapSource::open(&file, &BagTopics::default(), None, &CameraOptions::default()).expect("open the recording");
+/// The recording streams exactly the folder's first frames, with its calibration.
+fn same_frames_as_the_folder(format: BagFormat) {
+    let (dir, file) = write_recording(&format!("{format:?}"), format, Some(FRAMES), &[]);
+    let mut bag = BagSource::open(&file, format, &BagTopics::default(), None, &CameraOptions::default()).expect("open the recording");
     let mut folder = TumSource::open(&tum(), None, &CameraOptions::default()).expect("open the folder");
     // Calibration from CameraInfo: freiburg1's intrinsics and distortion, depth in 1/5000 m.
     let (b, f) = (bag.camera(), folder.camera());
@@ -65,13 +73,23 @@ fn a_recording_streams_the_tum_frames_bit_for_bit() {
         assert!(m.accel_in_camera.is_some(), "frame {k} has its accelerometer sample");
     }
     assert!(bag.next_frame().expect("end").is_none());
-    let _ = std::fs::remove_dir_all(file.parent().expect("folder"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_ros1_bag_streams_the_tum_frames_bit_for_bit() {
+    same_frames_as_the_folder(BagFormat::Ros1);
+}
+
+#[test]
+fn an_mcap_recording_streams_the_tum_frames_bit_for_bit() {
+    same_frames_as_the_folder(BagFormat::Mcap);
 }
 
 #[test]
 fn millimetre_depth_is_read_at_its_scale_and_bad_topics_are_named() {
-    let file = write_recording("mm", &["--depth-mm"]);
-    let mut bag = McapSource::open(&file, &BagTopics::default(), Some(3), &CameraOptions::default()).expect("open");
+    let (dir, file) = write_recording("mm", BagFormat::Mcap, Some(FRAMES), &["--depth-mm"]);
+    let mut bag = BagSource::open(&file, BagFormat::Mcap, &BagTopics::default(), Some(3), &CameraOptions::default()).expect("open");
     let mut folder = TumSource::open(&tum(), Some(3), &CameraOptions::default()).expect("open the folder");
     assert_eq!(bag.camera().depth_units_per_metre, 1000.0);
     let (m, t) = (bag.next_frame().expect("frame").expect("a frame"), folder.next_frame().expect("frame").expect("a frame"));
@@ -82,30 +100,31 @@ fn millimetre_depth_is_read_at_its_scale_and_bad_topics_are_named() {
     // A topic that is not there, or not depth: refused, listing the file's topics.
     let named = |depth: &str| BagTopics { depth: Some(depth.into()), ..Default::default() };
     for (topic, says) in [("/nope", "no topic /nope"), ("/camera/color/image_raw", "holds sensor_msgs/msg/Image (encoding rgb8)")] {
-        let Err(e) = McapSource::open(&file, &named(topic), None, &CameraOptions::default()) else { panic!("{topic} accepted") };
+        let Err(e) = BagSource::open(&file, BagFormat::Mcap, &named(topic), None, &CameraOptions::default()) else {
+            panic!("{topic} accepted")
+        };
         let e = e.to_string();
         assert!(e.contains(says) && e.contains("/camera/imu (sensor_msgs/msg/Imu, "), "{e}");
     }
     // Not an MCAP file at all.
     let not = std::env::temp_dir().join(format!("stillmap-not-{}.mcap", std::process::id()));
     std::fs::write(&not, b"hello").expect("write");
-    let Err(e) = McapSource::open(&not, &BagTopics::default(), None, &CameraOptions::default()) else { panic!("accepted") };
+    let Err(e) = BagSource::open(&not, BagFormat::Mcap, &BagTopics::default(), None, &CameraOptions::default()) else { panic!("accepted") };
     assert!(e.to_string().contains("not a readable MCAP file"), "{e}");
     let _ = std::fs::remove_file(&not);
-    let _ = std::fs::remove_dir_all(file.parent().expect("folder"));
+    let Err(e) = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &CameraOptions::default()) else {
+        panic!("accepted")
+    };
+    assert!(e.to_string().contains("not a readable ROS 1 bag"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Reading speed, the whole clip as a recording beside the folder (frames/s, release):
-/// `cargo test --release -p stillmap-client --test mcap_source -- --ignored --nocapture`.
+/// Reading speed, the whole clip as a recording and as a ROS 1 bag beside the folder
+/// (frames/s, release):
+/// `cargo test --release -p stillmap-client --test bag_source -- --ignored --nocapture`.
 #[test]
-#[ignore = "a measurement: writes a 320 MB recording"]
+#[ignore = "a measurement: writes two 320 MB recordings"]
 fn reading_speed() {
-    let python = repo().join(".deps/bagtools/bin/python");
-    let dir = std::env::temp_dir().join(format!("stillmap-mcap-{}-speed", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let out = Command::new(python).arg(repo().join("tests/scripts/write-mcap.py")).arg(tum()).arg(&dir).output().expect("write");
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let file = dir.join(format!("{}.mcap", dir.file_name().and_then(|n| n.to_str()).expect("name")));
     let read = |source: &mut dyn FrameSource| {
         let started = std::time::Instant::now();
         let mut n = 0;
@@ -114,14 +133,17 @@ fn reading_speed() {
         }
         (n, n as f64 / started.elapsed().as_secs_f64())
     };
-    let started = std::time::Instant::now();
-    let mut bag = McapSource::open(&file, &BagTopics::default(), None, &CameraOptions::default()).expect("open");
-    let index_s = started.elapsed().as_secs_f64();
-    let (n, bag_fps) = read(&mut bag);
     let (m, tum_fps) = read(&mut TumSource::open(&tum(), None, &CameraOptions::default()).expect("open"));
-    let size = std::fs::metadata(&file).map(|m| m.len()).unwrap_or(0);
     eprintln!("| source | frames | frames/s |\n|---|---|---|");
     eprintln!("| TUM folder (PNG) | {m} | {tum_fps:.0} |");
-    eprintln!("| MCAP, rgb8 + 32FC1, uncompressed ({} MB; first pass {index_s:.2} s) | {n} | {bag_fps:.0} |", size / 1_000_000);
-    let _ = std::fs::remove_dir_all(&dir);
+    for format in [BagFormat::Mcap, BagFormat::Ros1] {
+        let (dir, file) = write_recording(&format!("speed-{format:?}"), format, None, &[]);
+        let started = std::time::Instant::now();
+        let mut bag = BagSource::open(&file, format, &BagTopics::default(), None, &CameraOptions::default()).expect("open");
+        let index_s = started.elapsed().as_secs_f64();
+        let (n, fps) = read(&mut bag);
+        let size = std::fs::metadata(&file).map(|m| m.len()).unwrap_or(0);
+        eprintln!("| {format:?}, rgb8 + 32FC1, uncompressed ({} MB; first pass {index_s:.2} s) | {n} | {fps:.0} |", size / 1_000_000);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
