@@ -37,12 +37,37 @@ document.querySelectorAll(".host").forEach((el) => { el.textContent = location.h
 
 function fmt(v, digits = 1) { return Number.isFinite(v) ? v.toFixed(digits) : "–"; }
 
+// A sparkline of the last SPARK_FRAMES values (a single value is a dot, not an empty box).
 function sparkline(values) {
   const w = 60, h = 16;
-  if (!values.length) return `<svg width="${w}" height="${h}"></svg>`;
   const max = Math.max(...values, 1e-3);
-  const pts = values.map((v, i) => `${(i / (SPARK_FRAMES - 1)) * w},${h - 1 - (v / max) * (h - 2)}`).join(" ");
+  const xy = (v, i) => [(i / (SPARK_FRAMES - 1)) * w, h - 1 - (v / max) * (h - 2)];
+  if (values.length === 1) {
+    const [x, y] = xy(values[0], 0);
+    return `<svg width="${w}" height="${h}"><circle cx="${x + 1.5}" cy="${y}" r="1.5" fill="#5aa9e6"/></svg>`;
+  }
+  const pts = values.map((v, i) => xy(v, i).join(",")).join(" ");
   return `<svg width="${w}" height="${h}"><polyline points="${pts}" fill="none" stroke="#5aa9e6" stroke-width="1"/></svg>`;
+}
+
+// The latency cell: live sessions get sparklines of their recent frames; a finished
+// one (no new frames will come) its last frame's times as text, or a dash.
+function latencyCell(s, hist) {
+  if (!s.connected) {
+    const last = SPARK_STAGES.filter((st) => Number.isFinite(s.latency_ms?.[st])).map((st) => `<span class="spark">${st} ${fmt(s.latency_ms[st])}</span>`);
+    return last.length ? `<span class="muted" title="the last frame's times (ms)">last frame:</span> ${last.join("")}` : `<span class="muted">–</span>`;
+  }
+  return SPARK_STAGES.filter((st) => hist[st]?.length)
+    .map((st) => `<span class="spark">${st} ${fmt(hist[st].at(-1))}${sparkline(hist[st])}</span>`)
+    .join("");
+}
+
+// Session ids are long (robot, boot, counter): the robot column has the robot, so
+// the cell shows the rest; the whole id is its tooltip.
+function shortId(s) {
+  const id = s.session_id;
+  if (id.startsWith(`${s.robot_id}-`)) return `…${id.slice(s.robot_id.length + 1)}`;
+  return id.length > 14 ? `${id.slice(0, 12)}…` : id;
 }
 
 function linkBadge(s) {
@@ -63,17 +88,15 @@ function renderTable() {
   const body = $("#session-table tbody");
   const rows = sessions.map((s) => {
     const hist = state.history.get(s.session_id) || {};
-    const sparks = SPARK_STAGES.filter((st) => hist[st]?.length)
-      .map((st) => `<span class="spark">${st} ${fmt(hist[st].at(-1))}${sparkline(hist[st])}</span>`)
-      .join("");
+    const sparks = latencyCell(s, hist);
     const t = s.pose?.translation;
     const pose = t ? `${fmt(t[0], 2)}, ${fmt(t[1], 2)}, ${fmt(t[2], 2)}` : "–";
     const map = s.map ? `${s.map.keyframes} kf · ${s.map.occupied_voxels.toLocaleString()} voxels` : "–";
     const sel = s.session_id === state.selected ? "selected" : "";
     return `<tr data-session="${s.session_id}" class="${sel}">
-      <td>${s.robot_id}</td><td class="muted">${s.session_id}</td><td class="link">${linkBadge(s)}</td>
+      <td>${s.robot_id}</td><td class="muted id" title="${s.session_id}">${shortId(s)}</td><td class="link">${linkBadge(s)}</td>
       <td>${trackingBadge(s.tracking_state)}</td><td class="frames">${s.frames_processed}</td>
-      <td class="fps">${fmt(s.fps)}</td><td class="dropped">${s.frames_dropped}</td><td>${sparks}</td>
+      <td class="fps">${fmt(s.fps)}</td><td class="dropped">${s.frames_dropped}</td><td class="sparks">${sparks}</td>
       <td>${pose}</td><td class="map">${map}</td></tr>`;
   });
   body.innerHTML = rows.join("");

@@ -178,23 +178,36 @@ export class Map2D {
       for (const key of this.tiles.keys()) if (!key.endsWith(`?v=${info.version}`)) this.tiles.delete(key);
       for (const key of this.shown.keys()) if (!visible.has(key)) this.shown.delete(key);
     }
-    // Trajectory and current pose.
+    // Trajectory and current pose. The trail has a dark casing so it shows over any
+    // tile; zoomed out until it spans a few pixels, a ring marks where it is.
     if (path.length > 1) {
+      const screen = path.map((p) => this.toScreen(p[0], p[1]));
+      const trace = () => { ctx.beginPath(); screen.forEach(([sx, sy], i) => (i ? ctx.lineTo(sx, sy) : ctx.moveTo(sx, sy))); ctx.stroke(); };
+      ctx.lineJoin = "round";
+      ctx.strokeStyle = "#0c1014";
+      ctx.lineWidth = 4;
+      trace();
       ctx.strokeStyle = "#ffb000";
       ctx.lineWidth = 2;
-      ctx.beginPath();
-      path.forEach((p, i) => { const [sx, sy] = this.toScreen(p[0], p[1]); if (i) ctx.lineTo(sx, sy); else ctx.moveTo(sx, sy); });
-      ctx.stroke();
+      trace();
+      const xs = screen.map((p) => p[0]), ys = screen.map((p) => p[1]);
+      const extent = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys));
+      if (extent < 16) {
+        ctx.beginPath();
+        ctx.arc((Math.max(...xs) + Math.min(...xs)) / 2, (Math.max(...ys) + Math.min(...ys)) / 2, 12, 0, 2 * Math.PI);
+        ctx.stroke();
+      }
     }
     if (pose) {
       const [sx, sy] = this.toScreen(pose.t[0], pose.t[1]);
       const f = pose.forward;
       const n = Math.hypot(f[0], f[1]) || 1;
-      ctx.fillStyle = "#ff4d6d";
+      // Hollow, so the trail beneath it stays visible.
+      ctx.strokeStyle = "#ff4d6d";
+      ctx.lineWidth = 2;
       ctx.beginPath();
       ctx.arc(sx, sy, 5, 0, 2 * Math.PI);
-      ctx.fill();
-      ctx.strokeStyle = "#ff4d6d";
+      ctx.stroke();
       ctx.beginPath();
       ctx.moveTo(sx, sy);
       ctx.lineTo(sx + (18 * f[0]) / n, sy - (18 * f[1]) / n);

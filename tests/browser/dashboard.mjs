@@ -65,6 +65,22 @@ try {
     [rowA, rowB],
     { timeout: 15000 },
   );
+  // At 1400 px the sessions table fits: no horizontal scrolling, the map column in view.
+  await page.setViewportSize({ width: 1400, height: 1000 });
+  const fit = await page.evaluate((ra) => {
+    const section = document.querySelector("#sessions");
+    const map = document.querySelector(`${ra} .map`).getBoundingClientRect();
+    return { scroll: section.scrollWidth, client: section.clientWidth, mapRight: map.right, sectionRight: section.getBoundingClientRect().right };
+  }, rowA);
+  if (fit.scroll > fit.client + 1 || fit.mapRight > fit.sectionRight) fail(`the sessions table overflows at 1400 px: ${JSON.stringify(fit)}`);
+  await page.setViewportSize({ width: 1600, height: 1200 });
+  // Finished sessions show their last frame's latencies, never an empty sparkline.
+  const cell = await page.evaluate((ra) => {
+    const td = document.querySelector(`${ra} td.sparks`);
+    return { text: td.textContent, empty: [...td.querySelectorAll("svg")].filter((g) => !g.children.length).length };
+  }, rowA);
+  if (!cell.text.includes("last frame:") || !cell.text.includes("total") || cell.empty) fail(`finished session's latency cell: ${JSON.stringify(cell)}`);
+
   // The first session is selected: its map tiles, trajectory and cloud get drawn.
   await page.click(rowA);
   await page.waitForFunction(() => window.__stillmap.tilesDrawn > 0 && window.__stillmap.trajectoryPoints >= 100 && window.__stillmap.cloudPoints > 1000, null, { timeout: 30000 });
@@ -83,6 +99,23 @@ try {
     fail(`only ${await page.evaluate(mapPixels)} map pixels differ from the background`);
   }
   const drawn = await page.evaluate(mapPixels);
+  // The trajectory stays visible at every zoom: fitted, and zoomed all the way out
+  // (the clip moves a few centimetres: a ring marks it), then fitted again.
+  const trailPixels = () => {
+    const c = document.querySelector("#map2d");
+    const px = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+    let n = 0;
+    for (let i = 0; i < px.length; i += 4) if (Math.abs(px[i] - 255) + Math.abs(px[i + 1] - 176) + px[i + 2] < 60) n++;
+    return n;
+  };
+  const trailFitted = await page.evaluate(trailPixels);
+  const box = await page.locator("#map2d").boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  for (let k = 0; k < 12; k++) await page.mouse.wheel(0, 400);
+  await page.waitForTimeout(300);
+  const trailOut = await page.evaluate(trailPixels);
+  if (trailFitted < 30 || trailOut < 30) fail(`trajectory pixels: ${trailFitted} fitted, ${trailOut} zoomed out`);
+  await page.dblclick("#map2d");
   // The default fleet: its anchor (the first robot) drawn with its whole trajectory
   // over the fleet map's tiles.
   await page.waitForFunction(() => window.__stillmap.fleets >= 1 && window.__stillmap.fleetRobots >= 1 && window.__stillmap.fleetPoints >= 100 && window.__stillmap.fleetTilesDrawn >= 1, null, { timeout: 30000 });
@@ -93,7 +126,7 @@ try {
   await page.screenshot({ path: screenshot, fullPage: true });
   if (errors.length) fail(`page errors: ${errors.join("; ")}`);
   const fleet = await page.evaluate(() => ({ robots: window.__stillmap.fleetRobots, points: window.__stillmap.fleetPoints, tiles: window.__stillmap.fleetTilesDrawn }));
-  console.log(JSON.stringify({ ok: true, drawn, legend: legend.length, fleet, sessions: [a.session_id, b.session_id], screenshot }));
+  console.log(JSON.stringify({ ok: true, drawn, trail: [trailFitted, trailOut], legend: legend.length, fleet, sessions: [a.session_id, b.session_id], screenshot }));
 } finally {
   await browser.close();
 }

@@ -1,7 +1,8 @@
 //! The web dashboard end to end in a real browser: the server and the real client
 //! as processes, Debian's chromium driven by playwright-core
-//! (`tests/browser/dashboard.mjs`; `make test` installs both). The screenshot is
-//! left in `target/test-artifacts/dashboard.png`.
+//! (`tests/browser/dashboard.mjs`; `make test` installs both): live and finished
+//! rows, the table fitting a 1400 px window, the map, the trajectory at every zoom, the
+//! fleet view. The screenshot is left in `target/test-artifacts/dashboard.png`.
 
 use std::path::Path;
 use std::process::Command;
