@@ -73,6 +73,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/api/v1/sessions/{id}", get(get_session))
         .route("/api/v1/sessions/{id}/pose", get(get_pose))
         .route("/api/v1/sessions/{id}/trajectory", get(get_trajectory))
+        .route("/api/v1/sessions/{id}/export.mcap", get(session_mcap))
         .route("/api/v1/fleets", get(list_fleets))
         .route("/api/v1/fleets/{fleet}", get(get_fleet))
         .route("/api/v1/fleets/{fleet}/cloud.ply", get(fleet_cloud))
@@ -643,6 +644,47 @@ pub(crate) async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
             }),
         )
             .into_response(),
+    }
+}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/sessions/{id}/export.mcap",
+    tag = "sessions",
+    params(
+        ("id" = String, Path, description = "Session id"),
+    ),
+    responses(
+        (status = 200, description = "The session for Foxglove: poses, trajectory, tracking states, the map as a point cloud (MCAP, JSON-encoded Foxglove schemas)", content_type = "application/octet-stream"),
+        (status = 404, description = "Unknown session", body = ApiError),
+    )
+)]
+pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
+    let Some(s) = registry.get(&id) else {
+        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    };
+    let trajectory: Vec<pb::PoseStamped> = s.tracking().trajectory.to_vec();
+    let map = s.map().cloned();
+    let key = id.clone();
+    let file = blocking(move || {
+        let map = map.map(|m| crate::api::foxglove::MapExport {
+            points: mapping::points(&m, None).0,
+            map_from_world: crate::lock(&m).map_from_world(),
+        });
+        crate::api::foxglove::session_mcap(&key, &trajectory, map.as_ref())
+    })
+    .await;
+    match file {
+        Ok(Ok(bytes)) => (
+            [
+                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+                (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.mcap\"")),
+            ],
+            bytes,
+        )
+            .into_response(),
+        Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, format!("writing the MCAP file failed: {e}")),
+        Err(r) => r,
     }
 }
 

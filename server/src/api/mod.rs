@@ -2,6 +2,7 @@
 //! queries both answer.
 
 pub mod dashboard;
+pub mod foxglove;
 pub mod http;
 pub mod map_queries;
 pub mod openapi;

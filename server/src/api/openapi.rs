@@ -25,6 +25,7 @@ use crate::session::SessionInfo;
         http::get_session,
         http::get_pose,
         http::get_trajectory,
+        http::session_mcap,
         http::list_fleets,
         http::get_fleet,
         http::fleet_cloud,
