@@ -159,6 +159,9 @@ impl Default for FleetConfig {
 
 /// Largest `session.pipeline_threads` and `session.map_threads`.
 const MAX_POOL_THREADS: usize = 1024;
+/// Largest `session.keyframe_images` (about 50 MB per session).
+const MAX_KEYFRAME_IMAGES: usize = 1024;
+
 /// Largest `session.map_queue` (each job holds a keyframe's images, about 1.5 MB).
 const MAX_MAP_QUEUE: usize = 256;
 
@@ -353,6 +356,10 @@ pub struct SessionConfig {
     /// queue full is left out of the map and counted (`stillmap_map_jobs_skipped_total`),
     /// so tracking never waits for the map.
     pub map_queue: usize,
+    /// Keyframe images a session keeps in memory for its Foxglove export
+    /// (`/api/v1/sessions/{id}/export.mcap`): the newest ones, colour with the pixels
+    /// perception kept out of the map tinted, JPEG (about 50 KB each). 0 = none.
+    pub keyframe_images: usize,
     /// Largest camera a hello may declare, in pixels (width × height; default
     /// 2,097,152 = 2 MP, a 1920×1080 camera fits). A session's buffers grow with
     /// it (about 8 bytes of camera rays per pixel before any frame), so a larger
@@ -434,6 +441,7 @@ impl Default for SessionConfig {
             map_threads: 1,
             opencv_threads: 1,
             map_queue: 16,
+            keyframe_images: 32,
             max_camera_pixels: 1 << 21,
             max_sequence_jump: 1_000_000,
             max_capture_gap_s: 86_400.0,
@@ -466,6 +474,9 @@ impl ServerConfig {
         }
         if self.session.opencv_threads > MAX_POOL_THREADS {
             return bad(format!("session.opencv_threads must be at most {MAX_POOL_THREADS}, got {}", self.session.opencv_threads));
+        }
+        if self.session.keyframe_images > MAX_KEYFRAME_IMAGES {
+            return bad(format!("session.keyframe_images must be at most {MAX_KEYFRAME_IMAGES}, got {}", self.session.keyframe_images));
         }
         if !(1..=MAX_MAP_QUEUE).contains(&self.session.map_queue) {
             return bad(format!("session.map_queue must be in 1..={MAX_MAP_QUEUE}, got {}", self.session.map_queue));

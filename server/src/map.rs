@@ -30,6 +30,16 @@ pub struct SessionMap {
     persistence: Option<Persistence>,
     /// Occupied voxels in memory at a map version (the dashboard's summary).
     occupied_cache: Option<(u64, usize)>,
+    /// The newest keyframe images (`session.keyframe_images`), for the Foxglove export.
+    images: std::collections::VecDeque<KeyframeImage>,
+}
+
+/// A keyframe's colour with the pixels perception kept out of the map tinted, JPEG.
+#[derive(Debug, Clone)]
+pub struct KeyframeImage {
+    pub id: u64,
+    pub time_ns: u64,
+    pub jpeg: Vec<u8>,
 }
 
 /// Where the map is committed, and what the last commit covered.
@@ -80,7 +90,27 @@ pub struct MapInfo {
 impl SessionMap {
     pub fn new(camera: &pb::CameraInfo, config: MappingConfig, class_names: Vec<String>) -> Result<SharedMap, MappingError> {
         let builder = MapBuilder::new(&camera_of(camera), config)?;
-        Ok(Arc::new(Mutex::new(Self { builder, class_names, top: None, persistence: None, occupied_cache: None })))
+        Ok(Arc::new(Mutex::new(Self {
+            builder,
+            class_names,
+            top: None,
+            persistence: None,
+            occupied_cache: None,
+            images: std::collections::VecDeque::new(),
+        })))
+    }
+
+    /// Keeps `image`, and the `keep - 1` newest before it.
+    pub fn keep_image(&mut self, image: KeyframeImage, keep: usize) {
+        self.images.push_back(image);
+        while self.images.len() > keep {
+            self.images.pop_front();
+        }
+    }
+
+    /// The keyframe images kept, oldest first.
+    pub fn images(&self) -> Vec<KeyframeImage> {
+        self.images.iter().cloned().collect()
     }
 
     /// Commits this map to `store` from now on (blocks beyond the memory budget

@@ -174,6 +174,8 @@ const PIPELINE_SLICE_FRAMES: usize = 4;
 struct MapLane {
     jobs: Mutex<VecDeque<MapJob>>,
     capacity: usize,
+    /// `session.keyframe_images`.
+    keyframe_images: usize,
     scheduled: AtomicBool,
     session: Weak<Session>,
 }
@@ -626,6 +628,12 @@ impl Session {
         if let Some(spent) = fuse::apply(map, &job) {
             self.metrics.keyframe_fused();
             self.metrics.stage(stage::MAP_FUSE, micros(spent));
+            let keep = self.map_lane.as_ref().map_or(0, |l| l.keyframe_images);
+            if keep > 0
+                && let Some(image) = job.keyframe.as_ref().and_then(fuse::keyframe_image)
+            {
+                lock(map).keep_image(image, keep);
+            }
             let record = job.keyframe.and_then(|k| k.record);
             if let (Some(fleets), Some(keyframe)) = (&self.fleets, &record) {
                 fleets.submit(crate::fleet::FleetJob {
@@ -1348,6 +1356,7 @@ impl Registry {
             Arc::new(MapLane {
                 jobs: Mutex::default(),
                 capacity: self.config.map_queue,
+                keyframe_images: self.config.keyframe_images,
                 scheduled: AtomicBool::new(false),
                 session: me.clone(),
             })

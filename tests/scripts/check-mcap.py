@@ -13,7 +13,7 @@ from mcap.reader import make_reader
 
 
 def main():
-    topics, poses, states, trajectory, tf, cloud = {}, [], [], None, None, None
+    topics, poses, states, trajectory, tf, cloud, images = {}, [], [], None, None, None, []
     with open(sys.argv[1], "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
@@ -32,6 +32,10 @@ def main():
                 trajectory = len(body["poses"])
             elif channel.topic == "/tf":
                 tf = body
+            elif channel.topic == "/keyframes":
+                jpeg = base64.b64decode(body["data"])
+                images.append({"format": body["format"], "bytes": len(jpeg), "jpeg": jpeg[:2] == b"\xff\xd8" and jpeg[-2:] == b"\xff\xd9",
+                               "log_time": message.log_time})
             elif channel.topic == "/map":
                 data = base64.b64decode(body["data"])
                 stride = body["point_stride"]
@@ -43,7 +47,7 @@ def main():
                          "classes": len(classes), "first": x0, "frame_id": body["frame_id"]}
         metadata = [m.metadata for m in reader.iter_metadata()]
     print(json.dumps({"topics": topics, "poses": poses, "states": len(states), "first_state": states[0] if states else None,
-                      "trajectory": trajectory, "tf": tf, "cloud": cloud, "metadata": metadata,
+                      "trajectory": trajectory, "tf": tf, "images": images, "cloud": cloud, "metadata": metadata,
                       "channels_in_summary": len(summary.channels) if summary else 0}))
 
 

@@ -45,11 +45,12 @@ async fn a_session_exports_as_mcap_for_foxglove() {
         ("/tracking_state", "stillmap.TrackingState"),
         ("/tf", "foxglove.FrameTransform"),
         ("/map", "foxglove.PointCloud"),
+        ("/keyframes", "foxglove.CompressedImage"),
     ] {
         assert_eq!(topics[topic]["schema"], schema, "{topic}: {read}");
         assert_eq!((&topics[topic]["schema_encoding"], &topics[topic]["message_encoding"]), (&"jsonschema".into(), &"json".into()));
     }
-    assert_eq!(read["channels_in_summary"], 5);
+    assert_eq!(read["channels_in_summary"], 6);
     assert_eq!(read["metadata"][0]["session_id"], id.as_str());
     // The poses are the served trajectory's, in order, one state per frame.
     let (_, trajectory) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
@@ -75,6 +76,16 @@ async fn a_session_exports_as_mcap_for_foxglove() {
     let got = [&tf["rotation"]["x"], &tf["rotation"]["y"], &tf["rotation"]["z"], &tf["rotation"]["w"]].map(|v| v.as_f64().expect("number"));
     assert!(q.iter().zip(got).all(|(a, b)| (a - b).abs() < 1e-12), "{q:?} vs {got:?}");
     assert_eq!((&tf["parent_frame_id"], &tf["child_frame_id"]), (&"map".into(), &"world".into()));
+
+    // The newest keyframes' images (session.keyframe_images, 32), JPEG, at frame times.
+    let images = read["images"].as_array().expect("images");
+    let keyframes = info["keyframes"].as_u64().expect("keyframes") as usize;
+    assert_eq!(images.len(), keyframes.min(32), "{keyframes} keyframes");
+    let times: Vec<&serde_json::Value> = served.iter().map(|s| &s["capture_time_ns"]).collect();
+    for i in images {
+        assert!(i["jpeg"].as_bool() == Some(true) && i["format"] == "jpeg" && i["bytes"].as_u64() > Some(10_000), "{i}");
+        assert!(times.contains(&&i["log_time"]), "{i} is not at a frame's time");
+    }
 
     // An unknown session: 404 naming it.
     let (status, body) = server.get_json("/api/v1/sessions/nobody/export.mcap").await;

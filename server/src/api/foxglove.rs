@@ -10,8 +10,7 @@
 //! | `/tracking_state` | `stillmap.TrackingState` | one per frame |
 //! | `/tf` | `foxglove.FrameTransform` (`map` ← `world`: the map frame's rotation) | one, at the first pose time |
 //! | `/map` | `foxglove.PointCloud` (frame `map`: x y z, class colour, class id) | one, at the last pose time |
-//!
-//! Keyframe images are not kept by the server, so none are exported.
+//! | `/keyframes` | `foxglove.CompressedImage` (JPEG: colour, the pixels kept out of the map tinted red) | the newest `session.keyframe_images` keyframes |
 
 use std::collections::BTreeMap;
 use std::io::Cursor;
@@ -37,6 +36,9 @@ fn schema(name: &str) -> serde_json::Value {
         "foxglove.PosesInFrame" => json!({ "timestamp": time, "frame_id": string, "poses": { "type": "array", "items": pose } }),
         "foxglove.FrameTransform" => json!({
             "timestamp": time, "parent_frame_id": string, "child_frame_id": string, "translation": vector, "rotation": quaternion,
+        }),
+        "foxglove.CompressedImage" => json!({
+            "timestamp": time, "frame_id": string, "data": { "type": "string", "contentEncoding": "base64" }, "format": string,
         }),
         "foxglove.PointCloud" => json!({
             "timestamp": time, "frame_id": string, "pose": pose, "point_stride": integer,
@@ -70,6 +72,8 @@ fn pose_json(p: &pb::PoseStamped) -> serde_json::Value {
 pub struct MapExport {
     pub points: Vec<CloudPoint>,
     pub map_from_world: UnitQuaternion<f64>,
+    /// The keyframe images the session kept (`session.keyframe_images`), oldest first.
+    pub images: Vec<crate::map::KeyframeImage>,
 }
 
 /// The session's MCAP file: its poses (`trajectory`, oldest first) and, when it has
@@ -91,6 +95,7 @@ pub fn session_mcap(session_id: &str, trajectory: &[pb::PoseStamped], map: Optio
     let poses = channel("/trajectory", "foxglove.PosesInFrame")?;
     let tf = channel("/tf", "foxglove.FrameTransform")?;
     let cloud = channel("/map", "foxglove.PointCloud")?;
+    let images = channel("/keyframes", "foxglove.CompressedImage")?;
     let mut sequence = 0u32;
     let mut write = |out: &mut mcap::Writer<Cursor<Vec<u8>>>, channel_id: u16, log_time: u64, message: serde_json::Value| {
         sequence = sequence.wrapping_add(1);
@@ -117,6 +122,13 @@ pub fn session_mcap(session_id: &str, trajectory: &[pb::PoseStamped], map: Optio
     }
     let tracked: Vec<serde_json::Value> = trajectory.iter().filter(|p| p.world_from_camera.is_some()).map(pose_json).collect();
     write(&mut out, poses, last, json!({ "timestamp": time(last), "frame_id": "world", "poses": tracked }))?;
+    for image in map.map(|m| m.images.as_slice()).unwrap_or_default() {
+        let message = json!({
+            "timestamp": time(image.time_ns), "frame_id": "camera", "format": "jpeg",
+            "data": base64::engine::general_purpose::STANDARD.encode(&image.jpeg),
+        });
+        write(&mut out, images, image.time_ns, message)?;
+    }
     if let Some(map) = map {
         let mut data = Vec::with_capacity(map.points.len() * POINT_STRIDE);
         for p in &map.points {

@@ -655,7 +655,7 @@ pub(crate) async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
         ("id" = String, Path, description = "Session id"),
     ),
     responses(
-        (status = 200, description = "The session for Foxglove: poses, trajectory, tracking states, the map as a point cloud (MCAP, JSON-encoded Foxglove schemas)", content_type = "application/octet-stream"),
+        (status = 200, description = "The session for Foxglove: poses, trajectory, tracking states, the map as a point cloud, keyframe images with the mask (MCAP, JSON-encoded Foxglove schemas)", content_type = "application/octet-stream"),
         (status = 404, description = "Unknown session", body = ApiError),
     )
 )]
@@ -667,9 +667,10 @@ pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id)
     let map = s.map().cloned();
     let key = id.clone();
     let file = blocking(move || {
-        let map = map.map(|m| crate::api::foxglove::MapExport {
-            points: mapping::points(&m, None).0,
-            map_from_world: crate::lock(&m).map_from_world(),
+        let map = map.map(|m| {
+            let points = mapping::points(&m, None).0;
+            let locked = crate::lock(&m);
+            crate::api::foxglove::MapExport { points, map_from_world: locked.map_from_world(), images: locked.images() }
         });
         crate::api::foxglove::session_mcap(&key, &trajectory, map.as_ref())
     })

@@ -25,6 +25,8 @@ const MAX_ACCEL_PER_MAP_JOB: usize = 64;
 /// A new keyframe: what fusion and the store need of it.
 pub struct KeyframeJob {
     pub id: u64,
+    /// The frame's capture time, nanoseconds.
+    pub capture_time_ns: u64,
     pub color: ColorImage,
     pub depth: DepthImage,
     /// Nonzero where perception keeps the pixel out of the map.
@@ -143,6 +145,28 @@ pub fn refuse_window(map: &SharedMap) -> usize {
     lock(map).builder.config().refuse_window
 }
 
+/// Quality of the keyframe images kept for the Foxglove export.
+const KEYFRAME_IMAGE_QUALITY: u8 = 80;
+
+/// The keyframe's colour with the pixels perception kept out of the map tinted red
+/// (half way), as JPEG; `None` when encoding fails (the export then lacks it).
+pub fn keyframe_image(k: &KeyframeJob) -> Option<crate::map::KeyframeImage> {
+    let mut color = k.color.clone();
+    if let Some(exclude) = &k.exclude {
+        for (px, &out) in color.data.chunks_exact_mut(3).zip(exclude) {
+            if out != 0 {
+                px[0] = px[0] / 2 + 128;
+                px[1] /= 2;
+                px[2] /= 2;
+            }
+        }
+    }
+    let jpeg = stillmap_proto::codec::encode_color(stillmap_proto::pb::ColorEncoding::Jpeg, &color, KEYFRAME_IMAGE_QUALITY)
+        .map_err(|e| tracing::warn!(keyframe = k.id, "keyframe image not kept: {e}"))
+        .ok()?;
+    Some(crate::map::KeyframeImage { id: k.id, time_ns: k.capture_time_ns, jpeg })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -151,6 +175,7 @@ mod tests {
     fn keyframe(id: u64) -> KeyframeJob {
         KeyframeJob {
             id,
+            capture_time_ns: id,
             color: ColorImage { width: 1, height: 1, data: vec![0; 3] },
             depth: DepthImage { width: 1, height: 1, data: vec![0] },
             exclude: None,

@@ -168,6 +168,7 @@ impl SessionPipeline {
                 });
                 fuse::KeyframeJob {
                     id,
+                    capture_time_ns: frame.capture_time_ns,
                     color: decoded.color,
                     depth: decoded.depth,
                     exclude,
