@@ -533,6 +533,12 @@ impl BagSource {
         };
         let first = infos.remove(info_topic.as_deref().unwrap_or_default());
         let source_camera = match first {
+            // ROS's uncalibrated defaults (TUM's own bags carry them) are no calibration.
+            Some(ci) if is_ros_default(&ci) => SourceCamera {
+                info: camera_from_info(&ci, &depth_encoding).map_err(source_error)?,
+                known: None,
+                what: format!("{kind} {name} ({} holds ROS's uncalibrated defaults)", info_topic.unwrap_or_default()),
+            },
             Some(ci) => SourceCamera {
                 info: camera_from_info(&ci, &depth_encoding).map_err(source_error)?,
                 known: Some(format!("{scheme}:{name} {} ({})", info_topic.unwrap_or_default(), ci.header.frame_id)),
@@ -633,6 +639,14 @@ fn check_size(m: &Image, w: u32, h: u32, bytes_per_pixel: usize, what: &str) -> 
 
 fn depth_units(encoding: &str) -> f64 {
     if encoding == "32FC1" { FLOAT_DEPTH_UNITS_PER_METRE } else { 1000.0 }
+}
+
+/// Whether a `CameraInfo` holds the ROS drivers' uncalibrated defaults (fx = fy =
+/// 525, the image centre, no distortion) rather than a calibration.
+fn is_ros_default(ci: &CameraInfo) -> bool {
+    let [fx, _, cx, _, fy, cy, _, _, _] = ci.k;
+    let centre = ((f64::from(ci.width) - 1.0) / 2.0, (f64::from(ci.height) - 1.0) / 2.0);
+    fx == 525.0 && fy == 525.0 && (cx, cy) == centre && ci.d.iter().all(|&d| d == 0.0)
 }
 
 /// The camera from a ROS `CameraInfo` (`plumb_bob`, or no distortion).

@@ -119,6 +119,23 @@ fn millimetre_depth_is_read_at_its_scale_and_bad_topics_are_named() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A bag whose `CameraInfo` holds ROS's uncalibrated defaults (as TUM's own bags do)
+/// is not taken as calibrated: it refuses to start saying so, and `--camera tum-fr1`
+/// gives it freiburg1's calibration.
+#[test]
+fn uncalibrated_camera_info_is_not_a_calibration() {
+    let (dir, file) = write_recording("default-info", BagFormat::Ros1, Some(3), &["--default-camera-info"]);
+    let Err(e) = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &CameraOptions::default()) else {
+        panic!("uncalibrated intrinsics accepted")
+    };
+    assert!(e.to_string().contains("holds ROS's uncalibrated defaults"), "{e}");
+    let fr1 = CameraOptions { camera: Some(stillmap_client::calibration::KnownCamera::TumFr1), ..Default::default() };
+    let bag = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &fr1).expect("open with --camera tum-fr1");
+    let folder = TumSource::open(&tum(), None, &CameraOptions::default()).expect("open the folder");
+    assert_eq!((bag.camera().fx, bag.camera().cy), (folder.camera().fx, folder.camera().cy));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Reading speed, the whole clip as a recording and as a ROS 1 bag beside the folder
 /// (frames/s, release):
 /// `cargo test --release -p stillmap-client --test bag_source -- --ignored --nocapture`.

@@ -51,6 +51,8 @@ def main():
     p.add_argument("--frames", type=int)
     p.add_argument("--depth-mm", action="store_true", help="16UC1 millimetres instead of 32FC1 metres")
     p.add_argument("--ros1", action="store_true", help="a ROS 1 bag instead of a ROS 2 recording")
+    p.add_argument("--default-camera-info", action="store_true",
+                   help="ROS's uncalibrated CameraInfo (fx = fy = 525, the centre, no distortion), as TUM's own bags have")
     a = p.parse_args()
     ts = get_typestore(Stores.ROS1_NOETIC if a.ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
@@ -73,8 +75,10 @@ def main():
             header=header(ns), height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w,
             data=img.reshape(-1).copy())))
         Roi = T["sensor_msgs/msg/RegionOfInterest"]
-        matrices = {"d": np.array(FR1_D), "k": np.array(FR1_K), "r": np.eye(3).reshape(-1),
-                    "p": np.array([FR1_K[0], 0, FR1_K[2], 0, 0, FR1_K[4], FR1_K[5], 0, 0, 0, 1, 0], dtype=float)}
+        k, d = (([525.0, 0.0, (w - 1) / 2, 0.0, 525.0, (h - 1) / 2, 0.0, 0.0, 1.0], [0.0] * 5) if a.default_camera_info
+                else (FR1_K, FR1_D))
+        matrices = {"d": np.array(d), "k": np.array(k), "r": np.eye(3).reshape(-1),
+                    "p": np.array([k[0], 0, k[2], 0, 0, k[4], k[5], 0, 0, 0, 1, 0], dtype=float)}
         if a.ros1:  # ROS 1 spells them D, K, R, P
             matrices = {k.upper(): v for k, v in matrices.items()}
         messages.append((ns, 1, "/camera/color/camera_info", T["sensor_msgs/msg/CameraInfo"](
