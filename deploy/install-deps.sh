@@ -69,25 +69,24 @@ if [ ! -x .deps/evo/bin/evo_ape ]; then
   test -x .deps/evo/bin/evo_ape
 fi
 
-# The Python client example's gRPC stack (examples/python, run by tests/tests/python_client.rs),
-# pinned in its requirements file: ~5 s, ~60 MB. Reinstalled when the pins change.
-if [ ! -x .deps/pyclient/bin/python ] || [ examples/python/requirements.txt -nt .deps/pyclient/installed ]; then
-  echo "install-deps: installing the Python client's packages into .deps/pyclient"
-  rm -rf .deps/pyclient
-  python3 -m venv .deps/pyclient
-  .deps/pyclient/bin/pip install -q --disable-pip-version-check -r examples/python/requirements.txt
-  touch .deps/pyclient/installed
-fi
-
-# The ROS 2 recording writer of the mcap: source tests (tests/scripts/write-mcap.py:
-# rosbags, Pillow, numpy), pinned: ~5 s, ~80 MB.
-if [ ! -x .deps/bagtools/bin/python ] || [ tests/scripts/requirements.txt -nt .deps/bagtools/installed ]; then
-  echo "install-deps: installing the recording writer's packages into .deps/bagtools"
-  rm -rf .deps/bagtools
-  python3 -m venv .deps/bagtools
-  .deps/bagtools/bin/pip install -q --disable-pip-version-check -r tests/scripts/requirements.txt
-  touch .deps/bagtools/installed
-fi
+# A virtual environment .deps/NAME with the pins of REQUIREMENTS, made again when the
+# pins change.
+pinned_venv() {
+  local name=$1 requirements=$2 what=$3
+  if [ ! -x ".deps/$name/bin/python" ] || [ "$requirements" -nt ".deps/$name/installed" ]; then
+    echo "install-deps: installing $what into .deps/$name"
+    rm -rf ".deps/$name"
+    python3 -m venv ".deps/$name"
+    ".deps/$name/bin/pip" install -q --disable-pip-version-check -r "$requirements"
+    touch ".deps/$name/installed"
+  fi
+}
+# The Python client example's gRPC stack (examples/python, run by
+# tests/tests/python_client.rs): ~5 s, ~60 MB.
+pinned_venv pyclient examples/python/requirements.txt "the Python client's packages"
+# The ROS recording writer and the MCAP reader of the tests (tests/scripts: rosbags,
+# Pillow, numpy, mcap): ~10 s, ~80 MB.
+pinned_venv bagtools tests/scripts/requirements.txt "the recording tools' packages"
 
 # The dashboard's npm packages, exactly as locked: three.js (served to browsers by the
 # server) and playwright-core (drives chromium in tests/tests/dashboard.rs).

@@ -26,6 +26,18 @@ pub fn bin(name: &str) -> PathBuf {
     path
 }
 
+/// The repository's root.
+pub fn repo_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// A Python interpreter `make deps` installed in `.deps/<venv>` (`pyclient`, `bagtools`).
+pub fn venv_python(venv: &str) -> PathBuf {
+    let python = repo_dir().join(".deps").join(venv).join("bin/python");
+    assert!(python.exists(), "{} is missing: run `make deps`", python.display());
+    python
+}
+
 /// The real TUM clip beside the checkout.
 pub fn tum_dir() -> PathBuf {
     let dir = std::env::var_os("TUM")

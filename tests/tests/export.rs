@@ -3,20 +3,14 @@
 //! `mcap` library, `tests/scripts/check-mcap.py` from `.deps/bagtools`) reads every
 //! channel back; the file agrees with what the server serves over its own API.
 
-use std::path::PathBuf;
 use std::process::Command;
 use std::time::Instant;
 
-use stillmap_e2e::{Server, http_get, run_client, tempfile_path, tum_dir};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+use stillmap_e2e::{Server, http_get, repo_dir, run_client, tempfile_path, tum_dir, venv_python};
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_session_exports_as_mcap_for_foxglove() {
-    let python = repo().join(".deps/bagtools/bin/python");
-    assert!(python.exists(), "{} is missing: run `make deps`", python.display());
+    let python = venv_python("bagtools");
     let server = Server::start(&["--no-zenoh", "--no-perception"]);
     let (out, summary) =
         run_client(&["--source", &format!("tum:{}", tum_dir().display()), "--server", &server.grpc_url(), "--rate", "max"]);
@@ -32,7 +26,7 @@ async fn a_session_exports_as_mcap_for_foxglove() {
     assert!(bytes.starts_with(b"\x89MCAP0\r\n"), "an MCAP file");
     let file = tempfile_path("session.mcap");
     std::fs::write(&file, &bytes).expect("write");
-    let out = Command::new(python).arg(repo().join("tests/scripts/check-mcap.py")).arg(&file).output().expect("run check-mcap.py");
+    let out = Command::new(python).arg(repo_dir().join("tests/scripts/check-mcap.py")).arg(&file).output().expect("run check-mcap.py");
     assert!(out.status.success(), "the mcap library could not read it: {}", String::from_utf8_lossy(&out.stderr));
     let read: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
     let _ = std::fs::remove_file(&file);

@@ -3,20 +3,14 @@
 //! client streams the TUM clip: it lists the sessions, receives live poses and saves
 //! a map tile, with a read token. Its Python comes from `.deps/pyclient` (`make deps`).
 
-use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use stillmap_e2e::{Server, bin, decode_png, tempfile_path, tum_dir};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+use stillmap_e2e::{Server, bin, decode_png, repo_dir, tempfile_path, tum_dir, venv_python};
 
 #[tokio::test(flavor = "multi_thread")]
 async fn the_python_example_lists_sessions_follows_poses_and_saves_a_tile() {
-    let python = repo().join(".deps/pyclient/bin/python");
-    assert!(python.exists(), "{} is missing: run `make deps`", python.display());
+    let python = venv_python("pyclient");
     let server = Server::start(&["--no-zenoh", "--no-perception", "--auth-token", "robot-secret", "--read-token", "reader"]);
     let summary = tempfile_path("summary.json");
     let mut robot = Command::new(bin("stillmap-client"))
@@ -31,7 +25,7 @@ async fn the_python_example_lists_sessions_follows_poses_and_saves_a_tile() {
     let tile = tempfile_path("tile.png");
     let started = Instant::now();
     let out = Command::new(&python)
-        .arg(repo().join("examples/python/stillmap_example.py"))
+        .arg(repo_dir().join("examples/python/stillmap_example.py"))
         .args(["--grpc", &server.grpc, "--http", &format!("http://{}", server.http), "--token", "reader"])
         .args(["--poses", "10", "--wait", "30", "--tile", tile.to_str().expect("utf-8 path")])
         .output()
@@ -73,7 +67,7 @@ async fn the_python_example_lists_sessions_follows_poses_and_saves_a_tile() {
 
     // Refused by name without the token, exit code 1.
     let out = Command::new(&python)
-        .arg(repo().join("examples/python/stillmap_example.py"))
+        .arg(repo_dir().join("examples/python/stillmap_example.py"))
         .args(["--grpc", &server.grpc, "--http", &format!("http://{}", server.http), "--wait", "1"])
         .output()
         .expect("run the Python example");

@@ -412,9 +412,7 @@ async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> 
     tag = "fleets",
     params(
         ("fleet" = String, Path, description = "Fleet name"),
-        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
-        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
-        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+        OccupancyQuery,
     ),
     responses(
         (status = 200, description = "ROS map_server occupancy image", content_type = "image/x-portable-graymap"),
@@ -440,9 +438,7 @@ pub(crate) async fn fleet_occupancy_pgm(
     tag = "fleets",
     params(
         ("fleet" = String, Path, description = "Fleet name"),
-        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
-        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
-        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+        OccupancyQuery,
     ),
     responses(
         (status = 200, description = "ROS map_server parameters", body = String, content_type = "application/yaml"),
@@ -516,9 +512,7 @@ async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: 
     tag = "fleets",
     params(
         ("fleet" = String, Path, description = "Fleet name"),
-        ("z" = u8, Path, description = "Zoom level"),
-        ("x" = i64, Path, description = "Tile column"),
-        ("y" = String, Path, description = "Tile row followed by .png, e.g. 3.png"),
+        TilePath,
     ),
     responses(
         (status = 200, description = "Top-down PNG tile (ETag)", content_type = "image/png"),
@@ -803,9 +797,7 @@ fn tile_coordinates(z: &str, x: &str, y: &str) -> Result<(u8, i64, i64), BadQuer
     tag = "maps",
     params(
         ("id" = String, Path, description = "Session id"),
-        ("z" = u8, Path, description = "Zoom level"),
-        ("x" = i64, Path, description = "Tile column"),
-        ("y" = String, Path, description = "Tile row followed by .png, e.g. 3.png"),
+        TilePath,
     ),
     responses(
         (status = 200, description = "Top-down PNG tile (ETag)", content_type = "image/png"),
@@ -889,11 +881,28 @@ pub(crate) async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): 
     }
 }
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub(crate) struct OccupancyQuery {
+    /// Lowest height above the floor counted as an obstacle, metres.
     min_height: Option<f64>,
+    /// Highest height counted, metres.
     max_height: Option<f64>,
+    /// Cell size, metres.
     resolution: Option<f64>,
+}
+
+/// A tile's place in the path (the OpenAPI document's description of it).
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+pub(crate) struct TilePath {
+    /// Zoom level.
+    z: u8,
+    /// Tile column.
+    x: i64,
+    /// Tile row followed by .png, e.g. 3.png.
+    y: String,
 }
 
 async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
@@ -909,9 +918,7 @@ async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Re
     tag = "maps",
     params(
         ("id" = String, Path, description = "Session id"),
-        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
-        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
-        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+        OccupancyQuery,
     ),
     responses(
         (status = 200, description = "ROS map_server occupancy image", content_type = "image/x-portable-graymap"),
@@ -936,9 +943,7 @@ pub(crate) async fn map_occupancy_pgm(
     tag = "maps",
     params(
         ("id" = String, Path, description = "Session id"),
-        ("min_height" = Option<f64>, Query, description = "Lowest height above the floor counted as an obstacle, metres"),
-        ("max_height" = Option<f64>, Query, description = "Highest height counted, metres"),
-        ("resolution" = Option<f64>, Query, description = "Cell size, metres"),
+        OccupancyQuery,
     ),
     responses(
         (status = 200, description = "ROS map_server parameters", body = String, content_type = "application/yaml"),

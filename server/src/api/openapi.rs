@@ -310,6 +310,19 @@ mod tests {
             assert_eq!(doc["paths"][open]["get"]["security"], serde_json::json!([{}]), "{open} is open");
         }
         assert!(doc["paths"]["/api/v1/sessions"]["get"].get("security").is_none(), "sessions take the document's bearer default");
+        // Parameters come from the query and path types the handlers read.
+        let names = |path: &str| -> Vec<String> {
+            doc["paths"][path]["get"]["parameters"].as_array().map_or(Vec::new(), |p| {
+                p.iter().map(|q| format!("{}:{}", q["in"].as_str().unwrap_or(""), q["name"].as_str().unwrap_or(""))).collect()
+            })
+        };
+        assert_eq!(
+            names("/api/v1/maps/{id}/occupancy.pgm"),
+            ["path:id", "query:min_height", "query:max_height", "query:resolution"],
+            "{}",
+            doc["paths"]["/api/v1/maps/{id}/occupancy.pgm"]
+        );
+        assert_eq!(names("/api/v1/fleets/{fleet}/tiles/{z}/{x}/{y}"), ["path:fleet", "path:z", "path:x", "path:y"]);
         let session = &doc["components"]["schemas"]["SessionView"]["properties"];
         assert!(session.get("counters").is_some() && session.get("camera").is_some(), "{session}");
     }
