@@ -40,8 +40,6 @@ const COMPRESSED: &str = "sensor_msgs/msg/CompressedImage";
 const CAMERA_INFO: &str = "sensor_msgs/msg/CameraInfo";
 const IMU: &str = "sensor_msgs/msg/Imu";
 
-/// Colour and depth further apart than this are not one frame (as `tum.rs`).
-const MAX_ASSOCIATION_NS: u64 = 20_000_000;
 /// Depth in `32FC1` metres becomes 16-bit depth at this scale (0.2 mm; up to 13 m),
 /// TUM's own: a TUM recording converted to metres comes back to the same integers.
 const FLOAT_DEPTH_UNITS_PER_METRE: f64 = 5000.0;
@@ -508,15 +506,9 @@ impl BagSource {
         };
         let accel_ts: Vec<u64> = accel.iter().map(|a| a.0).collect();
         let mut pairs = Vec::new();
-        for (i, j) in crate::tum::associate(&color_stamps, &depth_stamps, MAX_ASSOCIATION_NS) {
+        for (i, j) in crate::tum::associate(&color_stamps, &depth_stamps, crate::tum::MAX_ASSOCIATION_NS) {
             let ts = color_stamps[i];
-            let nearest = accel_ts.partition_point(|&t| t < ts);
-            let sample = [nearest.checked_sub(1), Some(nearest)]
-                .into_iter()
-                .flatten()
-                .filter(|&k| k < accel.len() && accel_ts[k].abs_diff(ts) < MAX_ASSOCIATION_NS)
-                .min_by_key(|&k| accel_ts[k].abs_diff(ts))
-                .map(|k| accel[k].1);
+            let sample = crate::tum::nearest(&accel_ts, ts, crate::tum::MAX_ASSOCIATION_NS).map(|k| accel[k].1);
             pairs.push((i, j, ts, sample));
         }
         if pairs.is_empty() {

@@ -73,6 +73,16 @@ pub fn associate(first: &[u64], second: &[u64], max_difference_ns: u64) -> Vec<(
     pairs
 }
 
+/// The index of the time in `sorted` nearest to `t`, when it is less than `max_ns` away.
+pub fn nearest(sorted: &[u64], t: u64, max_ns: u64) -> Option<usize> {
+    let after = sorted.partition_point(|&s| s < t);
+    [after.checked_sub(1), Some(after)]
+        .into_iter()
+        .flatten()
+        .filter(|&k| k < sorted.len() && sorted[k].abs_diff(t) < max_ns)
+        .min_by_key(|&k| sorted[k].abs_diff(t))
+}
+
 /// What a TUM folder says about its camera: the freiburg calibration its name
 /// (as given, not a symlink's target) names, or 640×480 with the ROS default
 /// intrinsics the TUM page recommends for unknown Kinects, marked unknown.
@@ -154,16 +164,10 @@ impl TumSource {
                     .ok_or_else(|| ClientError::Source(format!("{name}.txt: line for {} names no file", list[k].0)))
             };
             let ts = rgb_ts[i];
-            let nearest = accel_ts.partition_point(|&t| t < ts);
-            let accel_sample = [nearest.checked_sub(1), Some(nearest)]
-                .into_iter()
-                .flatten()
-                .filter(|&k| k < accel.len() && accel_ts[k].abs_diff(ts) < MAX_ASSOCIATION_NS)
-                .min_by_key(|&k| accel_ts[k].abs_diff(ts))
-                .and_then(|k| {
-                    let v: Vec<f64> = accel[k].1.iter().filter_map(|x| x.parse().ok()).collect();
-                    (v.len() == 3).then(|| kinect_accel_to_camera([v[0], v[1], v[2]]))
-                });
+            let accel_sample = nearest(&accel_ts, ts, MAX_ASSOCIATION_NS).and_then(|k| {
+                let v: Vec<f64> = accel[k].1.iter().filter_map(|x| x.parse().ok()).collect();
+                (v.len() == 3).then(|| kinect_accel_to_camera([v[0], v[1], v[2]]))
+            });
             frames.push((ts, file(&rgb, i, "rgb")?, file(&depth, j, "depth")?, accel_sample));
         }
         if frames.is_empty() {
