@@ -22,7 +22,7 @@ use stillmap_proto::codec::{self, ColorImage, DepthImage};
 use stillmap_proto::pb::{self, DistortionModel};
 
 use crate::ClientError;
-use crate::calibration::{CameraOptions, SourceCamera};
+use crate::calibration::{CameraOptions, KnownCamera, SourceCamera};
 use crate::source::{FrameSource, RawFrame};
 
 /// Which topics hold what; `None`: the one topic of the right kind (an error listing
@@ -489,18 +489,25 @@ impl BagSource {
         let depth_stamps = stamps.remove(&depth).unwrap_or_default();
         let depth_encoding = stats.get(&depth).and_then(|s| s.encoding.clone()).unwrap_or_default();
 
-        // The accelerometer only when it is in the colour camera's frame (no TF here).
+        // The accelerometer when it is in the colour camera's frame (there is no TF
+        // tree here), or when the camera is a Kinect the user named (`--camera
+        // tum-fr1|tum-fr2`: TUM's own bags publish the Kinect's accelerometer in its
+        // own axes, as their accelerometer.txt); otherwise it is left out.
         let color_frame = image_frames.get(&color).cloned().unwrap_or_default();
+        let kinect = matches!(options.camera, Some(KnownCamera::TumFr1 | KnownCamera::TumFr2));
         let accel: Vec<(u64, [f64; 3])> = match imu_topic.and_then(|t| imu_samples.remove(&t).map(|s| (t, s))) {
             Some((t, samples)) => {
-                if samples.iter().all(|s| s.2 == color_frame) {
-                    let mut v: Vec<(u64, [f64; 3])> = samples.into_iter().map(|s| (s.0, s.1)).collect();
-                    v.sort_by_key(|s| s.0);
-                    v
-                } else {
-                    tracing::warn!("{t} is not in the colour camera's frame {color_frame:?}; its accelerometer is left out");
-                    Vec::new()
+                let in_camera = samples.iter().all(|s| s.2 == color_frame);
+                if !in_camera && !kinect {
+                    tracing::warn!(
+                        "{t} is not in the colour camera's frame {color_frame:?}; its accelerometer is left out (a Kinect's: --camera tum-fr1 or tum-fr2)"
+                    );
                 }
+                let convert = |a: [f64; 3]| if in_camera { a } else { crate::tum::kinect_accel_to_camera(a) };
+                let mut v: Vec<(u64, [f64; 3])> =
+                    if in_camera || kinect { samples.into_iter().map(|s| (s.0, convert(s.1))).collect() } else { Vec::new() };
+                v.sort_by_key(|s| s.0);
+                v
             }
             None => Vec::new(),
         };

@@ -217,7 +217,7 @@ impl FrameSource for TumSource {
 /// point opposite to the optical frame's (x right, y down, z forward). At rest it
 /// reads the specific force, which points up. Checked against the ground truth's
 /// up direction below.
-fn kinect_accel_to_camera([x, y, z]: [f64; 3]) -> [f64; 3] {
+pub(crate) fn kinect_accel_to_camera([x, y, z]: [f64; 3]) -> [f64; 3] {
     [-x, -y, z]
 }
 

@@ -119,20 +119,27 @@ fn millimetre_depth_is_read_at_its_scale_and_bad_topics_are_named() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// A bag whose `CameraInfo` holds ROS's uncalibrated defaults (as TUM's own bags do)
-/// is not taken as calibrated: it refuses to start saying so, and `--camera tum-fr1`
-/// gives it freiburg1's calibration.
+/// A bag like TUM's own: its `CameraInfo` holds ROS's uncalibrated defaults and its
+/// IMU is in the Kinect's own frame. It is not taken as calibrated (it refuses to
+/// start saying so), and `--camera tum-fr1` gives it freiburg1's calibration and its
+/// accelerometer in the camera's axes, as the folder has them.
 #[test]
-fn uncalibrated_camera_info_is_not_a_calibration() {
-    let (dir, file) = write_recording("default-info", BagFormat::Ros1, Some(3), &["--default-camera-info"]);
+fn a_bag_like_tums_own_needs_the_camera_named() {
+    let (dir, file) = write_recording("default-info", BagFormat::Ros1, Some(3), &["--default-camera-info", "--kinect-imu"]);
     let Err(e) = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &CameraOptions::default()) else {
         panic!("uncalibrated intrinsics accepted")
     };
     assert!(e.to_string().contains("holds ROS's uncalibrated defaults"), "{e}");
     let fr1 = CameraOptions { camera: Some(stillmap_client::calibration::KnownCamera::TumFr1), ..Default::default() };
-    let bag = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &fr1).expect("open with --camera tum-fr1");
-    let folder = TumSource::open(&tum(), None, &CameraOptions::default()).expect("open the folder");
+    let mut bag = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &fr1).expect("open with --camera tum-fr1");
+    let mut folder = TumSource::open(&tum(), None, &CameraOptions::default()).expect("open the folder");
     assert_eq!((bag.camera().fx, bag.camera().cy), (folder.camera().fx, folder.camera().cy));
+    let (m, t) = (bag.next_frame().expect("frame").expect("a frame"), folder.next_frame().expect("frame").expect("a frame"));
+    assert!(m.accel_in_camera.is_some() && m.accel_in_camera == t.accel_in_camera, "{:?} vs {:?}", m.accel_in_camera, t.accel_in_camera);
+    // Without a Kinect named, an IMU in another frame is left out.
+    let plain = CameraOptions { allow_default_intrinsics: true, ..Default::default() };
+    let mut bag = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &plain).expect("open");
+    assert_eq!(bag.next_frame().expect("frame").expect("a frame").accel_in_camera, None);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

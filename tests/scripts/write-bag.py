@@ -51,6 +51,8 @@ def main():
     p.add_argument("--frames", type=int)
     p.add_argument("--depth-mm", action="store_true", help="16UC1 millimetres instead of 32FC1 metres")
     p.add_argument("--ros1", action="store_true", help="a ROS 1 bag instead of a ROS 2 recording")
+    p.add_argument("--kinect-imu", action="store_true",
+                   help="/camera/imu in the Kinect's own frame and axes (frame_id imu), as TUM's own bags publish it")
     p.add_argument("--default-camera-info", action="store_true",
                    help="ROS's uncalibrated CameraInfo (fx = fy = 525, the centre, no distortion), as TUM's own bags have")
     a = p.parse_args()
@@ -59,9 +61,9 @@ def main():
     Time = T["builtin_interfaces/msg/Time"]
     Header = T["std_msgs/msg/Header"]
 
-    def header(ns):
+    def header(ns, frame_id=FRAME_ID):
         stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-        return Header(seq=0, stamp=stamp, frame_id=FRAME_ID) if a.ros1 else Header(stamp=stamp, frame_id=FRAME_ID)
+        return Header(seq=0, stamp=stamp, frame_id=frame_id) if a.ros1 else Header(stamp=stamp, frame_id=frame_id)
 
     rgb = read_list(a.tum / "rgb.txt")[: a.frames]
     depth = read_list(a.tum / "depth.txt")[: a.frames]
@@ -98,10 +100,12 @@ def main():
     for t, values in accel:
         ns = stamp_ns(t)
         x, y, z = (float(v) for v in values[:3])
+        if not a.kinect_imu:
+            x, y = -x, -y  # the camera's optical frame
         messages.append((ns, 3, "/camera/imu", T["sensor_msgs/msg/Imu"](
-            header=header(ns), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=np.full(9, -1.0),
+            header=header(ns, "imu" if a.kinect_imu else FRAME_ID), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=np.full(9, -1.0),
             angular_velocity=Vector3(x=0.0, y=0.0, z=0.0), angular_velocity_covariance=np.full(9, -1.0),
-            linear_acceleration=Vector3(x=-x, y=-y, z=z), linear_acceleration_covariance=np.zeros(9))))
+            linear_acceleration=Vector3(x=x, y=y, z=z), linear_acceleration_covariance=np.zeros(9))))
     messages.sort(key=lambda m: (m[0], m[1]))
     if a.ros1:
         writer = Writer1(a.out)
