@@ -1059,9 +1059,16 @@ impl DynamicMasker {
         let carried = self.carried.as_ref().map(|c| c.tracks.as_slice()).unwrap_or_default();
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
-        for t in carried.iter().chain(&self.offscreen) {
+        let offscreen = carried.len();
+        for (k, t) in carried.iter().chain(&self.offscreen).enumerate() {
             let Some(body) = t.body.as_ref().filter(|_| sequence.saturating_sub(t.detected_at) <= limit) else { continue };
-            for i in self.body_pixels(body, &(chain.epoch, chain.anchor_from_camera), depth, w, h) {
+            // Out of view he may have walked on: his body widens at a walking pace.
+            let mut body = *body;
+            if k >= offscreen {
+                let unseen = sequence.saturating_sub(t.detected_at) as f64;
+                body.radius_m += (UNSEEN_WALK_M_PER_FRAME * unseen).min(MAX_UNSEEN_GROWTH_M);
+            }
+            for i in self.body_pixels(&body, &(chain.epoch, chain.anchor_from_camera), depth, w, h) {
                 let near = t.depth_m.is_none_or(|r| (f32::from(depth[i]) * metres - r).abs() <= COAST_DEPTH_GATE * r);
                 if near && labels[i] == PixelLabel::Static as u8 {
                     labels[i] = PixelLabel::PriorDynamic as u8;
@@ -1200,6 +1207,10 @@ const MAX_BODY_RADIUS_M: f64 = 0.45;
 const BODY_STEP_M_PER_FRAME: f64 = 0.05;
 /// Points a track needs before its body's volume is estimated.
 const MIN_BODY_POINTS: usize = 20;
+/// How fast the body of a person out of view widens (metres per frame: 0.6 m/s at 30 Hz).
+const UNSEEN_WALK_M_PER_FRAME: f64 = 0.02;
+/// The most it widens.
+const MAX_UNSEEN_GROWTH_M: f64 = 0.5;
 /// Per frame, the weight left to earlier accelerometer samples in the up estimate.
 const UP_DECAY: f64 = 0.9;
 /// A coasting track with fewer pixels than this is out of view.
@@ -1489,6 +1500,35 @@ mod tests {
         let shift = (moved.centre.0 - body.centre.0).hypot(moved.centre.1 - body.centre.1);
         assert!((shift - 0.3).abs() < 1e-6, "moved {shift} m in all");
         assert_eq!((moved.radius_m, moved.heights), (body.radius_m, body.heights), "its size stays");
+    }
+
+    /// A person out of view may walk on: his body widens by a walking pace per
+    /// frame since he was last detected (at most `MAX_UNSEEN_GROWTH_M`), so where he
+    /// stopped unseen is his too (a body in view follows his points instead).
+    #[test]
+    fn an_unseen_persons_body_widens_at_a_walking_pace() {
+        let (w, h) = (160usize, 40usize);
+        let mut masker = DynamicMasker::new(pinhole(w, h, 40.0), PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        // A wall 2 m ahead: at 2 m a pixel is 5 cm, column 80 is straight ahead.
+        let depth = vec![2000u16; w * h];
+        let up = -Vector3::y();
+        let seen: Vec<[f32; 3]> = (0..40).map(|k| [0.0, (k as f32 - 20.0) * 0.05, 2.0]).collect();
+        let body = Body::around(1, &seen, up, 2.0).expect("a body");
+        let person =
+            Track { id: 1, detected_at: 0, depth_m: Some(2.0), class_id: 0, score: 0.9, points: None, moved: true, body: Some(body) };
+        let labelled_columns = |m: &mut DynamicMasker, sequence: u64| {
+            m.chain = Some(PoseChain { sequence, anchor_from_camera: Isometry3::identity(), motion: Isometry3::identity(), epoch: 1 });
+            let mut labels = vec![PixelLabel::Static as u8; w * h];
+            m.label_bodies(&mut labels, sequence, &depth);
+            (0..w).filter(|&x| labels[20 * w + x] == PixelLabel::PriorDynamic as u8).count()
+        };
+        masker.offscreen = vec![person];
+        let narrow = labelled_columns(&mut masker, 0);
+        assert_eq!(narrow, 3, "radius 5 cm: columns 79..=81");
+        // 10 frames unseen: 0.2 m wider on each side (4 columns).
+        assert_eq!(labelled_columns(&mut masker, 10), narrow + 2 * 4);
+        // 50 frames: at most 0.5 m (10 columns).
+        assert_eq!(labelled_columns(&mut masker, 50), narrow + 2 * 10);
     }
 
     /// A person gets a body once he was seen moving, detected or coasting; a person
