@@ -9,8 +9,9 @@
 //! - [`warp`]: carrying a late segmentation forward through the flow.
 //! - [`masker`]: the per-session state machine tying them together.
 //! - [`origins`]: recent keyframes' pixels followed through the flow, to take moving things back out of the map.
-//! - [`composite`]: pastes a moving textured plane into real RGB-D frames with exact masks (tests, benches).
+//! - `composite` (feature `testing`): pastes a moving textured plane into real RGB-D frames with exact masks (tests, benches).
 
+#[cfg(any(test, feature = "testing"))]
 pub mod composite;
 pub mod config;
 pub mod ego;

@@ -12,6 +12,7 @@ pub mod features;
 pub mod geometry;
 pub mod map;
 pub mod optimize;
+#[cfg(any(test, feature = "testing"))]
 pub mod synthetic;
 pub mod tracker;
 
