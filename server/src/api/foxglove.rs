@@ -67,8 +67,8 @@ fn pose_json(p: &pb::PoseStamped) -> serde_json::Value {
     json!({ "position": { "x": t.x, "y": t.y, "z": t.z }, "orientation": { "x": q.x, "y": q.y, "z": q.z, "w": q.w } })
 }
 
-/// The map as the session's map service hands it out: its points, class names and
-/// `map_from_world`.
+/// What the export takes from the session's map: its points, `map_from_world` and
+/// the keyframe images it kept.
 pub struct MapExport {
     pub points: Vec<CloudPoint>,
     pub map_from_world: UnitQuaternion<f64>,
