@@ -67,10 +67,11 @@ impl Header {
     }
 }
 
+// The messages after their `std_msgs/Header` (decoded on its own: ROS 1's differs).
+
 /// The leading fields of an `Image` (what the first pass needs).
 #[derive(Deserialize)]
 struct ImageHead {
-    header: Header,
     height: u32,
     width: u32,
     encoding: String,
@@ -78,7 +79,6 @@ struct ImageHead {
 
 #[derive(Deserialize)]
 struct Image {
-    _header: Header,
     height: u32,
     width: u32,
     encoding: String,
@@ -89,14 +89,12 @@ struct Image {
 
 #[derive(Deserialize)]
 struct CompressedImage {
-    _header: Header,
     format: String,
     data: Vec<u8>,
 }
 
 #[derive(Deserialize)]
 struct CameraInfo {
-    header: Header,
     height: u32,
     width: u32,
     distortion_model: String,
@@ -113,7 +111,6 @@ struct Vector3 {
 
 #[derive(Deserialize)]
 struct Imu {
-    header: Header,
     _orientation: [f64; 4],
     _orientation_covariance: [f64; 9],
     _angular_velocity: Vector3,
@@ -162,52 +159,6 @@ impl From<Header1> for Header {
     }
 }
 
-#[derive(Deserialize)]
-struct ImageHead1 {
-    header: Header1,
-    height: u32,
-    width: u32,
-    encoding: String,
-}
-
-#[derive(Deserialize)]
-struct Image1 {
-    _header: Header1,
-    height: u32,
-    width: u32,
-    encoding: String,
-    is_bigendian: u8,
-    step: u32,
-    data: Vec<u8>,
-}
-
-#[derive(Deserialize)]
-struct CompressedImage1 {
-    _header: Header1,
-    format: String,
-    data: Vec<u8>,
-}
-
-#[derive(Deserialize)]
-struct CameraInfo1 {
-    header: Header1,
-    height: u32,
-    width: u32,
-    distortion_model: String,
-    d: Vec<f64>,
-    k: [f64; 9],
-}
-
-#[derive(Deserialize)]
-struct Imu1 {
-    header: Header1,
-    _orientation: [f64; 4],
-    _orientation_covariance: [f64; 9],
-    _angular_velocity: Vector3,
-    _angular_velocity_covariance: [f64; 9],
-    linear_acceleration: Vector3,
-}
-
 /// A ROS 1 message from its bytes (no length prefix in a bag's message records).
 fn decode1<'de, T: Deserialize<'de>>(bytes: &[u8], what: &str) -> Result<T, ClientError> {
     let length = u32::try_from(bytes.len()).map_err(|_| ClientError::Source(format!("{what}: larger than 4 GiB")))?;
@@ -215,67 +166,13 @@ fn decode1<'de, T: Deserialize<'de>>(bytes: &[u8], what: &str) -> Result<T, Clie
     T::deserialize(&mut de).map_err(|e| ClientError::Source(format!("{what}: bad ROS 1 message: {e}")))
 }
 
-fn image_head(format: BagFormat, bytes: &[u8], what: &str) -> Result<ImageHead, ClientError> {
+/// A message of the file's format: its header (as ROS 2's) and what follows it. Both
+/// serializations lay a message's fields out in order (CDR aligns them from the
+/// start), so the pair reads the same bytes as the whole message would.
+fn message<B: serde::de::DeserializeOwned>(format: BagFormat, bytes: &[u8], what: &str) -> Result<(Header, B), ClientError> {
     match format {
         BagFormat::Mcap => decode(bytes, what),
-        BagFormat::Ros1 => decode1::<ImageHead1>(bytes, what).map(|m| ImageHead {
-            header: m.header.into(),
-            height: m.height,
-            width: m.width,
-            encoding: m.encoding,
-        }),
-    }
-}
-
-fn image(format: BagFormat, bytes: &[u8], what: &str) -> Result<Image, ClientError> {
-    match format {
-        BagFormat::Mcap => decode(bytes, what),
-        BagFormat::Ros1 => decode1::<Image1>(bytes, what).map(|m| Image {
-            _header: m._header.into(),
-            height: m.height,
-            width: m.width,
-            encoding: m.encoding,
-            is_bigendian: m.is_bigendian,
-            step: m.step,
-            data: m.data,
-        }),
-    }
-}
-
-fn compressed(format: BagFormat, bytes: &[u8], what: &str) -> Result<CompressedImage, ClientError> {
-    match format {
-        BagFormat::Mcap => decode(bytes, what),
-        BagFormat::Ros1 => {
-            decode1::<CompressedImage1>(bytes, what).map(|m| CompressedImage { _header: m._header.into(), format: m.format, data: m.data })
-        }
-    }
-}
-
-fn compressed_header(format: BagFormat, bytes: &[u8], what: &str) -> Result<Header, ClientError> {
-    match format {
-        BagFormat::Mcap => decode(bytes, what),
-        BagFormat::Ros1 => decode1::<Header1>(bytes, what).map(Header::from),
-    }
-}
-
-fn camera_info(format: BagFormat, bytes: &[u8], what: &str) -> Result<CameraInfo, ClientError> {
-    match format {
-        BagFormat::Mcap => decode(bytes, what),
-        BagFormat::Ros1 => decode1::<CameraInfo1>(bytes, what).map(|m| CameraInfo {
-            header: m.header.into(),
-            height: m.height,
-            width: m.width,
-            distortion_model: m.distortion_model,
-            d: m.d,
-            k: m.k,
-        }),
-    }
-}
-
-fn imu(format: BagFormat, bytes: &[u8], what: &str) -> Result<(Header, Vector3), ClientError> {
-    match format {
-        BagFormat::Mcap => decode::<Imu>(bytes, what).map(|m| (m.header, m.linear_acceleration)),
-        BagFormat::Ros1 => decode1::<Imu1>(bytes, what).map(|m| (m.header.into(), m.linear_acceleration)),
+        BagFormat::Ros1 => decode1::<(Header1, B)>(bytes, what).map(|(h, b)| (h.into(), b)),
     }
 }
 
@@ -418,7 +315,7 @@ impl BagSource {
         // First pass: the topics, every image's stamp, the calibration, the accelerometer.
         let mut stats: BTreeMap<String, TopicStats> = BTreeMap::new();
         let mut stamps: HashMap<String, Vec<u64>> = HashMap::new();
-        let mut infos: HashMap<String, CameraInfo> = HashMap::new();
+        let mut infos: HashMap<String, (Header, CameraInfo)> = HashMap::new();
         let mut imu_samples: HashMap<String, Vec<(u64, [f64; 3], String)>> = HashMap::new();
         let mut image_frames: HashMap<String, String> = HashMap::new();
         visit(path, format, &mut |topic, schema, data| {
@@ -428,21 +325,21 @@ impl BagSource {
             let negative = || source_error(format!("{what}: negative time stamp"));
             match schema {
                 IMAGE => {
-                    let head = image_head(format, data, &what)?;
+                    let (header, head) = message::<ImageHead>(format, data, &what)?;
                     entry.encoding.get_or_insert(head.encoding);
-                    image_frames.entry(topic.to_string()).or_insert(head.header.frame_id.clone());
-                    stamps.entry(topic.to_string()).or_default().push(head.header.stamp_ns().ok_or_else(negative)?);
+                    stamps.entry(topic.to_string()).or_default().push(header.stamp_ns().ok_or_else(negative)?);
+                    image_frames.entry(topic.to_string()).or_insert(header.frame_id);
                 }
                 COMPRESSED => {
-                    let head = compressed_header(format, data, &what)?;
-                    image_frames.entry(topic.to_string()).or_insert(head.frame_id.clone());
-                    stamps.entry(topic.to_string()).or_default().push(head.stamp_ns().ok_or_else(negative)?);
+                    let (header, ()) = message::<()>(format, data, &what)?;
+                    stamps.entry(topic.to_string()).or_default().push(header.stamp_ns().ok_or_else(negative)?);
+                    image_frames.entry(topic.to_string()).or_insert(header.frame_id);
                 }
                 CAMERA_INFO if !infos.contains_key(topic) => {
-                    infos.insert(topic.to_string(), camera_info(format, data, &what)?);
+                    infos.insert(topic.to_string(), message::<CameraInfo>(format, data, &what)?);
                 }
                 IMU => {
-                    let (header, a) = imu(format, data, &what)?;
+                    let (header, Imu { linear_acceleration: a, .. }) = message(format, data, &what)?;
                     let samples = imu_samples.entry(topic.to_string()).or_default();
                     if samples.len() >= MAX_IMU_SAMPLES {
                         return Err(source_error(format!("{topic}: more than {MAX_IMU_SAMPLES} IMU samples")));
@@ -533,14 +430,14 @@ impl BagSource {
         let first = infos.remove(info_topic.as_deref().unwrap_or_default());
         let source_camera = match first {
             // ROS's uncalibrated defaults (TUM's own bags carry them) are no calibration.
-            Some(ci) if is_ros_default(&ci) => SourceCamera {
+            Some((_, ci)) if is_ros_default(&ci) => SourceCamera {
                 info: camera_from_info(&ci, &depth_encoding).map_err(source_error)?,
                 known: None,
                 what: format!("{kind} {name} ({} holds ROS's uncalibrated defaults)", info_topic.unwrap_or_default()),
             },
-            Some(ci) => SourceCamera {
+            Some((header, ci)) => SourceCamera {
                 info: camera_from_info(&ci, &depth_encoding).map_err(source_error)?,
-                known: Some(format!("{scheme}:{name} {} ({})", info_topic.unwrap_or_default(), ci.header.frame_id)),
+                known: Some(format!("{scheme}:{name} {} ({})", info_topic.unwrap_or_default(), header.frame_id)),
                 what: format!("{kind} {name}"),
             },
             None => {
@@ -574,11 +471,11 @@ impl ReadPlan {
         let (w, h) = (self.camera.width, self.camera.height);
         let bad = |m: String| ClientError::Source(format!("{what}: {m}"));
         if compressed_image {
-            let m = compressed(self.format, data, what)?;
+            let (_, m) = message::<CompressedImage>(self.format, data, what)?;
             let encoding = if m.format.contains("png") { pb::ColorEncoding::Png } else { pb::ColorEncoding::Jpeg };
             return codec::decode_color(encoding, &m.data, w, h).map_err(|e| bad(e.to_string()));
         }
-        let m = image(self.format, data, what)?;
+        let (_, m) = message::<Image>(self.format, data, what)?;
         check_size(&m, w, h, 3, what)?;
         let row = 3 * w as usize;
         let mut rgb = Vec::with_capacity(row * h as usize);
@@ -596,7 +493,7 @@ impl ReadPlan {
     fn decode_depth(&self, data: &[u8], what: &str) -> Result<DepthImage, ClientError> {
         let (w, h) = (self.camera.width, self.camera.height);
         let bad = |m: String| ClientError::Source(format!("{what}: {m}"));
-        let m = image(self.format, data, what)?;
+        let (_, m) = message::<Image>(self.format, data, what)?;
         let bytes = if m.encoding == "32FC1" { 4 } else { 2 };
         check_size(&m, w, h, bytes, what)?;
         let scale = self.camera.depth_units_per_metre;
@@ -689,7 +586,7 @@ fn first_size(path: &Path, format: BagFormat, topic: &str) -> Result<(u32, u32),
             return Ok(true);
         }
         size = Some(match schema {
-            IMAGE => image_head(format, data, &format!("{topic} message 1")).map(|h| (h.width, h.height)),
+            IMAGE => message::<ImageHead>(format, data, &format!("{topic} message 1")).map(|(_, h)| (h.width, h.height)),
             _ => Err(ClientError::Source(format!(
                 "{topic}: a compressed colour topic and no CameraInfo: give --calibration (it states the image size)"
             ))),
