@@ -8,7 +8,7 @@
 //! Two passes over the file, each streaming (memory is one chunk and the frames
 //! waiting for their other half, not the file): the first lists the topics and
 //! every image's timestamp, pairs colour with depth exactly as the TUM source does
-//! (`tum::associate`, 20 ms) and keeps the camera info and accelerometer samples;
+//! (`stillmap_dataset::tum::associate`, 20 ms) and keeps the camera info and accelerometer samples;
 //! the second, on a reader thread, decodes the paired images in order and hands
 //! frames over a bounded channel.
 
@@ -400,7 +400,7 @@ impl BagSource {
                         "{t} is not in the colour camera's frame {color_frame:?}; its accelerometer is left out (a Kinect's: --camera tum-fr1 or tum-fr2)"
                     );
                 }
-                let convert = |a: [f64; 3]| if in_camera { a } else { crate::tum::kinect_accel_to_camera(a) };
+                let convert = |a: [f64; 3]| if in_camera { a } else { stillmap_dataset::tum::kinect_accel_to_camera(a) };
                 let mut v: Vec<(u64, [f64; 3])> =
                     if in_camera || kinect { samples.into_iter().map(|s| (s.0, convert(s.1))).collect() } else { Vec::new() };
                 v.sort_by_key(|s| s.0);
@@ -410,9 +410,9 @@ impl BagSource {
         };
         let accel_ts: Vec<u64> = accel.iter().map(|a| a.0).collect();
         let mut pairs = Vec::new();
-        for (i, j) in crate::tum::associate(&color_stamps, &depth_stamps, crate::tum::MAX_ASSOCIATION_NS) {
+        for (i, j) in stillmap_dataset::tum::associate(&color_stamps, &depth_stamps, stillmap_dataset::tum::MAX_ASSOCIATION_NS) {
             let ts = color_stamps[i];
-            let sample = crate::tum::nearest(&accel_ts, ts, crate::tum::MAX_ASSOCIATION_NS).map(|k| accel[k].1);
+            let sample = stillmap_dataset::tum::nearest(&accel_ts, ts, stillmap_dataset::tum::MAX_ASSOCIATION_NS).map(|k| accel[k].1);
             pairs.push((i, j, ts, sample));
         }
         if pairs.is_empty() {

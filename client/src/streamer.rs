@@ -428,19 +428,7 @@ impl Summary {
     pub fn tum_trajectory(&self) -> String {
         let mut out = String::from("# stillmap poses: timestamp tx ty tz qx qy qz qw (world_from_camera at pose_time_ns)\n");
         for p in &self.poses {
-            let t = p.pose_time_ns;
-            out.push_str(&format!(
-                "{}.{:09} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n",
-                t / 1_000_000_000,
-                t % 1_000_000_000,
-                p.translation[0],
-                p.translation[1],
-                p.translation[2],
-                p.rotation_xyzw[0],
-                p.rotation_xyzw[1],
-                p.rotation_xyzw[2],
-                p.rotation_xyzw[3]
-            ));
+            stillmap_dataset::trajectory::push_line_ns(&mut out, p.pose_time_ns, p.translation, p.rotation_xyzw);
         }
         out
     }

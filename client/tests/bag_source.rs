@@ -20,7 +20,7 @@ fn repo() -> PathBuf {
 }
 
 fn tum() -> PathBuf {
-    repo().join("../shared/data/tum/rgbd_dataset_freiburg1_rpy")
+    stillmap_dataset::shared::fr1_rpy()
 }
 
 /// Writes the first `FRAMES` frames of the clip as a recording: the .mcap file

@@ -10,7 +10,7 @@ use std::process::Command;
 
 use nalgebra::{Isometry3, Vector3};
 use serde_json::Value;
-use stillmap_client::eval::trajectory::{format_tum, read_tum};
+use stillmap_dataset::trajectory::{format_tum, read_tum};
 
 /// Largest accepted difference between our statistics and evo's.
 const TOLERANCE: f64 = 1e-4;
@@ -26,8 +26,7 @@ fn workspace() -> PathBuf {
 }
 
 fn tum_dir() -> PathBuf {
-    let dir =
-        std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(|| workspace().join("../shared/data/tum/rgbd_dataset_freiburg1_rpy"));
+    let dir = std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(stillmap_dataset::shared::fr1_rpy);
     assert!(dir.join("groundtruth.txt").exists(), "TUM clip not found at {} (set TUM)", dir.display());
     dir
 }

@@ -6,8 +6,7 @@
 //! tracker's longest keyframe interval) at the ground-truth poses, all pixels
 //! static (perception is benchmarked on its own).
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::time::{Duration, Instant};
 

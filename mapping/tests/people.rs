@@ -10,14 +10,10 @@
 //! frame (its swept volume). Keyframes are fused at their ground-truth poses (as in
 //! `real.rs`), so what is scored is the map. Run with `--nocapture` for the numbers.
 
-#[path = "../../perception/tests/support/composite_run.rs"]
-mod composite_run;
-#[path = "support/map_run.rs"]
+use stillmap_perception::testing::composite_run;
 mod map_run;
-#[path = "../../perception/tests/support/mod.rs"]
-mod support;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_perception::testing as support;
+use stillmap_tracking::testing as tum;
 
 use std::collections::HashSet;
 use std::path::Path;
@@ -280,7 +276,7 @@ const STANDING_RPY_B: [usize; 2] = [100, 45];
 #[test]
 fn moving_people_stay_out_of_the_map() {
     let mut segmenter = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
-    let dirs = [tum::fr1_rpy_dir(), tum::fr1_rpy_dir().with_file_name("rgbd_dataset_freiburg1_rpy_b")];
+    let dirs = [tum::fr1_rpy_dir(), stillmap_dataset::shared::fr1_rpy_b()];
     // STILLMAP_PEOPLE_CLIP=<folder name>: only that clip (while investigating one).
     let only = std::env::var("STILLMAP_PEOPLE_CLIP").ok();
     for dir in &dirs {

@@ -5,14 +5,10 @@
 //! and a voxel can be checked against the pasted object's exact world position.
 //! Run with `--nocapture` for the numbers.
 
-#[path = "../../perception/tests/support/composite_run.rs"]
-mod composite_run;
-#[path = "support/map_run.rs"]
+use stillmap_perception::testing::composite_run;
 mod map_run;
-#[path = "../../perception/tests/support/mod.rs"]
-mod support;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_perception::testing as support;
+use stillmap_tracking::testing as tum;
 
 use std::sync::OnceLock;
 

@@ -14,10 +14,8 @@
 //! the server does (tracking time not included); the criterion bench runs the
 //! one-phase `process` without a tracked motion (the path after a tracking loss).
 
-#[path = "../tests/support/mod.rs"]
-mod support;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_perception::testing as support;
+use stillmap_tracking::testing as tum;
 
 use std::time::{Duration, Instant};
 

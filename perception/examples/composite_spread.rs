@@ -11,12 +11,9 @@
 //! override the configurations). The real YOLOv8n-seg model segments each frame
 //! once; its results are replayed, in order, to every run.
 
-#[path = "../tests/support/composite_run.rs"]
-mod composite_run;
-#[path = "../tests/support/mod.rs"]
-mod support;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_perception::testing as support;
+use stillmap_perception::testing::composite_run;
+use stillmap_tracking::testing as tum;
 
 use composite_run::{CompositeFrame, Schedule};
 use stillmap_perception::{PerceptionConfig, PerceptionError, Segmentation, Segmenter, YoloSegmenter};

@@ -10,6 +10,7 @@
 //! - [`masker`]: the per-session state machine tying them together.
 //! - [`origins`]: recent keyframes' pixels followed through the flow, to take moving things back out of the map.
 //! - `composite` (feature `testing`): pastes a moving textured plane into real RGB-D frames with exact masks (tests, benches).
+//! - `testing` (feature `testing`): the real model and photos, and the composite runs the tests and benches of perception and mapping share.
 
 #[cfg(any(test, feature = "testing"))]
 pub mod composite;
@@ -20,6 +21,8 @@ pub mod fusion;
 pub mod masker;
 pub mod origins;
 pub mod segment;
+#[cfg(feature = "testing")]
+pub mod testing;
 pub mod warp;
 pub mod yolo;
 

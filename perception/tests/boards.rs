@@ -10,11 +10,9 @@
 //! A benchmark, not a check: it prints the table docs/people.md quotes.
 //! `cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture`
 
-#[path = "support/composite_run.rs"]
-mod composite_run;
-mod support;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_perception::testing as support;
+use stillmap_perception::testing::composite_run;
+use stillmap_tracking::testing as tum;
 
 use composite_run::{CompositeFrame, Schedule, Stage};
 use nalgebra::Isometry3;
@@ -69,7 +67,7 @@ fn boards(poses: &[Isometry3<f64>]) -> Vec<Board> {
 fn boards_carried_through_the_view() {
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     let camera = tum::fr1_camera();
-    let dirs = [tum::fr1_rpy_dir(), tum::fr1_rpy_dir().with_file_name("rgbd_dataset_freiburg1_rpy_b")];
+    let dirs = [tum::fr1_rpy_dir(), stillmap_dataset::shared::fr1_rpy_b()];
     println!(
         "| clip | boards cover (mean / max / first frame) | ATE object-free | ATE boards, mask | ATE boards, no mask | frames without a pose (free / mask / no mask) | ATE, exact mask of every board / of the moving boards |"
     );

@@ -3,11 +3,9 @@
 //! hand-held motion) consistently with the ground truth, and the fused mask is
 //! scored against the board's exact mask. Run with `--nocapture` for the numbers.
 
-#[path = "support/composite_run.rs"]
-mod composite_run;
-mod support;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_perception::testing as support;
+use stillmap_perception::testing::composite_run;
+use stillmap_tracking::testing as tum;
 
 use std::sync::OnceLock;
 

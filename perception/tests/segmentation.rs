@@ -1,7 +1,7 @@
 //! Instance segmentation with the real YOLOv8n-seg model on the real test photos
 //! (numbers in MODELS.md were measured with Python onnxruntime on the same files).
 
-mod support;
+use stillmap_perception::testing as support;
 
 use stillmap_perception::config::SegmentationConfig;
 use stillmap_perception::segment::{NO_CLASS, NO_INSTANCE, RgbFrame};

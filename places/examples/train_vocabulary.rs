@@ -4,10 +4,7 @@
 //! `cargo run --release -p stillmap-places --example train_vocabulary [-- OUT]`
 //! (`make vocabulary`; OUT defaults to places/vocabulary/fr1_rpy.smvoc).
 
-#[path = "../tests/support/training.rs"]
-mod training;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_places::training;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = std::env::args().nth(1).unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/vocabulary/fr1_rpy.smvoc").to_string());

@@ -18,6 +18,8 @@
 pub mod graph;
 pub mod index;
 pub mod merge;
+#[cfg(feature = "training")]
+pub mod training;
 pub mod verify;
 pub mod vocabulary;
 

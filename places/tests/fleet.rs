@@ -11,15 +11,14 @@
 //!
 //! `cargo test --release -p stillmap-places --test fleet -- --nocapture` prints the numbers.
 
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::time::Instant;
 
 use nalgebra::Isometry3;
-use stillmap_client::eval::align::align_orientations;
-use stillmap_client::eval::associate::associate;
-use stillmap_client::eval::metrics::{Relation, Stats, ape};
+use stillmap_dataset::eval::align::align_orientations;
+use stillmap_dataset::eval::associate::associate;
+use stillmap_dataset::eval::metrics::{Relation, Stats, ape};
 use stillmap_places::{MergeConfig, MergeDetector, Merged, Place, PlaceIndex, VerifyConfig, Vocabulary, propose, verify};
 use stillmap_tracking::synthetic::{Scene, kinect_camera, render, sway_path};
 use stillmap_tracking::{Camera, FrameInput, Tracker, TrackerConfig};
@@ -143,7 +142,7 @@ fn errors(gt: &[(u64, Isometry3<f64>)], gt_from_world: &Isometry3<f64>, est: &[(
 fn robot_b_merges_into_robot_a_and_look_alikes_never_do() {
     let camera = tum::fr1_camera();
     let a_dir = tum::fr1_rpy_dir();
-    let b_dir = a_dir.with_file_name("rgbd_dataset_freiburg1_rpy_b");
+    let b_dir = stillmap_dataset::shared::fr1_rpy_b();
     let (a_frames, b_frames) = (tum::load(&a_dir, 150), tum::load(&b_dir, 150));
     let stamp = |s: Session| Session { trajectory: s.trajectory.iter().map(|(t, p)| (tum::fr1_pose_time_ns(*t), *p)).collect(), ..s };
     let a = stamp(tum_session(&a_frames, false));

@@ -1,10 +1,7 @@
 //! The shipped vocabulary is what its build step makes: retrained from the public
 //! clip with the fixed seed, it is the same, byte for byte (a golden test).
 
-#[path = "support/training.rs"]
-mod training;
-#[path = "../../tracking/benches/support/tum.rs"]
-mod tum;
+use stillmap_places::training;
 
 use stillmap_places::Vocabulary;
 

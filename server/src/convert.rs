@@ -124,18 +124,7 @@ mod tests {
 
     #[test]
     fn camera_and_pose_conversions() {
-        let info = pb::CameraInfo {
-            width: 640,
-            height: 480,
-            fx: 517.3,
-            fy: 516.5,
-            cx: 318.6,
-            cy: 255.3,
-            distortion_model: pb::DistortionModel::PlumbBob as i32,
-            distortion_coeffs: vec![0.2624, -0.9531, -0.0054, 0.0026, 1.1633],
-            depth_units_per_metre: 5000.0,
-            ..Default::default()
-        };
+        let info = stillmap_dataset::calibration::KnownCamera::TumFr1.camera_info();
         let cam = camera_of(&info);
         assert_eq!(cam.distortion, Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]));
         assert_eq!((cam.fx, cam.cy, cam.depth_units_per_metre), (517.3, 255.3, 5000.0));

@@ -40,9 +40,7 @@ pub fn venv_python(venv: &str) -> PathBuf {
 
 /// The real TUM clip beside the checkout.
 pub fn tum_dir() -> PathBuf {
-    let dir = std::env::var_os("TUM")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/tum/rgbd_dataset_freiburg1_rpy"));
+    let dir = std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(stillmap_dataset::shared::fr1_rpy);
     assert!(dir.join("rgb.txt").exists(), "TUM clip not found at {}", dir.display());
     dir
 }
@@ -226,19 +224,15 @@ pub fn first_tum_frame() -> (ColorImage, DepthImage) {
 pub fn tum_hello(robot_id: &str) -> pb::Hello {
     pb::Hello {
         robot_id: robot_id.into(),
+        // freiburg1's intrinsics, without its distortion and shutter timing.
         camera: Some(pb::CameraInfo {
-            width: 640,
-            height: 480,
-            fx: 517.3,
-            fy: 516.5,
-            cx: 318.6,
-            cy: 255.3,
             distortion_model: pb::DistortionModel::None as i32,
-            depth_units_per_metre: 5000.0,
+            distortion_coeffs: vec![],
+            rolling_shutter_readout_s: 0.0,
+            exposure_time_offset_s: 0.0,
             color_encoding: pb::ColorEncoding::Jpeg as i32,
             depth_encoding: pb::DepthEncoding::Zstd as i32,
-            nominal_rate_hz: 30.0,
-            ..Default::default()
+            ..stillmap_dataset::calibration::KnownCamera::TumFr1.camera_info()
         }),
         ..Default::default()
     }
@@ -267,7 +261,7 @@ pub async fn eventually(timeout: Duration, what: &str, mut f: impl AsyncFnMut() 
 
 /// The YOLOv8n-seg model beside the repository (`../shared/models`).
 pub fn model_path() -> std::path::PathBuf {
-    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/models/yolov8n-seg_fp32_640.onnx")
+    stillmap_dataset::shared::model("yolov8n-seg_fp32_640.onnx")
 }
 
 /// GET `path` from `server`'s HTTP port, with an `If-None-Match` when given.

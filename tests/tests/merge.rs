@@ -8,10 +8,10 @@
 
 use std::time::{Duration, Instant};
 
-use stillmap_client::eval::align::align_orientations;
-use stillmap_client::eval::associate::associate;
-use stillmap_client::eval::metrics::{Relation, Stats, ape};
-use stillmap_client::eval::trajectory::{parse_tum, read_tum};
+use stillmap_dataset::eval::align::align_orientations;
+use stillmap_dataset::eval::associate::associate;
+use stillmap_dataset::eval::metrics::{Relation, Stats, ape};
+use stillmap_dataset::trajectory::{parse_tum, read_tum};
 use stillmap_e2e::{Server, decode_png, http_get, run_client, tempfile_path, tum_dir};
 use stillmap_proto::pb::{self, query_client::QueryClient};
 
@@ -103,7 +103,7 @@ fn member<'a>(fleet: &'a serde_json::Value, session: &str) -> &'a serde_json::Va
 async fn a_robot_joining_a_mapped_room_merges_within_two_seconds() {
     let server = Server::start(&["--no-zenoh", "--no-perception", "--no-store"]);
     let a_dir = tum_dir();
-    let b_dir = a_dir.with_file_name("rgbd_dataset_freiburg1_rpy_b");
+    let b_dir = stillmap_dataset::shared::fr1_rpy_b();
     let grpc = server.grpc_url();
     let (a, _) = run_client(&[
         "--source",
@@ -162,7 +162,7 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let store_arg = store.to_str().expect("utf-8 path").to_string();
     let mut server = Server::start(&["--no-zenoh", "--no-perception", "--store", &store_arg]);
     let a_dir = tum_dir();
-    let b_dir = a_dir.with_file_name("rgbd_dataset_freiburg1_rpy_b");
+    let b_dir = stillmap_dataset::shared::fr1_rpy_b();
     let stream = |dir: &std::path::Path, robot: &str| {
         let (src, grpc, robot) = (format!("tum:{}", dir.display()), server.grpc_url(), robot.to_string());
         std::thread::spawn(move || {

@@ -280,7 +280,12 @@ fn trajectory_file_holds_only_returned_poses() {
     assert!(out.status.success());
     let text = std::fs::read_to_string(&path).expect("trajectory file");
     assert_eq!(text.lines().filter(|l| !l.starts_with('#')).count(), 5, "{text}");
-    assert!(text.lines().nth(1).is_some_and(|l| l.ends_with(" 0.000000 0.000000 0.000000 0.000000 0.000000 0.000000 1.000000")), "{text}");
+    assert!(
+        text.lines()
+            .nth(1)
+            .is_some_and(|l| l.ends_with(" 0.000000000 0.000000000 0.000000000 0.000000000 0.000000000 0.000000000 1.000000000")),
+        "{text}"
+    );
     let _ = std::fs::remove_file(path);
 }
 

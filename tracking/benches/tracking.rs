@@ -8,8 +8,7 @@
 //! (its map and motion) and the mean covers the whole clip. Decoding the PNGs and
 //! creating trackers stay outside the timing.
 
-#[path = "support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};

@@ -3,8 +3,7 @@
 //! ground truth: what the prior knows by itself.
 //! `cargo run --release -p stillmap-tracking --example dense_only [DIR]`
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::path::PathBuf;
 

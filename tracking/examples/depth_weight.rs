@@ -13,8 +13,7 @@
 //! for reference only.
 //! `cargo run --release -p stillmap-tracking --example depth_weight [DIR]`
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::path::PathBuf;
 

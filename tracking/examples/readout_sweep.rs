@@ -7,8 +7,7 @@
 //! the ground truth's ATE is printed beside it for reference only.
 //! `cargo run --release -p stillmap-tracking --example readout_sweep [DIR]`
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::path::PathBuf;
 

@@ -1,8 +1,7 @@
 //! Tracks the synthetic room along the sway path and prints the error against
 //! the exact ground truth: `cargo run --release -p stillmap-tracking --example synthetic`.
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use stillmap_tracking::synthetic::{Scene, kinect_camera, render, sway_path};
 use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};

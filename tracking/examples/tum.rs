@@ -1,8 +1,7 @@
 //! Runs the tracker over a TUM folder and prints scores and stage times:
 //! `cargo run --release -p stillmap-tracking --example tum [DIR]`.
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::path::PathBuf;
 

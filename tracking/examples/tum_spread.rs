@@ -6,8 +6,7 @@
 //! `cargo run --release -p stillmap-tracking --example tum_spread [DIR]`
 //! (`TRACKING="key = value;..."` overrides the rest of the configuration).
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::path::PathBuf;
 

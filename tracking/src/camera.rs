@@ -98,11 +98,9 @@ impl Camera {
 mod tests {
     use super::*;
 
+    /// freiburg1's intrinsics and distortion, as a global shutter.
     fn fr1() -> Camera {
-        Camera {
-            distortion: Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
-            ..Camera::pinhole(640, 480, 517.3, 516.5, 318.6, 255.3, 5000.0)
-        }
+        Camera { readout_s: 0.0, ..crate::testing::fr1_camera() }
     }
 
     #[test]

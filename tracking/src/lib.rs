@@ -14,6 +14,8 @@ pub mod map;
 pub mod optimize;
 #[cfg(any(test, feature = "testing"))]
 pub mod synthetic;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 pub mod tracker;
 
 pub use camera::Camera;

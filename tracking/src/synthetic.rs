@@ -862,10 +862,7 @@ mod tests {
 
     #[test]
     fn depth_is_consistent_with_camera_projection() {
-        let fr1 = Camera {
-            distortion: Some([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
-            ..Camera::pinhole(640, 480, 517.3, 516.5, 318.6, 255.3, 5000.0)
-        };
+        let fr1 = Camera { readout_s: 0.0, ..crate::testing::fr1_camera() };
         // A tilted quad, seen from a rotated and translated camera.
         let mut scene = Scene::new();
         let origin = Point3::new(-1.0, -0.8, 2.0);

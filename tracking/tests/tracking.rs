@@ -8,8 +8,7 @@
 //! frame that started the map (the tracker's world frame):
 //! `GT(first)⁻¹ · GT(t)`.
 
-#[path = "../benches/support/tum.rs"]
-mod tum;
+use stillmap_tracking::testing as tum;
 
 use std::sync::OnceLock;
 

@@ -251,19 +251,7 @@ pub(crate) async fn get_trajectory(
             for p in &poses {
                 let pose = p.world_from_camera.unwrap_or_default();
                 let (t, r) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
-                let ns = p.time_ns();
-                text.push_str(&format!(
-                    "{}.{:09} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}\n",
-                    ns / 1_000_000_000,
-                    ns % 1_000_000_000,
-                    t.x,
-                    t.y,
-                    t.z,
-                    r.x,
-                    r.y,
-                    r.z,
-                    r.w
-                ));
+                stillmap_dataset::trajectory::push_line_ns(&mut text, p.time_ns(), [t.x, t.y, t.z], [r.x, r.y, r.z, r.w]);
             }
             ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response()
         }

@@ -427,7 +427,8 @@ mod tests {
             "camera fy = 1000000000.0 over 480 pixels is a field of view of 0.000°, outside 0.5-170°"
         );
         let mut c = hello_camera();
-        (c.width, c.height, c.fx, c.fy) = (640, 480, 517.3, 516.5);
+        let fr1 = stillmap_dataset::calibration::KnownCamera::TumFr1.camera_info();
+        (c.width, c.height, c.fx, c.fy) = (fr1.width, fr1.height, fr1.fx, fr1.fy);
         assert!(validate_camera(Some(&c)).is_ok(), "TUM freiburg1");
     }
 }

@@ -1,20 +1,19 @@
-//! Test support: the real model, the ONNX Runtime library and the real photos
-//! from `../shared/models` (see MODELS.md there).
-#![allow(dead_code)]
+//! Test, bench and example support (the `testing` feature): the real model, the
+//! ONNX Runtime library and the real photos from `../shared/models` (see MODELS.md
+//! there), and the composite runs of [`composite_run`].
+
+pub mod composite_run;
 
 use std::path::{Path, PathBuf};
 
+use crate::config::SegmentationConfig;
 use opencv::imgcodecs;
 use opencv::imgproc;
 use opencv::prelude::*;
-use stillmap_perception::config::SegmentationConfig;
 
-pub fn shared() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared")
-}
-
+/// A file in the shared models folder.
 pub fn model(name: &str) -> PathBuf {
-    shared().join("models").join(name)
+    stillmap_dataset::shared::model(name)
 }
 
 /// `ORT_DYLIB_PATH`, else the library `deploy/install-deps.sh` puts in `.deps/ort`.
@@ -33,7 +32,7 @@ pub fn segmentation_config(model_file: &str) -> SegmentationConfig {
 
 /// Decodes a photo as RGB8 (OpenCV reads BGR).
 pub fn photo(name: &str) -> (Vec<u8>, u32, u32) {
-    let path = shared().join("models/images").join(name);
+    let path = model("images").join(name);
     let bgr = imgcodecs::imread(path.to_str().expect("utf-8 path"), imgcodecs::IMREAD_COLOR).expect("imread");
     assert!(!bgr.empty(), "cannot read {}", path.display());
     let mut rgb = Mat::default();

@@ -3,13 +3,13 @@
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
-use super::EvalError;
+use crate::DatasetError;
 
 /// The rigid transform `T` minimising `Σ |y_i - T x_i|²` (Umeyama 1991, no scale),
 /// computed like evo's `geometry.umeyama_alignment`, including its rank test.
-pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>]) -> Result<Isometry3<f64>, EvalError> {
+pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>]) -> Result<Isometry3<f64>, DatasetError> {
     if x.len() != y.len() || x.is_empty() {
-        return Err(EvalError::Degenerate { points: x.len().min(y.len()) });
+        return Err(DatasetError::Degenerate { points: x.len().min(y.len()) });
     }
     let n = x.len() as f64;
     let mean_x = x.iter().sum::<Vector3<f64>>() / n;
@@ -18,11 +18,11 @@ pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>]) -> Result<Isometry3<f64>,
     let cov = outer_sum * (1.0 / n);
     let svd = cov.svd(true, true);
     let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(EvalError::Degenerate { points: x.len() });
+        return Err(DatasetError::Degenerate { points: x.len() });
     };
     // evo: fewer than m - 1 singular values above machine epsilon cannot be aligned.
     if svd.singular_values.iter().filter(|&&d| d > f64::EPSILON).count() < 2 {
-        return Err(EvalError::Degenerate { points: x.len() });
+        return Err(DatasetError::Degenerate { points: x.len() });
     }
     let mut s = Matrix3::identity();
     if u.determinant() * v_t.determinant() < 0.0 {
@@ -35,7 +35,7 @@ pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>]) -> Result<Isometry3<f64>,
 }
 
 /// Aligns `estimate` to `reference` by their positions with [`umeyama`].
-pub fn align_se3(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>]) -> Result<Isometry3<f64>, EvalError> {
+pub fn align_se3(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>]) -> Result<Isometry3<f64>, DatasetError> {
     let positions = |poses: &[Isometry3<f64>]| poses.iter().map(|p| p.translation.vector).collect::<Vec<_>>();
     umeyama(&positions(estimate), &positions(reference))
 }
@@ -127,9 +127,9 @@ mod tests {
     #[test]
     fn rejects_degenerate_input() {
         let x = vec![Vector3::new(1.0, 2.0, 3.0); 5];
-        assert!(matches!(umeyama(&x, &x), Err(EvalError::Degenerate { .. })));
+        assert!(matches!(umeyama(&x, &x), Err(DatasetError::Degenerate { .. })));
         let line: Vec<_> = (0..5).map(|i| Vector3::new(i as f64, 0.0, 0.0)).collect();
-        assert!(matches!(umeyama(&line, &line), Err(EvalError::Degenerate { .. })));
+        assert!(matches!(umeyama(&line, &line), Err(DatasetError::Degenerate { .. })));
         assert!(umeyama(&[], &[]).is_err());
     }
 

@@ -1,7 +1,7 @@
 //! Test support: fuses a clip's keyframes into a map the way the server does (the
 //! real masker and tracker choose keyframes and masks; keyframes are fused at their
 //! ground-truth poses), and measures voxels against pasted planar objects.
-#![allow(dead_code)]
+#![allow(dead_code)] // each test file uses part of it
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use stillmap_mapping::{DepthView, MapBuilder, MappingConfig};

@@ -1,16 +1,16 @@
 //! Runs perception and tracking over the real fr1_rpy clip with a moving textured
 //! plane pasted in (`stillmap_perception::composite`), and scores the dynamic mask
-//! against the plane's exact mask. Shared by the tests and the bench.
-#![allow(dead_code)]
+//! against the plane's exact mask. Shared by the tests, benches and examples of
+//! perception and mapping.
 
+use crate::composite::{CircularMotion, TexturedPlane, interpolate_pose, paste};
+use crate::{DynamicMasker, MaskOutput, MaskSource, MaskerInput, PerceptionConfig, PixelLabel, Segmentation, Segmenter};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use stillmap_perception::composite::{CircularMotion, TexturedPlane, interpolate_pose, paste};
-use stillmap_perception::{DynamicMasker, MaskOutput, MaskSource, MaskerInput, PerceptionConfig, PixelLabel, Segmentation, Segmenter};
 use stillmap_tracking::features::Extractor;
 use stillmap_tracking::tracker::to_gray;
 use stillmap_tracking::{FrameInput, TrackOutput, Tracker, TrackerConfig};
 
-use crate::tum;
+use stillmap_tracking::testing as tum;
 
 /// A frame with the object pasted in, and the object's exact mask.
 pub struct CompositeFrame {

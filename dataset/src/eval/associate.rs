@@ -1,7 +1,8 @@
 //! Timestamp association, step for step as evo's `sync.associate_trajectories`
 //! (nearest-time method).
 
-use super::{EvalError, Trajectory};
+use crate::DatasetError;
+use crate::eval::Trajectory;
 
 /// Indices of the best matches of `stamps_1` in `stamps_2 + offset_2`, like evo's
 /// `matching_time_indices`: binary search when `stamps_2` is sorted, otherwise a
@@ -69,13 +70,13 @@ pub fn associate(
     estimate: &[(f64, nalgebra::Isometry3<f64>)],
     max_diff: f64,
     offset: f64,
-) -> Result<Associated, EvalError> {
+) -> Result<Associated, DatasetError> {
     let stamps = |t: &[(f64, _)]| t.iter().map(|p| p.0).collect::<Vec<f64>>();
     let second_longer = estimate.len() > reference.len();
     let (short, long, long_offset) = if second_longer { (reference, estimate, offset) } else { (estimate, reference, -offset) };
     let (ids_short, ids_long) = matching_time_indices(&stamps(short), &stamps(long), max_diff, long_offset);
     if ids_short.is_empty() {
-        return Err(EvalError::NoMatches { max_diff, offset });
+        return Err(DatasetError::NoMatches { max_diff, offset });
     }
     let short: Trajectory = ids_short.iter().map(|&i| short[i]).collect();
     let long: Trajectory = ids_long.iter().map(|&i| long[i]).collect();
@@ -133,6 +134,6 @@ mod tests {
         let a = associate(&estimate, &reference, 0.005, 1.0).unwrap();
         assert_eq!(a.reference.iter().map(|p| p.0).collect::<Vec<_>>(), vec![1.0]);
         assert_eq!(a.estimate.iter().map(|p| p.0).collect::<Vec<_>>(), vec![0.0]);
-        assert!(matches!(associate(&reference, &traj(&[7.0]), 0.02, 0.0), Err(EvalError::NoMatches { .. })));
+        assert!(matches!(associate(&reference, &traj(&[7.0]), 0.02, 0.0), Err(DatasetError::NoMatches { .. })));
     }
 }

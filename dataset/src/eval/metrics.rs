@@ -3,7 +3,7 @@
 use nalgebra::{Isometry3, UnitQuaternion};
 use serde::Serialize;
 
-use super::EvalError;
+use crate::DatasetError;
 
 /// What part of the error pose is measured.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -62,13 +62,13 @@ pub fn id_pairs(poses: usize, delta: usize) -> Vec<(usize, usize)> {
 
 /// Relative pose errors over [`id_pairs`]: `E = (Q_i⁻¹ Q_j)⁻¹ (P_i⁻¹ P_j)` with `Q`
 /// the reference and `P` the estimate (evo's `RPE.rpe_base`).
-pub fn rpe(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>], relation: Relation, delta: usize) -> Result<Vec<f64>, EvalError> {
+pub fn rpe(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>], relation: Relation, delta: usize) -> Result<Vec<f64>, DatasetError> {
     if delta == 0 {
-        return Err(EvalError::NoPairs { delta, poses: reference.len() });
+        return Err(DatasetError::NoPairs { delta, poses: reference.len() });
     }
     let pairs = id_pairs(reference.len().min(estimate.len()), delta);
     if pairs.is_empty() {
-        return Err(EvalError::NoPairs { delta, poses: reference.len() });
+        return Err(DatasetError::NoPairs { delta, poses: reference.len() });
     }
     Ok(pairs
         .into_iter()
@@ -172,6 +172,6 @@ mod tests {
         // A rigid change of the whole trajectory leaves the relative rotations unchanged.
         let rpe_rot = rpe(&reference, &estimate, Relation::RotationDeg, 1).unwrap();
         assert!(rpe_rot.iter().all(|a| a.abs() < 1e-12) && rpe_rot.len() == 3);
-        assert!(matches!(rpe(&reference, &estimate, Relation::Translation, 4), Err(EvalError::NoPairs { .. })));
+        assert!(matches!(rpe(&reference, &estimate, Relation::Translation, 4), Err(DatasetError::NoPairs { .. })));
     }
 }
