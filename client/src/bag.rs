@@ -444,17 +444,7 @@ impl BagSource {
                 // Size from the first colour image; nominal intrinsics, marked unknown.
                 let (w, h) = first_size(path, format, &color)?;
                 SourceCamera {
-                    info: pb::CameraInfo {
-                        width: w,
-                        height: h,
-                        fx: 525.0,
-                        fy: 525.0,
-                        cx: (f64::from(w) - 1.0) / 2.0,
-                        cy: (f64::from(h) - 1.0) / 2.0,
-                        distortion_model: DistortionModel::None as i32,
-                        depth_units_per_metre: depth_units(&depth_encoding),
-                        ..Default::default()
-                    },
+                    info: stillmap_dataset::calibration::nominal_camera_info(w, h, depth_units(&depth_encoding)),
                     known: None,
                     what: format!("{kind} {name} (no CameraInfo topic)"),
                 }

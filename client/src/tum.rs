@@ -4,10 +4,10 @@
 
 use std::path::Path;
 
-use stillmap_dataset::calibration::{TUM_DEPTH_UNITS_PER_METRE, TUM_RATE_HZ};
+use stillmap_dataset::calibration::{TUM_DEPTH_UNITS_PER_METRE, TUM_RATE_HZ, nominal_camera_info};
 use stillmap_dataset::tum::{self, FrameFiles};
 use stillmap_proto::codec;
-use stillmap_proto::pb::{self, DistortionModel};
+use stillmap_proto::pb;
 
 use crate::ClientError;
 use crate::calibration::{CameraOptions, KnownCamera, SourceCamera};
@@ -25,18 +25,7 @@ pub fn tum_camera(dir: &Path) -> SourceCamera {
             what: format!("TUM folder {name}"),
         },
         None => SourceCamera {
-            info: pb::CameraInfo {
-                width: 640,
-                height: 480,
-                fx: 525.0,
-                fy: 525.0,
-                cx: 319.5,
-                cy: 239.5,
-                distortion_model: DistortionModel::None as i32,
-                depth_units_per_metre: TUM_DEPTH_UNITS_PER_METRE,
-                nominal_rate_hz: TUM_RATE_HZ,
-                ..Default::default()
-            },
+            info: pb::CameraInfo { nominal_rate_hz: TUM_RATE_HZ, ..nominal_camera_info(640, 480, TUM_DEPTH_UNITS_PER_METRE) },
             known: None,
             what: format!("TUM folder {name} (no freiburg1/2/3 in its name)"),
         },

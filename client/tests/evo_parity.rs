@@ -26,7 +26,7 @@ fn workspace() -> PathBuf {
 }
 
 fn tum_dir() -> PathBuf {
-    let dir = std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(stillmap_dataset::shared::fr1_rpy);
+    let dir = stillmap_dataset::shared::fr1_rpy();
     assert!(dir.join("groundtruth.txt").exists(), "TUM clip not found at {} (set TUM)", dir.display());
     dir
 }
@@ -63,8 +63,8 @@ impl Noise {
 /// noise; plus two poses long after the ground truth ends (left unassociated).
 fn write_estimate(tum: &Path, out: &Path) {
     let gt = read_tum(&tum.join("groundtruth.txt")).expect("ground truth");
-    let rgb = std::fs::read_to_string(tum.join("rgb.txt")).expect("rgb.txt");
-    let stamps: Vec<f64> = rgb.lines().filter(|l| !l.starts_with('#')).filter_map(|l| l.split_whitespace().next()?.parse().ok()).collect();
+    let rgb = stillmap_dataset::tum::read_list(&tum.join("rgb.txt")).expect("rgb.txt");
+    let stamps: Vec<f64> = rgb.iter().map(|(t, _)| *t as f64 * 1e-9).collect();
     let moved = Isometry3::new(Vector3::new(0.8, -0.4, 1.5), Vector3::new(0.2, -0.5, 0.9));
     let mut noise = Noise(0x5717_1A4D);
     let mut estimate = Vec::new();

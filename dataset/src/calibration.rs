@@ -106,3 +106,20 @@ impl KnownCamera {
         stillmap_proto::pose_time_ns(capture_time_ns, self.camera_info().exposure_time_offset_s)
     }
 }
+
+/// The nominal intrinsics of an uncalibrated camera of `width × height` pixels
+/// (ROS's and TUM's default for a Kinect: 525 px focal length, the image's centre,
+/// no distortion), with `depth_units_per_metre`. A guess: sources mark it unknown.
+pub fn nominal_camera_info(width: u32, height: u32, depth_units_per_metre: f64) -> pb::CameraInfo {
+    pb::CameraInfo {
+        width,
+        height,
+        fx: 525.0,
+        fy: 525.0,
+        cx: (f64::from(width) - 1.0) / 2.0,
+        cy: (f64::from(height) - 1.0) / 2.0,
+        distortion_model: DistortionModel::None as i32,
+        depth_units_per_metre,
+        ..Default::default()
+    }
+}

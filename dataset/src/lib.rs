@@ -34,6 +34,9 @@ pub enum DatasetError {
     /// A trajectory file without poses.
     #[error("{}: no poses (expected lines `timestamp tx ty tz qx qy qz qw`)", path.display())]
     Empty { path: PathBuf },
+    /// A line of a TUM list file with a timestamp and no file name.
+    #[error("{}: the line for timestamp {timestamp_ns} ns names no file", list.display())]
+    MissingFile { list: PathBuf, timestamp_ns: u64 },
     /// A TUM folder in which no colour image has a depth image within 20 ms.
     #[error("{}: no colour/depth pair within 20 ms", path.display())]
     NoFrames { path: PathBuf },

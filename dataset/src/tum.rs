@@ -109,11 +109,11 @@ pub fn read_sequence(dir: &Path) -> Result<Vec<FrameFiles>, DatasetError> {
     let mut frames = Vec::new();
     for (i, j) in associate(&rgb_ts, &depth_ts, MAX_ASSOCIATION_NS) {
         let file = |list: &[(u64, Vec<String>)], k: usize, name: &str| {
-            list[k].1.first().map(|f| dir.join(f)).ok_or_else(|| DatasetError::Parse {
-                path: dir.join(format!("{name}.txt")),
-                line: 0,
-                message: format!("the line for {} names no file", list[k].0),
-            })
+            list[k]
+                .1
+                .first()
+                .map(|f| dir.join(f))
+                .ok_or_else(|| DatasetError::MissingFile { list: dir.join(format!("{name}.txt")), timestamp_ns: list[k].0 })
         };
         let ts = rgb_ts[i];
         let accel_in_camera = nearest(&accel_ts, ts, MAX_ASSOCIATION_NS).and_then(|k| {

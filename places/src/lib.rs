@@ -1,4 +1,5 @@
-//! stillmap place recognition, free of network and file I/O.
+//! stillmap place recognition, free of network and file I/O (the `training`
+//! feature adds the vocabulary's build step, which reads the public clip).
 //!
 //! The pipeline, one typed step each:
 //! 1. [`Vocabulary`]: a tree of binary words trained by hierarchical k-majority

@@ -38,9 +38,9 @@ pub fn venv_python(venv: &str) -> PathBuf {
     python
 }
 
-/// The real TUM clip beside the checkout.
+/// The real TUM clip beside the checkout (or where `TUM` says).
 pub fn tum_dir() -> PathBuf {
-    let dir = std::env::var_os("TUM").map(PathBuf::from).unwrap_or_else(stillmap_dataset::shared::fr1_rpy);
+    let dir = stillmap_dataset::shared::fr1_rpy();
     assert!(dir.join("rgb.txt").exists(), "TUM clip not found at {}", dir.display());
     dir
 }
@@ -203,20 +203,12 @@ pub fn tempfile_path(name: &str) -> PathBuf {
     std::env::temp_dir().join(format!("stillmap-e2e-{}-{n}-{name}", std::process::id()))
 }
 
-/// The first real TUM frame, decoded.
+/// The first real TUM frame (colour and the depth associated with it), decoded.
 pub fn first_tum_frame() -> (ColorImage, DepthImage) {
-    let dir = tum_dir();
-    let list = |f: &str| {
-        std::fs::read_to_string(dir.join(f))
-            .expect("list")
-            .lines()
-            .find(|l| !l.starts_with('#'))
-            .and_then(|l| l.split_whitespace().nth(1).map(str::to_owned))
-            .expect("first entry")
-    };
-    let read = |f: &str| std::fs::read(dir.join(list(f))).expect("image file");
-    let color = codec::decode_color(pb::ColorEncoding::Png, &read("rgb.txt"), 640, 480).expect("colour PNG");
-    let depth = codec::decode_depth(pb::DepthEncoding::Png16, &read("depth.txt"), 640, 480).expect("depth PNG");
+    use stillmap_dataset::tum;
+    let first = tum::read_sequence(&tum_dir()).expect("TUM sequence").swap_remove(0);
+    let color = tum::read_image(&first.rgb, |b| codec::decode_color(pb::ColorEncoding::Png, b, 640, 480)).expect("colour PNG");
+    let depth = tum::read_image(&first.depth, |b| codec::decode_depth(pb::DepthEncoding::Png16, b, 640, 480)).expect("depth PNG");
     (color, depth)
 }
 

@@ -1,6 +1,7 @@
 //! Camera tracking through the real client and server on the real TUM clip:
 //! poses on every channel, and accuracy measured by the evo-exact eval tool.
 
+use std::path::Path;
 use std::process::Command;
 
 use stillmap_e2e::{Server, bin, run_client, tempfile_path, tum_dir};
@@ -83,16 +84,15 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     let server_trajectory = tempfile_path("server.tum");
     std::fs::write(&server_trajectory, &tum).expect("write trajectory");
     let client_text = std::fs::read_to_string(&client_trajectory).expect("client trajectory");
-    let parse = |text: &str| -> Vec<Vec<f64>> {
-        text.lines()
-            .filter(|l| !l.starts_with('#'))
-            .map(|l| l.split_whitespace().map(|v| v.parse::<f64>().expect("number")).collect())
-            .collect()
-    };
-    for (a, b) in parse(&client_text).iter().zip(parse(&tum).iter()) {
-        for (x, y) in a.iter().zip(b) {
-            assert!((x - y).abs() < 1e-5, "client and server trajectories differ: {a:?} vs {b:?}");
-        }
+    let parse = |text: &str| stillmap_dataset::trajectory::parse_tum_ns(text, Path::new("trajectory")).expect("TUM trajectory");
+    let (client_poses, server_poses) = (parse(&client_text), parse(&tum));
+    assert_eq!(client_poses.len(), server_poses.len());
+    for ((ta, a), (tb, b)) in client_poses.iter().zip(&server_poses) {
+        let d = a.inverse() * b;
+        assert!(
+            ta == tb && d.translation.vector.norm() < 1e-5 && d.rotation.angle() < 1e-5,
+            "client and server trajectories differ: {a:?} vs {b:?}"
+        );
     }
     let (status, bad) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory?format=xml")).await;
     assert_eq!(status, 400);

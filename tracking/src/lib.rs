@@ -1,4 +1,5 @@
-//! stillmap camera tracking, free of network and file I/O.
+//! stillmap camera tracking, free of network and file I/O (the `testing` feature
+//! adds test support that reads the public clips).
 //!
 //! [`Tracker`] estimates `world_from_camera` for every RGB-D frame from ORB
 //! features outside the dynamic mask, against a local map of keyframes and points

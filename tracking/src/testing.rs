@@ -18,10 +18,12 @@ pub fn fr1_rpy_dir() -> PathBuf {
 }
 
 /// The tracking camera of a shipped calibration (intrinsics, distortion, depth
-/// units and rolling-shutter readout), as the client sends it.
+/// units and rolling-shutter readout), as the client sends it and the server's
+/// `convert::camera_of` reads it.
 pub fn known_camera(known: KnownCamera) -> Camera {
     let info = known.camera_info();
-    let distortion = <[f64; 5]>::try_from(info.distortion_coeffs.as_slice()).ok();
+    let plumb_bob = info.distortion_model == stillmap_proto::pb::DistortionModel::PlumbBob as i32;
+    let distortion = <[f64; 5]>::try_from(info.distortion_coeffs.as_slice()).ok().filter(|_| plumb_bob);
     Camera {
         distortion,
         readout_s: info.rolling_shutter_readout_s,

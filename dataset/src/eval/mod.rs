@@ -279,16 +279,11 @@ pub fn summary(reference: &[(u64, Isometry3<f64>)], estimate: &[(u64, Isometry3<
     let transform = align::align_se3(&ref_poses, &est_poses)?;
     let aligned: Vec<Isometry3<f64>> = est_poses.iter().map(|p| transform * p).collect();
     let rmse = |errors: &[f64]| Stats::of(errors).map_or(0.0, |s| s.rmse);
-    let origin = align::align_origin(&ref_poses, &est_poses).ok_or(DatasetError::Degenerate { points: 0 })?;
+    // Both lists hold at least the three positions the SE(3) alignment needed.
+    let origin = align::align_origin(&ref_poses, &est_poses).expect("paired poses");
     let at_origin: Vec<Isometry3<f64>> = est_poses.iter().map(|p| origin * p).collect();
-    let (rpe_m, rpe_deg) = if ref_poses.len() < 2 {
-        (0.0, 0.0)
-    } else {
-        (
-            rmse(&metrics::rpe(&ref_poses, &est_poses, Relation::Translation, 1)?),
-            rmse(&metrics::rpe(&ref_poses, &est_poses, Relation::RotationDeg, 1)?),
-        )
-    };
+    let rpe_m = rmse(&metrics::rpe(&ref_poses, &est_poses, Relation::Translation, 1)?);
+    let rpe_deg = rmse(&metrics::rpe(&ref_poses, &est_poses, Relation::RotationDeg, 1)?);
     Ok(Scores {
         pairs: ref_poses.len(),
         ate_m: rmse(&metrics::ape(&ref_poses, &aligned, Relation::Translation)),
