@@ -5,12 +5,24 @@
 # (dashboard/package-lock.json), the ONNX
 # Runtime shared library from PyPI's onnxruntime wheel (Debian has none), and evo
 # (PyPI, in a virtual environment) for the trajectory-evaluation parity test.
+#
+# --gpu also fetches the GPU libraries (below). --server-only installs only what
+# building and running the binaries needs (the container images' build stage,
+# deploy/docker/Dockerfile): no chromium, evo, test tools or batched test models.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 GPU=""
-[ "${1:-}" = "--gpu" ] && GPU=1
+SERVER_ONLY=""
+for arg in "$@"; do
+  case "$arg" in
+    --gpu) GPU=1 ;;
+    --server-only) SERVER_ONLY=1 ;;
+    *) echo "install-deps: unknown option $arg (use --gpu, --server-only)" >&2; exit 2 ;;
+  esac
+done
 
-APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core chromium)
+APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core)
+[ -n "$SERVER_ONLY" ] || APT_PACKAGES+=(chromium)
 # Node.js for the dashboard's npm packages (three.js; playwright-core for its browser test).
 command -v node >/dev/null && command -v npm >/dev/null || APT_PACKAGES+=(nodejs npm)
 ORT_VERSION=1.31.1
@@ -53,6 +65,7 @@ PY
   test -f "$lib"
 fi
 
+if [ -z "$SERVER_ONLY" ]; then
 # evo, the reference `stillmap-client eval` is tested against (client/tests/evo_parity.rs),
 # in its own virtual environment: ~25 s and ~470 MB (numpy, scipy, matplotlib, pandas).
 EVO_VERSION=1.38.1
@@ -85,8 +98,10 @@ pinned_venv() {
 # tests/tests/python_client.rs): ~5 s, ~60 MB.
 pinned_venv pyclient examples/python/requirements.txt "the Python client's packages"
 # The ROS recording writer and the MCAP reader of the tests (tests/scripts: rosbags,
-# Pillow, numpy, mcap): ~10 s, ~80 MB.
+# Pillow, numpy, mcap), and the Kubernetes manifests' schema check (kubernetes-validate,
+# offline: it carries the API's schemas): ~15 s, ~110 MB.
 pinned_venv bagtools tests/scripts/requirements.txt "the recording tools' packages"
+fi
 
 # The dashboard's npm packages, exactly as locked: three.js (served to browsers by the
 # server) and playwright-core (drives chromium in tests/tests/dashboard.rs).
@@ -96,6 +111,7 @@ if [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwr
   touch dashboard/node_modules
 fi
 
+if [ -z "$SERVER_ONLY" ]; then
 # The segmentation models with a symbolic batch dimension, made from the shipped
 # batch-1 files (deploy/make-batched-model.py, which checks the outputs equal the
 # batch-1 model's) into .deps/models: the segmentation service batches with them.
@@ -111,6 +127,7 @@ if [ ! -f .deps/models/yolov8n-seg_fp32_320_batch.onnx ] || [ ! -f .deps/models/
     .deps/onnx-tools/bin/python deploy/make-batched-model.py "${SHARED:-../shared}/models/yolov8n-seg_fp32_${size}.onnx" \
       ".deps/models/yolov8n-seg_fp32_${size}_batch.onnx" --check >/dev/null
   done
+fi
 fi
 
 # GPU machines (`make gpu-deps`, `deploy/install-deps.sh --gpu`): the GPU build of

@@ -620,6 +620,15 @@ mod tests {
         assert_eq!(ServerConfig::from_toml(text).unwrap(), ServerConfig::default());
     }
 
+    /// The Kubernetes deployment's ConfigMap (deploy/k8s/base/server.toml) is a valid
+    /// configuration, pointing the dashboard where the image puts it.
+    #[test]
+    fn the_kubernetes_config_is_valid() {
+        let c = ServerConfig::from_toml(include_str!("../../deploy/k8s/base/server.toml")).unwrap();
+        assert_eq!(c.http.dashboard_dir, "/opt/stillmap/dashboard");
+        assert!(include_str!("../../deploy/docker/Dockerfile").contains("/src/dashboard/ /opt/stillmap/dashboard/"));
+    }
+
     #[test]
     fn partial_file_keeps_other_defaults_and_unknown_keys_are_named() {
         let c = ServerConfig::from_toml("[session]\nqueue_capacity = 3\noverload_policy = \"drop_newest\"\n").unwrap();
