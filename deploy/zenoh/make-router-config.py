@@ -4,7 +4,8 @@ certificates (mTLS) on the router's listen endpoint, and an access-control list
 that denies everything by default and lets
 
   * the stillmap server (certificate common name --server-cn) publish and
-    subscribe on stillmap/**, and
+    subscribe on stillmap/** (and announce itself on stillmap-cluster/**, which
+    servers and tools with its certificate read), and
   * each robot, whose certificate's common name is its robot id, publish and
     subscribe only on stillmap/<robot>/** (its frames key, its results key),
 
@@ -30,7 +31,7 @@ ROBOT_MESSAGES = ["put", "declare_subscriber", "liveliness_token", "declare_live
 
 def router_config(robots, server_cn, listen, ca, cert, key):
     rules = [{"id": "server", "permission": "allow", "flows": ["ingress", "egress"],
-              "messages": ALL_MESSAGES, "key_exprs": ["stillmap/**"]}]
+              "messages": ALL_MESSAGES, "key_exprs": ["stillmap/**", "stillmap-cluster/**"]}]
     subjects = [{"id": "server", "cert_common_names": [server_cn]}]
     policies = [{"id": "server", "rules": ["server"], "subjects": ["server"]}]
     # The server subscribes to every robot's frames with one wildcard: each robot

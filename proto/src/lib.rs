@@ -30,6 +30,28 @@ pub mod keys {
     /// Wildcard the server subscribes to for every robot's frames.
     pub const ALL_FRAMES: &str = "stillmap/*/frames";
 
+    /// Liveliness token of the server `server_id` while it runs. Outside `stillmap/`,
+    /// where robots publish: no robot id can reach these keys (and a router's ACL
+    /// keeps robots on `stillmap/<robot>/**`).
+    pub fn server(server_id: &str) -> String {
+        format!("stillmap-cluster/servers/{server_id}")
+    }
+    /// Every server's liveliness token.
+    pub const ALL_SERVERS: &str = "stillmap-cluster/servers/*";
+    /// Queryable on which the server `server_id` answers with its status (JSON: who
+    /// it is, where it listens, its load).
+    pub fn server_status(server_id: &str) -> String {
+        format!("stillmap-cluster/servers/{server_id}/status")
+    }
+    /// Every server's status queryable.
+    pub const ALL_SERVER_STATUS: &str = "stillmap-cluster/servers/*/status";
+
+    /// The server id inside a server's liveliness key.
+    pub fn server_of_key(key: &str) -> Option<&str> {
+        let id = key.strip_prefix("stillmap-cluster/servers/")?;
+        (!id.is_empty() && !id.contains('/')).then_some(id)
+    }
+
     /// The robot id inside a frames key, if the key has the contract's shape.
     pub fn robot_of_frames_key(key: &str) -> Option<&str> {
         let rest = key.strip_prefix("stillmap/")?;
@@ -60,6 +82,11 @@ pub const MAX_ROBOT_ID_LEN: usize = 64;
 /// Checks a robot id: 1–64 characters of `[A-Za-z0-9_-]` (it becomes a Zenoh key segment).
 pub fn validate_robot_id(robot_id: &str) -> Result<(), String> {
     validate_name("robot_id", robot_id)
+}
+
+/// A server id follows the robot id's rules (it is a key segment too).
+pub fn validate_server_id(server_id: &str) -> Result<(), String> {
+    validate_name("server_id", server_id)
 }
 
 /// A fleet name follows the robot id's rules (it is a key segment too).

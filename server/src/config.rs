@@ -322,6 +322,11 @@ pub struct ZenohConfig {
     /// as connected forever. Its next frame attaches the session again; nothing is
     /// closed or lost. 0: never.
     pub idle_disconnect_s: f64,
+    /// The server's name among servers on one Zenoh network: its liveliness token
+    /// `stillmap-cluster/servers/<id>` and status queryable `.../<id>/status`
+    /// (A-Z a-z 0-9 _ -, at most 64). Empty (default): the host name and the gRPC
+    /// port, `<hostname>-<port>`, unique on a machine and stable across restarts.
+    pub server_id: String,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -425,6 +430,7 @@ impl Default for ZenohConfig {
             multicast_scouting: false,
             config_file: None,
             idle_disconnect_s: 10.0,
+            server_id: String::new(),
         }
     }
 }
@@ -605,6 +611,9 @@ impl ServerConfig {
                 "zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}",
                 self.zenoh.idle_disconnect_s
             ));
+        }
+        if !self.zenoh.server_id.is_empty() {
+            stillmap_proto::validate_server_id(&self.zenoh.server_id).map_err(|e| ServerError::Config(format!("zenoh.{e}")))?;
         }
         Ok(())
     }

@@ -7,6 +7,8 @@
 
 pub mod api;
 pub mod auth;
+#[cfg(feature = "zenoh")]
+pub mod cluster;
 pub mod config;
 pub mod convert;
 pub mod fleet;
@@ -255,7 +257,22 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             rate_limits: rate_limits.clone(),
         };
         let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, shutdown.clone()));
-        Some((z, task))
+        let host = cluster::host_name();
+        let identity = cluster::Identity {
+            server_id: cluster::server_id(&config.zenoh.server_id, &host, &bound_grpc),
+            host,
+            grpc: bound_grpc,
+            http: bound_http,
+            started_unix_ns: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64),
+            max_sessions: config.limits.max_sessions,
+        };
+        let announcement = cluster::announce(z.clone(), registry.clone(), identity, shutdown.clone());
+        let announce = tokio::spawn(async move {
+            if let Err(e) = announcement.await {
+                tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}");
+            }
+        });
+        Some((z, task, announce))
     } else {
         None
     };
@@ -443,8 +460,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         tracing::warn!("pipeline workers outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway");
     }
     #[cfg(feature = "zenoh")]
-    if let Some((z, task)) = zenoh_task {
+    if let Some((z, task, announce)) = zenoh_task {
         let _ = task.await;
+        let _ = announce.await;
         if let Err(e) = z.close().await {
             tracing::warn!("zenoh close: {e}");
         }

@@ -26,6 +26,10 @@ struct Args {
     /// Zenoh endpoint (router or peer) to connect to, repeatable.
     #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',')]
     zenoh_connect: Vec<String>,
+    /// This server's name on Zenoh (liveliness token and status queryable under
+    /// stillmap-cluster/servers/<id>) [default: <hostname>-<gRPC port>].
+    #[arg(long, env = "STILLMAP_SERVER_ID")]
+    server_id: Option<String>,
     /// Serve gRPC only.
     #[arg(long, env = "STILLMAP_NO_ZENOH")]
     no_zenoh: bool,
@@ -106,6 +110,9 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     }
     if !args.zenoh_connect.is_empty() {
         c.zenoh.connect = args.zenoh_connect.clone();
+    }
+    if let Some(v) = &args.server_id {
+        c.zenoh.server_id = v.clone();
     }
     if args.no_zenoh {
         c.zenoh.enabled = false;

@@ -102,7 +102,17 @@ fn find<'a>(objects: &'a BTreeMap<(String, String), Value>, kind: &str, name: &s
 fn env_of(container: &Value) -> BTreeMap<String, String> {
     container["env"]
         .as_sequence()
-        .map(|env| env.iter().map(|e| (str_at(e, &["name"]).to_string(), str_at(e, &["value"]).to_string())).collect())
+        .map(|env| {
+            env.iter()
+                .map(|e| {
+                    let value = match e["value"].as_str() {
+                        Some(v) => v.to_string(),
+                        None => format!("fieldRef:{}", str_at(e, &["valueFrom", "fieldRef", "fieldPath"])),
+                    };
+                    (str_at(e, &["name"]).to_string(), value)
+                })
+                .collect()
+        })
         .unwrap_or_default()
 }
 
@@ -161,6 +171,7 @@ fn check_server(objects: &BTreeMap<(String, String), Value>) -> Value {
     // Zenoh: the router's Service and port.
     let router_service = find(objects, "Service", "zenoh-router");
     let router_port = router_service["spec"]["ports"][0]["port"].as_u64().expect("router port");
+    assert_eq!(env["STILLMAP_SERVER_ID"], "fieldRef:metadata.name", "the pod's stable name");
     assert_eq!(env["STILLMAP_ZENOH_CONNECT"], format!("tcp/{}:{router_port}", str_at(router_service, &["metadata", "name"])));
     let router = find(objects, "Deployment", "zenoh-router");
     let router_volume = &router["spec"]["template"]["spec"]["volumes"][0];
@@ -242,7 +253,7 @@ fn the_dockerfile_uses_the_install_script_and_its_packaging_step_works() {
     // The image's defaults are what the pod sets.
     let container = check_server(&objects(&unrendered_base()));
     for (key, value) in env_of(&container) {
-        if key == "STILLMAP_ZENOH_CONNECT" || key == "STILLMAP_TOKEN_FILE" {
+        if ["STILLMAP_ZENOH_CONNECT", "STILLMAP_TOKEN_FILE", "STILLMAP_SERVER_ID"].contains(&key.as_str()) {
             continue; // set by the deployment, not the image
         }
         assert!(dockerfile.contains(&format!("{key}={value}")), "the Dockerfile's {key} is not {value}");
@@ -267,7 +278,8 @@ fn the_dockerfile_uses_the_install_script_and_its_packaging_step_works() {
 /// store volume and host ports, the router's configuration the Kubernetes one.
 #[test]
 fn the_compose_file_connects_two_servers_to_the_router() {
-    let compose: Value = serde_yaml::from_str(&read(&deploy().join("compose.yaml"))).expect("compose YAML");
+    let mut compose: Value = serde_yaml::from_str(&read(&deploy().join("compose.yaml"))).expect("compose YAML");
+    compose.apply_merge().expect("merge keys");
     let services = compose["services"].as_mapping().expect("services");
     let names: BTreeSet<&str> = services.keys().filter_map(Value::as_str).collect();
     assert_eq!(names, BTreeSet::from(["router", "server-a", "server-b"]));
@@ -278,9 +290,10 @@ fn the_compose_file_connects_two_servers_to_the_router() {
     let mut stores = BTreeSet::new();
     for name in ["server-a", "server-b"] {
         let s = &compose["services"][name];
-        // The anchor's keys are merged in (x-server).
-        let env = if s["environment"].is_null() { &compose["x-server"]["environment"] } else { &s["environment"] };
-        assert_eq!(env["STILLMAP_ZENOH_CONNECT"].as_str(), Some("tcp/router:7447"));
+        assert_eq!(s["image"].as_str(), Some("stillmap:cpu"), "{name}: the anchor's keys merged in");
+        let env = &s["environment"];
+        assert_eq!(env["STILLMAP_ZENOH_CONNECT"].as_str(), Some("tcp/router:7447"), "{name}");
+        assert_eq!(env["STILLMAP_SERVER_ID"].as_str(), Some(name), "{name}: its own id on Zenoh");
         for p in s["ports"].as_sequence().expect("ports") {
             let p = p.as_str().expect("port mapping");
             assert!(host_ports.insert(p.split(':').next().expect("host port").to_string()), "host port of {p} used twice");
