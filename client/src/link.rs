@@ -284,8 +284,6 @@ async fn run_zenoh(
     use stillmap_proto::keys;
     use zenoh::qos::CongestionControl;
 
-    /// How often the hello is repeated until the server accepts it.
-    const HELLO_RETRY: Duration = Duration::from_millis(500);
     /// How often to check that the peer connection is up.
     const PEER_POLL: Duration = Duration::from_millis(20);
 
@@ -328,64 +326,94 @@ async fn run_zenoh(
     let subscriber = session.declare_subscriber(keys::results(&robot)).await.map_err(zerr("subscribe"))?;
     let publisher =
         session.declare_publisher(keys::frames(&robot)).congestion_control(CongestionControl::Block).await.map_err(zerr("publisher"))?;
-    let hello_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }.encode_to_vec();
-
-    // Hello until accepted.
-    let deadline = tokio::time::Instant::now() + options.timeout;
-    let accepted = loop {
-        publisher.put(hello_bytes.clone()).await.map_err(zerr("put hello"))?;
-        let wait = tokio::time::sleep(HELLO_RETRY);
-        tokio::pin!(wait);
-        let got = loop {
-            tokio::select! {
-                s = subscriber.recv_async() => {
-                    let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
-                    match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
-                        Ok(pb::ServerMessage { msg: Some(Msg::Accepted(a)) }) => break Some(a),
-                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
-                            return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
-                        }
-                        _ => {}
-                    }
-                }
-                _ = &mut wait => break None,
-            }
-        };
-        if let Some(a) = got {
-            break a;
-        }
-        if tokio::time::Instant::now() > deadline {
-            return Err(ClientError::Connect(format!("the server did not accept the hello within {:?}", options.timeout)));
+    let hello_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(hello.clone())) }.encode_to_vec();
+    // Servers on one Zenoh network place each robot on one of them; when one leaves,
+    // its robots belong to another. Every server leaving is heard here (where the
+    // router lets the robot see the servers' tokens), and the robot says hello again
+    // asking for its session back: its own server, still there, resumes it; a new one
+    // opens a new session. Without the tokens, the new owner's FAILED_PRECONDITION
+    // for the next frame does the same.
+    let servers = match session.liveliness().declare_subscriber(keys::ALL_SERVERS).await {
+        Ok(s) => Some(s),
+        Err(e) => {
+            tracing::warn!("not following the servers' liveliness ({e}): a move is noticed at the next frame");
+            None
         }
     };
-    let _ = events.send(LinkEvent::Accepted(accepted)).await;
 
-    let mut in_flight: u64 = 0;
+    let (mut accepted, _) = zenoh_hello(&publisher, &subscriber, &hello_bytes, options.timeout).await?;
+    let _ = events.send(LinkEvent::Accepted(accepted.clone())).await;
+
+    // Sequences sent whose result has not come back.
+    let mut in_flight: VecDeque<u64> = VecDeque::new();
+    let mut moves = 0u32;
     let mut input_done = false;
     loop {
-        if input_done && in_flight == 0 {
+        if input_done && in_flight.is_empty() {
             break;
         }
         tokio::select! {
             frame = frames_rx.recv(), if !input_done => match frame {
                 Some(frame) => {
+                    let sequence = frame.sequence;
                     publisher.put(frame_message(frame).encode_to_vec()).await.map_err(zerr("put frame"))?;
-                    in_flight += 1;
+                    in_flight.push_back(sequence);
                 }
                 None => input_done = true,
             },
+            left = async { servers.as_ref()?.recv_async().await.ok() }, if servers.is_some() => {
+                if left.is_none_or(|s| s.kind() != zenoh::sample::SampleKind::Delete) {
+                    continue;
+                }
+                let resume = pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..hello.clone() };
+                let resume_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(resume)) }.encode_to_vec();
+                let (again, meanwhile) = zenoh_hello(&publisher, &subscriber, &resume_bytes, options.timeout).await?;
+                for r in meanwhile {
+                    in_flight.retain(|&q| q != r.sequence);
+                    let _ = events.send(LinkEvent::Result(r)).await;
+                }
+                if !again.resumed {
+                    moves += 1;
+                    tracing::warn!("a server left and this robot's session with it: streaming on in a new session");
+                    let lost: Vec<u64> = in_flight.drain(..).collect();
+                    if !lost.is_empty() {
+                        let _ = events.send(LinkEvent::Unanswered(lost)).await;
+                    }
+                    let _ = events.send(LinkEvent::Reconnected(moves)).await;
+                    let _ = events.send(LinkEvent::Accepted(again.clone())).await;
+                }
+                accepted = again;
+            }
             s = tokio::time::timeout(options.timeout, subscriber.recv_async()) => {
                 let Ok(s) = s else {
                     if input_done {
-                        return Err(ClientError::Protocol(format!("{in_flight} results did not arrive within {:?}", options.timeout)));
+                        return Err(ClientError::Protocol(format!("{} results did not arrive within {:?}", in_flight.len(), options.timeout)));
                     }
                     continue;
                 };
                 let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
                 match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
                     Ok(pb::ServerMessage { msg: Some(Msg::Result(r)) }) => {
-                        in_flight = in_flight.saturating_sub(1);
+                        in_flight.retain(|&q| q != r.sequence);
                         let _ = events.send(LinkEvent::Result(r)).await;
+                    }
+                    // The server that answers this robot now does not know it: the
+                    // robot was placed on another server (one left or joined), or its
+                    // session left memory. Hello again; what was in flight is lost.
+                    Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::FailedPrecondition => {
+                        moves += 1;
+                        if moves > MAX_ZENOH_MOVES {
+                            return Err(ClientError::Server { code: Code::FailedPrecondition, message: e.message });
+                        }
+                        tracing::warn!("{}: saying hello again", e.message);
+                        let lost: Vec<u64> = in_flight.drain(..).collect();
+                        if !lost.is_empty() {
+                            let _ = events.send(LinkEvent::Unanswered(lost)).await;
+                        }
+                        // Results now can only be the new session's: none before its first frame.
+                        (accepted, _) = zenoh_hello(&publisher, &subscriber, &hello_bytes, options.timeout).await?;
+                        let _ = events.send(LinkEvent::Reconnected(moves)).await;
+                        let _ = events.send(LinkEvent::Accepted(accepted.clone())).await;
                     }
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
                         return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
@@ -396,8 +424,60 @@ async fn run_zenoh(
             }
         }
     }
+    drop(servers);
     drop(publisher);
     drop(subscriber);
     session.close().await.map_err(zerr("close"))?;
     Ok(())
+}
+
+/// How often the hello is repeated until a server accepts it.
+#[cfg(feature = "zenoh")]
+const HELLO_RETRY: Duration = Duration::from_millis(500);
+
+/// Times a Zenoh robot says hello again after its frames reach a server that does
+/// not know it (placement moved it) before giving up.
+#[cfg(feature = "zenoh")]
+const MAX_ZENOH_MOVES: u32 = 16;
+
+/// Publishes the hello every [`HELLO_RETRY`] until a server accepts it; returns the
+/// acceptance and the results that came in meanwhile (frames in flight when a
+/// session is resumed). Replies to frames sent before it (`FAILED_PRECONDITION`: a
+/// server that does not know this robot yet) are passed over; any other error ends
+/// the wait.
+#[cfg(feature = "zenoh")]
+async fn zenoh_hello(
+    publisher: &zenoh::pubsub::Publisher<'_>,
+    subscriber: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    hello_bytes: &[u8],
+    timeout: Duration,
+) -> Result<(pb::SessionAccepted, Vec<pb::FrameResult>), ClientError> {
+    let zerr = |what: &'static str| move |e: zenoh::Error| ClientError::Connect(format!("zenoh {what}: {e}"));
+    let deadline = tokio::time::Instant::now() + timeout;
+    let mut results = Vec::new();
+    loop {
+        publisher.put(hello_bytes.to_vec()).await.map_err(zerr("put hello"))?;
+        let wait = tokio::time::sleep(HELLO_RETRY);
+        tokio::pin!(wait);
+        loop {
+            tokio::select! {
+                s = subscriber.recv_async() => {
+                    let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
+                    match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
+                        Ok(pb::ServerMessage { msg: Some(Msg::Accepted(a)) }) => return Ok((a, results)),
+                        Ok(pb::ServerMessage { msg: Some(Msg::Result(r)) }) => results.push(r),
+                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::FailedPrecondition => {}
+                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
+                            return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
+                        }
+                        _ => {}
+                    }
+                }
+                _ = &mut wait => break,
+            }
+        }
+        if tokio::time::Instant::now() > deadline {
+            return Err(ClientError::Connect(format!("the server did not accept the hello within {timeout:?}")));
+        }
+    }
 }

@@ -38,11 +38,20 @@ def router_config(robots, server_cn, listen, ca, cert, key):
     # must hear of that subscription (egress) or its publisher sees no subscriber.
     rules.append({"id": "robots hear the server's subscription", "permission": "allow", "flows": ["egress"],
                   "messages": ["declare_subscriber"], "key_exprs": ["stillmap/*/frames"]})
+    # Robots follow which servers are live (a server leaving moves its robots): they
+    # may subscribe to the servers' liveliness tokens and hear them, never declare one.
+    rules.append({"id": "robots follow the live servers", "permission": "allow", "flows": ["ingress"],
+                  "messages": ["declare_liveliness_subscriber", "liveliness_query"],
+                  "key_exprs": ["stillmap-cluster/servers/*"]})
+    rules.append({"id": "robots hear the live servers", "permission": "allow", "flows": ["egress"],
+                  "messages": ["liveliness_token", "reply"], "key_exprs": ["stillmap-cluster/servers/*"]})
     for robot in robots:
         rules.append({"id": f"robot {robot}", "permission": "allow", "flows": ["ingress", "egress"],
                       "messages": ROBOT_MESSAGES, "key_exprs": [f"stillmap/{robot}/**"]})
         subjects.append({"id": f"robot {robot}", "cert_common_names": [robot]})
-        policies.append({"id": f"robot {robot}", "rules": [f"robot {robot}", "robots hear the server's subscription"],
+        policies.append({"id": f"robot {robot}",
+                         "rules": [f"robot {robot}", "robots hear the server's subscription",
+                                   "robots follow the live servers", "robots hear the live servers"],
                          "subjects": [f"robot {robot}"]})
     return {
         "mode": "router",

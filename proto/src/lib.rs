@@ -84,6 +84,27 @@ pub fn validate_robot_id(robot_id: &str) -> Result<(), String> {
     validate_name("robot_id", robot_id)
 }
 
+/// Which of the live servers `servers` a robot belongs to: rendezvous (highest
+/// random weight) hashing, the weight of a server SipHash-2-4 (fixed zero key: the
+/// same on every machine and release) of `server_id`, a separator and `robot_id`.
+/// Every server computes it alone from the set of live servers it sees: one owner
+/// per robot without any coordination, and when a server joins or leaves only the
+/// robots whose owner it is (or becomes) move. Ties go to the smaller id. `None`
+/// when `servers` is empty.
+pub fn placement_owner<'a>(robot_id: &str, servers: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
+    servers.into_iter().max_by(|a, b| {
+        let weight = |s: &str| {
+            use std::hash::Hasher as _;
+            let mut h = siphasher::sip::SipHasher24::new();
+            h.write(s.as_bytes());
+            h.write(&[0xff]);
+            h.write(robot_id.as_bytes());
+            h.finish()
+        };
+        weight(a).cmp(&weight(b)).then_with(|| b.cmp(a))
+    })
+}
+
 /// A server id follows the robot id's rules (it is a key segment too).
 pub fn validate_server_id(server_id: &str) -> Result<(), String> {
     validate_name("server_id", server_id)
@@ -125,6 +146,29 @@ impl pb::Pose {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One owner per robot; a server leaving moves only its own robots; the owner
+    /// does not depend on the order the servers are listed in.
+    #[test]
+    fn placement_is_rendezvous_hashing() {
+        let robots: Vec<String> = (0..200).map(|i| format!("robot-{i}")).collect();
+        let three = ["a", "b", "c"];
+        let owners: Vec<&str> = robots.iter().map(|r| placement_owner(r, three).expect("owner")).collect();
+        for s in three {
+            let n = owners.iter().filter(|o| **o == s).count();
+            assert!((40..=95).contains(&n), "{s} owns {n} of 200");
+        }
+        for (r, owner) in robots.iter().zip(&owners) {
+            assert_eq!(placement_owner(r, ["c", "a", "b"]), Some(*owner), "order");
+            let without_b = placement_owner(r, ["a", "c"]).expect("owner");
+            if *owner == "b" {
+                assert_ne!(without_b, "b");
+            } else {
+                assert_eq!(without_b, *owner, "{r} moved though its server stayed");
+            }
+        }
+        assert_eq!(placement_owner("r", std::iter::empty::<&str>()), None);
+    }
 
     #[test]
     fn frames_key_round_trip() {

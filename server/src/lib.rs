@@ -256,17 +256,19 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             auth: auth.clone(),
             rate_limits: rate_limits.clone(),
         };
-        let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, shutdown.clone()));
         let host = cluster::host_name();
+        let server_id = cluster::server_id(&config.zenoh.server_id, &host, &bound_grpc);
+        let membership = cluster::Membership::new(&server_id);
+        let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));
         let identity = cluster::Identity {
-            server_id: cluster::server_id(&config.zenoh.server_id, &host, &bound_grpc),
+            server_id,
             host,
             grpc: bound_grpc,
             http: bound_http,
             started_unix_ns: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64),
             max_sessions: config.limits.max_sessions,
         };
-        let announcement = cluster::announce(z.clone(), registry.clone(), identity, shutdown.clone());
+        let announcement = cluster::announce(z.clone(), registry.clone(), identity, membership, shutdown.clone());
         let announce = tokio::spawn(async move {
             if let Err(e) = announcement.await {
                 tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}");

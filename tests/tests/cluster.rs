@@ -3,12 +3,14 @@
 //! `stillmap-cluster/servers/<id>` and answer `.../<id>/status` with who they are
 //! (their process id: the servers this test started) and their load; a server
 //! killed with `kill -9` disappears from the liveliness view, and comes back when
-//! it restarts.
+//! it restarts. Robots on Zenoh are placed on one server each (rendezvous hashing
+//! over the live servers), and a killed server's robots land on the other one.
 
 use std::collections::BTreeMap;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use stillmap_e2e::{Server, free_port, run_client, tum_dir};
+use stillmap_e2e::{Server, bin, eventually, free_port, run_client, tempfile_path, tum_dir};
 use stillmap_proto::keys;
 
 async fn open(mode: &str, endpoints: (&str, &str)) -> zenoh::Session {
@@ -109,4 +111,109 @@ async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
     let b2 = start(&id_b);
     wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
     assert_eq!(statuses(&tool).await[&id_b]["pid"], b2.pid());
+}
+
+/// Robot processes, killed if the test ends early.
+struct Robots(Vec<std::process::Child>);
+
+impl Drop for Robots {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// The robot ids of the sessions a server holds, and of those streaming now.
+async fn robots_on(server: &Server) -> (Vec<String>, Vec<String>) {
+    let (_, list) = server.get_json("/api/v1/sessions").await;
+    let sessions = list["sessions"].as_array().cloned().unwrap_or_default();
+    let robot = |s: &serde_json::Value| s["robot_id"].as_str().unwrap_or_default().to_string();
+    let mut all: Vec<String> = sessions.iter().map(robot).collect();
+    let mut connected: Vec<String> = sessions.iter().filter(|s| s["connected"] == true).map(robot).collect();
+    all.sort();
+    connected.sort();
+    (all, connected)
+}
+
+/// A router, two servers and four robots on Zenoh: each robot is answered by the
+/// one server placement gives it, and when that server is killed with `kill -9` its
+/// robots say hello again and stream on to the other server; every frame is
+/// answered or counted lost.
+#[tokio::test(flavor = "multi_thread")]
+async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
+    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
+    // Fixed ids (the router is this test's own): placement is the same every run.
+    let (id_a, id_b) = ("server-a", "server-b");
+    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
+    let a = start(id_a);
+    let mut b = start(id_b);
+    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
+    eventually(Duration::from_secs(10), "both servers seeing both", async || {
+        let s = statuses(&tool).await;
+        s.len() == 2 && s.values().all(|v| v["servers"] == serde_json::json!([id_a, id_b]))
+    })
+    .await;
+
+    let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
+    let owner = |r: &str| stillmap_proto::placement_owner(r, [id_a, id_b]).expect("owner");
+    let on_b: Vec<String> = robots.iter().filter(|r| owner(r) == id_b).cloned().collect();
+    let on_a: Vec<String> = robots.iter().filter(|r| owner(r) == id_a).cloned().collect();
+    eprintln!("placement: {} on {id_a}, {} on {id_b}", on_a.len(), on_b.len());
+    assert!(!on_b.is_empty() && !on_a.is_empty(), "this test needs robots on both servers");
+
+    // 150 frames at 30 Hz: 5 s of streaming each.
+    let tum = format!("tum:{}", tum_dir().display());
+    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("{r}.json")))).collect();
+    let mut clients = Robots(
+        summaries
+            .iter()
+            .map(|(robot, summary)| {
+                Command::new(bin("stillmap-client"))
+                    .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", &router_endpoint])
+                    .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", "30", "--quiet", "--summary-json"])
+                    .arg(summary)
+                    .env("STILLMAP_LOG", "error")
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::inherit())
+                    .spawn()
+                    .expect("spawn robot")
+            })
+            .collect(),
+    );
+
+    // Each robot streams to its owner, and only there.
+    eventually(Duration::from_secs(10), "every robot streaming on its server", async || {
+        robots_on(&a).await.1 == on_a && robots_on(&b).await.1 == on_b
+    })
+    .await;
+    assert!(robots_on(&a).await.0 == on_a && robots_on(&b).await.0 == on_b, "a robot opened a session on the wrong server");
+
+    // kill -9 B mid-stream: its robots reach A within 5 s.
+    b.kill9();
+    let killed = Instant::now();
+    eventually(Duration::from_secs(5), "B's robots streaming on A", async || robots_on(&a).await.1 == robots).await;
+    eprintln!("B's robots streaming on A {:.0} ms after kill -9", killed.elapsed().as_secs_f64() * 1e3);
+
+    for c in &mut clients.0 {
+        let status = c.wait().expect("robot exit");
+        assert!(status.success(), "a robot failed: {status}");
+    }
+    for (robot, path) in &summaries {
+        let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).expect("summary")).expect("summary JSON");
+        let _ = std::fs::remove_file(path);
+        let (sent, acked, lost) = (s["frames_sent"].as_u64(), s["frames_acknowledged"].as_u64(), s["frames_unanswered"].as_u64());
+        let (sent, acked, lost) = (sent.expect("sent"), acked.expect("acknowledged"), lost.expect("unanswered"));
+        eprintln!("{robot}: {sent} sent, {acked} answered, {lost} lost in flight, moved {} time(s)", s["reconnects"]);
+        assert_eq!(sent, 150, "{robot}");
+        assert_eq!(acked + lost, sent, "{robot}: every frame answered or counted lost");
+        if on_b.contains(robot) {
+            assert_eq!(s["reconnects"], 1, "{robot} moved once");
+            assert!(lost <= 8, "{robot}: only the frames in flight are lost, got {lost}");
+        } else {
+            assert_eq!((s["reconnects"].as_u64(), lost), (Some(0), 0), "{robot} on A is undisturbed");
+        }
+    }
 }

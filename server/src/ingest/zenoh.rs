@@ -88,10 +88,14 @@ const MAX_IDLE_CHECK: Duration = Duration::from_secs(1);
 
 /// Subscribes to every robot's frames until `shutdown` fires. A robot silent for
 /// `idle_disconnect` (zero: never) counts as disconnected until it sends again.
+/// Only the robots `membership` says are this server's are answered (placement
+/// among servers on one Zenoh network, `cluster.rs`); a robot that moved to another
+/// server is let go here without a word.
 pub async fn serve(
     zenoh: zenoh::Session,
     registry: Arc<Registry>,
     settings: Settings,
+    membership: Arc<crate::cluster::Membership>,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
     let Settings { result_buffer, max_message_bytes, idle_disconnect, auth, rate_limits } = settings;
@@ -123,6 +127,15 @@ pub async fn serve(
         let Some(robot) = keys::robot_of_frames_key(sample.key_expr().as_str()).map(str::to_owned) else {
             continue;
         };
+        if !membership.owns(&robot) {
+            // Another server's robot: its owner answers. One that was ours moved
+            // (a server joined): its session is left, disconnected.
+            if let Some(link) = links.remove(&robot) {
+                link.session.detach(&link.sink);
+                tracing::info!(session = %link.session.id, robot, "robot placed on another server: let go");
+            }
+            continue;
+        }
         let payload = sample.payload().to_bytes();
         let metrics = registry.metrics();
         let reply = |links: &HashMap<String, Link>, status: Status| {
