@@ -20,7 +20,7 @@ export SHARED TUM
 # ONNX Runtime for `ort` (loaded with dlopen at run time; see deploy/install-deps.sh).
 export ORT_DYLIB_PATH := $(ORT_LIB)
 
-.PHONY: deps gpu-deps dashboard build demo lint test bench bench-codecs bench-transport bench-fleet soak fuzz vocabulary clean
+.PHONY: deps gpu-deps dashboard build demo lint test bench bench-codecs bench-transport bench-fleet cluster-demo soak fuzz vocabulary clean
 
 deps:
 	@deploy/install-deps.sh $(if $(filter 1,$(GPU)),--gpu)
@@ -56,6 +56,13 @@ bench: bench-codecs bench-transport
 bench-fleet: deps
 	$(CARGO) build --release --workspace --bins
 	deploy/bench-fleet.sh target/release
+
+# Several servers on one Zenoh network on this machine: a router, two servers, four
+# robots; placement, kill -9 of a server and where its robots went, latency through
+# the router (deploy/cluster-demo.sh says what it runs).
+cluster-demo: deps
+	$(CARGO) build --release --workspace --bins
+	deploy/cluster-demo.sh target/release
 
 # Soak: 8 robots in back-to-back sessions for 10 min against a release server, its
 # memory, threads and open files every 10 s (deploy/soak.sh says what it varies).

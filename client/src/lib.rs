@@ -11,6 +11,8 @@ pub mod link;
 #[cfg(feature = "openni2")]
 pub mod openni;
 pub mod progress;
+#[cfg(feature = "zenoh")]
+pub mod servers;
 pub mod source;
 pub mod streamer;
 pub mod tum;

@@ -10,6 +10,7 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
+#[cfg(feature = "zenoh")]
 use prost::Message;
 use stillmap_proto::pb::{self, client_message::Msg as ClientMsg, ingest_client::IngestClient, server_message::Msg};
 use tokio::sync::mpsc;
@@ -284,44 +285,11 @@ async fn run_zenoh(
     use stillmap_proto::keys;
     use zenoh::qos::CongestionControl;
 
-    /// How often to check that the peer connection is up.
-    const PEER_POLL: Duration = Duration::from_millis(20);
-
     let zerr = |what: &str| {
         let what = what.to_string();
         move |e: zenoh::Error| ClientError::Connect(format!("zenoh {what}: {e}"))
     };
-    let config = match &options.config_file {
-        Some(path) => {
-            zenoh::Config::from_file(path).map_err(|e| ClientError::Usage(format!("zenoh config file {}: {e}", path.display())))?
-        }
-        None => {
-            let mut config = zenoh::Config::default();
-            let list = serde_json::to_string(&options.connect).unwrap_or_else(|_| "[]".into());
-            for (key, value) in [
-                ("mode", format!("{:?}", options.mode)),
-                ("scouting/multicast/enabled", "false".to_string()),
-                ("listen/endpoints", "[]".to_string()),
-                ("connect/endpoints", list),
-            ] {
-                config.insert_json5(key, &value).map_err(zerr(key))?;
-            }
-            config
-        }
-    };
-    let session = zenoh::open(config).await.map_err(zerr("open"))?;
-    // Wait until the server (or router) is connected, so the hello is not published into the void.
-    let deadline = tokio::time::Instant::now() + options.timeout;
-    loop {
-        let peers = session.info().peers_zid().await.count() + session.info().routers_zid().await.count();
-        if peers > 0 {
-            break;
-        }
-        if tokio::time::Instant::now() > deadline {
-            return Err(ClientError::Connect(format!("no Zenoh peer reachable at {:?}", options.connect)));
-        }
-        tokio::time::sleep(PEER_POLL).await;
-    }
+    let session = open_zenoh(&options).await?;
     let robot = hello.robot_id.clone();
     let subscriber = session.declare_subscriber(keys::results(&robot)).await.map_err(zerr("subscribe"))?;
     let publisher =
@@ -429,6 +397,51 @@ async fn run_zenoh(
     drop(subscriber);
     session.close().await.map_err(zerr("close"))?;
     Ok(())
+}
+
+/// Opens the robot's (or a tool's) Zenoh session from `options` and waits until a
+/// server or router is connected, at most `options.timeout`.
+#[cfg(feature = "zenoh")]
+pub async fn open_zenoh(options: &ZenohOptions) -> Result<zenoh::Session, ClientError> {
+    /// How often to check that the peer connection is up.
+    const PEER_POLL: Duration = Duration::from_millis(20);
+
+    let zerr = |what: &str| {
+        let what = what.to_string();
+        move |e: zenoh::Error| ClientError::Connect(format!("zenoh {what}: {e}"))
+    };
+    let config = match &options.config_file {
+        Some(path) => {
+            zenoh::Config::from_file(path).map_err(|e| ClientError::Usage(format!("zenoh config file {}: {e}", path.display())))?
+        }
+        None => {
+            let mut config = zenoh::Config::default();
+            let list = serde_json::to_string(&options.connect).unwrap_or_else(|_| "[]".into());
+            for (key, value) in [
+                ("mode", format!("{:?}", options.mode)),
+                ("scouting/multicast/enabled", "false".to_string()),
+                ("listen/endpoints", "[]".to_string()),
+                ("connect/endpoints", list),
+            ] {
+                config.insert_json5(key, &value).map_err(zerr(key))?;
+            }
+            config
+        }
+    };
+    let session = zenoh::open(config).await.map_err(zerr("open"))?;
+    // Wait until the server (or router) is connected, so the hello is not published into the void.
+    let deadline = tokio::time::Instant::now() + options.timeout;
+    loop {
+        let peers = session.info().peers_zid().await.count() + session.info().routers_zid().await.count();
+        if peers > 0 {
+            break;
+        }
+        if tokio::time::Instant::now() > deadline {
+            return Err(ClientError::Connect(format!("no Zenoh peer reachable at {:?}", options.connect)));
+        }
+        tokio::time::sleep(PEER_POLL).await;
+    }
+    Ok(session)
 }
 
 /// How often the hello is repeated until a server accepts it.

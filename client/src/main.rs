@@ -285,6 +285,26 @@ enum Command {
         #[arg(long, default_value_t = 90)]
         jpeg_quality: u8,
     },
+    /// List the stillmap servers live on a Zenoh network and their load (their
+    /// liveliness tokens and status queryables, stillmap-cluster/servers/*).
+    #[cfg(feature = "zenoh")]
+    Servers {
+        /// Zenoh endpoints to connect to (a router's, or a server's).
+        #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
+        zenoh_connect: Vec<String>,
+        /// Zenoh mode: peer or client.
+        #[arg(long, default_value = "client")]
+        zenoh_mode: String,
+        /// A Zenoh configuration file (JSON5: TLS, mTLS); replaces --zenoh-connect and --zenoh-mode.
+        #[arg(long, env = "STILLMAP_ZENOH_CONFIG")]
+        zenoh_config: Option<PathBuf>,
+        /// Seconds to wait for the network and for the servers' replies.
+        #[arg(long, default_value_t = 2.0)]
+        timeout_s: f64,
+        /// Print JSON (an array of the servers' statuses) instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Evaluate an estimated trajectory against a reference (TUM files), as evo_ape / evo_rpe do.
     Eval {
         #[arg(value_enum)]
@@ -337,6 +357,29 @@ async fn main() -> ExitCode {
 
 async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
+        #[cfg(feature = "zenoh")]
+        Command::Servers { zenoh_connect, zenoh_mode, zenoh_config, timeout_s, json } => {
+            if !(timeout_s.is_finite() && timeout_s > 0.0 && timeout_s <= 3600.0) {
+                anyhow::bail!("--timeout-s must be a positive number of seconds up to 3600, got {timeout_s}");
+            }
+            let options = ZenohOptions {
+                connect: zenoh_connect,
+                mode: zenoh_mode,
+                timeout: std::time::Duration::from_secs_f64(timeout_s),
+                config_file: zenoh_config,
+            };
+            let servers = stillmap_client::servers::list(&options).await?;
+            if json {
+                let all: Vec<serde_json::Value> = servers
+                    .iter()
+                    .map(|s| s.status.clone().unwrap_or_else(|| serde_json::json!({ "server_id": s.server_id, "status": null })))
+                    .collect();
+                println!("{}", serde_json::to_string_pretty(&all)?);
+            } else {
+                print!("{}", stillmap_client::servers::table(&servers));
+            }
+            Ok(ExitCode::SUCCESS)
+        }
         Command::BenchCodecs { tum, frames, repeats, jpeg_quality } => {
             let rows = tokio::task::spawn_blocking(move || bench::bench_codecs(&tum, frames, repeats, jpeg_quality)).await??;
             print!("{}", bench::table(&rows, frames));

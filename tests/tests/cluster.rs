@@ -81,6 +81,21 @@ async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
         assert_eq!((s[id]["sessions_in_memory"].as_u64(), s[id]["robots_connected"].as_u64()), (Some(0), Some(0)), "{id}");
     }
 
+    // `stillmap-client servers` lists both, each with its own status.
+    let out = Command::new(bin("stillmap-client"))
+        .args(["servers", "--zenoh-connect", &router_endpoint, "--json"])
+        .env("STILLMAP_LOG", "error")
+        .output()
+        .expect("stillmap-client servers");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let listed: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("servers JSON");
+    let ids: Vec<&str> = listed.iter().filter_map(|s| s["server_id"].as_str()).collect();
+    assert_eq!(ids, [id_a.as_str(), id_b.as_str()]);
+    assert_eq!(listed[0]["pid"], a.pid());
+    let table = Command::new(bin("stillmap-client")).args(["servers", "--zenoh-connect", &router_endpoint]).output().expect("table");
+    let table = String::from_utf8_lossy(&table.stdout);
+    assert!(table.lines().count() == 3 && table.contains(&a.grpc) && table.contains(&b.grpc), "{table}");
+
     // A robot streams to A: A's load shows its session, B's does not.
     let tum = format!("tum:{}", tum_dir().display());
     let (out, _) = run_client(&["--source", &tum, "--server", &a.grpc_url(), "--robot-id", "r1", "--rate", "max", "--max-frames", "5"]);
