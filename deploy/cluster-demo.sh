@@ -51,7 +51,7 @@ for r in "${robots[@]}"; do
 done
 sleep 1.5
 placed() { # server -> robots streaming there
-  curl -fsS "http://${http[$1]}/api/v1/sessions" | json '" ".join(sorted(s["robot_id"] for s in d["sessions"] if s["connected"]))'
+  curl -fsS "http://${http[$1]}/api/v1/sessions" | json '" ".join(sorted(s["robot_id"] for s in d["sessions"] if s["connected"] and s.get("server_id") == "'"$1"'"))'
 }
 a_robots=$(placed server-a); b_robots=$(placed server-b)
 echo "placement: server-a: ${a_robots:-none} | server-b: ${b_robots:-none}"
@@ -64,9 +64,8 @@ for r in "${robots[@]}"; do
   for s in server-a server-b; do
     curl -fsS -o /dev/null "http://${http[$s]}/api/v1/sessions/$id/pose" 2>/dev/null && answered+=("$s")
   done
-  echo "  pose of $r ($id) answered by: ${answered[*]:-none}"
+  echo "  pose of $r ($id, on $(curl -fsS "http://${http[server-a]}/api/v1/sessions" | json '" ".join(s["server_id"] for s in d["sessions"] if s["session_id"] == "'"$id"'")')) answered by: ${answered[*]:-none}"
 done
-echo "  (forwarding a query to the server holding the session is not built yet)"
 
 victim=server-b; [ -z "$b_robots" ] && victim=server-a
 survivor=server-a; [ "$victim" = server-a ] && survivor=server-b

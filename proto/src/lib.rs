@@ -45,6 +45,11 @@ pub mod keys {
     }
     /// Every server's status queryable.
     pub const ALL_SERVER_STATUS: &str = "stillmap-cluster/servers/*/status";
+    /// Queryable on which the server `server_id` answers HTTP GETs another server
+    /// forwards (a session it holds, asked of a server that does not).
+    pub fn server_http(server_id: &str) -> String {
+        format!("stillmap-cluster/servers/{server_id}/http")
+    }
 
     /// The server id inside a server's liveliness key.
     pub fn server_of_key(key: &str) -> Option<&str> {

@@ -13,6 +13,12 @@
 //! frames reach their new owner, which tells them to say hello again; when one
 //! joins, the robots it now owns move to it the same way. Sessions do not move
 //! with them yet (no shared storage): a moved robot starts a new session.
+//!
+//! **Any server answers.** An HTTP GET for a session or map this server does not
+//! hold (404 here) is asked of the other live servers over Zenoh
+//! (`stillmap-cluster/servers/<id>/http`, [`Forwarder`]); the one holding it runs
+//! the request through its own HTTP API (token checks included) and its answer is
+//! returned as is. A forwarded request is never forwarded again.
 
 use std::collections::BTreeSet;
 use std::net::SocketAddr;
@@ -20,6 +26,11 @@ use std::sync::{Arc, Mutex};
 
 use serde::Serialize;
 use stillmap_proto::keys;
+
+use axum::body::Body;
+use axum::http::{HeaderValue, Request, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use tower::ServiceExt as _;
 
 use crate::ServerError;
 use crate::lock;
@@ -180,6 +191,193 @@ pub async fn announce(
     drop(servers);
     drop(queryable);
     let _ = token.undeclare().await;
+    Ok(())
+}
+
+/// Marks a request one server forwarded to another (never forwarded again).
+pub const FORWARDED_HEADER: &str = "x-stillmap-forwarded";
+/// Largest forwarded answer (a map export or a point cloud of a big map fits).
+const MAX_FORWARDED_BYTES: usize = 256 << 20;
+
+/// What a forwarded request carries.
+#[derive(Debug, serde::Serialize, serde::Deserialize)]
+struct Forwarded {
+    path_and_query: String,
+    authorization: Option<String>,
+}
+
+/// The status and type of a forwarded answer (its body is the reply's payload).
+#[derive(Debug, serde::Serialize, serde::Deserialize)]
+struct ForwardedHead {
+    status: u16,
+    content_type: Option<String>,
+}
+
+/// Asks the other live servers for what this one does not hold.
+pub struct Forwarder {
+    pub zenoh: zenoh::Session,
+    pub membership: Arc<Membership>,
+    pub timeout: std::time::Duration,
+}
+
+impl Forwarder {
+    /// The first answer from another live server that is not a 404, if any.
+    async fn forward(&self, request: &Forwarded) -> Option<Response> {
+        let payload = serde_json::to_vec(request).ok()?;
+        for server in self.membership.servers().into_iter().filter(|s| *s != self.membership.own) {
+            let replies = match self.zenoh.get(keys::server_http(&server)).payload(payload.clone()).timeout(self.timeout).await {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::warn!(server, "forwarding {} failed: {e}", request.path_and_query);
+                    continue;
+                }
+            };
+            while let Ok(reply) = replies.recv_async().await {
+                let Ok(sample) = reply.result() else { continue };
+                let Some(head) = sample.attachment().and_then(|a| serde_json::from_slice::<ForwardedHead>(&a.to_bytes()).ok()) else {
+                    continue;
+                };
+                if head.status == StatusCode::NOT_FOUND.as_u16() {
+                    continue;
+                }
+                let status = StatusCode::from_u16(head.status).unwrap_or(StatusCode::BAD_GATEWAY);
+                let mut response = (status, sample.payload().to_bytes().into_owned()).into_response();
+                if let Some(t) = head.content_type.and_then(|t| HeaderValue::from_str(&t).ok()) {
+                    response.headers_mut().insert(header::CONTENT_TYPE, t);
+                }
+                return Some(response);
+            }
+        }
+        None
+    }
+}
+
+impl Forwarder {
+    /// Every other live server's 200 answer to `request`, with its server id.
+    async fn gather(&self, request: &Forwarded) -> Vec<(String, Vec<u8>)> {
+        let Ok(payload) = serde_json::to_vec(request) else { return Vec::new() };
+        let mut out = Vec::new();
+        for server in self.membership.servers().into_iter().filter(|s| *s != self.membership.own) {
+            let Ok(replies) = self.zenoh.get(keys::server_http(&server)).payload(payload.clone()).timeout(self.timeout).await else {
+                continue;
+            };
+            while let Ok(reply) = replies.recv_async().await {
+                let Ok(sample) = reply.result() else { continue };
+                let ok = sample
+                    .attachment()
+                    .and_then(|a| serde_json::from_slice::<ForwardedHead>(&a.to_bytes()).ok())
+                    .is_some_and(|h| h.status == StatusCode::OK.as_u16());
+                if ok {
+                    out.push((server.clone(), sample.payload().to_bytes().into_owned()));
+                }
+            }
+        }
+        out
+    }
+}
+
+/// The sessions list of every live server (`GET /api/v1/sessions`): this server's,
+/// then the others', each entry with the `server_id` holding it.
+async fn merged_sessions(forwarder: &Forwarder, request: Forwarded, local: Response) -> Response {
+    let (parts, body) = local.into_parts();
+    let Ok(bytes) = axum::body::to_bytes(body, MAX_FORWARDED_BYTES).await else {
+        return (StatusCode::INTERNAL_SERVER_ERROR, "sessions list too large").into_response();
+    };
+    let Ok(mut list) = serde_json::from_slice::<serde_json::Value>(&bytes) else {
+        return Response::from_parts(parts, Body::from(bytes));
+    };
+    let tag = |sessions: &mut Vec<serde_json::Value>, server: &str| {
+        for s in sessions.iter_mut() {
+            if let Some(o) = s.as_object_mut() {
+                o.insert("server_id".into(), server.into());
+            }
+        }
+    };
+    let mut all: Vec<serde_json::Value> = list["sessions"].as_array().cloned().unwrap_or_default();
+    tag(&mut all, &forwarder.membership.own);
+    for (server, body) in forwarder.gather(&request).await {
+        let Ok(theirs) = serde_json::from_slice::<serde_json::Value>(&body) else { continue };
+        let mut sessions = theirs["sessions"].as_array().cloned().unwrap_or_default();
+        tag(&mut sessions, &server);
+        all.extend(sessions);
+    }
+    list["sessions"] = serde_json::Value::Array(all);
+    let mut response = axum::Json(list).into_response();
+    *response.status_mut() = parts.status;
+    response
+}
+
+/// HTTP middleware: a GET on a session or a map that this server answers 404 is
+/// asked of the other live servers; their answer, if one holds it, is returned.
+/// `GET /api/v1/sessions` lists every live server's sessions.
+pub async fn forward_unknown(
+    axum::extract::State(forwarder): axum::extract::State<Arc<Forwarder>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    let path = request.uri().path();
+    let first_hand = request.method() == axum::http::Method::GET && !request.headers().contains_key(FORWARDED_HEADER);
+    let list = first_hand && path == "/api/v1/sessions";
+    let forwardable =
+        first_hand && (path.starts_with("/api/v1/sessions/") || (path.starts_with("/api/v1/maps/") && path != "/api/v1/maps/import"));
+    let forwarded = (list || forwardable).then(|| Forwarded {
+        path_and_query: request.uri().path_and_query().map_or_else(|| path.to_string(), ToString::to_string),
+        authorization: request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).map(str::to_owned),
+    });
+    let response = next.run(request).await;
+    match forwarded {
+        Some(f) if list && response.status() == StatusCode::OK => merged_sessions(&forwarder, f, response).await,
+        Some(f) if !list && response.status() == StatusCode::NOT_FOUND => forwarder.forward(&f).await.unwrap_or(response),
+        _ => response,
+    }
+}
+
+/// Answers the GETs other servers forward here with this server's HTTP API `app`,
+/// until `shutdown` fires.
+pub async fn answer_forwarded(
+    zenoh: zenoh::Session,
+    server_id: String,
+    app: axum::Router,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), ServerError> {
+    let key = keys::server_http(&server_id);
+    let queryable = zenoh.declare_queryable(&key).await.map_err(|e| ServerError::Zenoh(format!("queryable {key}: {e}")))?;
+    loop {
+        let query = tokio::select! {
+            q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
+            _ = shutdown.changed() => break,
+        };
+        let app = app.clone();
+        let key = key.clone();
+        tokio::spawn(async move {
+            let Some(forwarded) = query.payload().and_then(|p| serde_json::from_slice::<Forwarded>(&p.to_bytes()).ok()) else {
+                let _ = query.reply_err("a forwarded request must be JSON {path_and_query, authorization}").await;
+                return;
+            };
+            let mut request = Request::get(&forwarded.path_and_query).header(FORWARDED_HEADER, "1");
+            if let Some(auth) = &forwarded.authorization {
+                request = request.header(header::AUTHORIZATION, auth);
+            }
+            let Ok(request) = request.body(Body::empty()) else {
+                let _ = query.reply_err("a forwarded request's path is not a URI").await;
+                return;
+            };
+            let Ok(response) = app.oneshot(request).await;
+            let status = response.status().as_u16();
+            let content_type = response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).map(str::to_owned);
+            let (head, body) = match axum::body::to_bytes(response.into_body(), MAX_FORWARDED_BYTES).await {
+                Ok(body) => (ForwardedHead { status, content_type }, body.to_vec()),
+                Err(_) => (
+                    ForwardedHead { status: StatusCode::BAD_GATEWAY.as_u16(), content_type: None },
+                    b"answer too large to forward".to_vec(),
+                ),
+            };
+            let attachment = serde_json::to_vec(&head).unwrap_or_default();
+            if let Err(e) = query.reply(&key, body).attachment(attachment).await {
+                tracing::warn!(key, "forwarded answer not sent: {e}");
+            }
+        });
+    }
     Ok(())
 }
 

@@ -60,6 +60,9 @@ use session::Registry;
 
 /// Time given to open streams after a shutdown signal before the server stops anyway.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
+/// How long a server waits for the others to answer a forwarded query.
+#[cfg(feature = "zenoh")]
+const FORWARD_TIMEOUT: Duration = Duration::from_secs(5);
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
@@ -260,8 +263,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         let server_id = cluster::server_id(&config.zenoh.server_id, &host, &bound_grpc);
         let membership = cluster::Membership::new(&server_id);
         let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));
+        let forwarder = Arc::new(cluster::Forwarder { zenoh: z.clone(), membership: membership.clone(), timeout: FORWARD_TIMEOUT });
         let identity = cluster::Identity {
-            server_id,
+            server_id: server_id.clone(),
             host,
             grpc: bound_grpc,
             http: bound_http,
@@ -274,7 +278,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
                 tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}");
             }
         });
-        Some((z, task, announce))
+        Some((z, task, announce, forwarder, server_id))
     } else {
         None
     };
@@ -355,6 +359,20 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let http_runtime = http_runtime(&config.http)?;
     let http_listener = http_listener.into_std().map_err(ServerError::Http)?;
     let http_app = api::http::router(registry.clone(), dashboard_dir, settings);
+    // Sessions and maps another server holds: asked of it over Zenoh (cluster.rs).
+    #[cfg(feature = "zenoh")]
+    let (http_app, forward_task) = match &zenoh_task {
+        Some((z, _, _, forwarder, server_id)) => {
+            let answering = cluster::answer_forwarded(z.clone(), server_id.clone(), http_app.clone(), shutdown.clone());
+            let answer = tokio::spawn(async move {
+                if let Err(e) = answering.await {
+                    tracing::error!("not answering other servers' forwarded queries: {e}");
+                }
+            });
+            (http_app.layer(axum::middleware::from_fn_with_state(forwarder.clone(), cluster::forward_unknown)), Some(answer))
+        }
+        None => (http_app, None),
+    };
     let http_options = api::serve::Options {
         header_timeout: Duration::from_secs_f64(config.http.header_timeout_s),
         max_connections: config.http.max_connections,
@@ -462,7 +480,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         tracing::warn!("pipeline workers outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway");
     }
     #[cfg(feature = "zenoh")]
-    if let Some((z, task, announce)) = zenoh_task {
+    if let Some(answer) = forward_task {
+        let _ = answer.await;
+    }
+    #[cfg(feature = "zenoh")]
+    if let Some((z, task, announce, _, _)) = zenoh_task {
         let _ = task.await;
         let _ = announce.await;
         if let Err(e) = z.close().await {

@@ -4,7 +4,8 @@
 //! (their process id: the servers this test started) and their load; a server
 //! killed with `kill -9` disappears from the liveliness view, and comes back when
 //! it restarts. Robots on Zenoh are placed on one server each (rendezvous hashing
-//! over the live servers), and a killed server's robots land on the other one.
+//! over the live servers), either server answers for any session (forwarded over
+//! Zenoh), and a killed server's robots land on the other one.
 
 use std::collections::BTreeMap;
 use std::process::{Command, Stdio};
@@ -140,10 +141,13 @@ impl Drop for Robots {
     }
 }
 
-/// The robot ids of the sessions a server holds, and of those streaming now.
-async fn robots_on(server: &Server) -> (Vec<String>, Vec<String>) {
+/// The robot ids of the sessions server `id` holds, and of those streaming now, from
+/// the sessions list of `server` (every live server's sessions, each with its
+/// `server_id`).
+async fn robots_on(server: &Server, id: &str) -> (Vec<String>, Vec<String>) {
     let (_, list) = server.get_json("/api/v1/sessions").await;
-    let sessions = list["sessions"].as_array().cloned().unwrap_or_default();
+    let mut sessions = list["sessions"].as_array().cloned().unwrap_or_default();
+    sessions.retain(|s| s["server_id"] == id);
     let robot = |s: &serde_json::Value| s["robot_id"].as_str().unwrap_or_default().to_string();
     let mut all: Vec<String> = sessions.iter().map(robot).collect();
     let mut connected: Vec<String> = sessions.iter().filter(|s| s["connected"] == true).map(robot).collect();
@@ -201,15 +205,30 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
 
     // Each robot streams to its owner, and only there.
     eventually(Duration::from_secs(10), "every robot streaming on its server", async || {
-        robots_on(&a).await.1 == on_a && robots_on(&b).await.1 == on_b
+        robots_on(&a, id_a).await.1 == on_a && robots_on(&a, id_b).await.1 == on_b
     })
     .await;
-    assert!(robots_on(&a).await.0 == on_a && robots_on(&b).await.0 == on_b, "a robot opened a session on the wrong server");
+    assert!(robots_on(&b, id_a).await.0 == on_a && robots_on(&b, id_b).await.0 == on_b, "a robot opened a session on the wrong server");
+
+    // Any server answers for any session: asked of the server without it, the query
+    // is forwarded over Zenoh to the one holding it (JSON and text alike).
+    for (holder, holder_id, other) in [(&a, id_a, &b), (&b, id_b, &a)] {
+        let (_, list) = holder.get_json("/api/v1/sessions").await;
+        for s in list["sessions"].as_array().expect("sessions").iter().filter(|s| s["server_id"] == holder_id) {
+            let id = s["session_id"].as_str().expect("session_id");
+            let (status, there) = other.get_json(&format!("/api/v1/sessions/{id}")).await;
+            assert_eq!((status, there["session_id"].as_str()), (200, Some(id)), "{id} asked of the other server");
+            let text = other.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await;
+            assert!(text.starts_with("# timestamp tx ty tz"), "{text}");
+        }
+    }
+    let (status, missing) = a.get_json("/api/v1/sessions/nobody-1/pose").await;
+    assert_eq!(status, 404, "{missing}");
 
     // kill -9 B mid-stream: its robots reach A within 5 s.
     b.kill9();
     let killed = Instant::now();
-    eventually(Duration::from_secs(5), "B's robots streaming on A", async || robots_on(&a).await.1 == robots).await;
+    eventually(Duration::from_secs(5), "B's robots streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;
     eprintln!("B's robots streaming on A {:.0} ms after kill -9", killed.elapsed().as_secs_f64() * 1e3);
 
     for c in &mut clients.0 {
