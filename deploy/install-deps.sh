@@ -105,7 +105,14 @@ fi
 
 # The dashboard's npm packages, exactly as locked: three.js (served to browsers by the
 # server) and playwright-core (drives chromium in tests/tests/dashboard.rs).
-if [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwright-core ] || [ dashboard/package-lock.json -nt dashboard/node_modules ]; then
+# --server-only: three.js alone (--omit=dev), for the image.
+if [ -n "$SERVER_ONLY" ]; then
+  if [ ! -d dashboard/node_modules/three ] || [ dashboard/package-lock.json -nt dashboard/node_modules ]; then
+    echo "install-deps: npm ci --omit=dev in dashboard/"
+    (cd dashboard && npm ci --omit=dev --no-audit --no-fund --loglevel=error)
+    touch dashboard/node_modules
+  fi
+elif [ ! -d dashboard/node_modules/three ] || [ ! -d dashboard/node_modules/playwright-core ] || [ dashboard/package-lock.json -nt dashboard/node_modules ]; then
   echo "install-deps: npm ci in dashboard/"
   (cd dashboard && npm ci --no-audit --no-fund --loglevel=error)
   touch dashboard/node_modules

@@ -301,7 +301,7 @@ async fn run_zenoh(
     // asking for its session back: its own server, still there, resumes it; a new one
     // opens a new session. Without the tokens, the new owner's FAILED_PRECONDITION
     // for the next frame does the same.
-    let servers = match session.liveliness().declare_subscriber(keys::ALL_SERVERS).await {
+    let mut servers = match session.liveliness().declare_subscriber(keys::ALL_SERVERS).await {
         Ok(s) => Some(s),
         Err(e) => {
             tracing::warn!("not following the servers' liveliness ({e}): a move is noticed at the next frame");
@@ -312,8 +312,10 @@ async fn run_zenoh(
     let (mut accepted, _) = zenoh_hello(&publisher, &subscriber, &hello_bytes, options.timeout).await?;
     let _ = events.send(LinkEvent::Accepted(accepted.clone())).await;
 
+    let ends = ZenohEnds { publisher: &publisher, subscriber: &subscriber, hello: &hello, events: &events, timeout: options.timeout };
     // Sequences sent whose result has not come back.
     let mut in_flight: VecDeque<u64> = VecDeque::new();
+    // New sessions in a row without a result in between.
     let mut moves = 0u32;
     let mut input_done = false;
     loop {
@@ -330,27 +332,13 @@ async fn run_zenoh(
                 None => input_done = true,
             },
             left = async { servers.as_ref()?.recv_async().await.ok() }, if servers.is_some() => {
-                if left.is_none_or(|s| s.kind() != zenoh::sample::SampleKind::Delete) {
-                    continue;
-                }
-                let resume = pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..hello.clone() };
-                let resume_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(resume)) }.encode_to_vec();
-                let (again, meanwhile) = zenoh_hello(&publisher, &subscriber, &resume_bytes, options.timeout).await?;
-                for r in meanwhile {
-                    in_flight.retain(|&q| q != r.sequence);
-                    let _ = events.send(LinkEvent::Result(r)).await;
-                }
-                if !again.resumed {
-                    moves += 1;
-                    tracing::warn!("a server left and this robot's session with it: streaming on in a new session");
-                    let lost: Vec<u64> = in_flight.drain(..).collect();
-                    if !lost.is_empty() {
-                        let _ = events.send(LinkEvent::Unanswered(lost)).await;
+                match left {
+                    None => servers = None, // the subscriber closed: moves are noticed at the next frame
+                    Some(sample) if sample.kind() == zenoh::sample::SampleKind::Delete => {
+                        accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
                     }
-                    let _ = events.send(LinkEvent::Reconnected(moves)).await;
-                    let _ = events.send(LinkEvent::Accepted(again.clone())).await;
+                    Some(_) => {}
                 }
-                accepted = again;
             }
             s = tokio::time::timeout(options.timeout, subscriber.recv_async()) => {
                 let Ok(s) = s else {
@@ -363,25 +351,15 @@ async fn run_zenoh(
                 match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
                     Ok(pb::ServerMessage { msg: Some(Msg::Result(r)) }) => {
                         in_flight.retain(|&q| q != r.sequence);
+                        moves = 0;
                         let _ = events.send(LinkEvent::Result(r)).await;
                     }
                     // The server that answers this robot now does not know it: the
                     // robot was placed on another server (one left or joined), or its
-                    // session left memory. Hello again; what was in flight is lost.
+                    // session left memory. Ask for the session back.
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::FailedPrecondition => {
-                        moves += 1;
-                        if moves > MAX_ZENOH_MOVES {
-                            return Err(ClientError::Server { code: Code::FailedPrecondition, message: e.message });
-                        }
                         tracing::warn!("{}: saying hello again", e.message);
-                        let lost: Vec<u64> = in_flight.drain(..).collect();
-                        if !lost.is_empty() {
-                            let _ = events.send(LinkEvent::Unanswered(lost)).await;
-                        }
-                        // Results now can only be the new session's: none before its first frame.
-                        (accepted, _) = zenoh_hello(&publisher, &subscriber, &hello_bytes, options.timeout).await?;
-                        let _ = events.send(LinkEvent::Reconnected(moves)).await;
-                        let _ = events.send(LinkEvent::Accepted(accepted.clone())).await;
+                        accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
                     }
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
                         return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
@@ -444,12 +422,57 @@ pub async fn open_zenoh(options: &ZenohOptions) -> Result<zenoh::Session, Client
     Ok(session)
 }
 
+/// A Zenoh robot's ends of its link: what [`rejoin`] needs besides the link's state.
+#[cfg(feature = "zenoh")]
+struct ZenohEnds<'a> {
+    publisher: &'a zenoh::pubsub::Publisher<'a>,
+    subscriber: &'a zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    hello: &'a pb::Hello,
+    events: &'a mpsc::Sender<LinkEvent>,
+    timeout: Duration,
+}
+
+/// Says hello again asking for `accepted`'s session back (a server left, or one that
+/// does not know this robot answered it). Its own server, still there, resumes it and
+/// nothing is lost; a new owner opens a new session, and what was in flight is
+/// reported lost. Results that arrive meanwhile are passed on.
+#[cfg(feature = "zenoh")]
+async fn rejoin(
+    link: &ZenohEnds<'_>,
+    accepted: &pb::SessionAccepted,
+    in_flight: &mut VecDeque<u64>,
+    moves: &mut u32,
+) -> Result<pb::SessionAccepted, ClientError> {
+    let ZenohEnds { publisher, subscriber, hello, events, timeout } = link;
+    let resume =
+        pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..(*hello).clone() };
+    let resume_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(resume)) }.encode_to_vec();
+    let (again, meanwhile) = zenoh_hello(publisher, subscriber, &resume_bytes, *timeout).await?;
+    for r in meanwhile {
+        in_flight.retain(|&q| q != r.sequence);
+        let _ = events.send(LinkEvent::Result(r)).await;
+    }
+    if !again.resumed {
+        *moves += 1;
+        if *moves > MAX_ZENOH_MOVES {
+            return Err(ClientError::Protocol(format!("{} new sessions in a row without a result: giving up", *moves)));
+        }
+        tracing::warn!("this robot's session is on no live server: streaming on in a new session");
+        let lost: Vec<u64> = in_flight.drain(..).collect();
+        if !lost.is_empty() {
+            let _ = events.send(LinkEvent::Unanswered(lost)).await;
+        }
+        let _ = events.send(LinkEvent::Reconnected(*moves)).await;
+        let _ = events.send(LinkEvent::Accepted(again.clone())).await;
+    }
+    Ok(again)
+}
+
 /// How often the hello is repeated until a server accepts it.
 #[cfg(feature = "zenoh")]
 const HELLO_RETRY: Duration = Duration::from_millis(500);
 
-/// Times a Zenoh robot says hello again after its frames reach a server that does
-/// not know it (placement moved it) before giving up.
+/// New sessions in a row, with no result in between, before a Zenoh robot gives up.
 #[cfg(feature = "zenoh")]
 const MAX_ZENOH_MOVES: u32 = 16;
 

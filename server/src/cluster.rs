@@ -144,8 +144,35 @@ pub fn host_name() -> String {
     String::from_utf8_lossy(&buf[..end]).into_owned()
 }
 
-/// Holds the liveliness token, follows the other servers' tokens into `membership`
-/// and answers status queries until `shutdown` fires.
+/// Declares this server's liveliness token, then fills `membership` with the servers
+/// live now (before any robot is answered: a server that saw only itself would take
+/// every robot). The token lasts as long as the value returned.
+pub async fn join(zenoh: &zenoh::Session, membership: &Membership) -> Result<zenoh::liveliness::LivelinessToken, ServerError> {
+    let token_key = keys::server(&membership.own);
+    let token =
+        zenoh.liveliness().declare_token(&token_key).await.map_err(|e| ServerError::Zenoh(format!("liveliness token {token_key}: {e}")))?;
+    let replies = zenoh
+        .liveliness()
+        .get(keys::ALL_SERVERS)
+        .timeout(JOIN_TIMEOUT)
+        .await
+        .map_err(|e| ServerError::Zenoh(format!("liveliness query {}: {e}", keys::ALL_SERVERS)))?;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result()
+            && let Some(id) = keys::server_of_key(sample.key_expr().as_str())
+        {
+            membership.seen(id, true);
+        }
+    }
+    tracing::info!(server_id = %membership.own, servers = ?membership.servers(), "announced on Zenoh ({token_key})");
+    Ok(token)
+}
+
+/// How long [`join`] waits for the live servers' tokens.
+const JOIN_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Follows the other servers' tokens into `membership` and answers status queries
+/// until `shutdown` fires.
 pub async fn announce(
     zenoh: zenoh::Session,
     registry: Arc<Registry>,
@@ -153,10 +180,7 @@ pub async fn announce(
     membership: Arc<Membership>,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
-    let token_key = keys::server(&identity.server_id);
     let status_key = keys::server_status(&identity.server_id);
-    let token =
-        zenoh.liveliness().declare_token(&token_key).await.map_err(|e| ServerError::Zenoh(format!("liveliness token {token_key}: {e}")))?;
     let queryable = zenoh.declare_queryable(&status_key).await.map_err(|e| ServerError::Zenoh(format!("queryable {status_key}: {e}")))?;
     let servers = zenoh
         .liveliness()
@@ -164,7 +188,6 @@ pub async fn announce(
         .history(true)
         .await
         .map_err(|e| ServerError::Zenoh(format!("liveliness subscriber {}: {e}", keys::ALL_SERVERS)))?;
-    tracing::info!(server_id = %identity.server_id, "announced on Zenoh ({token_key})");
     loop {
         let query = tokio::select! {
             q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
@@ -190,7 +213,6 @@ pub async fn announce(
     }
     drop(servers);
     drop(queryable);
-    let _ = token.undeclare().await;
     Ok(())
 }
 
@@ -318,22 +340,35 @@ pub async fn forward_unknown(
     let path = request.uri().path();
     let first_hand = request.method() == axum::http::Method::GET && !request.headers().contains_key(FORWARDED_HEADER);
     let list = first_hand && path == "/api/v1/sessions";
-    let forwardable =
-        first_hand && (path.starts_with("/api/v1/sessions/") || (path.starts_with("/api/v1/maps/") && path != "/api/v1/maps/import"));
+    let forwardable = first_hand && forwardable_path(path);
     let forwarded = (list || forwardable).then(|| Forwarded {
         path_and_query: request.uri().path_and_query().map_or_else(|| path.to_string(), ToString::to_string),
         authorization: request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).map(str::to_owned),
     });
     let response = next.run(request).await;
+    // A 404 of a matched route passed its token check here; the fallback's did not.
+    let unknown_here =
+        response.status() == StatusCode::NOT_FOUND && response.extensions().get::<crate::api::http::NoSuchEndpoint>().is_none();
     match forwarded {
         Some(f) if list && response.status() == StatusCode::OK => merged_sessions(&forwarder, f, response).await,
-        Some(f) if !list && response.status() == StatusCode::NOT_FOUND => forwarder.forward(&f).await.unwrap_or(response),
+        Some(f) if !list && unknown_here => forwarder.forward(&f).await.unwrap_or(response),
         _ => response,
     }
 }
 
+/// The paths forwarded between servers: a session's or a map's.
+fn forwardable_path(path: &str) -> bool {
+    path.starts_with("/api/v1/sessions/") || (path.starts_with("/api/v1/maps/") && path != "/api/v1/maps/import")
+}
+
+/// Forwarded queries answered at once; more wait.
+const MAX_FORWARDED_AT_ONCE: usize = 16;
+/// Longest a forwarded query may take here (a map export included).
+const FORWARDED_ANSWER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// Answers the GETs other servers forward here with this server's HTTP API `app`,
-/// until `shutdown` fires.
+/// until `shutdown` fires: only a session's or a map's paths and the sessions list,
+/// at most [`MAX_FORWARDED_AT_ONCE`] at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
 pub async fn answer_forwarded(
     zenoh: zenoh::Session,
     server_id: String,
@@ -342,6 +377,7 @@ pub async fn answer_forwarded(
 ) -> Result<(), ServerError> {
     let key = keys::server_http(&server_id);
     let queryable = zenoh.declare_queryable(&key).await.map_err(|e| ServerError::Zenoh(format!("queryable {key}: {e}")))?;
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_FORWARDED_AT_ONCE));
     loop {
         let query = tokio::select! {
             q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
@@ -349,11 +385,18 @@ pub async fn answer_forwarded(
         };
         let app = app.clone();
         let key = key.clone();
+        let Ok(slot) = slots.clone().acquire_owned().await else { break };
         tokio::spawn(async move {
+            let _slot = slot;
             let Some(forwarded) = query.payload().and_then(|p| serde_json::from_slice::<Forwarded>(&p.to_bytes()).ok()) else {
                 let _ = query.reply_err("a forwarded request must be JSON {path_and_query, authorization}").await;
                 return;
             };
+            let path = forwarded.path_and_query.split('?').next().unwrap_or_default();
+            if !(forwardable_path(path) || path == "/api/v1/sessions") {
+                let _ = query.reply_err(format!("{path} is not forwarded between servers")).await;
+                return;
+            }
             let mut request = Request::get(&forwarded.path_and_query).header(FORWARDED_HEADER, "1");
             if let Some(auth) = &forwarded.authorization {
                 request = request.header(header::AUTHORIZATION, auth);
@@ -362,15 +405,23 @@ pub async fn answer_forwarded(
                 let _ = query.reply_err("a forwarded request's path is not a URI").await;
                 return;
             };
-            let Ok(response) = app.oneshot(request).await;
-            let status = response.status().as_u16();
-            let content_type = response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).map(str::to_owned);
-            let (head, body) = match axum::body::to_bytes(response.into_body(), MAX_FORWARDED_BYTES).await {
-                Ok(body) => (ForwardedHead { status, content_type }, body.to_vec()),
-                Err(_) => (
-                    ForwardedHead { status: StatusCode::BAD_GATEWAY.as_u16(), content_type: None },
-                    b"answer too large to forward".to_vec(),
-                ),
+            let answer = async {
+                let Ok(response) = app.oneshot(request).await;
+                let status = response.status().as_u16();
+                let content_type = response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).map(str::to_owned);
+                match axum::body::to_bytes(response.into_body(), MAX_FORWARDED_BYTES).await {
+                    Ok(body) => (ForwardedHead { status, content_type }, body.to_vec()),
+                    Err(_) => (
+                        ForwardedHead { status: StatusCode::BAD_GATEWAY.as_u16(), content_type: None },
+                        b"answer too large to forward".to_vec(),
+                    ),
+                }
+            };
+            let (head, body) = match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, answer).await {
+                Ok(answered) => answered,
+                Err(_) => {
+                    (ForwardedHead { status: StatusCode::GATEWAY_TIMEOUT.as_u16(), content_type: None }, b"answer took too long".to_vec())
+                }
             };
             let attachment = serde_json::to_vec(&head).unwrap_or_default();
             if let Err(e) = query.reply(&key, body).attachment(attachment).await {

@@ -262,6 +262,8 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         let host = cluster::host_name();
         let server_id = cluster::server_id(&config.zenoh.server_id, &host, &bound_grpc);
         let membership = cluster::Membership::new(&server_id);
+        // Announced, and the other servers known, before any robot is answered.
+        let token = cluster::join(&z, &membership).await?;
         let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));
         let forwarder = Arc::new(cluster::Forwarder { zenoh: z.clone(), membership: membership.clone(), timeout: FORWARD_TIMEOUT });
         let identity = cluster::Identity {
@@ -278,7 +280,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
                 tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}");
             }
         });
-        Some((z, task, announce, forwarder, server_id))
+        Some((z, task, announce, forwarder, server_id, token))
     } else {
         None
     };
@@ -362,7 +364,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     // Sessions and maps another server holds: asked of it over Zenoh (cluster.rs).
     #[cfg(feature = "zenoh")]
     let (http_app, forward_task) = match &zenoh_task {
-        Some((z, _, _, forwarder, server_id)) => {
+        Some((z, _, _, forwarder, server_id, _)) => {
             let answering = cluster::answer_forwarded(z.clone(), server_id.clone(), http_app.clone(), shutdown.clone());
             let answer = tokio::spawn(async move {
                 if let Err(e) = answering.await {
@@ -484,9 +486,10 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         let _ = answer.await;
     }
     #[cfg(feature = "zenoh")]
-    if let Some((z, task, announce, _, _)) = zenoh_task {
+    if let Some((z, task, announce, _, _, token)) = zenoh_task {
         let _ = task.await;
         let _ = announce.await;
+        let _ = token.undeclare().await;
         if let Err(e) = z.close().await {
             tracing::warn!("zenoh close: {e}");
         }

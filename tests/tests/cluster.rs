@@ -183,7 +183,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     eprintln!("placement: {} on {id_a}, {} on {id_b}", on_a.len(), on_b.len());
     assert!(!on_b.is_empty() && !on_a.is_empty(), "this test needs robots on both servers");
 
-    // 150 frames at 30 Hz: 5 s of streaming each.
+    // 150 frames at 15 Hz: 10 s of streaming each, time to check placement first.
     let tum = format!("tum:{}", tum_dir().display());
     let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("{r}.json")))).collect();
     let mut clients = Robots(
@@ -192,7 +192,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
             .map(|(robot, summary)| {
                 Command::new(bin("stillmap-client"))
                     .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", &router_endpoint])
-                    .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", "30", "--quiet", "--summary-json"])
+                    .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", "15", "--quiet", "--summary-json"])
                     .arg(summary)
                     .env("STILLMAP_LOG", "error")
                     .stdout(Stdio::null())

@@ -97,8 +97,17 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .merge(admin)
         .merge(ui)
         .layer(rate_limited)
-        .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint".into()) })
+        .fallback(|| async {
+            let mut response = error(StatusCode::NOT_FOUND, "no such endpoint".into());
+            response.extensions_mut().insert(NoSuchEndpoint);
+            response
+        })
 }
+
+/// Marks the 404 of a path no route matches (no token was checked for it), which
+/// is never forwarded to another server.
+#[derive(Debug, Clone, Copy)]
+pub struct NoSuchEndpoint;
 
 fn error(code: StatusCode, message: String) -> Response {
     (code, Json(ApiError { error: message })).into_response()
