@@ -251,3 +251,63 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
         }
     }
 }
+
+/// A server joining mid-stream takes the robots placement now gives it: they are
+/// told by their new owner (FAILED_PRECONDITION) and open a session there; the
+/// robots that stay keep their session, with nothing lost.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_joining_server_takes_only_the_robots_it_now_owns() {
+    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
+    let (id_a, id_b) = ("server-a", "server-b");
+    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
+    let a = start(id_a);
+    let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
+    let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [id_a, id_b]) == Some(id_b)).cloned().collect();
+    assert!(!to_b.is_empty() && to_b.len() < robots.len(), "this test needs robots for both servers");
+
+    let tum = format!("tum:{}", tum_dir().display());
+    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("join-{r}.json")))).collect();
+    let mut clients = Robots(
+        summaries
+            .iter()
+            .map(|(robot, summary)| {
+                Command::new(bin("stillmap-client"))
+                    .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", &router_endpoint])
+                    .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", "15", "--quiet", "--summary-json"])
+                    .arg(summary)
+                    .env("STILLMAP_LOG", "error")
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::inherit())
+                    .spawn()
+                    .expect("spawn robot")
+            })
+            .collect(),
+    );
+    // Alone, A answers every robot.
+    eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;
+    let b = start(id_b);
+    let joined = Instant::now();
+    eventually(Duration::from_secs(5), "B's robots streaming on B", async || robots_on(&b, id_b).await.1 == to_b).await;
+    eprintln!("the joining server's robots streaming on it {:.0} ms after it was ready", joined.elapsed().as_secs_f64() * 1e3);
+    let stay: Vec<String> = robots.iter().filter(|r| !to_b.contains(r)).cloned().collect();
+    assert_eq!(robots_on(&a, id_a).await.1, stay, "A streams only the robots it still owns");
+
+    for c in &mut clients.0 {
+        let status = c.wait().expect("robot exit");
+        assert!(status.success(), "a robot failed: {status}");
+    }
+    for (robot, path) in &summaries {
+        let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).expect("summary")).expect("summary JSON");
+        let _ = std::fs::remove_file(path);
+        let (sent, acked, lost) = (s["frames_sent"].as_u64(), s["frames_acknowledged"].as_u64(), s["frames_unanswered"].as_u64());
+        let (sent, acked, lost) = (sent.expect("sent"), acked.expect("acknowledged"), lost.expect("unanswered"));
+        eprintln!("{robot}: {sent} sent, {acked} answered, {lost} lost in flight, moved {} time(s)", s["reconnects"]);
+        assert_eq!(acked + lost, sent, "{robot}: every frame answered or counted lost");
+        if to_b.contains(robot) {
+            assert_eq!(s["reconnects"], 1, "{robot} moved once");
+        } else {
+            assert_eq!((s["reconnects"].as_u64(), lost), (Some(0), 0), "{robot} stayed on A, undisturbed");
+        }
+    }
+}
