@@ -141,6 +141,52 @@ impl Drop for Robots {
     }
 }
 
+/// Starts one robot process per id, streaming the public clip through the router at
+/// `rate_hz`; returns them with the files their summaries go to.
+fn spawn_robots(router: &str, robots: &[String], rate_hz: &str, tag: &str) -> (Robots, Vec<(String, std::path::PathBuf)>) {
+    let tum = format!("tum:{}", tum_dir().display());
+    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("{tag}-{r}.json")))).collect();
+    let children = summaries
+        .iter()
+        .map(|(robot, summary)| {
+            Command::new(bin("stillmap-client"))
+                .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", router])
+                .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", rate_hz, "--quiet", "--summary-json"])
+                .arg(summary)
+                .env("STILLMAP_LOG", "error")
+                .stdout(Stdio::null())
+                .stderr(Stdio::inherit())
+                .spawn()
+                .expect("spawn robot")
+        })
+        .collect();
+    (Robots(children), summaries)
+}
+
+/// Waits for every robot to succeed; checks every frame was answered or counted lost,
+/// and that the robots in `moved` moved once and the others lost nothing.
+fn check_robots(mut robots: Robots, summaries: &[(String, std::path::PathBuf)], moved: &[String]) {
+    for c in &mut robots.0 {
+        let status = c.wait().expect("robot exit");
+        assert!(status.success(), "a robot failed: {status}");
+    }
+    for (robot, path) in summaries {
+        let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).expect("summary")).expect("summary JSON");
+        let _ = std::fs::remove_file(path);
+        let (sent, acked, lost) = (s["frames_sent"].as_u64(), s["frames_acknowledged"].as_u64(), s["frames_unanswered"].as_u64());
+        let (sent, acked, lost) = (sent.expect("sent"), acked.expect("acknowledged"), lost.expect("unanswered"));
+        eprintln!("{robot}: {sent} sent, {acked} answered, {lost} lost in flight, moved {} time(s)", s["reconnects"]);
+        assert_eq!(sent, 150, "{robot}");
+        assert_eq!(acked + lost, sent, "{robot}: every frame answered or counted lost");
+        if moved.contains(robot) {
+            assert_eq!(s["reconnects"], 1, "{robot} moved once");
+            assert!(lost <= 8, "{robot}: only the frames in flight are lost, got {lost}");
+        } else {
+            assert_eq!((s["reconnects"].as_u64(), lost), (Some(0), 0), "{robot} stayed, undisturbed");
+        }
+    }
+}
+
 /// The robot ids of the sessions server `id` holds, and of those streaming now, from
 /// the sessions list of `server` (every live server's sessions, each with its
 /// `server_id`).
@@ -184,24 +230,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     assert!(!on_b.is_empty() && !on_a.is_empty(), "this test needs robots on both servers");
 
     // 150 frames at 15 Hz: 10 s of streaming each, time to check placement first.
-    let tum = format!("tum:{}", tum_dir().display());
-    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("{r}.json")))).collect();
-    let mut clients = Robots(
-        summaries
-            .iter()
-            .map(|(robot, summary)| {
-                Command::new(bin("stillmap-client"))
-                    .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", &router_endpoint])
-                    .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", "15", "--quiet", "--summary-json"])
-                    .arg(summary)
-                    .env("STILLMAP_LOG", "error")
-                    .stdout(Stdio::null())
-                    .stderr(Stdio::inherit())
-                    .spawn()
-                    .expect("spawn robot")
-            })
-            .collect(),
-    );
+    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "15", "placed");
 
     // Each robot streams to its owner, and only there.
     eventually(Duration::from_secs(10), "every robot streaming on its server", async || {
@@ -231,25 +260,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     eventually(Duration::from_secs(5), "B's robots streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;
     eprintln!("B's robots streaming on A {:.0} ms after kill -9", killed.elapsed().as_secs_f64() * 1e3);
 
-    for c in &mut clients.0 {
-        let status = c.wait().expect("robot exit");
-        assert!(status.success(), "a robot failed: {status}");
-    }
-    for (robot, path) in &summaries {
-        let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).expect("summary")).expect("summary JSON");
-        let _ = std::fs::remove_file(path);
-        let (sent, acked, lost) = (s["frames_sent"].as_u64(), s["frames_acknowledged"].as_u64(), s["frames_unanswered"].as_u64());
-        let (sent, acked, lost) = (sent.expect("sent"), acked.expect("acknowledged"), lost.expect("unanswered"));
-        eprintln!("{robot}: {sent} sent, {acked} answered, {lost} lost in flight, moved {} time(s)", s["reconnects"]);
-        assert_eq!(sent, 150, "{robot}");
-        assert_eq!(acked + lost, sent, "{robot}: every frame answered or counted lost");
-        if on_b.contains(robot) {
-            assert_eq!(s["reconnects"], 1, "{robot} moved once");
-            assert!(lost <= 8, "{robot}: only the frames in flight are lost, got {lost}");
-        } else {
-            assert_eq!((s["reconnects"].as_u64(), lost), (Some(0), 0), "{robot} on A is undisturbed");
-        }
-    }
+    check_robots(clients, &summaries, &on_b);
 }
 
 /// A server joining mid-stream takes the robots placement now gives it: they are
@@ -266,24 +277,7 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [id_a, id_b]) == Some(id_b)).cloned().collect();
     assert!(!to_b.is_empty() && to_b.len() < robots.len(), "this test needs robots for both servers");
 
-    let tum = format!("tum:{}", tum_dir().display());
-    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("join-{r}.json")))).collect();
-    let mut clients = Robots(
-        summaries
-            .iter()
-            .map(|(robot, summary)| {
-                Command::new(bin("stillmap-client"))
-                    .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", &router_endpoint])
-                    .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", "15", "--quiet", "--summary-json"])
-                    .arg(summary)
-                    .env("STILLMAP_LOG", "error")
-                    .stdout(Stdio::null())
-                    .stderr(Stdio::inherit())
-                    .spawn()
-                    .expect("spawn robot")
-            })
-            .collect(),
-    );
+    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "15", "join");
     // Alone, A answers every robot.
     eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;
     let b = start(id_b);
@@ -293,21 +287,5 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     let stay: Vec<String> = robots.iter().filter(|r| !to_b.contains(r)).cloned().collect();
     assert_eq!(robots_on(&a, id_a).await.1, stay, "A streams only the robots it still owns");
 
-    for c in &mut clients.0 {
-        let status = c.wait().expect("robot exit");
-        assert!(status.success(), "a robot failed: {status}");
-    }
-    for (robot, path) in &summaries {
-        let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).expect("summary")).expect("summary JSON");
-        let _ = std::fs::remove_file(path);
-        let (sent, acked, lost) = (s["frames_sent"].as_u64(), s["frames_acknowledged"].as_u64(), s["frames_unanswered"].as_u64());
-        let (sent, acked, lost) = (sent.expect("sent"), acked.expect("acknowledged"), lost.expect("unanswered"));
-        eprintln!("{robot}: {sent} sent, {acked} answered, {lost} lost in flight, moved {} time(s)", s["reconnects"]);
-        assert_eq!(acked + lost, sent, "{robot}: every frame answered or counted lost");
-        if to_b.contains(robot) {
-            assert_eq!(s["reconnects"], 1, "{robot} moved once");
-        } else {
-            assert_eq!((s["reconnects"].as_u64(), lost), (Some(0), 0), "{robot} stayed on A, undisturbed");
-        }
-    }
+    check_robots(clients, &summaries, &to_b);
 }
