@@ -243,9 +243,11 @@ pub struct Forwarder {
 }
 
 impl Forwarder {
-    /// The first answer from another live server that is not a 404, if any.
-    async fn forward(&self, request: &Forwarded) -> Option<Response> {
-        let payload = serde_json::to_vec(request).ok()?;
+    /// Every other live server's answer to `request` (server id, status and type,
+    /// body), in the order the servers are listed.
+    async fn ask(&self, request: &Forwarded) -> Vec<(String, ForwardedHead, Vec<u8>)> {
+        let Ok(payload) = serde_json::to_vec(request) else { return Vec::new() };
+        let mut out = Vec::new();
         for server in self.membership.servers().into_iter().filter(|s| *s != self.membership.own) {
             let replies = match self.zenoh.get(keys::server_http(&server)).payload(payload.clone()).timeout(self.timeout).await {
                 Ok(r) => r,
@@ -256,45 +258,29 @@ impl Forwarder {
             };
             while let Ok(reply) = replies.recv_async().await {
                 let Ok(sample) = reply.result() else { continue };
-                let Some(head) = sample.attachment().and_then(|a| serde_json::from_slice::<ForwardedHead>(&a.to_bytes()).ok()) else {
-                    continue;
-                };
-                if head.status == StatusCode::NOT_FOUND.as_u16() {
-                    continue;
-                }
-                let status = StatusCode::from_u16(head.status).unwrap_or(StatusCode::BAD_GATEWAY);
-                let mut response = (status, sample.payload().to_bytes().into_owned()).into_response();
-                if let Some(t) = head.content_type.and_then(|t| HeaderValue::from_str(&t).ok()) {
-                    response.headers_mut().insert(header::CONTENT_TYPE, t);
-                }
-                return Some(response);
-            }
-        }
-        None
-    }
-}
-
-impl Forwarder {
-    /// Every other live server's 200 answer to `request`, with its server id.
-    async fn gather(&self, request: &Forwarded) -> Vec<(String, Vec<u8>)> {
-        let Ok(payload) = serde_json::to_vec(request) else { return Vec::new() };
-        let mut out = Vec::new();
-        for server in self.membership.servers().into_iter().filter(|s| *s != self.membership.own) {
-            let Ok(replies) = self.zenoh.get(keys::server_http(&server)).payload(payload.clone()).timeout(self.timeout).await else {
-                continue;
-            };
-            while let Ok(reply) = replies.recv_async().await {
-                let Ok(sample) = reply.result() else { continue };
-                let ok = sample
-                    .attachment()
-                    .and_then(|a| serde_json::from_slice::<ForwardedHead>(&a.to_bytes()).ok())
-                    .is_some_and(|h| h.status == StatusCode::OK.as_u16());
-                if ok {
-                    out.push((server.clone(), sample.payload().to_bytes().into_owned()));
+                if let Some(head) = sample.attachment().and_then(|a| serde_json::from_slice::<ForwardedHead>(&a.to_bytes()).ok()) {
+                    out.push((server.clone(), head, sample.payload().to_bytes().into_owned()));
                 }
             }
         }
         out
+    }
+
+    /// The first answer from another live server that is not a 404, if any.
+    async fn forward(&self, request: &Forwarded) -> Option<Response> {
+        let (_, head, body) = self.ask(request).await.into_iter().find(|(_, head, _)| head.status != StatusCode::NOT_FOUND.as_u16())?;
+        let status = StatusCode::from_u16(head.status).unwrap_or(StatusCode::BAD_GATEWAY);
+        let mut response = (status, body).into_response();
+        if let Some(t) = head.content_type.and_then(|t| HeaderValue::from_str(&t).ok()) {
+            response.headers_mut().insert(header::CONTENT_TYPE, t);
+        }
+        Some(response)
+    }
+
+    /// Every other live server's 200 answer to `request`, with its server id.
+    async fn gather(&self, request: &Forwarded) -> Vec<(String, Vec<u8>)> {
+        let ok = StatusCode::OK.as_u16();
+        self.ask(request).await.into_iter().filter(|(_, head, _)| head.status == ok).map(|(server, _, body)| (server, body)).collect()
     }
 }
 

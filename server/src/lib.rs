@@ -497,6 +497,17 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     Ok(())
 }
 
+/// Waits for SIGINT or SIGTERM (the server's and the router's graceful stop).
+pub async fn shutdown_signal() -> std::io::Result<()> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut term = signal(SignalKind::terminate())?;
+    tokio::select! {
+        r = tokio::signal::ctrl_c() => r?,
+        _ = term.recv() => {}
+    }
+    Ok(())
+}
+
 async fn wait_for(mut shutdown: watch::Receiver<bool>) {
     let _ = shutdown.wait_for(|stop| *stop).await;
 }

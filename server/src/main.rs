@@ -152,16 +152,6 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     Ok(c)
 }
 
-async fn shutdown_signal() -> anyhow::Result<()> {
-    use tokio::signal::unix::{SignalKind, signal};
-    let mut term = signal(SignalKind::terminate())?;
-    tokio::select! {
-        r = tokio::signal::ctrl_c() => r?,
-        _ = term.recv() => {}
-    }
-    Ok(())
-}
-
 fn main() {
     if let Err(e) = real_main() {
         eprintln!("stillmap-server: {e:#}");
@@ -199,7 +189,7 @@ fn real_main() -> anyhow::Result<()> {
 async fn serve(config: ServerConfig) -> anyhow::Result<()> {
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     tokio::spawn(async move {
-        if let Err(e) = shutdown_signal().await {
+        if let Err(e) = stillmap_server::shutdown_signal().await {
             tracing::error!("signal handler: {e}");
         }
         let _ = stop_tx.send(true);

@@ -10,6 +10,8 @@
 //! SIGINT or SIGTERM.
 
 use clap::Parser;
+use stillmap_server::config::ZenohConfig;
+use stillmap_server::ingest::zenoh::zenoh_config;
 
 #[derive(Parser)]
 #[command(version, about = "A Zenoh router for stillmap robots and servers (the zenoh crate's router mode).")]
@@ -40,28 +42,19 @@ fn real_main() -> anyhow::Result<()> {
         Some(path) => format!("the endpoints of {}", path.display()),
         None => args.listen.join(", "),
     };
-    let config = match &args.config {
-        Some(path) => zenoh::Config::from_file(path).map_err(|e| anyhow::anyhow!("config file {}: {e}", path.display()))?,
-        None => {
-            let mut c = zenoh::Config::default();
-            let set = |c: &mut zenoh::Config, key: &str, value: String| {
-                c.insert_json5(key, &value).map_err(|e| anyhow::anyhow!("config {key}: {e}"))
-            };
-            set(&mut c, "mode", "\"router\"".into())?;
-            set(&mut c, "scouting/multicast/enabled", "false".into())?;
-            set(&mut c, "listen/endpoints", serde_json::to_string(&args.listen)?)?;
-            c
-        }
+    // The server's own Zenoh configuration builder, in router mode.
+    let zenoh = ZenohConfig {
+        mode: "router".into(),
+        listen: args.listen.clone(),
+        connect: vec![],
+        config_file: args.config.clone(),
+        ..ZenohConfig::default()
     };
+    let config = zenoh_config(&zenoh)?;
     tokio::runtime::Builder::new_multi_thread().enable_all().build()?.block_on(async {
         let session = zenoh::open(config).await.map_err(|e| anyhow::anyhow!("open: {e}"))?;
         println!("stillmap-router ready on {shown}");
-        use tokio::signal::unix::{SignalKind, signal};
-        let mut term = signal(SignalKind::terminate())?;
-        tokio::select! {
-            r = tokio::signal::ctrl_c() => r?,
-            _ = term.recv() => {}
-        }
+        stillmap_server::shutdown_signal().await?;
         session.close().await.map_err(|e| anyhow::anyhow!("close: {e}"))?;
         anyhow::Ok(())
     })
