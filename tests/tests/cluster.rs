@@ -277,12 +277,14 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [id_a, id_b]) == Some(id_b)).cloned().collect();
     assert!(!to_b.is_empty() && to_b.len() < robots.len(), "this test needs robots for both servers");
 
-    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "15", "join");
+    // 150 frames at 10 Hz: 15 s, so the robots still stream when B has started (the
+    // other tests in this file start servers at the same time).
+    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "10", "join");
     // Alone, A answers every robot.
     eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;
     let b = start(id_b);
     let joined = Instant::now();
-    eventually(Duration::from_secs(5), "B's robots streaming on B", async || robots_on(&b, id_b).await.1 == to_b).await;
+    eventually(Duration::from_secs(10), "B's robots streaming on B", async || robots_on(&b, id_b).await.1 == to_b).await;
     eprintln!("the joining server's robots streaming on it {:.0} ms after it was ready", joined.elapsed().as_secs_f64() * 1e3);
     let stay: Vec<String> = robots.iter().filter(|r| !to_b.contains(r)).cloned().collect();
     assert_eq!(robots_on(&a, id_a).await.1, stay, "A streams only the robots it still owns");
