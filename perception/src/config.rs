@@ -113,11 +113,11 @@ pub struct SegmentationConfig {
     /// and a missed person must neither be mapped nor feed the camera's motion.
     /// A new detection overlapping it takes over. 0 disables it.
     pub track_coast_frames: u32,
-    /// A coasting *person* (the class named "person") is a vertical body at most
-    /// this tall (metres) standing where his remembered points are: the pixels
+    /// A *person* (the class named "person") seen moving is a vertical body at
+    /// most this tall (metres) standing where his latest points are: the pixels
     /// whose 3D points fall in that upright cylinder (his points' horizontal
-    /// spread plus 0.1 m, at most 0.6 m in radius) are his, so legs the detector
-    /// never saw are kept out of the map while he stands. Needs the accelerometer
+    /// spread plus 0.05 m, at least 0.3 m and at most 0.45 m in radius) are kept
+    /// out of the map, so legs the detector never saw stay out while he stands. Needs the accelerometer
     /// (`accel_in_camera` on the frames) for the up direction. 0 disables it.
     pub person_height_m: f32,
     /// Server: 0 (default) runs segmentation beside the pipeline, its results used

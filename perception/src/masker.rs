@@ -146,7 +146,8 @@ struct Body {
 impl Body {
     /// The volume a body at most `height_m` tall takes when `points` are part of it:
     /// their horizontal spread (90th percentile from their median) plus
-    /// [`BODY_MARGIN_M`], at most [`MAX_BODY_RADIUS_M`]; vertically every placement
+    /// [`BODY_MARGIN_M`], at least [`MIN_BODY_RADIUS_M`] and at most
+    /// [`MAX_BODY_RADIUS_M`]; vertically every placement
     /// of the body that contains the points. `None` with fewer than
     /// [`MIN_BODY_POINTS`] points.
     fn around(epoch: u32, points: &[[f32; 3]], up: Vector3<f64>, height_m: f64) -> Option<Self> {
@@ -163,7 +164,7 @@ impl Body {
             points.iter().map(|q| ((p(q).dot(&e1) - centre.0).powi(2) + (p(q).dot(&e2) - centre.1).powi(2)).sqrt()).collect();
         spread.sort_by(f64::total_cmp);
         let p90 = spread[(spread.len() * 9 / 10).min(spread.len() - 1)];
-        let radius_m = (p90 + BODY_MARGIN_M).min(MAX_BODY_RADIUS_M);
+        let radius_m = (p90 + BODY_MARGIN_M).clamp(MIN_BODY_RADIUS_M, MAX_BODY_RADIUS_M);
         let (lo, hi) = points.iter().map(|q| p(q).dot(&up)).fold((f64::MAX, f64::MIN), |(lo, hi), h| (lo.min(h), hi.max(h)));
         let extra = (height_m - (hi - lo)).max(0.0);
         Some(Self { epoch, up, e1, e2, centre, radius_m, heights: (lo - extra, hi + extra) })
@@ -1051,14 +1052,14 @@ impl DynamicMasker {
 
     /// Labels prior-dynamic (kept out of the map, and taken back out of recent
     /// keyframes) the static pixels in the bodies of the coasting people, carried or
-    /// out of view, that lie within [`COAST_DEPTH_GATE`] of their depth, at the pose
-    /// chain's pose of frame `sequence`.
+    /// out of view, at the pose chain's pose of frame `sequence`. The cylinder is the
+    /// gate: no depth gate around his median depth, which a person looked down on
+    /// from close by leaves (his feet lie deeper along the view than his chest).
     fn label_bodies(&self, labels: &mut [u8], sequence: u64, depth: &[u16]) {
         let Some(chain) = self.chain.filter(|c| c.sequence == sequence) else { return };
         let limit = u64::from(self.config.segmentation.track_coast_frames);
         let carried = self.carried.as_ref().map(|c| c.tracks.as_slice()).unwrap_or_default();
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
-        let metres = (1.0 / self.camera.depth_units_per_metre) as f32;
         let offscreen = carried.len();
         for (k, t) in carried.iter().chain(&self.offscreen).enumerate() {
             let Some(body) = t.body.as_ref().filter(|_| sequence.saturating_sub(t.detected_at) <= limit) else { continue };
@@ -1069,8 +1070,7 @@ impl DynamicMasker {
                 body.radius_m += (UNSEEN_WALK_M_PER_FRAME * unseen).min(MAX_UNSEEN_GROWTH_M);
             }
             for i in self.body_pixels(&body, &(chain.epoch, chain.anchor_from_camera), depth, w, h) {
-                let near = t.depth_m.is_none_or(|r| (f32::from(depth[i]) * metres - r).abs() <= COAST_DEPTH_GATE * r);
-                if near && labels[i] == PixelLabel::Static as u8 {
+                if labels[i] == PixelLabel::Static as u8 {
                     labels[i] = PixelLabel::PriorDynamic as u8;
                 }
             }
@@ -1203,6 +1203,10 @@ const COAST_DEPTH_GATE: f32 = 0.15;
 /// A body's horizontal margin around its seen points, and its largest radius (metres).
 const BODY_MARGIN_M: f64 = 0.05;
 const MAX_BODY_RADIUS_M: f64 = 0.45;
+/// A body's smallest radius: an adult's shoulders are about 0.45 m wide and his arms
+/// swing beside them, so however little of him was seen (a head at the image's
+/// edge), his body reaches 0.3 m from its axis.
+const MIN_BODY_RADIUS_M: f64 = 0.3;
 /// How far a body's axis may follow its points per frame (a brisk walk, 1.5 m/s at 30 Hz).
 const BODY_STEP_M_PER_FRAME: f64 = 0.05;
 /// Points a track needs before its body's volume is estimated.
@@ -1482,7 +1486,12 @@ mod tests {
         let seen: Vec<[f32; 3]> = (20..36).flat_map(|y| (44..52).map(move |x| point(x, y))).collect();
         let up = -Vector3::y();
         let body = Body::around(1, &seen, up, 2.0).expect("a body");
-        assert!((body.radius_m - 0.25).abs() < 0.06, "radius {}", body.radius_m);
+        // 0.4 m of him seen across: 0.2 m from the axis and the margin is less than the
+        // least a body takes. Seen 0.64 m across, his own spread and the margin count.
+        assert_eq!(body.radius_m, MIN_BODY_RADIUS_M);
+        let wide: Vec<[f32; 3]> = seen.iter().map(|p| [p[0] * 1.6, p[1], p[2]]).collect();
+        let radius = Body::around(1, &wide, up, 2.0).expect("a body").radius_m;
+        assert!(radius > MIN_BODY_RADIUS_M && radius < MAX_BODY_RADIUS_M, "radius {radius}");
         let pixels = masker.body_pixels(&body, &(1, Isometry3::identity()), &depth, w, h);
         let legs: Vec<usize> = (36..55).flat_map(|y| (45..51).map(move |x| y * w + x)).collect();
         assert!(legs.iter().all(|i| pixels.contains(i)), "every leg pixel is his");
@@ -1500,6 +1509,67 @@ mod tests {
         let shift = (moved.centre.0 - body.centre.0).hypot(moved.centre.1 - body.centre.1);
         assert!((shift - 0.3).abs() < 1e-6, "moved {shift} m in all");
         assert_eq!((moved.radius_m, moved.heights), (body.radius_m, body.heights), "its size stays");
+    }
+
+    /// A person looked down on from close by: his feet lie far deeper along the view
+    /// than the chest that was seen (more than the coasting depth gate), and are his
+    /// all the same; the wall behind him and the floor away from him are not.
+    #[test]
+    fn a_body_looked_down_on_takes_his_feet() {
+        let (w, h) = (160usize, 120usize);
+        let mut masker = DynamicMasker::new(pinhole(w, h, 80.0), PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        // The camera 1.5 m above the floor, pitched 40° down: up and the horizontal
+        // forward direction in its frame.
+        let pitch = 40f64.to_radians();
+        let up = Vector3::new(0.0, -pitch.cos(), -pitch.sin());
+        let forward = Vector3::new(0.0, -pitch.sin(), pitch.cos());
+        // Him: 0.4 m wide, 1.7 m tall, 1.3 m ahead; a wall 3 m ahead; the floor.
+        let hit = |x: usize, y: usize| {
+            let ray = Vector3::new((x as f64 + 0.5 - 80.0) / 80.0, (y as f64 + 0.5 - 60.0) / 80.0, 1.0);
+            let along = ray.dot(&forward);
+            let on = |t: f64| Some(ray * t).filter(|_| t > 0.0);
+            let person = on(1.3 / along).filter(|p| p.x.abs() <= 0.2 && (-1.5..=0.2).contains(&p.dot(&up)));
+            let floor = if ray.dot(&up) < 0.0 { on(-1.5 / ray.dot(&up)) } else { None };
+            let wall = on(3.0 / along).filter(|p| p.dot(&up) >= -1.5);
+            person.map(|p| (p, true)).or(floor.filter(|f| f.dot(&forward) < 3.0).map(|p| (p, false))).or(wall.map(|p| (p, false)))
+        };
+        let scene: Vec<Option<(Vector3<f64>, bool)>> = (0..w * h).map(|i| hit(i % w, i / w)).collect();
+        let depth: Vec<u16> = scene.iter().map(|s| s.map_or(0, |(p, _)| (p.z * 1000.0).round() as u16)).collect();
+        // Seen: his chest and head (0.4 m and more above the camera's height less 0.4 m).
+        let seen: Vec<[f32; 3]> = scene
+            .iter()
+            .filter_map(|s| *s)
+            .filter(|(p, his)| *his && p.dot(&up) >= -0.4)
+            .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
+            .collect();
+        let mut depths: Vec<f32> = seen.iter().map(|p| p[2]).collect();
+        depths.sort_by(f32::total_cmp);
+        let median = depths[depths.len() / 2];
+        let body = Body::around(1, &seen, up, 2.0).expect("a body");
+        masker.offscreen = vec![Track {
+            id: 1,
+            detected_at: 0,
+            depth_m: Some(median),
+            class_id: 0,
+            score: 0.9,
+            points: None,
+            moved: true,
+            body: Some(body),
+        }];
+        masker.chain = Some(PoseChain { sequence: 0, anchor_from_camera: Isometry3::identity(), motion: Isometry3::identity(), epoch: 1 });
+        let mut labels = vec![PixelLabel::Static as u8; w * h];
+        masker.label_bodies(&mut labels, 0, &depth);
+        let his = |i: usize| labels[i] == PixelLabel::PriorDynamic as u8;
+        let feet: Vec<usize> = (0..w * h).filter(|&i| scene[i].is_some_and(|(p, his)| his && p.dot(&up) < -1.2)).collect();
+        assert!(!feet.is_empty());
+        assert!(feet.iter().all(|&i| f32::from(depth[i]) / 1000.0 > (1.0 + COAST_DEPTH_GATE) * median), "beyond the depth gate");
+        assert!(feet.iter().all(|&i| his(i)), "his feet are his");
+        for (i, s) in scene.iter().enumerate() {
+            if let Some((p, false)) = s {
+                let from_axis = (p - forward * 1.3).cross(&up).norm();
+                assert!(!his(i) || from_axis <= MIN_BODY_RADIUS_M + 0.02, "pixel {i}, {from_axis:.3} m from his axis");
+            }
+        }
     }
 
     /// A person out of view may walk on: his body widens by a walking pace per
@@ -1524,7 +1594,7 @@ mod tests {
         };
         masker.offscreen = vec![person];
         let narrow = labelled_columns(&mut masker, 0);
-        assert_eq!(narrow, 3, "radius 5 cm: columns 79..=81");
+        assert_eq!(narrow, 13, "radius 0.3 m, the least a body takes: columns 74..=86");
         // 10 frames unseen: 0.2 m wider on each side (4 columns).
         assert_eq!(labelled_columns(&mut masker, 10), narrow + 2 * 4);
         // 50 frames: at most 0.5 m (10 columns).

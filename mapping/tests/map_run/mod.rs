@@ -94,6 +94,21 @@ pub fn fuse_debug(
                 let per_object: Vec<usize> =
                     (0..3).map(|i| truth.iter().zip(&exclude).filter(|&(&t, &e)| t & (1 << i) != 0 && e == 0).count()).collect();
                 let persons: Vec<_> = mask.fused.instances.iter().map(|i| (i.class_name.clone(), i.pixels, i.moving)).collect();
+                // STILLMAP_PEOPLE_MISSED=<dir>: each keyframe as a PPM image, the objects' pixels
+                // the mapping mask missed red, those it kept out green, other kept-out pixels blue.
+                if let Some(dir) = std::env::var_os("STILLMAP_PEOPLE_MISSED") {
+                    let mut ppm = b"P6\n640 480\n255\n".to_vec();
+                    for (i, (&t, &e)) in truth.iter().zip(&exclude).enumerate() {
+                        let g = f.rgb[3 * i] / 3;
+                        ppm.extend_from_slice(&match (t != 0, e != 0) {
+                            (true, false) => [255, 0, 0],
+                            (true, true) => [0, 255, 0],
+                            (false, true) => [0, 0, 160],
+                            (false, false) => [g, g, g],
+                        });
+                    }
+                    std::fs::write(std::path::Path::new(&dir).join(format!("kf{k}.ppm")), ppm).expect("dump");
+                }
                 eprintln!("kf {k:3}: truth {n} px, not excluded {kept} {per_object:?}; source {:?}; instances {persons:?}", mask.source);
             }
             let classes = pipeline.masker.segmentation().map(|s| s.class_map());
