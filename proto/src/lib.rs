@@ -50,6 +50,12 @@ pub mod keys {
     pub fn server_http(server_id: &str) -> String {
         format!("stillmap-cluster/servers/{server_id}/http")
     }
+    /// Queryable on which the server `server_id` answers unary gRPC queries another
+    /// server forwards (the request message as the payload, the method and the
+    /// caller's authorization as a JSON attachment).
+    pub fn server_grpc(server_id: &str) -> String {
+        format!("stillmap-cluster/servers/{server_id}/grpc")
+    }
 
     /// The server id inside a server's liveliness key.
     pub fn server_of_key(key: &str) -> Option<&str> {

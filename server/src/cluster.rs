@@ -18,7 +18,12 @@
 //! hold (404 here) is asked of the other live servers over Zenoh
 //! (`stillmap-cluster/servers/<id>/http`, [`Forwarder`]); the one holding it runs
 //! the request through its own HTTP API (token checks included) and its answer is
-//! returned as is. A forwarded request is never forwarded again.
+//! returned as is. A forwarded request is never forwarded again. The unary gRPC
+//! queries about a session (`GetLatestPose`, `GetTrajectory`, `GetMapTile`) are
+//! asked the same way (`stillmap-cluster/servers/<id>/grpc`: the request message,
+//! the method and the caller's token), and `ListSessions` lists every server's
+//! sessions; the streams (`SubscribePoses`, `GetMapCloud`, the fleet's) are not
+//! forwarded.
 
 use std::collections::BTreeSet;
 use std::net::SocketAddr;
@@ -243,27 +248,57 @@ pub struct Forwarder {
 }
 
 impl Forwarder {
-    /// Every other live server's answer to `request` (server id, status and type,
-    /// body), in the order the servers are listed.
-    async fn ask(&self, request: &Forwarded) -> Vec<(String, ForwardedHead, Vec<u8>)> {
-        let Ok(payload) = serde_json::to_vec(request) else { return Vec::new() };
+    /// Every other live server's replies on its queryable `key_of(server)` to
+    /// `payload` with `attachment` (server id, reply attachment, reply payload),
+    /// in the order the servers are listed.
+    async fn ask_raw(
+        &self,
+        key_of: fn(&str) -> String,
+        what: &str,
+        payload: Vec<u8>,
+        attachment: Option<Vec<u8>>,
+    ) -> Vec<(String, Vec<u8>, Vec<u8>)> {
         let mut out = Vec::new();
         for server in self.membership.servers().into_iter().filter(|s| *s != self.membership.own) {
-            let replies = match self.zenoh.get(keys::server_http(&server)).payload(payload.clone()).timeout(self.timeout).await {
+            let mut get = self.zenoh.get(key_of(&server)).payload(payload.clone()).timeout(self.timeout);
+            if let Some(a) = &attachment {
+                get = get.attachment(a.clone());
+            }
+            let replies = match get.await {
                 Ok(r) => r,
                 Err(e) => {
-                    tracing::warn!(server, "forwarding {} failed: {e}", request.path_and_query);
+                    tracing::warn!(server, "forwarding {what} failed: {e}");
                     continue;
                 }
             };
             while let Ok(reply) = replies.recv_async().await {
                 let Ok(sample) = reply.result() else { continue };
-                if let Some(head) = sample.attachment().and_then(|a| serde_json::from_slice::<ForwardedHead>(&a.to_bytes()).ok()) {
-                    out.push((server.clone(), head, sample.payload().to_bytes().into_owned()));
-                }
+                let attachment = sample.attachment().map(|a| a.to_bytes().into_owned()).unwrap_or_default();
+                out.push((server.clone(), attachment, sample.payload().to_bytes().into_owned()));
             }
         }
         out
+    }
+
+    /// Every other live server's answer to `request` (server id, status and type,
+    /// body), in the order the servers are listed.
+    async fn ask(&self, request: &Forwarded) -> Vec<(String, ForwardedHead, Vec<u8>)> {
+        let Ok(payload) = serde_json::to_vec(request) else { return Vec::new() };
+        let replies = self.ask_raw(keys::server_http, &request.path_and_query, payload, None).await;
+        replies
+            .into_iter()
+            .filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<ForwardedHead>(&head).ok()?, body)))
+            .collect()
+    }
+
+    /// Every other live server's answer to a unary gRPC query (server id, status, encoded response).
+    async fn ask_grpc(&self, call: &ForwardedCall, request: Vec<u8>) -> Vec<(String, ForwardedStatus, Vec<u8>)> {
+        let Ok(head) = serde_json::to_vec(call) else { return Vec::new() };
+        let replies = self.ask_raw(keys::server_grpc, &call.method, request, Some(head)).await;
+        replies
+            .into_iter()
+            .filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<ForwardedStatus>(&head).ok()?, body)))
+            .collect()
     }
 
     /// The first answer from another live server that is not a 404, if any.
@@ -281,6 +316,40 @@ impl Forwarder {
     async fn gather(&self, request: &Forwarded) -> Vec<(String, Vec<u8>)> {
         let ok = StatusCode::OK.as_u16();
         self.ask(request).await.into_iter().filter(|(_, head, _)| head.status == ok).map(|(server, _, body)| (server, body)).collect()
+    }
+}
+
+/// A unary gRPC query forwarded to another server (its request message is the payload).
+#[derive(Debug, serde::Serialize, serde::Deserialize)]
+struct ForwardedCall {
+    method: String,
+    authorization: Option<String>,
+}
+
+/// The gRPC status of a forwarded query's answer (its response message is the
+/// reply's payload when the code is OK).
+#[derive(Debug, serde::Serialize, serde::Deserialize)]
+struct ForwardedStatus {
+    code: i32,
+    message: String,
+}
+
+#[tonic::async_trait]
+impl crate::api::query::Remote for Forwarder {
+    async fn call(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Option<Result<Vec<u8>, tonic::Status>> {
+        let call = ForwardedCall { method: method.to_string(), authorization };
+        let (_, status, body) =
+            self.ask_grpc(&call, request).await.into_iter().find(|(_, status, _)| status.code != tonic::Code::NotFound as i32)?;
+        Some(match tonic::Code::from_i32(status.code) {
+            tonic::Code::Ok => Ok(body),
+            code => Err(tonic::Status::new(code, status.message)),
+        })
+    }
+
+    async fn gather(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Vec<Vec<u8>> {
+        let call = ForwardedCall { method: method.to_string(), authorization };
+        let ok = tonic::Code::Ok as i32;
+        self.ask_grpc(&call, request).await.into_iter().filter(|(_, status, _)| status.code == ok).map(|(_, _, body)| body).collect()
     }
 }
 
@@ -412,6 +481,59 @@ pub async fn answer_forwarded(
             let attachment = serde_json::to_vec(&head).unwrap_or_default();
             if let Err(e) = query.reply(&key, body).attachment(attachment).await {
                 tracing::warn!(key, "forwarded answer not sent: {e}");
+            }
+        });
+    }
+    Ok(())
+}
+
+/// Answers the unary gRPC queries other servers forward here with `service`
+/// (which forwards nothing further), the caller's token checked for the read scope
+/// as this server's own gRPC queries are, until `shutdown` fires: at most
+/// [`MAX_FORWARDED_AT_ONCE`] at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
+pub async fn answer_forwarded_grpc(
+    zenoh: zenoh::Session,
+    server_id: String,
+    service: Arc<crate::api::query::QueryService>,
+    auth: Arc<crate::auth::AuthHandle>,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), ServerError> {
+    let key = keys::server_grpc(&server_id);
+    let queryable = zenoh.declare_queryable(&key).await.map_err(|e| ServerError::Zenoh(format!("queryable {key}: {e}")))?;
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_FORWARDED_AT_ONCE));
+    loop {
+        let query = tokio::select! {
+            q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
+            _ = shutdown.changed() => break,
+        };
+        let (service, auth, key) = (service.clone(), auth.clone(), key.clone());
+        let Ok(slot) = slots.clone().acquire_owned().await else { break };
+        tokio::spawn(async move {
+            let _slot = slot;
+            let status = |code: tonic::Code, message: &str| ForwardedStatus { code: code as i32, message: message.to_string() };
+            let call = query.attachment().and_then(|a| serde_json::from_slice::<ForwardedCall>(&a.to_bytes()).ok());
+            let (head, body) = match call {
+                None => {
+                    (status(tonic::Code::InvalidArgument, "a forwarded gRPC query needs a JSON attachment {method, authorization}"), vec![])
+                }
+                Some(call) => match auth.get().check(call.authorization.as_deref().map(str::as_bytes), crate::auth::Need::Read) {
+                    Err(refusal) => {
+                        let refused = refusal.grpc_status();
+                        (status(refused.code(), refused.message()), vec![])
+                    }
+                    Ok(()) => {
+                        let request = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+                        match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, service.answer(&call.method, &request)).await {
+                            Ok(Ok(body)) => (status(tonic::Code::Ok, ""), body),
+                            Ok(Err(failed)) => (status(failed.code(), failed.message()), vec![]),
+                            Err(_) => (status(tonic::Code::DeadlineExceeded, "answer took too long"), vec![]),
+                        }
+                    }
+                },
+            };
+            let attachment = serde_json::to_vec(&head).unwrap_or_default();
+            if let Err(e) = query.reply(&key, body).attachment(attachment).await {
+                tracing::warn!(key, "forwarded gRPC answer not sent: {e}");
             }
         });
     }

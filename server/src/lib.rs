@@ -300,12 +300,19 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     .max_decoding_message_size(max);
     // Queries need a token with the read scope (when any token is configured).
     let query_auth = auth.clone();
-    let query =
-        QueryServer::with_interceptor(api::query::QueryService { registry: registry.clone() }, move |request: tonic::Request<()>| {
+    // In a cluster, what this server does not hold is asked of the others (cluster.rs).
+    #[cfg(feature = "zenoh")]
+    let remote = zenoh_task.as_ref().map(|(_, _, _, forwarder, _, _)| forwarder.clone() as Arc<dyn api::query::Remote>);
+    #[cfg(not(feature = "zenoh"))]
+    let remote = None;
+    let query = QueryServer::with_interceptor(
+        api::query::QueryService { registry: registry.clone(), remote },
+        move |request: tonic::Request<()>| {
             let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
             query_auth.get().check(authorization, auth::Need::Read).map_err(|r| r.grpc_status())?;
             Ok(request)
-        });
+        },
+    );
     // gRPC health checking (grpc.health.v1): the server ("") and both services are
     // SERVING while it runs and NOT_SERVING from the moment it starts shutting down,
     // so a load balancer drains it. Open like /healthz; reflection is open too (it
@@ -366,8 +373,12 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let (http_app, forward_task) = match &zenoh_task {
         Some((z, _, _, forwarder, server_id, _)) => {
             let answering = cluster::answer_forwarded(z.clone(), server_id.clone(), http_app.clone(), shutdown.clone());
+            // Forwarded gRPC queries are answered by this server alone (never forwarded again).
+            let alone = Arc::new(api::query::QueryService { registry: registry.clone(), remote: None });
+            let answering_grpc = cluster::answer_forwarded_grpc(z.clone(), server_id.clone(), alone, auth.clone(), shutdown.clone());
             let answer = tokio::spawn(async move {
-                if let Err(e) = answering.await {
+                let (http, grpc) = tokio::join!(answering, answering_grpc);
+                if let Err(e) = http.and(grpc) {
                     tracing::error!("not answering other servers' forwarded queries: {e}");
                 }
             });

@@ -854,8 +854,9 @@ pub struct Registry {
     /// Held through `open` and every eviction, so concurrent hellos see each other
     /// when the limits are checked and a resume never races an eviction.
     admission: Mutex<()>,
-    /// Distinguishes session ids of different server runs.
-    epoch: u64,
+    /// Distinguishes session ids of different server runs, and of servers started
+    /// in the same second: the start time (seconds, hex) and 32 random bits.
+    epoch: String,
 }
 
 /// What differs between a live session and one restored from the store.
@@ -893,7 +894,13 @@ impl Registry {
         metrics: Arc<Metrics>,
         pools: Pools,
     ) -> Self {
-        let epoch = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        let started = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        let mut salt = [0u8; 4];
+        if let Err(e) = getrandom::fill(&mut salt) {
+            // The start time alone still tells this run from earlier ones.
+            tracing::warn!("no random bits for session ids ({e}): servers started in the same second may give the same id");
+        }
+        let epoch = format!("{started:x}{:08x}", u32::from_le_bytes(salt));
         Self {
             config,
             tracking,
@@ -1154,7 +1161,7 @@ impl Registry {
         // An imported map may hold the id this run would give next: skip it.
         let id = loop {
             let n = self.next_id.fetch_add(1, Ordering::Relaxed);
-            let id = format!("{}-{:x}-{n}", hello.robot_id, self.epoch);
+            let id = format!("{}-{}-{n}", hello.robot_id, self.epoch);
             if !self.taken(&id) {
                 break id;
             }
@@ -1463,6 +1470,26 @@ mod tests {
 
     fn metric(registry: &Registry, name: &str) -> Option<String> {
         registry.metrics().render().lines().find(|l| l.starts_with(name)).map(str::to_owned)
+    }
+
+    /// Two servers started in the same second (a compose file, a StatefulSet) give
+    /// the same robot different session ids: each run's ids carry random bits.
+    #[test]
+    fn servers_started_together_give_a_robot_different_session_ids() {
+        let (a, b) = (
+            registry_with(None, SessionConfig::default(), LimitsConfig::default()),
+            registry_with(None, SessionConfig::default(), LimitsConfig::default()),
+        );
+        let (sink, _rx) = mpsc::channel(4);
+        let on_a = a.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session.id.clone();
+        let on_b = b.open(&hello("r"), Transport::Grpc, sink).expect("open").session.id.clone();
+        assert_ne!(on_a, on_b);
+        // <robot>-<start time in seconds, hex><32 random bits, hex>-<n>
+        for id in [&on_a, &on_b] {
+            let parts: Vec<&str> = id.split('-').collect();
+            assert_eq!((parts.len(), parts[0], parts[2]), (3, "r", "1"), "{id}");
+            assert!(parts[1].len() > 8 && parts[1].chars().all(|c| c.is_ascii_hexdigit()), "{id}");
+        }
     }
 
     /// A disconnected session leaves memory after session.idle_evict_s; the list

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 use stillmap_e2e::{Server, bin, eventually, free_port, run_client, tempfile_path, tum_dir};
 use stillmap_proto::keys;
+use stillmap_proto::pb::{self, query_client::QueryClient};
 
 async fn open(mode: &str, endpoints: (&str, &str)) -> zenoh::Session {
     let mut config = zenoh::Config::default();
@@ -253,6 +254,46 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     }
     let (status, missing) = a.get_json("/api/v1/sessions/nobody-1/pose").await;
     assert_eq!(status, 404, "{missing}");
+
+    let robots_all = robots.clone();
+    // gRPC too: the unary queries about a session asked of the server without it
+    // are answered by the one holding it, and either server lists every session.
+    for (holder, holder_id, other) in [(&a, id_a, &b), (&b, id_b, &a)] {
+        let mut here = QueryClient::connect(holder.grpc_url()).await.expect("connect");
+        let mut there = QueryClient::connect(other.grpc_url()).await.expect("connect");
+        let (_, list) = holder.get_json("/api/v1/sessions").await;
+        for s in list["sessions"].as_array().expect("sessions").iter().filter(|s| s["server_id"] == holder_id) {
+            let id = s["session_id"].as_str().expect("session_id").to_string();
+            let session = pb::SessionRef { session_id: id.clone() };
+            let latest = there.get_latest_pose(session.clone()).await.expect("latest pose from the other server").into_inner();
+            assert!(latest.pose.is_some(), "{id}: {latest:?}");
+            // The trajectory up to the latest pose answered there is the holder's own.
+            let until = latest.pose.as_ref().map_or(0, |p| p.capture_time_ns);
+            let range = pb::TrajectoryRequest { session_id: id.clone(), start_ns: 0, end_ns: until };
+            let forwarded = there.get_trajectory(range.clone()).await.expect("trajectory from the other server").into_inner();
+            let own = here.get_trajectory(range).await.expect("trajectory").into_inner();
+            assert!(
+                !own.poses.is_empty() && forwarded == own,
+                "{id}: {} poses forwarded, {} at the holder",
+                forwarded.poses.len(),
+                own.poses.len()
+            );
+            // A map tile: the holder's answer (its map grows meanwhile: a PNG both ways, or the same refusal).
+            let tile = pb::MapTileRequest { session_id: id.clone(), zoom: 0, x: 0, y: 0 };
+            match (there.get_map_tile(tile.clone()).await, here.get_map_tile(tile).await) {
+                (Ok(forwarded), Ok(_)) => assert!(forwarded.get_ref().png.starts_with(b"\x89PNG"), "{id}: a PNG"),
+                (Err(forwarded), Err(own)) => assert_eq!((forwarded.code(), forwarded.message()), (own.code(), own.message()), "{id}"),
+                (forwarded, own) => panic!("{id}: tile forwarded {forwarded:?}, at the holder {own:?}"),
+            }
+        }
+        let listed = there.list_sessions(pb::ListSessionsRequest {}).await.expect("sessions").into_inner();
+        let mut robots: Vec<String> = listed.sessions.iter().map(|s| s.robot_id.clone()).collect();
+        robots.sort();
+        assert_eq!(robots, robots_all, "every server's sessions, listed by {}", if other.pid() == a.pid() { id_a } else { id_b });
+    }
+    let mut q = QueryClient::connect(a.grpc_url()).await.expect("connect");
+    let missing = q.get_latest_pose(pb::SessionRef { session_id: "nobody-1".into() }).await.expect_err("no such session");
+    assert_eq!(missing.code(), tonic::Code::NotFound, "{missing:?}");
 
     // kill -9 B mid-stream: its robots reach A within 5 s.
     b.kill9();

@@ -1,10 +1,13 @@
 //! gRPC queries: the `Query` service (sessions, poses, trajectories, map products)
-//! over the registry.
+//! over the registry. In a cluster, the unary queries about a session this server
+//! does not hold are asked of the other servers ([`Remote`]), and the sessions
+//! list is every server's.
 
 use std::pin::Pin;
 use std::sync::Arc;
 
 use futures_util::Stream;
+use prost::Message as _;
 use stillmap_proto::pb::{self, query_server::Query};
 use tokio_stream::StreamExt;
 use tokio_stream::wrappers::BroadcastStream;
@@ -14,13 +17,72 @@ use crate::session::{Registry, Session};
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
+/// The unary queries other servers answer for sessions this one does not hold
+/// (`cluster::Forwarder` on Zenoh). Streams are not forwarded.
+pub const FORWARDED_METHODS: [&str; 4] = ["ListSessions", "GetLatestPose", "GetTrajectory", "GetMapTile"];
+
+/// The other servers of a cluster, asked what this one does not hold.
+#[tonic::async_trait]
+pub trait Remote: Send + Sync {
+    /// The first answer of another server that is not NOT_FOUND (the encoded
+    /// response message, or its status); `None` when no other server holds it.
+    async fn call(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Option<Result<Vec<u8>, Status>>;
+    /// Every other server's successful answer.
+    async fn gather(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Vec<Vec<u8>>;
+}
+
 pub struct QueryService {
     pub registry: Arc<Registry>,
+    /// The other servers (none: a single server, or the side answering a forwarded query).
+    pub remote: Option<Arc<dyn Remote>>,
+}
+
+fn authorization<T>(request: &Request<T>) -> Option<String> {
+    request.metadata().get("authorization").and_then(|v| v.to_str().ok()).map(str::to_owned)
 }
 
 impl QueryService {
     fn session(&self, id: &str) -> Result<Arc<Session>, Status> {
-        self.registry.get(id).ok_or_else(|| Status::not_found(format!("unknown session {id:?}")))
+        self.registry.get(id).ok_or_else(|| Self::unknown(id))
+    }
+
+    fn unknown(id: &str) -> Status {
+        Status::not_found(format!("unknown session {id:?}"))
+    }
+
+    /// `request` about session `id`, which this server does not hold, asked of the other servers.
+    async fn forwarded<Q: prost::Message, R: prost::Message + Default>(
+        &self,
+        method: &'static str,
+        id: &str,
+        request: &Request<Q>,
+    ) -> Result<Response<R>, Status> {
+        let Some(remote) = &self.remote else { return Err(Self::unknown(id)) };
+        match remote.call(method, request.get_ref().encode_to_vec(), authorization(request)).await {
+            Some(Ok(bytes)) => {
+                R::decode(bytes.as_slice()).map(Response::new).map_err(|e| Status::internal(format!("another server's answer: {e}")))
+            }
+            Some(Err(status)) => Err(status),
+            None => Err(Self::unknown(id)),
+        }
+    }
+
+    /// Answers a unary query forwarded by another server (`method` one of
+    /// [`FORWARDED_METHODS`], `request` its encoded message), as this server alone.
+    pub async fn answer(&self, method: &str, request: &[u8]) -> Result<Vec<u8>, Status> {
+        fn decode<M: prost::Message + Default>(bytes: &[u8]) -> Result<Request<M>, Status> {
+            M::decode(bytes).map(Request::new).map_err(|e| Status::invalid_argument(format!("forwarded request: {e}")))
+        }
+        fn encoded_of<M: prost::Message>(response: &Response<M>) -> Vec<u8> {
+            response.get_ref().encode_to_vec()
+        }
+        match method {
+            "ListSessions" => self.list_sessions(decode(request)?).await.map(|r| encoded_of(&r)),
+            "GetLatestPose" => self.get_latest_pose(decode(request)?).await.map(|r| encoded_of(&r)),
+            "GetTrajectory" => self.get_trajectory(decode(request)?).await.map(|r| encoded_of(&r)),
+            "GetMapTile" => self.get_map_tile(decode(request)?).await.map(|r| encoded_of(&r)),
+            other => Err(Status::unimplemented(format!("{other} is not forwarded between servers"))),
+        }
     }
 
     fn fleet(&self, name: &str) -> Result<(Arc<crate::fleet::FleetService>, crate::fleet::FleetView), Status> {
@@ -79,20 +141,30 @@ impl Query for QueryService {
         Ok(Response::new(Box::pin(stream)))
     }
 
-    async fn list_sessions(&self, _: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
-        let sessions = self.registry.list_info().into_iter().map(|s| s.summary).collect();
+    /// This server's sessions, then every other live server's.
+    async fn list_sessions(&self, request: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        let mut sessions: Vec<pb::SessionSummary> = self.registry.list_info().into_iter().map(|s| s.summary).collect();
+        if let Some(remote) = &self.remote {
+            for answer in remote.gather("ListSessions", request.get_ref().encode_to_vec(), authorization(&request)).await {
+                match pb::ListSessionsResponse::decode(answer.as_slice()) {
+                    Ok(theirs) => sessions.extend(theirs.sessions),
+                    Err(e) => tracing::warn!("another server's sessions list is not a ListSessionsResponse: {e}"),
+                }
+            }
+        }
         Ok(Response::new(pb::ListSessionsResponse { sessions }))
     }
 
     async fn get_latest_pose(&self, request: Request<pb::SessionRef>) -> Result<Response<pb::LatestPose>, Status> {
-        let session = self.session(&request.get_ref().session_id)?;
+        let id = &request.get_ref().session_id;
+        let Some(session) = self.registry.get(id) else { return self.forwarded("GetLatestPose", id, &request).await };
         let track = session.tracking();
         Ok(Response::new(pb::LatestPose { tracking_state: track.state as i32, pose: track.latest }))
     }
 
     async fn get_trajectory(&self, request: Request<pb::TrajectoryRequest>) -> Result<Response<pb::Trajectory>, Status> {
         let r = request.get_ref();
-        let session = self.session(&r.session_id)?;
+        let Some(session) = self.registry.get(&r.session_id) else { return self.forwarded("GetTrajectory", &r.session_id, &request).await };
         let end = if r.end_ns == 0 { u64::MAX } else { r.end_ns };
         if r.start_ns > end {
             return Err(Status::invalid_argument(format!("start_ns {} is after end_ns {}", r.start_ns, r.end_ns)));
@@ -109,6 +181,9 @@ impl Query for QueryService {
     }
 
     async fn get_map_tile(&self, request: Request<pb::MapTileRequest>) -> Result<Response<pb::MapTile>, Status> {
+        if self.registry.get(&request.get_ref().session_id).is_none() {
+            return self.forwarded("GetMapTile", &request.get_ref().session_id, &request).await;
+        }
         let r = request.into_inner();
         let map = self.map(&r.session_id)?;
         let zoom = u8::try_from(r.zoom)
