@@ -266,6 +266,13 @@ fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
                 *first.entry(f).or_default() += 1;
             }
             eprintln!("{}: at the end of the rest, by the frame they entered the map: {first:?}", a.name);
+            // Those left at the end of the clip, by height above the resting place's lower edge (5 cm bins).
+            let mut heights: std::collections::BTreeMap<i64, usize> = Default::default();
+            for p in new.iter().filter(|p| distance_to_board(p, &place, &a.plane) <= ON_BOARD_M) {
+                let q = place.inverse() * p;
+                *heights.entry(((q.y + a.plane.height_m / 2.0) / 0.05).floor() as i64).or_default() += 1;
+            }
+            eprintln!("{}: left at the end, by height above its lower edge (5 cm bins): {heights:?}", a.name);
             eprintln!(
                 "{}: {} standing ghosts; over later keyframes: out of view {}, no depth {}, occluded {}, seen through {}, at the surface {}",
                 a.name,
