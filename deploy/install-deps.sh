@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what the build and the tests need, skipping what is already there:
 # Debian packages (OpenCV, clang for its bindings, OpenNI2, protoc, chromium and
-# Node.js for the dashboard and its browser test), the dashboard's npm packages
+# Node.js for the dashboard and its browser test, PostgreSQL for the replica
+# test), the dashboard's npm packages
 # (dashboard/package-lock.json), the ONNX
 # Runtime shared library from PyPI's onnxruntime wheel (Debian has none), and evo
 # (PyPI, in a virtual environment) for the trajectory-evaluation parity test.
@@ -22,7 +23,9 @@ for arg in "$@"; do
 done
 
 APT_PACKAGES=(libopencv-dev clang libclang-dev libopenni2-dev protobuf-compiler pkg-config curl fonts-dejavu-core)
-[ -n "$SERVER_ONLY" ] || APT_PACKAGES+=(chromium)
+# chromium for the dashboard's browser test; PostgreSQL, whose server the replica
+# test starts on a free port of its own (store.replica_url).
+[ -n "$SERVER_ONLY" ] || APT_PACKAGES+=(chromium postgresql)
 # Node.js for the dashboard's npm packages (three.js; playwright-core for its browser test).
 command -v node >/dev/null && command -v npm >/dev/null || APT_PACKAGES+=(nodejs npm)
 ORT_VERSION=1.31.1

@@ -227,6 +227,14 @@ pub struct StoreConfig {
     /// The store's page cache in memory, in bytes (default 64 MiB; redb's own
     /// default, 1 GiB, is taken as the store grows and kept).
     pub cache_bytes: usize,
+    /// Storage shared by several servers: every commit (a session's description,
+    /// new poses, keyframe records and changed map blocks) is copied to this
+    /// PostgreSQL database too (a libpq URL, `postgresql://user@host:port/db`, or
+    /// key=value string; empty, the default: no copy). Needs `store.enabled`.
+    pub replica_url: String,
+    /// Commits waiting to be copied at most (default 256); a commit finding the
+    /// queue full is not copied (`stillmap_replica_dropped_total`).
+    pub replica_queue: usize,
 }
 
 impl Default for StoreConfig {
@@ -238,6 +246,8 @@ impl Default for StoreConfig {
             retry_max_s: 60.0,
             flush_interval_s: 5.0,
             cache_bytes: crate::store::DEFAULT_CACHE_BYTES,
+            replica_url: String::new(),
+            replica_queue: 256,
         }
     }
 }
@@ -538,6 +548,12 @@ impl ServerConfig {
         }
         if !(0.1..=3600.0).contains(&self.store.retry_max_s) {
             return bad(format!("store.retry_max_s must be within 0.1..=3600, got {}", self.store.retry_max_s));
+        }
+        if !self.store.replica_url.is_empty() && !self.store.enabled {
+            return bad("store.replica_url copies the store's commits: it needs store.enabled".into());
+        }
+        if !(1..=65536).contains(&self.store.replica_queue) {
+            return bad(format!("store.replica_queue must be within 1..=65536, got {}", self.store.replica_queue));
         }
         if self.store.cache_bytes < 1 << 20 {
             return bad(format!("store.cache_bytes {} is below 1 MiB", self.store.cache_bytes));

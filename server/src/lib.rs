@@ -19,6 +19,7 @@ pub mod pipeline;
 pub mod pool;
 pub mod queue;
 pub mod ratelimit;
+pub mod replica;
 pub mod session;
 pub mod store;
 pub mod tls;
@@ -85,6 +86,8 @@ pub enum ServerError {
     Threads(std::io::Error),
     #[error("{0}")]
     Fleet(#[from] fleet::FleetError),
+    #[error("{0}")]
+    Replica(#[from] replica::ReplicaError),
     #[error("gRPC reflection: {0}")]
     Reflection(String),
 }
@@ -196,14 +199,20 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let pools = session::Pools::start(&config.session).map_err(ServerError::Threads)?;
     let perception = perception_service(&config, &metrics)?;
     let store = if config.store.enabled {
-        Some(Arc::new(
-            store::Store::open_with_cache(std::path::Path::new(&config.store.path), config.store.cache_bytes)?
-                .count_errors_in(metrics.store_errors())
-                .retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s)),
-        ))
+        let store = store::Store::open_with_cache(std::path::Path::new(&config.store.path), config.store.cache_bytes)?
+            .count_errors_in(metrics.store_errors())
+            .retry_at_most_every(Duration::from_secs_f64(config.store.retry_max_s));
+        // Storage shared by several servers: every commit copied to PostgreSQL too (replica.rs).
+        let store = if config.store.replica_url.is_empty() {
+            store
+        } else {
+            store.replicate_to(replica::Replica::start(&config.store.replica_url, config.store.replica_queue, metrics.replica())?)
+        };
+        Some(Arc::new(store))
     } else {
         None
     };
+    let replica = store.as_ref().and_then(|s| s.replica().cloned());
     // What is stored is listed, not loaded: a query brings a session's map and
     // trajectory into memory when it needs them. Place recognition needs the
     // keyframe records (bounded per fleet by fleet.max_places).
@@ -261,6 +270,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         };
         let host = cluster::host_name();
         let server_id = cluster::server_id(&config.zenoh.server_id, &host, &bound_grpc);
+        if let Some(r) = &replica {
+            r.name_server(&server_id);
+        }
         let membership = cluster::Membership::new(&server_id);
         // Announced, and the other servers known, before any robot is answered.
         let token = cluster::join(&z, &membership).await?;
@@ -491,6 +503,12 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let workers = registry.clone();
     if tokio::time::timeout(SHUTDOWN_GRACE, tokio::task::spawn_blocking(move || workers.join_workers())).await.is_err() {
         tracing::warn!("pipeline workers outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway");
+    }
+    // What the workers committed last is copied before the server stops.
+    if let Some(r) = replica
+        && tokio::time::timeout(SHUTDOWN_GRACE, tokio::task::spawn_blocking(move || r.close())).await.is_err()
+    {
+        tracing::warn!("the copy to store.replica_url outlived the {SHUTDOWN_GRACE:?} grace period; stopping anyway");
     }
     #[cfg(feature = "zenoh")]
     if let Some(answer) = forward_task {

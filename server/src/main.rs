@@ -54,6 +54,10 @@ struct Args {
     /// Keep nothing on disk: a restart forgets every session.
     #[arg(long, env = "STILLMAP_NO_STORE")]
     no_store: bool,
+    /// Copy every store commit to this PostgreSQL database too, storage shared by
+    /// several servers (store.replica_url; `postgresql://user@host:port/db`).
+    #[arg(long, env = "STILLMAP_REPLICA_URL", hide_env_values = true)]
+    replica_url: Option<String>,
     /// Bearer token a robot's hello must carry, repeatable (adds to auth.tokens).
     #[arg(long = "auth-token", env = "STILLMAP_AUTH_TOKENS", value_delimiter = ',', hide_env_values = true)]
     auth_tokens: Vec<String>,
@@ -137,6 +141,9 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     }
     if let Some(v) = &args.store {
         c.store.path = v.clone();
+    }
+    if let Some(v) = &args.replica_url {
+        c.store.replica_url = v.clone();
     }
     if args.no_store {
         c.store.enabled = false;

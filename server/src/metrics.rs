@@ -38,6 +38,7 @@ pub struct Metrics {
     map_backlog: Gauge,
     map_jobs_skipped: Family<Labels, Counter>,
     store_errors: Counter,
+    replica: crate::replica::ReplicaCounters,
     sessions_resident: Gauge,
     sessions_evicted: Counter,
     sessions_loaded: Counter,
@@ -97,6 +98,11 @@ impl Default for Metrics {
             "Map jobs left out because their session's map queue was full (kind: keyframe, refuse)",
             map_jobs_skipped.clone(),
         );
+        let replica = crate::replica::ReplicaCounters::default();
+        registry.register("replica_commits", "Store commits copied to shared storage (store.replica_url)", replica.commits.clone());
+        registry.register("replica_bytes", "Bytes of store commits copied to shared storage", replica.bytes.clone());
+        registry.register("replica_dropped", "Store commits not copied: the replica queue was full", replica.dropped.clone());
+        registry.register("replica_write_microseconds", "Time spent writing commits to shared storage", replica.write_micros.clone());
         let store_errors = Counter::default();
         registry.register(
             "store_errors",
@@ -150,6 +156,7 @@ impl Default for Metrics {
             map_backlog,
             map_jobs_skipped,
             store_errors,
+            replica,
             sessions_resident,
             sessions_evicted,
             sessions_loaded,
@@ -164,6 +171,11 @@ impl Metrics {
     /// The counter the store counts its errors in.
     pub fn store_errors(&self) -> Counter {
         self.store_errors.clone()
+    }
+
+    /// The counters of the copy to shared storage (`store.replica_url`).
+    pub fn replica(&self) -> crate::replica::ReplicaCounters {
+        self.replica.clone()
     }
 }
 

@@ -163,6 +163,9 @@ pub struct Commit<'a> {
     pub evicted: &'a [(BlockKey, Block)],
 }
 
+/// Map blocks as stored: key and zstd-compressed bytes.
+type CompressedBlocks = Vec<(BlockKey, Vec<u8>)>;
+
 /// Everything stored about one session.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoredSession {
@@ -202,6 +205,8 @@ pub struct Store {
     retry_max: Duration,
     /// Opens the database (the file; a test's failing backend).
     opener: Box<dyn Fn() -> Result<Database, String> + Send + Sync>,
+    /// Every commit is copied there too (`store.replica_url`, PostgreSQL).
+    replica: Option<Arc<crate::replica::Replica>>,
 }
 
 /// Backoff between reopening attempts after a failed write: doubling from
@@ -263,6 +268,7 @@ impl Store {
             health: Mutex::default(),
             errors: Default::default(),
             retry_max: Duration::from_secs(60),
+            replica: None,
             opener,
         })
     }
@@ -270,6 +276,16 @@ impl Store {
     /// Counts store errors in `counter` (the server's `stillmap_store_errors_total`).
     pub fn count_errors_in(self, counter: prometheus_client::metrics::counter::Counter) -> Self {
         Self { errors: counter, ..self }
+    }
+
+    /// Copies every commit to `replica` too (storage shared by several servers).
+    pub fn replicate_to(self, replica: Arc<crate::replica::Replica>) -> Self {
+        Self { replica: Some(replica), ..self }
+    }
+
+    /// The replica commits are copied to, if any.
+    pub fn replica(&self) -> Option<&Arc<crate::replica::Replica>> {
+        self.replica.as_ref()
     }
 
     /// Sets the longest backoff between write attempts while failing (`store.retry_max_s`).
@@ -382,15 +398,20 @@ impl Store {
     /// Records a new session (before any frame).
     pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
+        let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
         self.written((|| {
             let tx = db.begin_write().map_err(|e| self.err(e))?;
             {
-                let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
                 tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
                 tx.open_table(CAMERAS).map_err(|e| self.err(e))?.insert(id, camera.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
             }
             tx.commit().map_err(|e| self.err(e))
-        })())
+        })())?;
+        if let Some(replica) = &self.replica {
+            let camera = Some(camera.encode_to_vec());
+            replica.submit(crate::replica::ReplicaCommit { session_id: id.to_string(), meta_json: json, camera, ..Default::default() });
+        }
+        Ok(())
     }
 
     /// Records a session's frame in its fleet (its anchoring or its merge).
@@ -423,16 +444,36 @@ impl Store {
     /// One keyframe's worth of state, atomically.
     pub fn commit(&self, c: &Commit<'_>) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
+        let (json, blocks) = self.encoded(c)?;
         self.written((|| {
             let tx = db.begin_write().map_err(|e| self.err(e))?;
-            self.write(&tx, c)?;
+            self.write(&tx, c, &json, &blocks)?;
             tx.commit().map_err(|e| self.err(e))
-        })())
+        })())?;
+        if let Some(replica) = &self.replica {
+            replica.submit(crate::replica::ReplicaCommit {
+                session_id: c.session_id.to_string(),
+                meta_json: json,
+                camera: c.camera.map(prost::Message::encode_to_vec),
+                poses: c.poses.iter().map(|p| (p.sequence, p.encode_to_vec())).collect(),
+                keyframes: c.keyframes.iter().map(|k| (k.id, k.to_bytes())).collect(),
+                blocks,
+            });
+        }
+        Ok(())
     }
 
-    fn write(&self, tx: &redb::WriteTransaction, c: &Commit<'_>) -> Result<(), StoreError> {
-        let json = serde_json::to_vec(c.meta).map_err(|e| self.err(e))?;
-        tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json.as_slice()).map_err(|e| self.err(e))?;
+    /// A commit's description as JSON and its blocks compressed, as stored.
+    fn encoded(&self, c: &Commit<'_>) -> Result<(Vec<u8>, CompressedBlocks), StoreError> {
+        let mut blocks = Vec::with_capacity(c.blocks.len() + c.evicted.len());
+        for (key, block) in c.blocks.iter().map(|(k, b)| (k, *b)).chain(c.evicted.iter().map(|(k, b)| (k, b))) {
+            blocks.push((*key, zstd::bulk::compress(&block.to_bytes(), BLOCK_ZSTD_LEVEL).map_err(|e| self.err(e))?));
+        }
+        Ok((serde_json::to_vec(c.meta).map_err(|e| self.err(e))?, blocks))
+    }
+
+    fn write(&self, tx: &redb::WriteTransaction, c: &Commit<'_>, json: &[u8], blocks: &[(BlockKey, Vec<u8>)]) -> Result<(), StoreError> {
+        tx.open_table(SESSIONS).map_err(|e| self.err(e))?.insert(c.session_id, json).map_err(|e| self.err(e))?;
         if let Some(camera) = c.camera {
             tx.open_table(CAMERAS)
                 .map_err(|e| self.err(e))?
@@ -449,10 +490,9 @@ impl Store {
                 table.insert((c.session_id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
             }
         }
-        let mut blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
-        for (key, block) in c.blocks.iter().map(|(k, b)| (k, *b)).chain(c.evicted.iter().map(|(k, b)| (k, b))) {
-            let bytes = zstd::bulk::compress(&block.to_bytes(), BLOCK_ZSTD_LEVEL).map_err(|e| self.err(e))?;
-            blocks.insert((c.session_id, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
+        let mut table = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
+        for (key, bytes) in blocks {
+            table.insert((c.session_id, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
         }
         Ok(())
     }
@@ -567,7 +607,8 @@ impl Store {
                 blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(),
                 evicted: &[],
             };
-            self.write(&tx, &commit)?;
+            let (json, blocks) = self.encoded(&commit)?;
+            self.write(&tx, &commit, &json, &blocks)?;
             tx.commit().map_err(|e| self.err(e))
         })())
     }

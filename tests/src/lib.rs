@@ -354,3 +354,126 @@ pub fn signed_certificate(dir: &Path, name: &str, usage: &str, san: &str) {
         ],
     );
 }
+
+/// A PostgreSQL server of a test's own: a fresh cluster in a temporary folder,
+/// on a free loopback port, trusting local connections, killed and removed on
+/// drop. Debian's `postgresql` package (`make deps` installs it); run as root,
+/// it runs as the `postgres` user, as PostgreSQL requires.
+pub struct Postgres {
+    pub port: u16,
+    dir: PathBuf,
+    child: Child,
+}
+
+impl Postgres {
+    pub fn start() -> Self {
+        let bin = postgres_bin_dir();
+        let dir = tempfile_path("postgres");
+        std::fs::create_dir_all(&dir).expect("postgres folder");
+        let data = dir.join("data");
+        let as_postgres = |program: &str| {
+            let mut command = Command::new(bin.join(program));
+            if is_root() {
+                use std::os::unix::process::CommandExt as _;
+                let (uid, gid) = postgres_user();
+                std::os::unix::fs::chown(&dir, Some(uid), Some(gid)).expect("chown the postgres folder");
+                command.uid(uid).gid(gid);
+            }
+            command
+        };
+        let init = as_postgres("initdb")
+            .args(["-D", data.to_str().expect("utf-8 path"), "-U", "stillmap", "--auth=trust", "--no-sync", "-E", "UTF8"])
+            .stdout(Stdio::null())
+            .output()
+            .expect("initdb");
+        assert!(init.status.success(), "initdb: {}", String::from_utf8_lossy(&init.stderr));
+        let port = free_port();
+        let child = as_postgres("postgres")
+            .args(["-D", data.to_str().expect("utf-8 path"), "-p", &port.to_string(), "-k", dir.to_str().expect("utf-8 path")])
+            .args(["-c", "listen_addresses=127.0.0.1", "-c", "fsync=off"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("postgres");
+        let pg = Self { port, dir, child };
+        // Ready when it answers, and the one answering is this test's (its data folder).
+        let started = Instant::now();
+        loop {
+            let url = pg.url();
+            let answer = std::thread::Builder::new()
+                .name("postgres-ready".into())
+                .spawn(move || {
+                    let mut client = postgres::Client::connect(&url, postgres::NoTls).ok()?;
+                    client.query_one("SHOW data_directory", &[]).ok().map(|row| row.get::<_, String>(0))
+                })
+                .expect("thread")
+                .join()
+                .ok()
+                .flatten();
+            match answer {
+                Some(directory) => {
+                    assert_eq!(Path::new(&directory), data, "another PostgreSQL answers on port {port}");
+                    return pg;
+                }
+                None => {
+                    assert!(started.elapsed() < Duration::from_secs(30), "PostgreSQL did not start within 30 s");
+                    std::thread::sleep(Duration::from_millis(100));
+                }
+            }
+        }
+    }
+
+    /// The libpq URL of its `postgres` database.
+    pub fn url(&self) -> String {
+        format!("postgresql://stillmap@127.0.0.1:{}/postgres", self.port)
+    }
+
+    /// A query's rows, from a thread of its own (the synchronous client runs a runtime of its own).
+    pub fn query(&self, sql: &str) -> Vec<postgres::Row> {
+        let (url, sql) = (self.url(), sql.to_string());
+        std::thread::Builder::new()
+            .name("postgres-query".into())
+            .spawn(move || {
+                let mut client = postgres::Client::connect(&url, postgres::NoTls).expect("connect to the test's PostgreSQL");
+                client.query(&sql, &[]).expect("query")
+            })
+            .expect("thread")
+            .join()
+            .expect("query thread")
+    }
+}
+
+impl Drop for Postgres {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// The folder of PostgreSQL's server programs: Debian's `/usr/lib/postgresql/<version>/bin`
+/// (the newest), else the folder of an `initdb` on the PATH.
+fn postgres_bin_dir() -> PathBuf {
+    let mut debian: Vec<PathBuf> = glob::glob("/usr/lib/postgresql/*/bin/initdb").map(|g| g.flatten().collect()).unwrap_or_default();
+    debian.sort_by_key(|p| p.parent().and_then(|b| b.parent()).and_then(|v| v.file_name()?.to_str()?.parse::<u32>().ok()));
+    if let Some(dir) = debian.last().and_then(|p| p.parent()) {
+        return dir.to_path_buf();
+    }
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::env::split_paths(&path)
+        .find(|d| d.join("initdb").is_file())
+        .expect("PostgreSQL's server programs (initdb, postgres): Debian's postgresql package; `make deps` installs it")
+}
+
+fn is_root() -> bool {
+    Command::new("id").arg("-u").output().map(|o| o.stdout.trim_ascii() == b"0").unwrap_or(false)
+}
+
+/// The `postgres` user's uid and gid.
+fn postgres_user() -> (u32, u32) {
+    let id = |flag: &str| -> u32 {
+        let out = Command::new("id").args([flag, "postgres"]).output().expect("id");
+        String::from_utf8_lossy(&out.stdout).trim().parse().expect("a postgres user (Debian's postgresql package makes it)")
+    };
+    (id("-u"), id("-g"))
+}

@@ -129,7 +129,7 @@ async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
     wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
     // Its token comes first (placement needs it before any robot is answered), its
     // status queryable a moment later: the status answered is the new process's.
-    eventually(Duration::from_secs(5), "B's status", async || statuses(&tool).await.get(&id_b).is_some()).await;
+    eventually(Duration::from_secs(5), "B's status", async || statuses(&tool).await.contains_key(&id_b)).await;
     assert_eq!(statuses(&tool).await[&id_b]["pid"], b2.pid());
 }
 

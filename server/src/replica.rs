@@ -1,0 +1,290 @@
+//! Storage shared by several servers: every commit of the embedded store
+//! (`store.rs`: a session's description and camera, its new poses, its new
+//! keyframe records, its changed map blocks) is copied to PostgreSQL
+//! (`store.replica_url`), which outlives any one server.
+//!
+//! Why PostgreSQL: a real database every operator can run, back up and replicate
+//! on its own (streaming replication, managed services), transactional (a commit
+//! is all there or none of it), queryable by other tools; the sessions' data are
+//! a few keyed tables, which it holds well. The embedded redb store stays each
+//! server's own and the default for one server; the replica is a copy.
+//!
+//! The copy runs on a thread of its own behind a bounded queue
+//! (`store.replica_queue` commits): the map lane hands a commit over and goes on.
+//! A commit finding the queue full is not copied (counted in
+//! `stillmap_replica_dropped_total`, logged); the server's own store still has
+//! it. While PostgreSQL cannot be reached the thread reconnects every
+//! 1 s, doubling up to 30 s, and retries the commit it holds.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
+use std::time::{Duration, Instant};
+
+use prometheus_client::metrics::counter::Counter;
+
+/// What one commit wrote to the embedded store, ready to copy.
+#[derive(Debug, Clone, Default)]
+pub struct ReplicaCommit {
+    pub session_id: String,
+    /// The session's description (`SessionMeta`, JSON).
+    pub meta_json: Vec<u8>,
+    /// The session's camera (`CameraInfo`, protobuf), with its first commit.
+    pub camera: Option<Vec<u8>>,
+    /// New poses: sequence and `PoseStamped` (protobuf).
+    pub poses: Vec<(u64, Vec<u8>)>,
+    /// New keyframe records: id and bytes (the store's encoding).
+    pub keyframes: Vec<(u64, Vec<u8>)>,
+    /// Changed map blocks: key and zstd-compressed bytes (the store's encoding).
+    pub blocks: Vec<([i32; 3], Vec<u8>)>,
+}
+
+impl ReplicaCommit {
+    /// Bytes this commit copies.
+    pub fn bytes(&self) -> usize {
+        self.meta_json.len()
+            + self.camera.as_ref().map_or(0, Vec::len)
+            + self.poses.iter().map(|(_, p)| p.len()).sum::<usize>()
+            + self.keyframes.iter().map(|(_, k)| k.len()).sum::<usize>()
+            + self.blocks.iter().map(|(_, b)| b.len()).sum::<usize>()
+    }
+}
+
+/// The replica's counters (registered in `/metrics`).
+#[derive(Debug, Clone, Default)]
+pub struct ReplicaCounters {
+    pub commits: Counter,
+    pub bytes: Counter,
+    pub dropped: Counter,
+    /// Time spent writing commits, in microseconds.
+    pub write_micros: Counter,
+}
+
+/// The tables, created when missing. Keys are the store's; values its encodings.
+pub const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS stillmap_sessions (
+    id text PRIMARY KEY,
+    server_id text NOT NULL,
+    meta jsonb NOT NULL,
+    camera bytea,
+    updated timestamptz NOT NULL DEFAULT now()
+);
+CREATE TABLE IF NOT EXISTS stillmap_poses (
+    session_id text NOT NULL,
+    sequence bigint NOT NULL,
+    pose bytea NOT NULL,
+    PRIMARY KEY (session_id, sequence)
+);
+CREATE TABLE IF NOT EXISTS stillmap_keyframes (
+    session_id text NOT NULL,
+    id bigint NOT NULL,
+    record bytea NOT NULL,
+    PRIMARY KEY (session_id, id)
+);
+CREATE TABLE IF NOT EXISTS stillmap_blocks (
+    session_id text NOT NULL,
+    x integer NOT NULL,
+    y integer NOT NULL,
+    z integer NOT NULL,
+    block bytea NOT NULL,
+    PRIMARY KEY (session_id, x, y, z)
+);
+";
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReplicaError {
+    #[error("store.replica_url: {0}")]
+    Url(String),
+    #[error("cannot start the replica thread: {0}")]
+    Thread(std::io::Error),
+}
+
+/// The copy to PostgreSQL: a bounded queue and the thread that empties it.
+pub struct Replica {
+    jobs: std::sync::Mutex<Option<SyncSender<ReplicaCommit>>>,
+    counters: ReplicaCounters,
+    worker: std::sync::Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// The server whose commits these are (its cluster id once known).
+    server_id: Arc<std::sync::Mutex<String>>,
+    /// Set at shutdown: while PostgreSQL cannot be reached, stop retrying.
+    closing: Arc<AtomicBool>,
+}
+
+impl Replica {
+    /// Parses `url` (a libpq URL or key=value string; checked now, connected to on
+    /// the thread) and starts the thread copying this server's commits, at most
+    /// `queue` waiting.
+    pub fn start(url: &str, queue: usize, counters: ReplicaCounters) -> Result<Arc<Self>, ReplicaError> {
+        let config: postgres::Config = url.parse().map_err(|e: postgres::Error| ReplicaError::Url(e.to_string()))?;
+        let (tx, rx) = std::sync::mpsc::sync_channel(queue.max(1));
+        let server_id = Arc::new(std::sync::Mutex::new(String::new()));
+        let closing = Arc::new(AtomicBool::new(false));
+        let (worker_id, worker_counters, worker_closing) = (server_id.clone(), counters.clone(), closing.clone());
+        let worker = std::thread::Builder::new()
+            .name("replica".into())
+            .spawn(move || copy(config, &worker_id, rx, &worker_counters, &worker_closing))
+            .map_err(ReplicaError::Thread)?;
+        let worker = std::sync::Mutex::new(Some(worker));
+        Ok(Arc::new(Self { jobs: std::sync::Mutex::new(Some(tx)), counters, worker, server_id, closing }))
+    }
+
+    /// Names the server in the rows it writes from now on (`stillmap_sessions.server_id`).
+    pub fn name_server(&self, id: &str) {
+        *crate::lock(&self.server_id) = id.to_string();
+    }
+
+    /// Hands a commit to the copy; a full queue leaves it out (counted, logged).
+    pub fn submit(&self, commit: ReplicaCommit) {
+        let Some(tx) = crate::lock(&self.jobs).clone() else { return };
+        match tx.try_send(commit) {
+            Ok(()) => {}
+            Err(TrySendError::Full(c)) => {
+                self.counters.dropped.inc();
+                tracing::warn!(session = %c.session_id, "replica queue full (store.replica_queue): this commit is not copied to PostgreSQL");
+            }
+            Err(TrySendError::Disconnected(_)) => {}
+        }
+    }
+
+    /// Copies what is queued, then stops the thread (at shutdown; while PostgreSQL
+    /// cannot be reached, what is queued is left, counted as dropped).
+    pub fn close(&self) {
+        self.closing.store(true, Ordering::SeqCst);
+        crate::lock(&self.jobs).take();
+        if let Some(worker) = crate::lock(&self.worker).take() {
+            let _ = worker.join();
+        }
+    }
+}
+
+/// The replica thread: connects (again, with a growing wait, while it fails) and
+/// writes each commit in one transaction, until the queue closes.
+fn copy(
+    config: postgres::Config,
+    server_id: &std::sync::Mutex<String>,
+    rx: Receiver<ReplicaCommit>,
+    counters: &ReplicaCounters,
+    closing: &AtomicBool,
+) {
+    let mut client: Option<postgres::Client> = None;
+    let mut wait = Duration::from_secs(1);
+    for commit in rx.iter() {
+        loop {
+            if client.is_none() && closing.load(Ordering::SeqCst) && wait > Duration::from_secs(1) {
+                // Shutting down and PostgreSQL still cannot be reached: the server's own store has it all.
+                let left = 1 + rx.try_iter().count();
+                counters.dropped.inc_by(left as u64);
+                tracing::warn!(left, "replica: PostgreSQL cannot be reached at shutdown; these commits are not copied");
+                return;
+            }
+            if client.is_none() {
+                match config.connect(postgres::NoTls).and_then(|mut c| c.batch_execute(SCHEMA).map(|()| c)) {
+                    Ok(c) => {
+                        tracing::info!("replica: connected to PostgreSQL");
+                        client = Some(c);
+                        wait = Duration::from_secs(1);
+                    }
+                    Err(e) => {
+                        tracing::warn!("replica: PostgreSQL cannot be reached ({e}); again in {} s", wait.as_secs());
+                        let until = Instant::now() + wait;
+                        while Instant::now() < until && !closing.load(Ordering::SeqCst) {
+                            std::thread::sleep(Duration::from_millis(100));
+                        }
+                        wait = (wait * 2).min(Duration::from_secs(30));
+                        continue;
+                    }
+                }
+            }
+            let Some(c) = client.as_mut() else { continue };
+            let started = Instant::now();
+            let server = crate::lock(server_id).clone();
+            match write(c, &server, &commit) {
+                Ok(()) => {
+                    counters.commits.inc();
+                    counters.bytes.inc_by(commit.bytes() as u64);
+                    counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
+                    break;
+                }
+                Err(e) => {
+                    tracing::warn!(session = %commit.session_id, "replica: commit not written ({e}); reconnecting");
+                    client = None;
+                }
+            }
+        }
+    }
+}
+
+/// One commit, in one transaction (upserts: a commit sent twice changes nothing).
+fn write(client: &mut postgres::Client, server_id: &str, c: &ReplicaCommit) -> Result<(), postgres::Error> {
+    let mut tx = client.transaction()?;
+    let meta = std::str::from_utf8(&c.meta_json).unwrap_or("{}");
+    tx.execute(
+        "INSERT INTO stillmap_sessions (id, server_id, meta, camera) VALUES ($1, $2, $3::text::jsonb, $4)
+         ON CONFLICT (id) DO UPDATE SET server_id = $2, meta = $3::text::jsonb,
+             camera = COALESCE($4, stillmap_sessions.camera), updated = now()",
+        &[&c.session_id, &server_id, &meta, &c.camera],
+    )?;
+    // One statement per table, the rows as arrays (one round trip each).
+    if !c.poses.is_empty() {
+        let sequences: Vec<i64> = c.poses.iter().map(|(s, _)| *s as i64).collect();
+        let poses: Vec<&[u8]> = c.poses.iter().map(|(_, p)| p.as_slice()).collect();
+        tx.execute(
+            "INSERT INTO stillmap_poses (session_id, sequence, pose) SELECT $1, * FROM unnest($2::bigint[], $3::bytea[])
+             ON CONFLICT (session_id, sequence) DO UPDATE SET pose = excluded.pose",
+            &[&c.session_id, &sequences, &poses],
+        )?;
+    }
+    if !c.keyframes.is_empty() {
+        let ids: Vec<i64> = c.keyframes.iter().map(|(id, _)| *id as i64).collect();
+        let records: Vec<&[u8]> = c.keyframes.iter().map(|(_, r)| r.as_slice()).collect();
+        tx.execute(
+            "INSERT INTO stillmap_keyframes (session_id, id, record) SELECT $1, * FROM unnest($2::bigint[], $3::bytea[])
+             ON CONFLICT (session_id, id) DO UPDATE SET record = excluded.record",
+            &[&c.session_id, &ids, &records],
+        )?;
+    }
+    if !c.blocks.is_empty() {
+        // A key once per statement (PostgreSQL refuses to update a row twice in one): the last wins.
+        let mut latest: Vec<&([i32; 3], Vec<u8>)> = Vec::with_capacity(c.blocks.len());
+        let mut seen = std::collections::HashSet::with_capacity(c.blocks.len());
+        for b in c.blocks.iter().rev() {
+            if seen.insert(b.0) {
+                latest.push(b);
+            }
+        }
+        let axis = |i: usize| -> Vec<i32> { latest.iter().map(|(k, _)| k[i]).collect() };
+        let blocks: Vec<&[u8]> = latest.iter().map(|(_, b)| b.as_slice()).collect();
+        tx.execute(
+            "INSERT INTO stillmap_blocks (session_id, x, y, z, block)
+             SELECT $1, * FROM unnest($2::integer[], $3::integer[], $4::integer[], $5::bytea[])
+             ON CONFLICT (session_id, x, y, z) DO UPDATE SET block = excluded.block",
+            &[&c.session_id, &axis(0), &axis(1), &axis(2), &blocks],
+        )?;
+    }
+    tx.commit()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A URL that is not one is refused by name before anything starts.
+    #[test]
+    fn a_bad_url_is_refused_at_start() {
+        let err = Replica::start("postgresql://[::1", 4, ReplicaCounters::default()).err().expect("refused");
+        assert!(err.to_string().starts_with("store.replica_url: "), "{err}");
+    }
+
+    #[test]
+    fn a_commit_counts_its_bytes() {
+        let c = ReplicaCommit {
+            session_id: "s".into(),
+            meta_json: b"{}".to_vec(),
+            camera: Some(vec![0; 3]),
+            poses: vec![(1, vec![0; 10])],
+            keyframes: vec![(1, vec![0; 100])],
+            blocks: vec![([0, 0, 0], vec![0; 1000])],
+        };
+        assert_eq!(c.bytes(), 2 + 3 + 10 + 100 + 1000);
+    }
+}

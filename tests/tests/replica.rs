@@ -1,0 +1,108 @@
+//! Storage shared by several servers (issue 22): a real server with
+//! `--replica-url` copies every commit of its store to a real PostgreSQL server
+//! this test started (a fresh cluster on a free port): the session's description,
+//! every pose, every keyframe record and the map's blocks. And a server whose
+//! PostgreSQL cannot be reached serves its robots all the same and stops promptly.
+
+use std::time::{Duration, Instant};
+
+use prost::Message as _;
+use stillmap_e2e::{Postgres, Server, free_port, run_client, tum_dir};
+use stillmap_proto::pb::{self, query_client::QueryClient};
+
+/// A metric's value in the Prometheus text.
+fn metric(text: &str, name: &str) -> u64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(name).and_then(|v| v.strip_prefix(' ')))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .map_or_else(|| panic!("{name} missing from /metrics"), |v| v as u64)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn every_commit_is_copied_to_postgres() {
+    let pg = Postgres::start();
+    let mut server = Server::start(&["--no-perception", "--replica-url", &pg.url()]);
+    let tum = format!("tum:{}", tum_dir().display());
+    let (out, _) = run_client(&["--source", &tum, "--server", &server.grpc_url(), "--robot-id", "replicated", "--rate", "max"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (_, list) = server.get_json("/api/v1/sessions").await;
+    let id = list["sessions"][0]["session_id"].as_str().expect("a session").to_string();
+    let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
+    let served = q.get_trajectory(pb::TrajectoryRequest { session_id: id.clone(), ..Default::default() }).await.expect("trajectory");
+    let served = served.into_inner().poses;
+    let (_, map) = server.get_json(&format!("/api/v1/maps/{id}")).await;
+    let keyframes = map["keyframes"].as_u64().expect("keyframes");
+    assert!(served.len() == 150 && keyframes > 0, "{} poses, {keyframes} keyframes", served.len());
+
+    // A graceful stop commits what came after the last keyframe, and copies it.
+    let stopping = Instant::now();
+    let metrics_before_stop = server.get_text("/metrics").await;
+    server.terminate();
+    eprintln!("server stopped in {:.0} ms", stopping.elapsed().as_secs_f64() * 1e3);
+
+    let sessions = pg.query("SELECT id, server_id, meta::text, camera FROM stillmap_sessions");
+    assert_eq!(sessions.len(), 1);
+    assert_eq!(sessions[0].get::<_, String>(0), id);
+    assert!(!sessions[0].get::<_, String>(1).is_empty(), "the server's id");
+    let meta: serde_json::Value = serde_json::from_str(&sessions[0].get::<_, String>(2)).expect("meta JSON");
+    assert_eq!(meta["robot_id"], "replicated", "{meta}");
+    assert_eq!(meta["keyframes"].as_u64(), Some(keyframes), "{meta}");
+    let camera = pb::CameraInfo::decode(sessions[0].get::<_, Option<Vec<u8>>>(3).expect("camera").as_slice()).expect("CameraInfo");
+    assert_eq!((camera.width, camera.height), (640, 480));
+
+    // Every pose, bit for bit what the server served.
+    let poses: Vec<pb::PoseStamped> = pg
+        .query("SELECT pose FROM stillmap_poses ORDER BY sequence")
+        .iter()
+        .map(|r| pb::PoseStamped::decode(r.get::<_, Vec<u8>>(0).as_slice()).expect("PoseStamped"))
+        .collect();
+    assert_eq!(poses, served);
+    let stored_keyframes = pg.query("SELECT count(*) FROM stillmap_keyframes")[0].get::<_, i64>(0);
+    assert_eq!(stored_keyframes as u64, keyframes);
+    let blocks = pg.query("SELECT block FROM stillmap_blocks");
+    assert!(!blocks.is_empty(), "map blocks");
+    for b in &blocks {
+        let bytes: Vec<u8> = b.get(0);
+        assert!(zstd::decode_all(bytes.as_slice()).is_ok_and(|raw| !raw.is_empty()), "a block decodes");
+    }
+    let commits = metric(&metrics_before_stop, "stillmap_replica_commits_total");
+    let copied = metric(&metrics_before_stop, "stillmap_replica_bytes_total");
+    let micros = metric(&metrics_before_stop, "stillmap_replica_write_microseconds_total");
+    assert_eq!(metric(&metrics_before_stop, "stillmap_replica_dropped_total"), 0);
+    assert!(commits > 0);
+    eprintln!(
+        "replica: {keyframes} keyframes, {} blocks, {commits} commits before the stop: {:.0} KB and {:.1} ms per commit (loopback PostgreSQL)",
+        blocks.len(),
+        copied as f64 / commits as f64 / 1e3,
+        micros as f64 / commits as f64 / 1e3,
+    );
+}
+
+/// PostgreSQL down: the robot is served as ever (the server's own store has
+/// everything), the commits not copied are counted, and the server stops promptly.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_server_whose_postgres_is_down_serves_all_the_same() {
+    let nowhere = format!("postgresql://stillmap@127.0.0.1:{}/postgres", free_port());
+    let mut server = Server::start(&["--no-perception", "--replica-url", &nowhere]);
+    let tum = format!("tum:{}", tum_dir().display());
+    let (out, summary) = run_client(&[
+        "--source",
+        &tum,
+        "--server",
+        &server.grpc_url(),
+        "--robot-id",
+        "unreplicated",
+        "--rate",
+        "max",
+        "--max-frames",
+        "60",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary = summary.expect("summary");
+    assert_eq!(summary["poses_returned"], 60, "{summary}");
+    let (status, health) = server.get_json("/healthz").await;
+    assert_eq!(status, 200, "the server's own store is healthy: {health}");
+    let stopping = Instant::now();
+    server.terminate();
+    assert!(stopping.elapsed() < Duration::from_secs(10), "stopped in {:?}", stopping.elapsed());
+}
