@@ -111,9 +111,12 @@ fn env_of(container: &Value) -> BTreeMap<String, String> {
         .map(|env| {
             env.iter()
                 .map(|e| {
-                    let value = match e["value"].as_str() {
-                        Some(v) => v.to_string(),
-                        None => format!("fieldRef:{}", str_at(e, &["valueFrom", "fieldRef", "fieldPath"])),
+                    let value = match (e["value"].as_str(), &e["valueFrom"]["secretKeyRef"]) {
+                        (Some(v), _) => v.to_string(),
+                        (None, secret) if secret.is_mapping() => {
+                            format!("secret:{}/{}", str_at(secret, &["name"]), str_at(secret, &["key"]))
+                        }
+                        (None, _) => format!("fieldRef:{}", str_at(e, &["valueFrom", "fieldRef", "fieldPath"])),
                     };
                     (str_at(e, &["name"]).to_string(), value)
                 })
@@ -185,6 +188,15 @@ fn check_server(objects: &BTreeMap<(String, String), Value>) -> Value {
         str_at(router_volume, &["configMap", "name"]),
         str_at(find(objects, "ConfigMap", "zenoh-router-config"), &["metadata", "name"])
     );
+    // The shared PostgreSQL: the URL from its Secret, its Service on its container's port.
+    assert_eq!(env["STILLMAP_REPLICA_URL"], "secret:stillmap-postgres/replica-url");
+    let pg = find(objects, "StatefulSet", "stillmap-postgres");
+    let pg_container = &pg["spec"]["template"]["spec"]["containers"][0];
+    let pg_env = env_of(pg_container);
+    assert_eq!(pg_env["POSTGRES_PASSWORD"], "secret:stillmap-postgres/password");
+    let pg_service = find(objects, "Service", "stillmap-postgres");
+    assert_eq!(str_at(&pg_service["spec"]["ports"][0], &["targetPort"]), str_at(&pg_container["ports"][0], &["name"]));
+    assert_eq!(pg_service["spec"]["ports"][0]["port"].as_u64(), pg_container["ports"][0]["containerPort"].as_u64());
     // The server's Service reaches every port by name.
     let service = find(objects, "Service", "stillmap-server");
     for p in service["spec"]["ports"].as_sequence().expect("service ports") {
@@ -252,7 +264,7 @@ fn the_dockerfile_uses_the_install_script_and_its_packaging_step_works() {
     // The image's defaults are what the pod sets.
     let container = check_server(&objects(&unrendered_base()));
     for (key, value) in env_of(&container) {
-        if ["STILLMAP_ZENOH_CONNECT", "STILLMAP_TOKEN_FILE", "STILLMAP_SERVER_ID"].contains(&key.as_str()) {
+        if ["STILLMAP_ZENOH_CONNECT", "STILLMAP_TOKEN_FILE", "STILLMAP_SERVER_ID", "STILLMAP_REPLICA_URL"].contains(&key.as_str()) {
             continue; // set by the deployment, not the image
         }
         assert!(dockerfile.contains(&format!("{key}={value}")), "the Dockerfile's {key} is not {value}");
@@ -274,14 +286,17 @@ fn the_dockerfile_uses_the_install_script_and_its_packaging_step_works() {
 }
 
 /// The compose file: a router and two servers that connect to it, each with its own
-/// store volume and host ports, the router's configuration the Kubernetes one.
+/// store volume and host ports, the router's configuration the Kubernetes one, and
+/// the PostgreSQL both copy their commits to.
 #[test]
 fn the_compose_file_connects_two_servers_to_the_router() {
     let mut compose: Value = serde_yaml::from_str(&read(&deploy().join("compose.yaml"))).expect("compose YAML");
     compose.apply_merge().expect("merge keys");
     let services = compose["services"].as_mapping().expect("services");
     let names: BTreeSet<&str> = services.keys().filter_map(Value::as_str).collect();
-    assert_eq!(names, BTreeSet::from(["router", "server-a", "server-b"]));
+    assert_eq!(names, BTreeSet::from(["postgres", "router", "server-a", "server-b"]));
+    let pg = &compose["services"]["postgres"];
+    let (user, db) = (pg["environment"]["POSTGRES_USER"].as_str(), pg["environment"]["POSTGRES_DB"].as_str());
     let router_config = compose["services"]["router"]["volumes"][0].as_str().expect("router volume");
     let (host, _) = router_config.split_once(':').expect("host:container");
     assert!(deploy().join(host).exists(), "{host}");
@@ -293,6 +308,10 @@ fn the_compose_file_connects_two_servers_to_the_router() {
         let env = &s["environment"];
         assert_eq!(env["STILLMAP_ZENOH_CONNECT"].as_str(), Some("tcp/router:7447"), "{name}");
         assert_eq!(env["STILLMAP_SERVER_ID"].as_str(), Some(name), "{name}: its own id on Zenoh");
+        let replica = env["STILLMAP_REPLICA_URL"].as_str().expect("the shared PostgreSQL");
+        let expected = format!("postgresql://{}@postgres:5432/{}", user.expect("user"), db.expect("database"));
+        assert_eq!(replica, expected, "{name}: the compose file's PostgreSQL, its user and database");
+        assert!(s["depends_on"].as_sequence().is_some_and(|d| d.iter().any(|d| d.as_str() == Some("postgres"))), "{name}");
         for p in s["ports"].as_sequence().expect("ports") {
             let p = p.as_str().expect("port mapping");
             assert!(host_ports.insert(p.split(':').next().expect("host port").to_string()), "host port of {p} used twice");
