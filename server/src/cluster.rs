@@ -291,14 +291,18 @@ impl Forwarder {
             .collect()
     }
 
-    /// Every other live server's answer to a unary gRPC query (server id, status, encoded response).
-    async fn ask_grpc(&self, call: &ForwardedCall, request: Vec<u8>) -> Vec<(String, ForwardedStatus, Vec<u8>)> {
-        let Ok(head) = serde_json::to_vec(call) else { return Vec::new() };
+    /// Every other live server's answer to a unary gRPC query (server id, status,
+    /// encoded response), and whether every one of them answered.
+    async fn ask_grpc(&self, call: &ForwardedCall, request: Vec<u8>) -> (Vec<(String, ForwardedStatus, Vec<u8>)>, bool) {
+        let Ok(head) = serde_json::to_vec(call) else { return (Vec::new(), false) };
+        let asked: BTreeSet<String> = self.membership.servers().into_iter().filter(|s| *s != self.membership.own).collect();
         let replies = self.ask_raw(keys::server_grpc, &call.method, request, Some(head)).await;
-        replies
+        let answers: Vec<(String, ForwardedStatus, Vec<u8>)> = replies
             .into_iter()
             .filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<ForwardedStatus>(&head).ok()?, body)))
-            .collect()
+            .collect();
+        let all = asked.iter().all(|s| answers.iter().any(|(server, _, _)| server == s));
+        (answers, all)
     }
 
     /// The first answer from another live server that is not a 404, if any.
@@ -327,9 +331,12 @@ struct ForwardedCall {
 }
 
 /// The gRPC status of a forwarded query's answer (its response message is the
-/// reply's payload when the code is OK).
+/// reply's payload when the code is OK), and whether the answering server holds
+/// what it is about (only a holder's answer counts: another server's NOT_FOUND, or
+/// its refusal, says nothing about the session).
 #[derive(Debug, serde::Serialize, serde::Deserialize)]
 struct ForwardedStatus {
+    held: bool,
     code: i32,
     message: String,
 }
@@ -338,8 +345,11 @@ struct ForwardedStatus {
 impl crate::api::query::Remote for Forwarder {
     async fn call(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Option<Result<Vec<u8>, tonic::Status>> {
         let call = ForwardedCall { method: method.to_string(), authorization };
-        let (_, status, body) =
-            self.ask_grpc(&call, request).await.into_iter().find(|(_, status, _)| status.code != tonic::Code::NotFound as i32)?;
+        let (answers, all_answered) = self.ask_grpc(&call, request).await;
+        let Some((_, status, body)) = answers.into_iter().find(|(_, status, _)| status.held) else {
+            return (!all_answered)
+                .then(|| Err(tonic::Status::unavailable(format!("{method}: not held here, and a server of the cluster did not answer"))));
+        };
         Some(match tonic::Code::from_i32(status.code) {
             tonic::Code::Ok => Ok(body),
             code => Err(tonic::Status::new(code, status.message)),
@@ -349,7 +359,8 @@ impl crate::api::query::Remote for Forwarder {
     async fn gather(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Vec<Vec<u8>> {
         let call = ForwardedCall { method: method.to_string(), authorization };
         let ok = tonic::Code::Ok as i32;
-        self.ask_grpc(&call, request).await.into_iter().filter(|(_, status, _)| status.code == ok).map(|(_, _, body)| body).collect()
+        let (answers, _) = self.ask_grpc(&call, request).await;
+        answers.into_iter().filter(|(_, status, _)| status.code == ok).map(|(_, _, body)| body).collect()
     }
 }
 
@@ -419,7 +430,7 @@ fn forwardable_path(path: &str) -> bool {
 /// Forwarded queries answered at once; more wait.
 const MAX_FORWARDED_AT_ONCE: usize = 16;
 /// Longest a forwarded query may take here (a map export included).
-const FORWARDED_ANSWER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+pub const FORWARDED_ANSWER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// Answers the GETs other servers forward here with this server's HTTP API `app`,
 /// until `shutdown` fires: only a session's or a map's paths and the sessions list,
@@ -510,8 +521,10 @@ pub async fn answer_forwarded_grpc(
         let Ok(slot) = slots.clone().acquire_owned().await else { break };
         tokio::spawn(async move {
             let _slot = slot;
-            let status = |code: tonic::Code, message: &str| ForwardedStatus { code: code as i32, message: message.to_string() };
             let call = query.attachment().and_then(|a| serde_json::from_slice::<ForwardedCall>(&a.to_bytes()).ok());
+            let request = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+            let held = call.as_ref().is_some_and(|c| service.holds(&c.method, &request));
+            let status = |code: tonic::Code, message: &str| ForwardedStatus { held, code: code as i32, message: message.to_string() };
             let (head, body) = match call {
                 None => {
                     (status(tonic::Code::InvalidArgument, "a forwarded gRPC query needs a JSON attachment {method, authorization}"), vec![])
@@ -521,14 +534,11 @@ pub async fn answer_forwarded_grpc(
                         let refused = refusal.grpc_status();
                         (status(refused.code(), refused.message()), vec![])
                     }
-                    Ok(()) => {
-                        let request = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
-                        match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, service.answer(&call.method, &request)).await {
-                            Ok(Ok(body)) => (status(tonic::Code::Ok, ""), body),
-                            Ok(Err(failed)) => (status(failed.code(), failed.message()), vec![]),
-                            Err(_) => (status(tonic::Code::DeadlineExceeded, "answer took too long"), vec![]),
-                        }
-                    }
+                    Ok(()) => match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, service.answer(&call.method, &request)).await {
+                        Ok(Ok(body)) => (status(tonic::Code::Ok, ""), body),
+                        Ok(Err(failed)) => (status(failed.code(), failed.message()), vec![]),
+                        Err(_) => (status(tonic::Code::DeadlineExceeded, "answer took too long"), vec![]),
+                    },
                 },
             };
             let attachment = serde_json::to_vec(&head).unwrap_or_default();

@@ -230,7 +230,9 @@ pub struct StoreConfig {
     /// Storage shared by several servers: every commit (a session's description,
     /// new poses, keyframe records and changed map blocks) is copied to this
     /// PostgreSQL database too (a libpq URL, `postgresql://user@host:port/db`, or
-    /// key=value string; empty, the default: no copy). Needs `store.enabled`.
+    /// key=value string; empty, the default: no copy), except those left out and
+    /// counted (`replica.rs`: a full queue, a refusal, a failure at shutdown).
+    /// Needs `store.enabled`.
     pub replica_url: String,
     /// Commits waiting to be copied at most (default 256); a commit finding the
     /// queue full is not copied (`stillmap_replica_dropped_total`).

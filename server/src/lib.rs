@@ -61,9 +61,10 @@ use session::Registry;
 
 /// Time given to open streams after a shutdown signal before the server stops anyway.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
-/// How long a server waits for the others to answer a forwarded query.
+/// How long a server waits for the others to answer a forwarded query: longer than
+/// they take at most (their answer, a timeout included, comes back).
 #[cfg(feature = "zenoh")]
-const FORWARD_TIMEOUT: Duration = Duration::from_secs(5);
+const FORWARD_TIMEOUT: Duration = Duration::from_secs(cluster::FORWARDED_ANSWER_TIMEOUT.as_secs() + 5);
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {

@@ -61,6 +61,8 @@ pub struct ReplicaCounters {
 }
 
 /// The tables, created when missing. Keys are the store's; values its encodings.
+/// A pose's `sequence` is the robot's `u64` with its bits kept (`as i64`: above
+/// 2⁶³ it reads negative).
 pub const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS stillmap_sessions (
     id text PRIMARY KEY,
@@ -103,29 +105,55 @@ pub enum ReplicaError {
 pub struct Replica {
     jobs: std::sync::Mutex<Option<SyncSender<ReplicaCommit>>>,
     counters: ReplicaCounters,
-    worker: std::sync::Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// Told when the thread has finished (it is never joined: a stuck connection
+    /// must not hold the server's shutdown).
+    done: std::sync::Mutex<Receiver<()>>,
     /// The server whose commits these are (its cluster id once known).
     server_id: Arc<std::sync::Mutex<String>>,
-    /// Set at shutdown: while PostgreSQL cannot be reached, stop retrying.
+    /// Set at shutdown: the thread copies what is queued while PostgreSQL answers,
+    /// and stops retrying when it does not.
     closing: Arc<AtomicBool>,
 }
+
+/// Longest wait for a connection, and for one statement (a stalled peer must not
+/// hold the thread for ever).
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+const STATEMENT_TIMEOUT_MS: u32 = 30_000;
+/// Longest wait between attempts while PostgreSQL fails.
+const MAX_RETRY_WAIT: Duration = Duration::from_secs(30);
+/// A commit PostgreSQL itself refuses (a permission, a full disk, another schema)
+/// is tried this many times, then left out (counted as dropped).
+const REFUSED_ATTEMPTS: u32 = 5;
+/// At shutdown, how long the queued commits may take to be copied.
+const CLOSE_WAIT: Duration = Duration::from_secs(10);
 
 impl Replica {
     /// Parses `url` (a libpq URL or key=value string; checked now, connected to on
     /// the thread) and starts the thread copying this server's commits, at most
     /// `queue` waiting.
     pub fn start(url: &str, queue: usize, counters: ReplicaCounters) -> Result<Arc<Self>, ReplicaError> {
-        let config: postgres::Config = url.parse().map_err(|e: postgres::Error| ReplicaError::Url(e.to_string()))?;
+        let mut config: postgres::Config = url.parse().map_err(|e: postgres::Error| ReplicaError::Url(e.to_string()))?;
+        config
+            .connect_timeout(CONNECT_TIMEOUT)
+            .keepalives(true)
+            .keepalives_idle(Duration::from_secs(30))
+            .keepalives_interval(Duration::from_secs(10))
+            .keepalives_retries(3)
+            .options(&format!("-c statement_timeout={STATEMENT_TIMEOUT_MS}"));
         let (tx, rx) = std::sync::mpsc::sync_channel(queue.max(1));
+        let (done_tx, done_rx) = std::sync::mpsc::channel();
         let server_id = Arc::new(std::sync::Mutex::new(String::new()));
         let closing = Arc::new(AtomicBool::new(false));
         let (worker_id, worker_counters, worker_closing) = (server_id.clone(), counters.clone(), closing.clone());
-        let worker = std::thread::Builder::new()
+        std::thread::Builder::new()
             .name("replica".into())
-            .spawn(move || copy(config, &worker_id, rx, &worker_counters, &worker_closing))
+            .spawn(move || {
+                copy(config, &worker_id, rx, &worker_counters, &worker_closing);
+                let _ = done_tx.send(());
+            })
             .map_err(ReplicaError::Thread)?;
-        let worker = std::sync::Mutex::new(Some(worker));
-        Ok(Arc::new(Self { jobs: std::sync::Mutex::new(Some(tx)), counters, worker, server_id, closing }))
+        let done = std::sync::Mutex::new(done_rx);
+        Ok(Arc::new(Self { jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing }))
     }
 
     /// Names the server in the rows it writes from now on (`stillmap_sessions.server_id`).
@@ -146,19 +174,28 @@ impl Replica {
         }
     }
 
-    /// Copies what is queued, then stops the thread (at shutdown; while PostgreSQL
-    /// cannot be reached, what is queued is left, counted as dropped).
+    /// At shutdown: copies what is queued, waiting at most [`CLOSE_WAIT`]; while
+    /// PostgreSQL fails, what is queued is left (counted as dropped).
     pub fn close(&self) {
         self.closing.store(true, Ordering::SeqCst);
         crate::lock(&self.jobs).take();
-        if let Some(worker) = crate::lock(&self.worker).take() {
-            let _ = worker.join();
+        if crate::lock(&self.done).recv_timeout(CLOSE_WAIT).is_err() {
+            tracing::warn!("replica: the copy to PostgreSQL did not finish within {CLOSE_WAIT:?} of shutdown; left behind");
         }
     }
 }
 
+/// Waits `wait` in short steps, returning early when the server shuts down.
+fn pause(wait: Duration, closing: &AtomicBool) {
+    let until = Instant::now() + wait;
+    while Instant::now() < until && !closing.load(Ordering::SeqCst) {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
 /// The replica thread: connects (again, with a growing wait, while it fails) and
-/// writes each commit in one transaction, until the queue closes.
+/// writes each commit in one transaction, until the queue closes. At shutdown,
+/// a failure ends it (what is left is counted as dropped).
 fn copy(
     config: postgres::Config,
     server_id: &std::sync::Mutex<String>,
@@ -168,29 +205,26 @@ fn copy(
 ) {
     let mut client: Option<postgres::Client> = None;
     let mut wait = Duration::from_secs(1);
+    let give_up = |left: u64| {
+        counters.dropped.inc_by(left);
+        tracing::warn!(left, "replica: PostgreSQL fails at shutdown; these commits are not copied");
+    };
     for commit in rx.iter() {
+        let mut refused = 0;
         loop {
-            if client.is_none() && closing.load(Ordering::SeqCst) && wait > Duration::from_secs(1) {
-                // Shutting down and PostgreSQL still cannot be reached: the server's own store has it all.
-                let left = 1 + rx.try_iter().count();
-                counters.dropped.inc_by(left as u64);
-                tracing::warn!(left, "replica: PostgreSQL cannot be reached at shutdown; these commits are not copied");
-                return;
-            }
             if client.is_none() {
                 match config.connect(postgres::NoTls).and_then(|mut c| c.batch_execute(SCHEMA).map(|()| c)) {
                     Ok(c) => {
                         tracing::info!("replica: connected to PostgreSQL");
                         client = Some(c);
-                        wait = Duration::from_secs(1);
                     }
                     Err(e) => {
-                        tracing::warn!("replica: PostgreSQL cannot be reached ({e}); again in {} s", wait.as_secs());
-                        let until = Instant::now() + wait;
-                        while Instant::now() < until && !closing.load(Ordering::SeqCst) {
-                            std::thread::sleep(Duration::from_millis(100));
+                        if closing.load(Ordering::SeqCst) {
+                            return give_up(1 + rx.try_iter().count() as u64);
                         }
-                        wait = (wait * 2).min(Duration::from_secs(30));
+                        tracing::warn!("replica: PostgreSQL cannot be reached ({e}); again in {} s", wait.as_secs());
+                        pause(wait, closing);
+                        wait = (wait * 2).min(MAX_RETRY_WAIT);
                         continue;
                     }
                 }
@@ -203,11 +237,25 @@ fn copy(
                     counters.commits.inc();
                     counters.bytes.inc_by(commit.bytes() as u64);
                     counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
+                    wait = Duration::from_secs(1);
                     break;
                 }
                 Err(e) => {
-                    tracing::warn!(session = %commit.session_id, "replica: commit not written ({e}); reconnecting");
+                    // Refused by PostgreSQL itself: the same commit is likely refused
+                    // again; a few tries, then it is left out.
+                    refused += u32::from(e.as_db_error().is_some());
+                    if refused >= REFUSED_ATTEMPTS {
+                        counters.dropped.inc();
+                        tracing::error!(session = %commit.session_id, "replica: PostgreSQL refuses this commit ({e}); left out");
+                        break;
+                    }
+                    if closing.load(Ordering::SeqCst) {
+                        return give_up(1 + rx.try_iter().count() as u64);
+                    }
+                    tracing::warn!(session = %commit.session_id, "replica: commit not written ({e}); again in {} s", wait.as_secs());
                     client = None;
+                    pause(wait, closing);
+                    wait = (wait * 2).min(MAX_RETRY_WAIT);
                 }
             }
         }

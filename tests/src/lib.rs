@@ -445,6 +445,12 @@ impl Postgres {
 
 impl Drop for Postgres {
     fn drop(&mut self) {
+        // SIGINT: PostgreSQL's fast shutdown (its backends end with it).
+        let _ = Command::new("kill").arg("-INT").arg(self.child.id().to_string()).status();
+        let stopping = Instant::now();
+        while matches!(self.child.try_wait(), Ok(None)) && stopping.elapsed() < Duration::from_secs(10) {
+            std::thread::sleep(Duration::from_millis(50));
+        }
         let _ = self.child.kill();
         let _ = self.child.wait();
         let _ = std::fs::remove_dir_all(&self.dir);

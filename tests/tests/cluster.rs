@@ -265,7 +265,10 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
         let mut here = QueryClient::connect(holder.grpc_url()).await.expect("connect");
         let mut there = QueryClient::connect(other.grpc_url()).await.expect("connect");
         let (_, list) = holder.get_json("/api/v1/sessions").await;
-        for s in list["sessions"].as_array().expect("sessions").iter().filter(|s| s["server_id"] == holder_id) {
+        let held: Vec<&serde_json::Value> =
+            list["sessions"].as_array().expect("sessions").iter().filter(|s| s["server_id"] == holder_id).collect();
+        assert!(!held.is_empty(), "{holder_id} holds sessions");
+        for s in held {
             let id = s["session_id"].as_str().expect("session_id").to_string();
             let session = pb::SessionRef { session_id: id.clone() };
             let latest = there.get_latest_pose(session.clone()).await.expect("latest pose from the other server").into_inner();

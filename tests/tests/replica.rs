@@ -79,7 +79,7 @@ async fn every_commit_is_copied_to_postgres() {
 }
 
 /// PostgreSQL down: the robot is served as ever (the server's own store has
-/// everything), the commits not copied are counted, and the server stops promptly.
+/// everything), nothing is counted as copied, and the server stops promptly.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_server_whose_postgres_is_down_serves_all_the_same() {
     let nowhere = format!("postgresql://stillmap@127.0.0.1:{}/postgres", free_port());
@@ -102,6 +102,7 @@ async fn a_server_whose_postgres_is_down_serves_all_the_same() {
     assert_eq!(summary["poses_returned"], 60, "{summary}");
     let (status, health) = server.get_json("/healthz").await;
     assert_eq!(status, 200, "the server's own store is healthy: {health}");
+    assert_eq!(metric(&server.get_text("/metrics").await, "stillmap_replica_commits_total"), 0);
     let stopping = Instant::now();
     server.terminate();
     assert!(stopping.elapsed() < Duration::from_secs(10), "stopped in {:?}", stopping.elapsed());

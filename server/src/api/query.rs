@@ -24,8 +24,9 @@ pub const FORWARDED_METHODS: [&str; 4] = ["ListSessions", "GetLatestPose", "GetT
 /// The other servers of a cluster, asked what this one does not hold.
 #[tonic::async_trait]
 pub trait Remote: Send + Sync {
-    /// The first answer of another server that is not NOT_FOUND (the encoded
-    /// response message, or its status); `None` when no other server holds it.
+    /// The answer of the other server holding what the query is about (the encoded
+    /// response message, or its status); UNAVAILABLE when none holds it and some
+    /// server did not answer; `None` when every other server answered and none holds it.
     async fn call(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Option<Result<Vec<u8>, Status>>;
     /// Every other server's successful answer.
     async fn gather(&self, method: &'static str, request: Vec<u8>, authorization: Option<String>) -> Vec<Vec<u8>>;
@@ -65,6 +66,18 @@ impl QueryService {
             Some(Err(status)) => Err(status),
             None => Err(Self::unknown(id)),
         }
+    }
+
+    /// Whether this server holds what a forwarded query (`method`, `request` its
+    /// encoded message) is about: the session it names (the sessions list: always).
+    pub fn holds(&self, method: &str, request: &[u8]) -> bool {
+        let session_id = match method {
+            "GetLatestPose" => pb::SessionRef::decode(request).map(|r| r.session_id),
+            "GetTrajectory" => pb::TrajectoryRequest::decode(request).map(|r| r.session_id),
+            "GetMapTile" => pb::MapTileRequest::decode(request).map(|r| r.session_id),
+            _ => return method == "ListSessions",
+        };
+        session_id.is_ok_and(|id| self.registry.get(&id).is_some())
     }
 
     /// Answers a unary query forwarded by another server (`method` one of
