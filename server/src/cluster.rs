@@ -233,11 +233,20 @@ struct Forwarded {
     authorization: Option<String>,
 }
 
-/// The status and type of a forwarded answer (its body is the reply's payload).
+/// The status and type of a forwarded answer (its body is the reply's payload),
+/// and whether the answering server holds the session or map the path names
+/// (only a holder's answer counts; the sessions list is held by every server).
 #[derive(Debug, serde::Serialize, serde::Deserialize)]
 struct ForwardedHead {
+    held: bool,
     status: u16,
     content_type: Option<String>,
+}
+
+/// The session (or map) id a forwardable path names, if any.
+fn named_session(path: &str) -> Option<&str> {
+    let rest = path.strip_prefix("/api/v1/sessions/").or_else(|| path.strip_prefix("/api/v1/maps/"))?;
+    rest.split('/').next().filter(|id| !id.is_empty())
 }
 
 /// Asks the other live servers for what this one does not hold.
@@ -281,21 +290,29 @@ impl Forwarder {
     }
 
     /// Every other live server's answer to `request` (server id, status and type,
-    /// body), in the order the servers are listed.
-    async fn ask(&self, request: &Forwarded) -> Vec<(String, ForwardedHead, Vec<u8>)> {
-        let Ok(payload) = serde_json::to_vec(request) else { return Vec::new() };
+    /// body), in the order the servers are listed, and whether every one answered.
+    async fn ask(&self, request: &Forwarded) -> (Vec<(String, ForwardedHead, Vec<u8>)>, bool) {
+        let Ok(payload) = serde_json::to_vec(request) else { return (Vec::new(), false) };
+        let asked = self.others();
         let replies = self.ask_raw(keys::server_http, &request.path_and_query, payload, None).await;
-        replies
+        let answers: Vec<(String, ForwardedHead, Vec<u8>)> = replies
             .into_iter()
             .filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<ForwardedHead>(&head).ok()?, body)))
-            .collect()
+            .collect();
+        let all = asked.iter().all(|s| answers.iter().any(|(server, _, _)| server == s));
+        (answers, all)
+    }
+
+    /// The other live servers.
+    fn others(&self) -> BTreeSet<String> {
+        self.membership.servers().into_iter().filter(|s| *s != self.membership.own).collect()
     }
 
     /// Every other live server's answer to a unary gRPC query (server id, status,
     /// encoded response), and whether every one of them answered.
     async fn ask_grpc(&self, call: &ForwardedCall, request: Vec<u8>) -> (Vec<(String, ForwardedStatus, Vec<u8>)>, bool) {
         let Ok(head) = serde_json::to_vec(call) else { return (Vec::new(), false) };
-        let asked: BTreeSet<String> = self.membership.servers().into_iter().filter(|s| *s != self.membership.own).collect();
+        let asked = self.others();
         let replies = self.ask_raw(keys::server_grpc, &call.method, request, Some(head)).await;
         let answers: Vec<(String, ForwardedStatus, Vec<u8>)> = replies
             .into_iter()
@@ -305,9 +322,16 @@ impl Forwarder {
         (answers, all)
     }
 
-    /// The first answer from another live server that is not a 404, if any.
+    /// The answer of the other live server holding what `request` names; 503 when
+    /// none holds it and some server did not answer; `None` when none holds it.
     async fn forward(&self, request: &Forwarded) -> Option<Response> {
-        let (_, head, body) = self.ask(request).await.into_iter().find(|(_, head, _)| head.status != StatusCode::NOT_FOUND.as_u16())?;
+        let (answers, all_answered) = self.ask(request).await;
+        let Some((_, head, body)) = answers.into_iter().find(|(_, head, _)| head.held) else {
+            return (!all_answered).then(|| {
+                let error = serde_json::json!({"error": "not held by this server, and a server of the cluster did not answer"});
+                (StatusCode::SERVICE_UNAVAILABLE, axum::Json(error)).into_response()
+            });
+        };
         let status = StatusCode::from_u16(head.status).unwrap_or(StatusCode::BAD_GATEWAY);
         let mut response = (status, body).into_response();
         if let Some(t) = head.content_type.and_then(|t| HeaderValue::from_str(&t).ok()) {
@@ -319,7 +343,8 @@ impl Forwarder {
     /// Every other live server's 200 answer to `request`, with its server id.
     async fn gather(&self, request: &Forwarded) -> Vec<(String, Vec<u8>)> {
         let ok = StatusCode::OK.as_u16();
-        self.ask(request).await.into_iter().filter(|(_, head, _)| head.status == ok).map(|(server, _, body)| (server, body)).collect()
+        let (answers, _) = self.ask(request).await;
+        answers.into_iter().filter(|(_, head, _)| head.status == ok).map(|(server, _, body)| (server, body)).collect()
     }
 }
 
@@ -439,6 +464,7 @@ pub async fn answer_forwarded(
     zenoh: zenoh::Session,
     server_id: String,
     app: axum::Router,
+    registry: Arc<Registry>,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
     let key = keys::server_http(&server_id);
@@ -449,8 +475,7 @@ pub async fn answer_forwarded(
             q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
             _ = shutdown.changed() => break,
         };
-        let app = app.clone();
-        let key = key.clone();
+        let (app, key, registry) = (app.clone(), key.clone(), registry.clone());
         let Ok(slot) = slots.clone().acquire_owned().await else { break };
         tokio::spawn(async move {
             let _slot = slot;
@@ -463,6 +488,7 @@ pub async fn answer_forwarded(
                 let _ = query.reply_err(format!("{path} is not forwarded between servers")).await;
                 return;
             }
+            let held = named_session(path).is_none_or(|id| registry.info(id).is_some());
             let mut request = Request::get(&forwarded.path_and_query).header(FORWARDED_HEADER, "1");
             if let Some(auth) = &forwarded.authorization {
                 request = request.header(header::AUTHORIZATION, auth);
@@ -476,18 +502,19 @@ pub async fn answer_forwarded(
                 let status = response.status().as_u16();
                 let content_type = response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).map(str::to_owned);
                 match axum::body::to_bytes(response.into_body(), MAX_FORWARDED_BYTES).await {
-                    Ok(body) => (ForwardedHead { status, content_type }, body.to_vec()),
+                    Ok(body) => (ForwardedHead { held, status, content_type }, body.to_vec()),
                     Err(_) => (
-                        ForwardedHead { status: StatusCode::BAD_GATEWAY.as_u16(), content_type: None },
+                        ForwardedHead { held, status: StatusCode::BAD_GATEWAY.as_u16(), content_type: None },
                         b"answer too large to forward".to_vec(),
                     ),
                 }
             };
             let (head, body) = match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, answer).await {
                 Ok(answered) => answered,
-                Err(_) => {
-                    (ForwardedHead { status: StatusCode::GATEWAY_TIMEOUT.as_u16(), content_type: None }, b"answer took too long".to_vec())
-                }
+                Err(_) => (
+                    ForwardedHead { held, status: StatusCode::GATEWAY_TIMEOUT.as_u16(), content_type: None },
+                    b"answer took too long".to_vec(),
+                ),
             };
             let attachment = serde_json::to_vec(&head).unwrap_or_default();
             if let Err(e) = query.reply(&key, body).attachment(attachment).await {
@@ -553,6 +580,15 @@ pub async fn answer_forwarded_grpc(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_forwarded_path_names_its_session() {
+        assert_eq!(named_session("/api/v1/sessions/r-6b1-1/pose"), Some("r-6b1-1"));
+        assert_eq!(named_session("/api/v1/sessions/r-6b1-1"), Some("r-6b1-1"));
+        assert_eq!(named_session("/api/v1/maps/r-6b1-1/tiles/0/0/0.png"), Some("r-6b1-1"));
+        assert_eq!(named_session("/api/v1/sessions/"), None);
+        assert_eq!(named_session("/api/v1/sessions"), None, "the list: every server holds it");
+    }
 
     #[test]
     fn membership_decides_ownership_over_the_live_servers() {

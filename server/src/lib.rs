@@ -385,7 +385,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     #[cfg(feature = "zenoh")]
     let (http_app, forward_task) = match &zenoh_task {
         Some((z, _, _, forwarder, server_id, _)) => {
-            let answering = cluster::answer_forwarded(z.clone(), server_id.clone(), http_app.clone(), shutdown.clone());
+            let answering = cluster::answer_forwarded(z.clone(), server_id.clone(), http_app.clone(), registry.clone(), shutdown.clone());
             // Forwarded gRPC queries are answered by this server alone (never forwarded again).
             let alone = Arc::new(api::query::QueryService { registry: registry.clone(), remote: None });
             let answering_grpc = cluster::answer_forwarded_grpc(z.clone(), server_id.clone(), alone, auth.clone(), shutdown.clone());

@@ -77,7 +77,7 @@ impl QueryService {
             "GetMapTile" => pb::MapTileRequest::decode(request).map(|r| r.session_id),
             _ => return method == "ListSessions",
         };
-        session_id.is_ok_and(|id| self.registry.get(&id).is_some())
+        session_id.is_ok_and(|id| self.registry.info(&id).is_some())
     }
 
     /// Answers a unary query forwarded by another server (`method` one of
