@@ -465,20 +465,11 @@ pub async fn answer_forwarded(
     server_id: String,
     app: axum::Router,
     registry: Arc<Registry>,
-    mut shutdown: tokio::sync::watch::Receiver<bool>,
+    shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
-    let key = keys::server_http(&server_id);
-    let queryable = zenoh.declare_queryable(&key).await.map_err(|e| ServerError::Zenoh(format!("queryable {key}: {e}")))?;
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_FORWARDED_AT_ONCE));
-    loop {
-        let query = tokio::select! {
-            q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
-            _ = shutdown.changed() => break,
-        };
-        let (app, key, registry) = (app.clone(), key.clone(), registry.clone());
-        let Ok(slot) = slots.clone().acquire_owned().await else { break };
-        tokio::spawn(async move {
-            let _slot = slot;
+    serve_queries(&zenoh, keys::server_http(&server_id), shutdown, move |query, key| {
+        let (app, registry) = (app.clone(), registry.clone());
+        async move {
             let Some(forwarded) = query.payload().and_then(|p| serde_json::from_slice::<Forwarded>(&p.to_bytes()).ok()) else {
                 let _ = query.reply_err("a forwarded request must be JSON {path_and_query, authorization}").await;
                 return;
@@ -520,6 +511,35 @@ pub async fn answer_forwarded(
             if let Err(e) = query.reply(&key, body).attachment(attachment).await {
                 tracing::warn!(key, "forwarded answer not sent: {e}");
             }
+        }
+    })
+    .await
+}
+
+/// Answers the queries on `key` with `answer` (the query and the key), until
+/// `shutdown` fires: at most [`MAX_FORWARDED_AT_ONCE`] at once, more wait.
+async fn serve_queries<F, A>(
+    zenoh: &zenoh::Session,
+    key: String,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+    answer: F,
+) -> Result<(), ServerError>
+where
+    F: Fn(zenoh::query::Query, String) -> A,
+    A: std::future::Future<Output = ()> + Send + 'static,
+{
+    let queryable = zenoh.declare_queryable(&key).await.map_err(|e| ServerError::Zenoh(format!("queryable {key}: {e}")))?;
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_FORWARDED_AT_ONCE));
+    loop {
+        let query = tokio::select! {
+            q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
+            _ = shutdown.changed() => break,
+        };
+        let Ok(slot) = slots.clone().acquire_owned().await else { break };
+        let answered = answer(query, key.clone());
+        tokio::spawn(async move {
+            let _slot = slot;
+            answered.await;
         });
     }
     Ok(())
@@ -534,20 +554,11 @@ pub async fn answer_forwarded_grpc(
     server_id: String,
     service: Arc<crate::api::query::QueryService>,
     auth: Arc<crate::auth::AuthHandle>,
-    mut shutdown: tokio::sync::watch::Receiver<bool>,
+    shutdown: tokio::sync::watch::Receiver<bool>,
 ) -> Result<(), ServerError> {
-    let key = keys::server_grpc(&server_id);
-    let queryable = zenoh.declare_queryable(&key).await.map_err(|e| ServerError::Zenoh(format!("queryable {key}: {e}")))?;
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_FORWARDED_AT_ONCE));
-    loop {
-        let query = tokio::select! {
-            q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
-            _ = shutdown.changed() => break,
-        };
-        let (service, auth, key) = (service.clone(), auth.clone(), key.clone());
-        let Ok(slot) = slots.clone().acquire_owned().await else { break };
-        tokio::spawn(async move {
-            let _slot = slot;
+    serve_queries(&zenoh, keys::server_grpc(&server_id), shutdown, move |query, key| {
+        let (service, auth) = (service.clone(), auth.clone());
+        async move {
             let call = query.attachment().and_then(|a| serde_json::from_slice::<ForwardedCall>(&a.to_bytes()).ok());
             let request = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
             let held = call.as_ref().is_some_and(|c| service.holds(&c.method, &request));
@@ -572,9 +583,9 @@ pub async fn answer_forwarded_grpc(
             if let Err(e) = query.reply(&key, body).attachment(attachment).await {
                 tracing::warn!(key, "forwarded gRPC answer not sent: {e}");
             }
-        });
-    }
-    Ok(())
+        }
+    })
+    .await
 }
 
 #[cfg(test)]
