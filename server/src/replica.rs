@@ -222,7 +222,7 @@ fn copy(
                         if closing.load(Ordering::SeqCst) {
                             return give_up(1 + rx.try_iter().count() as u64);
                         }
-                        tracing::warn!("replica: PostgreSQL cannot be reached ({e}); again in {} s", wait.as_secs());
+                        tracing::warn!("replica: PostgreSQL cannot be reached ({}); again in {} s", describe(&e), wait.as_secs());
                         pause(wait, closing);
                         wait = (wait * 2).min(MAX_RETRY_WAIT);
                         continue;
@@ -246,19 +246,27 @@ fn copy(
                     refused += u32::from(e.as_db_error().is_some());
                     if refused >= REFUSED_ATTEMPTS {
                         counters.dropped.inc();
-                        tracing::error!(session = %commit.session_id, "replica: PostgreSQL refuses this commit ({e}); left out");
+                        tracing::error!(session = %commit.session_id, "replica: PostgreSQL refuses this commit ({}); left out", describe(&e));
                         break;
                     }
                     if closing.load(Ordering::SeqCst) {
                         return give_up(1 + rx.try_iter().count() as u64);
                     }
-                    tracing::warn!(session = %commit.session_id, "replica: commit not written ({e}); again in {} s", wait.as_secs());
+                    tracing::warn!(session = %commit.session_id, "replica: commit not written ({}); again in {} s", describe(&e), wait.as_secs());
                     client = None;
                     pause(wait, closing);
                     wait = (wait * 2).min(MAX_RETRY_WAIT);
                 }
             }
         }
+    }
+}
+
+/// An error with PostgreSQL's own message when it has one (its Display says only "db error").
+fn describe(e: &postgres::Error) -> String {
+    match e.as_db_error() {
+        Some(db) => format!("{} {}", db.code().code(), db.message()),
+        None => e.to_string(),
     }
 }
 

@@ -428,6 +428,20 @@ impl Postgres {
         format!("postgresql://stillmap@127.0.0.1:{}/postgres", self.port)
     }
 
+    /// Runs `sql` (several statements) as the superuser, from a thread of its own.
+    pub fn execute(&self, sql: &str) {
+        let (url, sql) = (self.url(), sql.to_string());
+        std::thread::Builder::new()
+            .name("postgres-execute".into())
+            .spawn(move || {
+                let mut client = postgres::Client::connect(&url, postgres::NoTls).expect("connect to the test's PostgreSQL");
+                client.batch_execute(&sql).expect("statements")
+            })
+            .expect("thread")
+            .join()
+            .expect("execute thread")
+    }
+
     /// A query's rows, from a thread of its own (the synchronous client runs a runtime of its own).
     pub fn query(&self, sql: &str) -> Vec<postgres::Row> {
         let (url, sql) = (self.url(), sql.to_string());

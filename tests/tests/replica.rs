@@ -107,3 +107,28 @@ async fn a_server_whose_postgres_is_down_serves_all_the_same() {
     server.terminate();
     assert!(stopping.elapsed() < Duration::from_secs(10), "stopped in {:?}", stopping.elapsed());
 }
+
+/// PostgreSQL answers but refuses every write (a role that may read only): the
+/// robot is served as ever, nothing is copied, and the server still stops promptly
+/// (the copy backs off between attempts and gives up at shutdown).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_server_whose_postgres_refuses_writes_serves_and_stops() {
+    let pg = Postgres::start();
+    pg.execute(stillmap_server::replica::SCHEMA);
+    pg.execute(
+        "CREATE ROLE reader LOGIN; GRANT CREATE, USAGE ON SCHEMA public TO reader; GRANT SELECT ON ALL TABLES IN SCHEMA public TO reader;",
+    );
+    let reader = pg.url().replace("stillmap@", "reader@");
+    let mut server = Server::start(&["--no-perception", "--replica-url", &reader]);
+    let tum = format!("tum:{}", tum_dir().display());
+    let (out, summary) =
+        run_client(&["--source", &tum, "--server", &server.grpc_url(), "--robot-id", "refused", "--rate", "max", "--max-frames", "60"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(summary.expect("summary")["poses_returned"], 60);
+    assert_eq!(metric(&server.get_text("/metrics").await, "stillmap_replica_commits_total"), 0);
+    let stopping = Instant::now();
+    server.terminate();
+    assert!(stopping.elapsed() < Duration::from_secs(12), "stopped in {:?}", stopping.elapsed());
+    let rows = pg.query("SELECT count(*) FROM stillmap_sessions")[0].get::<_, i64>(0);
+    assert_eq!(rows, 0, "nothing was written");
+}
