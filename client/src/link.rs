@@ -452,7 +452,17 @@ async fn rejoin(
         in_flight.retain(|&q| q != r.sequence);
         let _ = events.send(LinkEvent::Result(r)).await;
     }
-    if !again.resumed {
+    if again.restored {
+        // Resumed from the shared storage by a server that did not hold it: what was
+        // in flight to the server that left is not answered.
+        *moves += 1;
+        tracing::warn!("this robot's server left: its session goes on on another server from its last committed keyframe");
+        let lost: Vec<u64> = in_flight.drain(..).collect();
+        if !lost.is_empty() {
+            let _ = events.send(LinkEvent::Unanswered(lost)).await;
+        }
+        let _ = events.send(LinkEvent::Reconnected(*moves)).await;
+    } else if !again.resumed {
         *moves += 1;
         if *moves > MAX_ZENOH_MOVES {
             return Err(ClientError::Protocol(format!("{} new sessions in a row without a result: giving up", *moves)));

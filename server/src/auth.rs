@@ -235,6 +235,11 @@ pub fn new_secret() -> Result<String, getrandom::Error> {
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
+/// Whether two secrets' bytes (hashes) are the same (never for empty ones), in constant time.
+pub fn same_secret_bytes(secret: &[u8], given: &[u8]) -> bool {
+    !secret.is_empty() && constant_time_eq(secret, given)
+}
+
 /// Whether `given` is `secret` (never for an empty secret), in constant time.
 pub fn same_secret(secret: &str, given: &str) -> bool {
     !secret.is_empty() && constant_time_eq(secret.as_bytes(), given.as_bytes())

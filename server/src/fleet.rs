@@ -473,20 +473,25 @@ impl Shared {
     /// (only those can be registered), its bag of words (from all its descriptors)
     /// and `world_from_camera`.
     fn place_of(&self, camera: &Camera, k: &KeyframeRecord) -> (Arc<Place>, BowVector, Isometry3<f64>) {
-        let mut place = Place::default();
-        let mut all = Vec::with_capacity(k.features.len());
-        for ([x, y], octave, depth, descriptor) in &k.features {
-            all.push(*descriptor);
-            let ideal = camera.undistort(&Point2::new(f64::from(*x), f64::from(*y)));
-            let z = f64::from(*depth);
-            place.pixels.push(ideal);
-            place.octaves.push(*octave);
-            place.points.push((z.is_finite() && z > 0.0).then(|| camera.unproject(&ideal, z)));
-            place.descriptors.push(*descriptor);
-        }
-        let bow = self.vocabulary.transform(&all);
-        (Arc::new(place), bow, isometry(&k.world_from_camera))
+        let (place, world_from_camera) = place_of_record(camera, k);
+        let bow = self.vocabulary.transform(&place.descriptors);
+        (Arc::new(place), bow, world_from_camera)
     }
+}
+
+/// A stored keyframe as place verification sees it (every feature: its ideal pixel,
+/// octave, 3D point when it had depth, descriptor), and its `world_from_camera`.
+pub fn place_of_record(camera: &Camera, k: &KeyframeRecord) -> (Place, Isometry3<f64>) {
+    let mut place = Place::default();
+    for ([x, y], octave, depth, descriptor) in &k.features {
+        let ideal = camera.undistort(&Point2::new(f64::from(*x), f64::from(*y)));
+        let z = f64::from(*depth);
+        place.pixels.push(ideal);
+        place.octaves.push(*octave);
+        place.points.push((z.is_finite() && z > 0.0).then(|| camera.unproject(&ideal, z)));
+        place.descriptors.push(*descriptor);
+    }
+    (place, isometry(&k.world_from_camera))
 }
 
 /// tx, ty, tz, qx, qy, qz, qw as an isometry.

@@ -37,6 +37,9 @@ pub struct ReplicaCommit {
     pub keyframes: Vec<(u64, Vec<u8>)>,
     /// Changed map blocks: key and zstd-compressed bytes (the store's encoding).
     pub blocks: Vec<([i32; 3], Vec<u8>)>,
+    /// SHA-256 of the session's resume secret, with its first commit (a robot
+    /// presents the secret to resume the session on another server).
+    pub resume_secret_sha256: Option<Vec<u8>>,
 }
 
 impl ReplicaCommit {
@@ -71,6 +74,7 @@ CREATE TABLE IF NOT EXISTS stillmap_sessions (
     camera bytea,
     updated timestamptz NOT NULL DEFAULT now()
 );
+ALTER TABLE stillmap_sessions ADD COLUMN IF NOT EXISTS resume_secret_sha256 bytea;
 CREATE TABLE IF NOT EXISTS stillmap_poses (
     session_id text NOT NULL,
     sequence bigint NOT NULL,
@@ -99,10 +103,32 @@ pub enum ReplicaError {
     Url(String),
     #[error("cannot start the replica thread: {0}")]
     Thread(std::io::Error),
+    #[error("shared storage: {0}")]
+    Read(String),
+    #[error("shared storage holds a damaged session: {0}")]
+    Corrupt(String),
+}
+
+/// A session as the shared storage holds it, to resume on this server: its
+/// description, camera, trajectory, latest keyframe records and map blocks.
+pub enum ReplicaSession {
+    /// The storage does not hold it.
+    Absent,
+    /// It holds it, for another robot or with another resume secret (nothing more is read).
+    Refused(String),
+    Found(Box<crate::store::StoredSession>),
+}
+
+/// SHA-256 of a resume secret, as the shared storage keeps it.
+pub fn secret_hash(secret: &str) -> Vec<u8> {
+    use sha2::Digest as _;
+    sha2::Sha256::digest(secret.as_bytes()).to_vec()
 }
 
 /// The copy to PostgreSQL: a bounded queue and the thread that empties it.
 pub struct Replica {
+    /// Where PostgreSQL is (sessions are read back with connections of their own).
+    config: postgres::Config,
     jobs: std::sync::Mutex<Option<SyncSender<ReplicaCommit>>>,
     counters: ReplicaCounters,
     /// Told when the thread has finished (it is never joined: a stuck connection
@@ -144,16 +170,32 @@ impl Replica {
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         let server_id = Arc::new(std::sync::Mutex::new(String::new()));
         let closing = Arc::new(AtomicBool::new(false));
-        let (worker_id, worker_counters, worker_closing) = (server_id.clone(), counters.clone(), closing.clone());
+        let (worker_id, worker_counters, worker_closing, worker_config) =
+            (server_id.clone(), counters.clone(), closing.clone(), config.clone());
         std::thread::Builder::new()
             .name("replica".into())
             .spawn(move || {
-                copy(config, &worker_id, rx, &worker_counters, &worker_closing);
+                copy(worker_config, &worker_id, rx, &worker_counters, &worker_closing);
                 let _ = done_tx.send(());
             })
             .map_err(ReplicaError::Thread)?;
         let done = std::sync::Mutex::new(done_rx);
-        Ok(Arc::new(Self { jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing }))
+        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing }))
+    }
+
+    /// Reads session `id` back from PostgreSQL (its newest `keyframes` records) for
+    /// robot `robot_id` presenting `resume_secret`, on a thread and a connection of
+    /// its own. Its description is read first: the rest only for its own robot with
+    /// its secret.
+    pub fn load(&self, id: &str, robot_id: &str, resume_secret: &str, keyframes: usize) -> Result<ReplicaSession, ReplicaError> {
+        let (config, id, robot_id, secret) = (self.config.clone(), id.to_string(), robot_id.to_string(), secret_hash(resume_secret));
+        let presented = !resume_secret.is_empty();
+        std::thread::Builder::new()
+            .name("replica-read".into())
+            .spawn(move || read_session(&config, &id, &robot_id, presented.then_some(secret.as_slice()), keyframes))
+            .map_err(ReplicaError::Thread)?
+            .join()
+            .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
     }
 
     /// Names the server in the rows it writes from now on (`stillmap_sessions.server_id`).
@@ -262,6 +304,63 @@ fn copy(
     }
 }
 
+/// Session `id` as PostgreSQL holds it.
+fn read_session(
+    config: &postgres::Config,
+    id: &str,
+    robot_id: &str,
+    secret_sha256: Option<&[u8]>,
+    keyframes: usize,
+) -> Result<ReplicaSession, ReplicaError> {
+    use crate::store::{KeyframeRecord, SessionMeta, StoredSession, decode_block};
+    use prost::Message as _;
+    let read = |e: postgres::Error| ReplicaError::Read(describe(&e));
+    let corrupt = |what: &str, e: &dyn std::fmt::Display| ReplicaError::Corrupt(format!("session {id} {what}: {e}"));
+    let mut client = config.connect(postgres::NoTls).map_err(read)?;
+    let Some(row) =
+        client.query_opt("SELECT meta::text, camera, resume_secret_sha256 FROM stillmap_sessions WHERE id = $1", &[&id]).map_err(read)?
+    else {
+        return Ok(ReplicaSession::Absent);
+    };
+    let meta: SessionMeta = serde_json::from_str(row.get::<_, &str>(0)).map_err(|e| corrupt("description", &e))?;
+    if meta.robot_id != robot_id {
+        return Ok(ReplicaSession::Refused(format!("session {id} belongs to robot {:?}, not {robot_id:?}", meta.robot_id)));
+    }
+    let held: Option<&[u8]> = row.get(2);
+    if !held.zip(secret_sha256).is_some_and(|(held, given)| crate::auth::same_secret_bytes(held, given)) {
+        return Ok(ReplicaSession::Refused(format!(
+            "resuming session {id} needs the resume secret its accept returned (Hello.resume_secret)"
+        )));
+    }
+    let camera: Option<Vec<u8>> = row.get(1);
+    let camera = pb_camera(camera.as_deref()).map_err(|e| corrupt("camera", &e))?;
+    let mut poses = Vec::new();
+    for r in client.query("SELECT pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
+        poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(0)).map_err(|e| corrupt("pose", &e))?);
+    }
+    let limit = i64::try_from(keyframes).unwrap_or(i64::MAX);
+    let mut records = Vec::new();
+    for r in client
+        .query("SELECT record FROM stillmap_keyframes WHERE session_id = $1 ORDER BY id DESC LIMIT $2", &[&id, &limit])
+        .map_err(read)?
+    {
+        records.push(KeyframeRecord::from_bytes(r.get::<_, &[u8]>(0)).map_err(|e| corrupt("keyframe", &e))?);
+    }
+    records.reverse();
+    let mut blocks = Vec::new();
+    for r in client.query("SELECT x, y, z, block FROM stillmap_blocks WHERE session_id = $1", &[&id]).map_err(read)? {
+        let key = [r.get::<_, i32>(0), r.get::<_, i32>(1), r.get::<_, i32>(2)];
+        blocks.push((key, decode_block(r.get::<_, &[u8]>(3)).map_err(|e| corrupt("map block", &e))?));
+    }
+    Ok(ReplicaSession::Found(Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks })))
+}
+
+fn pb_camera(bytes: Option<&[u8]>) -> Result<stillmap_proto::pb::CameraInfo, String> {
+    use prost::Message as _;
+    let bytes = bytes.ok_or("missing")?;
+    stillmap_proto::pb::CameraInfo::decode(bytes).map_err(|e| e.to_string())
+}
+
 /// An error with PostgreSQL's own message when it has one (its Display says only "db error").
 fn describe(e: &postgres::Error) -> String {
     match e.as_db_error() {
@@ -275,10 +374,11 @@ fn write(client: &mut postgres::Client, server_id: &str, c: &ReplicaCommit) -> R
     let mut tx = client.transaction()?;
     let meta = std::str::from_utf8(&c.meta_json).unwrap_or("{}");
     tx.execute(
-        "INSERT INTO stillmap_sessions (id, server_id, meta, camera) VALUES ($1, $2, $3::text::jsonb, $4)
+        "INSERT INTO stillmap_sessions (id, server_id, meta, camera, resume_secret_sha256) VALUES ($1, $2, $3::text::jsonb, $4, $5)
          ON CONFLICT (id) DO UPDATE SET server_id = $2, meta = $3::text::jsonb,
-             camera = COALESCE($4, stillmap_sessions.camera), updated = now()",
-        &[&c.session_id, &server_id, &meta, &c.camera],
+             camera = COALESCE($4, stillmap_sessions.camera),
+             resume_secret_sha256 = COALESCE($5, stillmap_sessions.resume_secret_sha256), updated = now()",
+        &[&c.session_id, &server_id, &meta, &c.camera, &c.resume_secret_sha256],
     )?;
     // One statement per table, the rows as arrays (one round trip each).
     if !c.poses.is_empty() {
@@ -340,6 +440,7 @@ mod tests {
             poses: vec![(1, vec![0; 10])],
             keyframes: vec![(1, vec![0; 100])],
             blocks: vec![([0, 0, 0], vec![0; 1000])],
+            resume_secret_sha256: None,
         };
         assert_eq!(c.bytes(), 2 + 3 + 10 + 100 + 1000);
     }

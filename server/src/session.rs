@@ -95,6 +95,9 @@ pub struct Session {
     pub robot_id: String,
     /// What a hello resuming this session must carry (`Hello.resume_secret`).
     resume_secret: String,
+    /// A session resumed from the shared storage: where its new tracker must find
+    /// itself (taken by the first pipeline).
+    resume_anchor: Mutex<Option<crate::pipeline::track::ResumeAnchor>>,
     /// The fleet the hello named (or the default one).
     pub fleet_name: String,
     pub transport: Transport,
@@ -565,14 +568,18 @@ impl Session {
     }
 
     fn new_pipeline(&self) -> SessionPipeline {
-        SessionPipeline::new(
+        let mut pipeline = SessionPipeline::new(
             &self.id,
             &self.camera,
             &self.tracker_config,
             self.perception.as_ref(),
             self.map.as_ref().map(fuse::refuse_window),
             self.order_window,
-        )
+        );
+        if let Some(anchor) = lock(&self.resume_anchor).take() {
+            pipeline.resume_in(anchor);
+        }
+        pipeline
     }
 
     /// Publishes what a processed frame changed (pose, counters, metrics) and
@@ -876,12 +883,19 @@ struct SessionParts {
     archived: bool,
     /// What a resume must present (empty for a restored session: it cannot be resumed).
     resume_secret: String,
+    resume_anchor: Option<crate::pipeline::track::ResumeAnchor>,
 }
+
+/// A session resumed from the shared storage is found again among this many of its
+/// newest stored keyframes.
+const RESUME_KEYFRAMES: usize = 8;
 
 /// The result of a hello.
 pub struct Opened {
     pub session: Arc<Session>,
     pub resumed: bool,
+    /// Resumed from the shared storage (its server left).
+    pub restored: bool,
 }
 
 impl Registry {
@@ -1137,7 +1151,15 @@ impl Registry {
                 self.check_capacity()?;
             }
             session.attach(sink);
-            return Ok(Opened { session, resumed: true });
+            return Ok(Opened { session, resumed: true, restored: false });
+        }
+        // Another server's session (it left the cluster): resumed from the shared storage.
+        if !hello.resume_session_id.is_empty()
+            && self.resident(&hello.resume_session_id).is_none()
+            && let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).cloned()
+            && let Some(opened) = self.resume_from_replica(&replica, hello, transport, sink.clone())?
+        {
+            return Ok(opened);
         }
         let camera = validate_new_hello(hello, self.config.max_camera_pixels)?.clone();
         let pixels = u64::from(camera.width) * u64::from(camera.height);
@@ -1189,7 +1211,7 @@ impl Registry {
                 .map_err(|e| tracing::error!(session = %id, "mapping unavailable for this session: {e}"))
                 .ok();
             if let (Some(map), Some(store)) = (&map, &self.store) {
-                match store.put_session(&id, &meta, &camera) {
+                match store.put_session(&id, &meta, &camera, &resume_secret) {
                     Ok(()) => lock(map).attach_store(store.clone(), &id, meta),
                     Err(e) => {
                         tracing::error!(session = %id, "session not recorded yet (the store failed; its first commit that goes through records it): {e}");
@@ -1222,6 +1244,7 @@ impl Registry {
                     map,
                     archived: false,
                     resume_secret,
+                    resume_anchor: None,
                 },
             )
         });
@@ -1230,7 +1253,7 @@ impl Registry {
         self.metrics.session_opened();
         self.metrics.resident_delta(1);
         tracing::info!(session = %session.id, robot = %session.robot_id, transport = transport.label(), "session opened");
-        Ok(Opened { session, resumed: false })
+        Ok(Opened { session, resumed: false, restored: false })
     }
 
     /// Refuses a new connection when `session.max_connected` robots stream already
@@ -1266,33 +1289,126 @@ impl Registry {
         }
     }
 
+    /// Session `hello.resume_session_id` from the shared storage, live on this server:
+    /// its description, trajectory and map as the storage holds them (its last
+    /// committed keyframe), copied into this server's store, and a new tracker that
+    /// reports nothing until it finds itself among the session's newest stored
+    /// keyframes. `None` when the storage does not hold the session (or cannot be
+    /// read: logged), so the robot gets a new session.
+    fn resume_from_replica(
+        &self,
+        replica: &crate::replica::Replica,
+        hello: &pb::Hello,
+        transport: Transport,
+        sink: ResultSink,
+    ) -> Result<Option<Opened>, BadHello> {
+        let id = hello.resume_session_id.as_str();
+        let s = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
+            Ok(crate::replica::ReplicaSession::Found(s)) => *s,
+            Ok(crate::replica::ReplicaSession::Absent) => return Ok(None),
+            Ok(crate::replica::ReplicaSession::Refused(why)) => return Err(BadHello::Unauthenticated(why)),
+            Err(e) => {
+                tracing::warn!(session = id, "cannot resume from the shared storage (a new session instead): {e}");
+                return Ok(None);
+            }
+        };
+        // Found again among its keyframes; without any, only a session with no pose
+        // yet goes on (its world is the first camera's, as a new tracker's); one with
+        // poses cannot be found again: a new session.
+        if s.keyframes.is_empty() && !s.poses.is_empty() {
+            tracing::warn!(session = id, "stored without keyframes: it cannot be found again; a new session instead");
+            return Ok(None);
+        }
+        // The camera is the session's own (checked as a new hello's would be).
+        let resumed_hello = pb::Hello { camera: Some(s.camera.clone()), ..hello.clone() };
+        let camera = validate_new_hello(&resumed_hello, self.config.max_camera_pixels)?.clone();
+        self.check_capacity()?;
+        let pixels = u64::from(camera.width) * u64::from(camera.height);
+        if let Err(e) = self.make_room(Some(&hello.robot_id), 1, pixels, None) {
+            if let BadHello::Limit { limit, .. } = &e {
+                self.metrics.session_refused(limit);
+            }
+            return Err(e);
+        }
+        if let Some(store) = &self.store
+            && let Err(e) = store.import(&s)
+        {
+            tracing::error!(session = id, "the resumed session is not in this server's store yet (the store failed): {e}");
+        }
+        let tracking_camera = crate::convert::camera_of(&camera);
+        let keyframes = s.keyframes.iter().rev().map(|k| crate::fleet::place_of_record(&tracking_camera, k)).map(|(p, w)| (w, p)).collect();
+        let next_keyframe_id = s.keyframes.iter().map(|k| k.id + 1).max().unwrap_or(0).max(s.meta.keyframes);
+        let anchor = crate::pipeline::track::ResumeAnchor { keyframes, verify: stillmap_places::VerifyConfig::default(), next_keyframe_id };
+        let fleet_name = self.fleet_for(&s.meta.fleet);
+        if let Some(f) = &self.fleets {
+            f.join(&fleet_name, id, &hello.robot_id);
+        }
+        let map = self.restored_map(&s);
+        let counters = Counters::default();
+        counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
+        let latest = s.poses.last().copied();
+        let session = Arc::new_cyclic(|me| {
+            self.session(
+                me,
+                SessionParts {
+                    id: id.to_string(),
+                    robot_id: hello.robot_id.clone(),
+                    fleet_name,
+                    transport,
+                    camera,
+                    started_unix_ns: s.meta.started_unix_ns,
+                    counters,
+                    queue: FrameQueue::new(self.config.queue_capacity, self.config.max_pending_drop_notices, self.config.overload_policy),
+                    last_received_sequence: latest.map(|p| p.sequence),
+                    track: TrackState { state: TrackingState::Lost, latest, trajectory: s.poses },
+                    perception: self.perception.clone(),
+                    map,
+                    archived: false,
+                    resume_secret: hello.resume_secret.clone(),
+                    resume_anchor: (!anchor.keyframes.is_empty()).then_some(anchor),
+                },
+            )
+        });
+        session.attach(sink);
+        write(&self.sessions).insert(id.to_string(), session.clone());
+        write(&self.dormant).remove(id);
+        self.metrics.session_opened();
+        self.metrics.resident_delta(1);
+        tracing::info!(session = id, robot = %session.robot_id, "session resumed from the shared storage");
+        Ok(Some(Opened { session, resumed: true, restored: true }))
+    }
+
+    /// A stored session's map in memory, attached to this server's store.
+    fn restored_map(&self, s: &StoredSession) -> Option<SharedMap> {
+        if !self.mapping.enabled {
+            return None;
+        }
+        match SessionMap::new(&s.camera, self.mapping.clone(), s.meta.class_names.clone()) {
+            Ok(map) => {
+                {
+                    let mut m = lock(&map);
+                    if let Some(store) = &self.store {
+                        m.attach_store(store.clone(), &s.id, s.meta.clone());
+                    }
+                    let last_camera = s
+                        .keyframes
+                        .last()
+                        .map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
+                    m.restore(s.blocks.clone(), &s.meta, s.poses.len(), last_camera);
+                }
+                Some(map)
+            }
+            Err(e) => {
+                tracing::error!(session = %s.id, "stored map cannot be restored: {e}");
+                None
+            }
+        }
+    }
+
     /// A stored session in memory, read-only.
     fn archived_session(&self, s: StoredSession) -> Arc<Session> {
         let id = s.id.clone();
-        let map = if self.mapping.enabled {
-            match SessionMap::new(&s.camera, self.mapping.clone(), s.meta.class_names.clone()) {
-                Ok(map) => {
-                    {
-                        let mut m = lock(&map);
-                        if let Some(store) = &self.store {
-                            m.attach_store(store.clone(), &id, s.meta.clone());
-                        }
-                        let last_camera = s
-                            .keyframes
-                            .last()
-                            .map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
-                        m.restore(s.blocks, &s.meta, s.poses.len(), last_camera);
-                    }
-                    Some(map)
-                }
-                Err(e) => {
-                    tracing::error!(session = %id, "stored map cannot be restored: {e}");
-                    None
-                }
-            }
-        } else {
-            None
-        };
+        let map = self.restored_map(&s);
         let transport = Transport::stored(&s.meta.transport);
         let counters = Counters::default();
         counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
@@ -1319,6 +1435,7 @@ impl Registry {
                     map,
                     archived: true,
                     resume_secret: String::new(),
+                    resume_anchor: None,
                 },
             )
         })
@@ -1380,6 +1497,7 @@ impl Registry {
             id: p.id,
             robot_id: p.robot_id,
             resume_secret: p.resume_secret,
+            resume_anchor: Mutex::new(p.resume_anchor),
             fleet_name: p.fleet_name,
             fleets: if p.archived { None } else { self.fleets.clone() },
             transport: p.transport,

@@ -124,7 +124,7 @@ impl KeyframeRecord {
         out
     }
 
-    fn from_bytes(b: &[u8]) -> Result<Self, StoreError> {
+    pub(crate) fn from_bytes(b: &[u8]) -> Result<Self, StoreError> {
         let bad = || StoreError::Corrupt(format!("keyframe record of {} bytes", b.len()));
         let u64_at = |o: usize| b.get(o..o + 8).map(|s| u64::from_le_bytes(s.try_into().expect("8 bytes")));
         let f32_at = |o: usize| b.get(o..o + 4).map(|s| f32::from_le_bytes(s.try_into().expect("4 bytes")));
@@ -395,8 +395,10 @@ impl Store {
         StoreError::Db { path: self.path.display().to_string(), message: e.to_string() }
     }
 
-    /// Records a new session (before any frame).
-    pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo) -> Result<(), StoreError> {
+    /// Records a new session (before any frame); the shared storage, if any, also
+    /// keeps a hash of its resume secret (empty: none), so that another server can
+    /// resume it.
+    pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo, resume_secret: &str) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
         let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
         self.written((|| {
@@ -409,7 +411,14 @@ impl Store {
         })())?;
         if let Some(replica) = &self.replica {
             let camera = Some(camera.encode_to_vec());
-            replica.submit(crate::replica::ReplicaCommit { session_id: id.to_string(), meta_json: json, camera, ..Default::default() });
+            let resume_secret_sha256 = (!resume_secret.is_empty()).then(|| crate::replica::secret_hash(resume_secret));
+            replica.submit(crate::replica::ReplicaCommit {
+                session_id: id.to_string(),
+                meta_json: json,
+                camera,
+                resume_secret_sha256,
+                ..Default::default()
+            });
         }
         Ok(())
     }
@@ -458,6 +467,7 @@ impl Store {
                 poses: c.poses.iter().map(|p| (p.sequence, p.encode_to_vec())).collect(),
                 keyframes: c.keyframes.iter().map(|k| (k.id, k.to_bytes())).collect(),
                 blocks,
+                resume_secret_sha256: None,
             });
         }
         Ok(())
@@ -741,7 +751,7 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
     Ok(StoredSession { id, meta, camera, poses, keyframes, blocks })
 }
 
-fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
+pub(crate) fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
     let raw =
         zstd::bulk::decompress(bytes, stillmap_mapping::voxel::BLOCK_BYTES).map_err(|e| StoreError::Corrupt(format!("map block: {e}")))?;
     Block::from_bytes(&raw).map_err(|e| StoreError::Corrupt(e.to_string()))
@@ -790,7 +800,7 @@ mod tests {
         };
         {
             let store = Store::open(&path).unwrap();
-            store.put_session("s1", &meta, &camera).unwrap();
+            store.put_session("s1", &meta, &camera, "").unwrap();
             store
                 .commit(&Commit {
                     session_id: "s1",
@@ -918,7 +928,7 @@ mod tests {
             fleet: String::new(),
         };
         let camera = pb::CameraInfo { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5, ..Default::default() };
-        store.put_session("s", &meta, &camera).unwrap();
+        store.put_session("s", &meta, &camera, "").unwrap();
         assert_eq!((store.failing(), store.errors()), (None, 0));
         let kf = KeyframeRecord { id: 4, timestamp_ns: 9, world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], features: Vec::new() };
         let pose = pb::PoseStamped { sequence: 7, ..Default::default() };

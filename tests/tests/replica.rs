@@ -7,8 +7,10 @@
 use std::time::{Duration, Instant};
 
 use prost::Message as _;
-use stillmap_e2e::{Postgres, Server, free_port, run_client, tum_dir};
-use stillmap_proto::pb::{self, query_client::QueryClient};
+use stillmap_e2e::{Postgres, Server, eventually, free_port, run_client, tum_dir, tum_hello};
+use stillmap_proto::pb::{
+    self, client_message::Msg as ClientMsg, ingest_client::IngestClient, query_client::QueryClient, server_message::Msg,
+};
 
 /// A metric's value in the Prometheus text.
 fn metric(text: &str, name: &str) -> u64 {
@@ -131,4 +133,54 @@ async fn a_server_whose_postgres_refuses_writes_serves_and_stops() {
     assert!(stopping.elapsed() < Duration::from_secs(12), "stopped in {:?}", stopping.elapsed());
     let rows = pg.query("SELECT count(*) FROM stillmap_sessions")[0].get::<_, i64>(0);
     assert_eq!(rows, 0, "nothing was written");
+}
+
+/// A hello on a gRPC stream of its own: the server's accept, or its refusal.
+async fn hello(server: &Server, hello: pb::Hello) -> Result<pb::SessionAccepted, tonic::Status> {
+    let mut client = IngestClient::connect(server.grpc_url()).await.expect("connect");
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }).await.expect("queue the hello");
+    let mut stream = client.stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
+    match stream.message().await? {
+        Some(pb::ServerMessage { msg: Some(Msg::Accepted(a)) }) => Ok(a),
+        other => panic!("not an accept: {other:?}"),
+    }
+}
+
+/// Another server sharing the storage resumes a session only for its own robot
+/// with its resume secret (the storage keeps the secret's SHA-256, checked before
+/// anything else is read), and says the session was restored.
+#[tokio::test(flavor = "multi_thread")]
+async fn another_server_resumes_a_session_only_with_its_secret() {
+    let pg = Postgres::start();
+    let first = Server::start(&["--no-perception", "--replica-url", &pg.url()]);
+    let accepted = hello(&first, tum_hello("owner")).await.expect("accepted");
+    let id = accepted.session_id.clone();
+    eventually(Duration::from_secs(10), "the session copied", async || {
+        pg.query(&format!("SELECT count(*) FROM stillmap_sessions WHERE id = '{id}' AND resume_secret_sha256 IS NOT NULL"))[0]
+            .get::<_, i64>(0)
+            == 1
+    })
+    .await;
+    let held =
+        pg.query(&format!("SELECT encode(resume_secret_sha256, 'hex') FROM stillmap_sessions WHERE id = '{id}'"))[0].get::<_, String>(0);
+    assert_eq!(held.len(), 64, "a SHA-256");
+    assert!(!held.contains(&accepted.resume_secret), "the secret itself is not stored");
+    let second = Server::start(&["--no-perception", "--replica-url", &pg.url()]);
+    let resume = |robot: &str, secret: &str| pb::Hello { resume_session_id: id.clone(), resume_secret: secret.into(), ..tum_hello(robot) };
+    let wrong = hello(&second, resume("owner", "0123456789abcdef0123456789abcdef")).await.expect_err("wrong secret");
+    assert_eq!(
+        (wrong.code(), wrong.message().to_string()),
+        (tonic::Code::Unauthenticated, format!("resuming session {id} needs the resume secret its accept returned (Hello.resume_secret)"))
+    );
+    let thief = hello(&second, resume("thief", &accepted.resume_secret)).await.expect_err("another robot");
+    assert_eq!(
+        (thief.code(), thief.message().to_string()),
+        (tonic::Code::Unauthenticated, format!("session {id} belongs to robot \"owner\", not \"thief\""))
+    );
+    let again = hello(&second, resume("owner", &accepted.resume_secret)).await.expect("resumed");
+    assert!(again.resumed && again.restored, "{again:?}");
+    assert_eq!((again.session_id, again.resume_secret), (id.clone(), accepted.resume_secret.clone()));
+    let (status, detail) = second.get_json(&format!("/api/v1/sessions/{id}")).await;
+    assert_eq!((status, detail["robot_id"].as_str()), (200, Some("owner")), "{detail}");
 }

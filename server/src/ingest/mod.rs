@@ -51,6 +51,7 @@ pub fn accepted_message(opened: &Opened, max_message_bytes: usize) -> pb::Server
             max_message_bytes: max_message_bytes as u64,
             server_version: concat!("stillmap-server ", env!("CARGO_PKG_VERSION")).into(),
             resume_secret: opened.session.resume_secret().to_string(),
+            restored: opened.restored,
         })),
     }
 }

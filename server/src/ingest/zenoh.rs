@@ -48,11 +48,14 @@ struct Link {
     last_seen: Instant,
     /// Whether the idle check has found the robot quiet since it last spoke.
     quiet: bool,
+    /// The session came back from the shared storage on this hello, and no frame
+    /// came since: the accept of a repeat of it says so too.
+    restored: bool,
 }
 
 impl Link {
     fn new(session: Arc<Session>, sink: ResultSink, hello: pb::Hello) -> Self {
-        Self { session, sink, hello, last_seen: Instant::now(), quiet: false }
+        Self { session, sink, hello, last_seen: Instant::now(), quiet: false, restored: false }
     }
 
     /// Whether `hello` repeats the one that opened this session before any frame
@@ -191,7 +194,8 @@ pub async fn serve(
                             link.session.attach(link.sink.clone());
                         }
                         link.seen();
-                        let opened = crate::session::Opened { session: link.session.clone(), resumed };
+                        let restored = link.restored && hello == link.hello;
+                        let opened = crate::session::Opened { session: link.session.clone(), resumed, restored };
                         let _ = link.sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
                         continue;
                     }
@@ -200,7 +204,9 @@ pub async fn serve(
                 match registry.open(&hello, Transport::Zenoh, sink.clone()) {
                     Ok(opened) => {
                         let _ = sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
-                        if let Some(old) = links.insert(robot.clone(), Link::new(opened.session, sink, hello)) {
+                        let mut link = Link::new(opened.session, sink, hello);
+                        link.restored = opened.restored;
+                        if let Some(old) = links.insert(robot.clone(), link) {
                             old.session.detach(&old.sink);
                         }
                     }
@@ -216,6 +222,7 @@ pub async fn serve(
                     continue;
                 };
                 link.seen();
+                link.restored = false;
                 if let Err(e) = link.session.push(frame, payload.len()) {
                     let _ = link.sink.send(Err(queue_status(e))).await;
                 }

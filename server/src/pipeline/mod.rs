@@ -119,6 +119,14 @@ impl SessionPipeline {
         Self { decoder: Decoder::new(camera.clone(), order), tracker, perception, handoff: map_refuse_window.map(Handoff::new) }
     }
 
+    /// A session resumed from the shared storage: its tracker reports nothing until
+    /// it finds itself among the session's stored keyframes.
+    pub fn resume_in(&mut self, anchor: track::ResumeAnchor) {
+        if let Some(t) = self.tracker.as_mut() {
+            t.resume_in(anchor);
+        }
+    }
+
     /// Runs one frame through the stages.
     pub fn process(&mut self, queued: &QueuedFrame) -> FrameOutcome {
         let frame = &queued.frame;

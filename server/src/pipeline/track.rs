@@ -44,6 +44,16 @@ impl TrackOutcome {
     }
 }
 
+/// A session resumed on this server from the shared storage: its last stored
+/// keyframes (`world_from_camera` and the place verification sees, newest first),
+/// in whose world its new tracker must be found before it reports anything.
+pub struct ResumeAnchor {
+    pub keyframes: Vec<(Isometry3<f64>, stillmap_places::Place)>,
+    pub verify: stillmap_places::VerifyConfig,
+    /// The session's next keyframe id (its stored ones are not reused).
+    pub next_keyframe_id: u64,
+}
+
 /// One session's tracker.
 pub struct SessionTracker {
     tracker: Tracker,
@@ -51,6 +61,13 @@ pub struct SessionTracker {
     last_pose: Option<Isometry3<f64>>,
     /// `CameraInfo.exposure_time_offset_s`: from a frame's timestamp to its pose's time.
     exposure_time_offset_s: f64,
+    /// The session's world from the tracker's (identity, but for a resumed session).
+    world_from_tracker: Isometry3<f64>,
+    /// While a resumed session's tracker is not yet found in the session's world.
+    resume: Option<ResumeAnchor>,
+    /// The session's keyframe ids are the tracker's plus this (a resumed session's
+    /// go on from its stored ones).
+    keyframe_id_offset: u64,
 }
 
 impl SessionTracker {
@@ -59,7 +76,49 @@ impl SessionTracker {
             tracker: Tracker::new(camera_of(camera), config.clone())?,
             last_pose: None,
             exposure_time_offset_s: camera.exposure_time_offset_s,
+            world_from_tracker: Isometry3::identity(),
+            resume: None,
+            keyframe_id_offset: 0,
         })
+    }
+
+    /// Resumes a session in the world of its stored keyframes: until one of this
+    /// tracker's keyframes is verified against one of them (PnP on their features
+    /// with depth), frames are `LOST` without a pose and nothing is mapped.
+    pub fn resume_in(&mut self, anchor: ResumeAnchor) {
+        self.keyframe_id_offset = anchor.next_keyframe_id;
+        self.resume = Some(anchor);
+    }
+
+    /// Whether the tracker is in the session's world (always, but while a resumed
+    /// session is being found).
+    pub fn placed(&self) -> bool {
+        self.resume.is_none()
+    }
+
+    /// Tries to find the tracker's keyframe `id` among the anchor's keyframes;
+    /// on success the tracker is in the session's world from now on.
+    fn relocate(&mut self, id: u64) {
+        let (Some(anchor), Some(record)) = (self.resume.as_ref(), self.tracker_record(id)) else { return };
+        let camera = self.tracker.camera().clone();
+        let (query, tracker_from_query) = crate::fleet::place_of_record(&camera, &record);
+        // Every stored keyframe it is verified against proposes where the tracker is;
+        // a single verification is off by a centimetre or two, so the proposals are
+        // averaged, weighted by their inliers (the fleet merge does the same).
+        let proposals: Vec<(Isometry3<f64>, f64)> = anchor
+            .keyframes
+            .iter()
+            .filter_map(|(world_from_candidate, candidate)| {
+                let v = stillmap_places::verify(&camera, &query, candidate, &anchor.verify)?;
+                let world_from_query = world_from_candidate * v.query_from_candidate.inverse();
+                Some((world_from_query * tracker_from_query.inverse(), v.inliers as f64))
+            })
+            .collect();
+        if let Some(world_from_tracker) = weighted_mean(&proposals) {
+            self.world_from_tracker = world_from_tracker;
+            tracing::info!(verified = proposals.len(), "resumed session found in its stored world");
+            self.resume = None;
+        }
     }
 
     /// Tracks a decoded frame. A tracking error (which only malformed input can
@@ -90,31 +149,64 @@ impl SessionTracker {
                 };
             }
         };
-        self.last_pose = out.world_from_camera;
         // Keyframe ids only grow: the newest is the one just made.
-        let new_keyframe = if out.keyframe { self.tracker.map().keyframes.keys().next_back().copied() } else { None };
+        let new_keyframe =
+            if out.keyframe { self.tracker.map().keyframes.keys().next_back().map(|id| id + self.keyframe_id_offset) } else { None };
+        let was_placed = self.placed();
+        if let (false, Some(id)) = (was_placed, new_keyframe) {
+            self.relocate(id);
+        }
+        // The frame it is found on: the motion from the last frame spans two worlds.
+        let previous_pose = previous_pose.filter(|_| was_placed);
+        if !self.placed() {
+            // Not yet found in the session's world: nothing to report or to map.
+            self.last_pose = out.world_from_camera.map(|p| self.world_from_tracker * p);
+            let previous_from_current = previous_pose.zip(self.last_pose).map(|(previous, now)| previous.inverse() * now);
+            return TrackOutcome {
+                state: TrackingState::Lost,
+                world_from_camera: None,
+                pose_time_ns: None,
+                features: out.tracked_points as u32,
+                masked_features: out.masked_features as u32,
+                new_keyframe: None,
+                previous_from_current,
+                times: out.times,
+            };
+        }
+        let world_from_camera = out.world_from_camera.map(|p| self.world_from_tracker * p);
+        self.last_pose = world_from_camera;
         TrackOutcome {
             state: state_of(out.state),
-            world_from_camera: out.world_from_camera,
-            pose_time_ns: out.world_from_camera.map(|_| stillmap_proto::pose_time_ns(capture_time_ns, self.exposure_time_offset_s)),
+            world_from_camera,
+            pose_time_ns: world_from_camera.map(|_| stillmap_proto::pose_time_ns(capture_time_ns, self.exposure_time_offset_s)),
             features: out.tracked_points as u32,
             masked_features: out.masked_features as u32,
             new_keyframe,
-            previous_from_current: previous_pose.zip(out.world_from_camera).map(|(previous, now)| previous.inverse() * now),
+            previous_from_current: previous_pose.zip(world_from_camera).map(|(previous, now)| previous.inverse() * now),
             times: out.times,
         }
     }
 }
 
 impl SessionTracker {
-    /// A keyframe's current (bundle-adjusted) pose.
+    /// A keyframe's current (bundle-adjusted) pose, in the session's world.
     pub fn keyframe_pose(&self, id: u64) -> Option<Isometry3<f64>> {
-        self.tracker.map().keyframes.get(&id).map(|k| k.world_from_camera)
+        let own = id.checked_sub(self.keyframe_id_offset)?;
+        self.tracker.map().keyframes.get(&own).map(|k| self.world_from_tracker * k.world_from_camera)
     }
 
-    /// A keyframe as the store keeps it: pose, keypoints, descriptors.
+    /// A keyframe as the store keeps it: pose (in the session's world), keypoints, descriptors.
     pub fn keyframe_record(&self, id: u64) -> Option<crate::store::KeyframeRecord> {
-        let k = self.tracker.map().keyframes.get(&id)?;
+        let mut record = self.tracker_record(id)?;
+        let p = self.world_from_tracker * crate::fleet::isometry(&record.world_from_camera);
+        let (t, q) = (p.translation.vector, p.rotation.coords);
+        record.world_from_camera = [t.x, t.y, t.z, q.x, q.y, q.z, q.w];
+        Some(record)
+    }
+
+    /// A keyframe (the session's id) as the store keeps it, its pose in the tracker's own world.
+    fn tracker_record(&self, id: u64) -> Option<crate::store::KeyframeRecord> {
+        let k = self.tracker.map().keyframes.get(&id.checked_sub(self.keyframe_id_offset)?)?;
         let (t, q) = (k.world_from_camera.translation.vector, k.world_from_camera.rotation.coords);
         let features = k
             .features
@@ -129,5 +221,42 @@ impl SessionTracker {
             world_from_camera: [t.x, t.y, t.z, q.x, q.y, q.z, q.w],
             features,
         })
+    }
+}
+
+/// The weighted mean of poses: translations averaged, rotations as the normalised
+/// weighted sum of their quaternions (each turned to the first one's hemisphere).
+fn weighted_mean(poses: &[(Isometry3<f64>, f64)]) -> Option<Isometry3<f64>> {
+    let total: f64 = poses.iter().map(|(_, w)| w).sum();
+    let (first, _) = poses.first()?;
+    if total <= 0.0 {
+        return None;
+    }
+    let reference = first.rotation.coords;
+    let (mut t, mut q) = (nalgebra::Vector3::zeros(), nalgebra::Vector4::zeros());
+    for (p, w) in poses {
+        t += p.translation.vector * (*w / total);
+        let c = p.rotation.coords;
+        q += if c.dot(&reference) < 0.0 { -c } else { c } * (*w / total);
+    }
+    let rotation = nalgebra::UnitQuaternion::try_new(nalgebra::Quaternion::from(q), 1e-9)?;
+    Some(Isometry3::from_parts(nalgebra::Translation3::from(t), rotation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Poses averaged by weight: the translation's weighted mean, a rotation between.
+    #[test]
+    fn the_weighted_mean_of_poses() {
+        let a = Isometry3::new(nalgebra::Vector3::new(1.0, 0.0, 0.0), nalgebra::Vector3::new(0.0, 0.0, 0.1));
+        let b = Isometry3::new(nalgebra::Vector3::new(2.0, 0.0, 0.0), nalgebra::Vector3::new(0.0, 0.0, 0.2));
+        let m = weighted_mean(&[(a, 1.0), (b, 3.0)]).expect("a mean");
+        assert!((m.translation.vector.x - 1.75).abs() < 1e-12);
+        let angle = m.rotation.angle();
+        assert!(angle > 0.17 && angle < 0.18, "{angle}");
+        assert!(weighted_mean(&[]).is_none());
+        assert!(weighted_mean(&[(a, 0.0)]).is_none());
     }
 }
