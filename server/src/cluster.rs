@@ -11,8 +11,10 @@
 //! (`ingest/zenoh.rs`). No coordination: every server computes the same owner from
 //! the same live set. When a server leaves (its token withdrawn) its robots'
 //! frames reach their new owner, which tells them to say hello again; when one
-//! joins, the robots it now owns move to it the same way. Sessions do not move
-//! with them yet (no shared storage): a moved robot starts a new session.
+//! joins, the robots it now owns move to it the same way. With storage shared by
+//! the servers (`store.replica_url`, `replica.rs`), a moved robot's session comes
+//! back on its new owner (`Registry::resume_from_replica`); without, it starts a
+//! new session.
 //!
 //! **Any server answers.** An HTTP GET for a session or map this server does not
 //! hold (404 here) is asked of the other live servers over Zenoh

@@ -232,7 +232,8 @@ pub struct StoreConfig {
     /// PostgreSQL database too (a libpq URL, `postgresql://user@host:port/db`, or
     /// key=value string; empty, the default: no copy), except those left out and
     /// counted (`replica.rs`: a full queue, a refusal, a failure at shutdown).
-    /// Needs `store.enabled`.
+    /// A robot resuming a session this server does not hold (its server left) gets
+    /// it back from there. Needs `store.enabled`.
     pub replica_url: String,
     /// Commits waiting to be copied at most (default 256); a commit finding the
     /// queue full is not copied (`stillmap_replica_dropped_total`).
