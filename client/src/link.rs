@@ -456,6 +456,9 @@ async fn rejoin(
         // Resumed from the shared storage by a server that did not hold it: what was
         // in flight to the server that left is not answered.
         *moves += 1;
+        if *moves > MAX_ZENOH_MOVES {
+            return Err(ClientError::Protocol(format!("{} moves in a row without a result: giving up", *moves)));
+        }
         tracing::warn!("this robot's server left: its session goes on on another server from its last committed keyframe");
         let lost: Vec<u64> = in_flight.drain(..).collect();
         if !lost.is_empty() {

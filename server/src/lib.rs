@@ -275,6 +275,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             r.name_server(&server_id);
         }
         let membership = cluster::Membership::new(&server_id);
+        // A session another live server last wrote is its own: not resumed here.
+        let (live, own) = (membership.clone(), server_id.clone());
+        registry.set_live_elsewhere(Arc::new(move |id: &str| id != own && live.servers().iter().any(|s| s == id)));
         // Announced, and the other servers known, before any robot is answered.
         let token = cluster::join(&z, &membership).await?;
         let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));

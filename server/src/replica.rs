@@ -116,7 +116,8 @@ pub enum ReplicaSession {
     Absent,
     /// It holds it, for another robot or with another resume secret (nothing more is read).
     Refused(String),
-    Found(Box<crate::store::StoredSession>),
+    /// It holds it, last written by the server `server_id`.
+    Found { session: Box<crate::store::StoredSession>, server_id: String },
 }
 
 /// SHA-256 of a resume secret, as the shared storage keeps it.
@@ -139,6 +140,9 @@ pub struct Replica {
     /// Set at shutdown: the thread copies what is queued while PostgreSQL answers,
     /// and stops retrying when it does not.
     closing: Arc<AtomicBool>,
+    /// Each session's resume-secret hash, sent with every commit of it (a commit
+    /// left out must not leave the session impossible to resume).
+    secrets: std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>,
 }
 
 /// Longest wait for a connection, and for one statement (a stalled peer must not
@@ -180,7 +184,8 @@ impl Replica {
             })
             .map_err(ReplicaError::Thread)?;
         let done = std::sync::Mutex::new(done_rx);
-        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing }))
+        let secrets = std::sync::Mutex::default();
+        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, secrets }))
     }
 
     /// Reads session `id` back from PostgreSQL (its newest `keyframes` records) for
@@ -198,13 +203,33 @@ impl Replica {
             .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
     }
 
+    /// Sends `hash` (its resume secret's) with every later commit of session `session_id`.
+    pub fn remember(&self, session_id: &str, hash: Vec<u8>) {
+        crate::lock(&self.secrets).insert(session_id.to_string(), hash);
+    }
+
+    /// Forgets a session's secret hash once the session left this server's memory
+    /// (PostgreSQL has it).
+    pub fn forget(&self, session_id: &str) {
+        crate::lock(&self.secrets).remove(session_id);
+    }
+
     /// Names the server in the rows it writes from now on (`stillmap_sessions.server_id`).
     pub fn name_server(&self, id: &str) {
         *crate::lock(&self.server_id) = id.to_string();
     }
 
     /// Hands a commit to the copy; a full queue leaves it out (counted, logged).
-    pub fn submit(&self, commit: ReplicaCommit) {
+    pub fn submit(&self, mut commit: ReplicaCommit) {
+        {
+            let mut secrets = crate::lock(&self.secrets);
+            match &commit.resume_secret_sha256 {
+                Some(hash) => {
+                    secrets.insert(commit.session_id.clone(), hash.clone());
+                }
+                None => commit.resume_secret_sha256 = secrets.get(&commit.session_id).cloned(),
+            }
+        }
         let Some(tx) = crate::lock(&self.jobs).clone() else { return };
         match tx.try_send(commit) {
             Ok(()) => {}
@@ -317,8 +342,9 @@ fn read_session(
     let read = |e: postgres::Error| ReplicaError::Read(describe(&e));
     let corrupt = |what: &str, e: &dyn std::fmt::Display| ReplicaError::Corrupt(format!("session {id} {what}: {e}"));
     let mut client = config.connect(postgres::NoTls).map_err(read)?;
-    let Some(row) =
-        client.query_opt("SELECT meta::text, camera, resume_secret_sha256 FROM stillmap_sessions WHERE id = $1", &[&id]).map_err(read)?
+    let Some(row) = client
+        .query_opt("SELECT meta::text, camera, resume_secret_sha256, server_id FROM stillmap_sessions WHERE id = $1", &[&id])
+        .map_err(read)?
     else {
         return Ok(ReplicaSession::Absent);
     };
@@ -334,6 +360,7 @@ fn read_session(
     }
     let camera: Option<Vec<u8>> = row.get(1);
     let camera = pb_camera(camera.as_deref()).map_err(|e| corrupt("camera", &e))?;
+    let server_id: String = row.get(3);
     let mut poses = Vec::new();
     for r in client.query("SELECT pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
         poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(0)).map_err(|e| corrupt("pose", &e))?);
@@ -352,7 +379,8 @@ fn read_session(
         let key = [r.get::<_, i32>(0), r.get::<_, i32>(1), r.get::<_, i32>(2)];
         blocks.push((key, decode_block(r.get::<_, &[u8]>(3)).map_err(|e| corrupt("map block", &e))?));
     }
-    Ok(ReplicaSession::Found(Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks })))
+    let session = Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks });
+    Ok(ReplicaSession::Found { session, server_id })
 }
 
 fn pb_camera(bytes: Option<&[u8]>) -> Result<stillmap_proto::pb::CameraInfo, String> {

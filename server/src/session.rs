@@ -861,6 +861,9 @@ pub struct Registry {
     /// Held through `open` and every eviction, so concurrent hellos see each other
     /// when the limits are checked and a resume never races an eviction.
     admission: Mutex<()>,
+    /// Whether a server id is another live server of the cluster (set on Zenoh):
+    /// its sessions are not resumed from the shared storage here.
+    live_elsewhere: RwLock<Option<LiveElsewhere>>,
     /// Distinguishes session ids of different server runs, and of servers started
     /// in the same second: the start time (seconds, hex) and 32 random bits.
     epoch: String,
@@ -885,6 +888,9 @@ struct SessionParts {
     resume_secret: String,
     resume_anchor: Option<crate::pipeline::track::ResumeAnchor>,
 }
+
+/// Whether a server id is another live server.
+pub type LiveElsewhere = Arc<dyn Fn(&str) -> bool + Send + Sync>;
 
 /// A session resumed from the shared storage is found again among this many of its
 /// newest stored keyframes.
@@ -932,6 +938,7 @@ impl Registry {
             loading: Mutex::new(()),
             next_id: AtomicU64::new(1),
             admission: Mutex::new(()),
+            live_elsewhere: RwLock::new(None),
             epoch,
         }
     }
@@ -1070,6 +1077,9 @@ impl Registry {
         info.resident = false;
         info.summary.connected = false;
         write(&self.dormant).insert(s.id.clone(), info);
+        if let Some(replica) = self.store.as_ref().and_then(|store| store.replica()) {
+            replica.forget(&s.id);
+        }
         self.metrics.session_evicted();
         self.metrics.resident_delta(-1);
         tracing::info!(session = %s.id, idle_s = s.idle_for().as_secs_f64(), "session left memory (the store keeps it)");
@@ -1136,6 +1146,9 @@ impl Registry {
     /// Opens a session for `hello`, or resumes the one it names, and attaches `sink`.
     pub fn open(&self, hello: &pb::Hello, transport: Transport, sink: ResultSink) -> Result<Opened, BadHello> {
         stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello::Invalid)?;
+        // Another server's session (it left the cluster), read from the shared
+        // storage before the admission lock: a slow read holds no other hello.
+        let from_replica = self.read_from_replica(hello)?;
         let _admission = lock(&self.admission);
         if !hello.resume_session_id.is_empty()
             && let Some(session) = self.resident(&hello.resume_session_id).filter(|s| !s.archived && !s.queue.is_closed())
@@ -1153,11 +1166,9 @@ impl Registry {
             session.attach(sink);
             return Ok(Opened { session, resumed: true, restored: false });
         }
-        // Another server's session (it left the cluster): resumed from the shared storage.
-        if !hello.resume_session_id.is_empty()
-            && self.resident(&hello.resume_session_id).is_none()
-            && let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).cloned()
-            && let Some(opened) = self.resume_from_replica(&replica, hello, transport, sink.clone())?
+        if let Some((stored, copy)) = from_replica
+            && self.resident(&stored.id).is_none()
+            && let Some(opened) = self.resume_stored(stored, copy, hello, transport, sink.clone())?
         {
             return Ok(opened);
         }
@@ -1271,6 +1282,12 @@ impl Registry {
         Ok(())
     }
 
+    /// Tells the registry which servers are live besides this one (the cluster's
+    /// membership): a session last written by one of them is not resumed here.
+    pub fn set_live_elsewhere(&self, live: LiveElsewhere) {
+        *write(&self.live_elsewhere) = Some(live);
+    }
+
     /// Lists the stored sessions (read-only: queries answer, and bring a session
     /// into memory when they need its map or trajectory; robots resuming one get a
     /// new session). Nothing is loaded here.
@@ -1289,22 +1306,20 @@ impl Registry {
         }
     }
 
-    /// Session `hello.resume_session_id` from the shared storage, live on this server:
-    /// its description, trajectory and map as the storage holds them (its last
-    /// committed keyframe), copied into this server's store, and a new tracker that
-    /// reports nothing until it finds itself among the session's newest stored
-    /// keyframes. `None` when the storage does not hold the session (or cannot be
-    /// read: logged), so the robot gets a new session.
-    fn resume_from_replica(
-        &self,
-        replica: &crate::replica::Replica,
-        hello: &pb::Hello,
-        transport: Transport,
-        sink: ResultSink,
-    ) -> Result<Option<Opened>, BadHello> {
+    /// The session a hello resumes, from the shared storage, when this server does
+    /// not hold it and no live server does (that one would go on writing it): its
+    /// description, trajectory and map as the storage holds them (its last committed
+    /// keyframe), or this server's own stored copy when that is at least as long
+    /// (true: it must be copied into this server's store). `None`: no such session
+    /// there (or the storage cannot be read: logged), so the robot gets a new one.
+    fn read_from_replica(&self, hello: &pb::Hello) -> Result<Option<(StoredSession, bool)>, BadHello> {
         let id = hello.resume_session_id.as_str();
-        let s = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
-            Ok(crate::replica::ReplicaSession::Found(s)) => *s,
+        let Some(replica) = self.store.as_ref().and_then(|s| s.replica()) else { return Ok(None) };
+        if id.is_empty() || self.resident(id).is_some() {
+            return Ok(None);
+        }
+        let (s, writer) = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
+            Ok(crate::replica::ReplicaSession::Found { session, server_id }) => (*session, server_id),
             Ok(crate::replica::ReplicaSession::Absent) => return Ok(None),
             Ok(crate::replica::ReplicaSession::Refused(why)) => return Err(BadHello::Unauthenticated(why)),
             Err(e) => {
@@ -1312,6 +1327,33 @@ impl Registry {
                 return Ok(None);
             }
         };
+        if read(&self.live_elsewhere).as_ref().is_some_and(|live| live(&writer)) {
+            tracing::warn!(session = id, server = %writer, "the session's server is still live: a new session instead");
+            return Ok(None);
+        }
+        if let Some(store) = &self.store
+            && let Ok(Some(local)) = store.load(id)
+            && local.poses.len() >= s.poses.len()
+        {
+            return Ok(Some((local, false)));
+        }
+        Ok(Some((s, true)))
+    }
+
+    /// A session another server held, live on this one: copied into this server's
+    /// store (`copy`), its map and trajectory restored, and a new tracker that
+    /// reports nothing until it finds itself among the session's newest stored
+    /// keyframes. `None`: it cannot be found again (a new session instead).
+    fn resume_stored(
+        &self,
+        s: StoredSession,
+        copy: bool,
+        hello: &pb::Hello,
+        transport: Transport,
+        sink: ResultSink,
+    ) -> Result<Option<Opened>, BadHello> {
+        let id = s.id.clone();
+        let id = id.as_str();
         // Found again among its keyframes; without any, only a session with no pose
         // yet goes on (its world is the first camera's, as a new tracker's); one with
         // poses cannot be found again: a new session.
@@ -1330,16 +1372,37 @@ impl Registry {
             }
             return Err(e);
         }
-        if let Some(store) = &self.store
-            && let Err(e) = store.import(&s)
+        let fleet_name = self.fleet_for(&s.meta.fleet);
+        if let Some(fleets) = &self.fleets
+            && let Err((held, max)) = fleets.admits(&fleet_name)
         {
-            tracing::error!(session = id, "the resumed session is not in this server's store yet (the store failed): {e}");
+            self.metrics.session_refused("max_fleets");
+            return Err(BadHello::Limit {
+                limit: "max_fleets",
+                message: format!(
+                    "the resumed session's fleet {fleet_name:?} is new here; the server holds {held} fleets, fleet.max_fleets = {max}"
+                ),
+            });
+        }
+        if let Some(store) = &self.store {
+            if copy && let Err(e) = store.import(&s) {
+                tracing::error!(session = id, "the resumed session is not in this server's store yet (the store failed): {e}");
+            }
+            if let Some(replica) = store.replica() {
+                replica.remember(id, crate::replica::secret_hash(&hello.resume_secret));
+            }
         }
         let tracking_camera = crate::convert::camera_of(&camera);
-        let keyframes = s.keyframes.iter().rev().map(|k| crate::fleet::place_of_record(&tracking_camera, k)).map(|(p, w)| (w, p)).collect();
+        let keyframes = s
+            .keyframes
+            .iter()
+            .rev()
+            .take(RESUME_KEYFRAMES)
+            .map(|k| crate::fleet::place_of_record(&tracking_camera, k))
+            .map(|(p, w)| (w, p))
+            .collect();
         let next_keyframe_id = s.keyframes.iter().map(|k| k.id + 1).max().unwrap_or(0).max(s.meta.keyframes);
         let anchor = crate::pipeline::track::ResumeAnchor { keyframes, verify: stillmap_places::VerifyConfig::default(), next_keyframe_id };
-        let fleet_name = self.fleet_for(&s.meta.fleet);
         if let Some(f) = &self.fleets {
             f.join(&fleet_name, id, &hello.robot_id);
         }

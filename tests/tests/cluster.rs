@@ -433,7 +433,7 @@ async fn a_killed_servers_robots_resume_their_sessions_from_the_shared_storage()
         let sequences: Vec<u64> =
             trajectory["poses"].as_array().expect("poses").iter().map(|p| p["sequence"].as_u64().expect("sequence")).collect();
         let before = &committed[robot];
-        let after = sequences.len() - before.len();
+        let after = sequences.len().saturating_sub(before.len());
         eprintln!(
             "{robot}: session {id} resumed on A: {} poses committed by B, {after} after the move, ATE {:.2} cm over the whole clip",
             before.len(),

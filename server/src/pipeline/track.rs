@@ -57,7 +57,8 @@ pub struct ResumeAnchor {
 /// One session's tracker.
 pub struct SessionTracker {
     tracker: Tracker,
-    /// The last frame's pose (for the camera motion perception needs).
+    /// The last frame's pose in the tracker's own world (for the camera motion
+    /// perception needs: a motion, the same in any world).
     last_pose: Option<Isometry3<f64>>,
     /// `CameraInfo.exposure_time_offset_s`: from a frame's timestamp to its pose's time.
     exposure_time_offset_s: f64,
@@ -102,9 +103,11 @@ impl SessionTracker {
         let (Some(anchor), Some(record)) = (self.resume.as_ref(), self.tracker_record(id)) else { return };
         let camera = self.tracker.camera().clone();
         let (query, tracker_from_query) = crate::fleet::place_of_record(&camera, &record);
-        // Every stored keyframe it is verified against proposes where the tracker is;
-        // a single verification is off by a centimetre or two, so the proposals are
-        // averaged, weighted by their inliers (the fleet merge does the same).
+        // Every stored keyframe it is verified against proposes where the tracker is.
+        // A false match must not put the session in a wrong world: at least
+        // RESUME_AGREEING proposals must agree (within 5 cm and 2°, as the fleet
+        // merge asks); a single verification is off by a centimetre or two, so the
+        // agreeing ones are averaged, weighted by their inliers.
         let proposals: Vec<(Isometry3<f64>, f64)> = anchor
             .keyframes
             .iter()
@@ -114,9 +117,14 @@ impl SessionTracker {
                 Some((world_from_query * tracker_from_query.inverse(), v.inliers as f64))
             })
             .collect();
-        if let Some(world_from_tracker) = weighted_mean(&proposals) {
+        let agreeing = largest_agreeing(&proposals);
+        // A session stored with a single keyframe has only its one proposal.
+        if agreeing.len() < RESUME_AGREEING.min(anchor.keyframes.len()) {
+            return;
+        }
+        if let Some(world_from_tracker) = weighted_mean(&agreeing) {
             self.world_from_tracker = world_from_tracker;
-            tracing::info!(verified = proposals.len(), "resumed session found in its stored world");
+            tracing::info!(agreeing = agreeing.len(), verified = proposals.len(), "resumed session found in its stored world");
             self.resume = None;
         }
     }
@@ -152,16 +160,13 @@ impl SessionTracker {
         // Keyframe ids only grow: the newest is the one just made.
         let new_keyframe =
             if out.keyframe { self.tracker.map().keyframes.keys().next_back().map(|id| id + self.keyframe_id_offset) } else { None };
-        let was_placed = self.placed();
-        if let (false, Some(id)) = (was_placed, new_keyframe) {
+        if let (false, Some(id)) = (self.placed(), new_keyframe) {
             self.relocate(id);
         }
-        // The frame it is found on: the motion from the last frame spans two worlds.
-        let previous_pose = previous_pose.filter(|_| was_placed);
+        self.last_pose = out.world_from_camera;
+        let previous_from_current = previous_pose.zip(out.world_from_camera).map(|(previous, now)| previous.inverse() * now);
         if !self.placed() {
             // Not yet found in the session's world: nothing to report or to map.
-            self.last_pose = out.world_from_camera.map(|p| self.world_from_tracker * p);
-            let previous_from_current = previous_pose.zip(self.last_pose).map(|(previous, now)| previous.inverse() * now);
             return TrackOutcome {
                 state: TrackingState::Lost,
                 world_from_camera: None,
@@ -174,7 +179,6 @@ impl SessionTracker {
             };
         }
         let world_from_camera = out.world_from_camera.map(|p| self.world_from_tracker * p);
-        self.last_pose = world_from_camera;
         TrackOutcome {
             state: state_of(out.state),
             world_from_camera,
@@ -182,7 +186,7 @@ impl SessionTracker {
             features: out.tracked_points as u32,
             masked_features: out.masked_features as u32,
             new_keyframe,
-            previous_from_current: previous_pose.zip(world_from_camera).map(|(previous, now)| previous.inverse() * now),
+            previous_from_current,
             times: out.times,
         }
     }
@@ -224,6 +228,25 @@ impl SessionTracker {
     }
 }
 
+/// Proposals of where a resumed session's tracker is that must agree before it is placed.
+const RESUME_AGREEING: usize = 2;
+/// Two proposals agree within this translation and rotation.
+const AGREE_M: f64 = 0.05;
+const AGREE_DEG: f64 = 2.0;
+
+/// The largest group of poses agreeing with one of them (itself included).
+fn largest_agreeing(poses: &[(Isometry3<f64>, f64)]) -> Vec<(Isometry3<f64>, f64)> {
+    let agree = |a: &Isometry3<f64>, b: &Isometry3<f64>| {
+        let d = a.inverse() * b;
+        d.translation.vector.norm() <= AGREE_M && d.rotation.angle().to_degrees() <= AGREE_DEG
+    };
+    poses
+        .iter()
+        .map(|(p, _)| poses.iter().filter(|(q, _)| agree(p, q)).copied().collect::<Vec<_>>())
+        .max_by_key(Vec::len)
+        .unwrap_or_default()
+}
+
 /// The weighted mean of poses: translations averaged, rotations as the normalised
 /// weighted sum of their quaternions (each turned to the first one's hemisphere).
 fn weighted_mean(poses: &[(Isometry3<f64>, f64)]) -> Option<Isometry3<f64>> {
@@ -258,5 +281,16 @@ mod tests {
         assert!(angle > 0.17 && angle < 0.18, "{angle}");
         assert!(weighted_mean(&[]).is_none());
         assert!(weighted_mean(&[(a, 0.0)]).is_none());
+    }
+
+    /// Only poses within 5 cm and 2° of one another agree; a lone outlier is left out.
+    #[test]
+    fn the_largest_agreeing_group_leaves_an_outlier_out() {
+        let at = |x: f64, yaw: f64| (Isometry3::new(nalgebra::Vector3::new(x, 0.0, 0.0), nalgebra::Vector3::new(0.0, 0.0, yaw)), 1.0);
+        let group = largest_agreeing(&[at(0.0, 0.0), at(0.02, 0.01), at(0.5, 0.0), at(0.03, 0.0)]);
+        assert_eq!(group.len(), 3);
+        assert!(group.iter().all(|(p, _)| p.translation.vector.x < 0.1));
+        assert_eq!(largest_agreeing(&[at(0.0, 0.0), at(0.5, 0.0)]).len(), 1, "two that disagree: groups of one");
+        assert!(largest_agreeing(&[]).is_empty());
     }
 }
