@@ -57,6 +57,19 @@ pub mod keys {
         format!("stillmap-cluster/servers/{server_id}/grpc")
     }
 
+    /// Where the server `server_id` publishes every pose of the sessions it holds
+    /// (a `FleetPose` each), while another server subscribes.
+    pub fn server_poses(server_id: &str) -> String {
+        format!("stillmap-cluster/servers/{server_id}/poses")
+    }
+    /// Where the server `server_id` publishes its dashboard sessions list (JSON, every
+    /// 500 ms) while another server subscribes.
+    pub fn server_sessions(server_id: &str) -> String {
+        format!("stillmap-cluster/servers/{server_id}/sessions")
+    }
+    /// Every server's published live data (poses and sessions lists).
+    pub const ALL_SERVER_LIVE: &str = "stillmap-cluster/servers/*/*";
+
     /// The server id inside a server's liveliness key.
     pub fn server_of_key(key: &str) -> Option<&str> {
         let id = key.strip_prefix("stillmap-cluster/servers/")?;

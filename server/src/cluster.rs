@@ -23,9 +23,10 @@
 //! returned as is. A forwarded request is never forwarded again. The unary gRPC
 //! queries about a session (`GetLatestPose`, `GetTrajectory`, `GetMapTile`) are
 //! asked the same way (`stillmap-cluster/servers/<id>/grpc`: the request message,
-//! the method and the caller's token), and `ListSessions` lists every server's
-//! sessions; the streams (`SubscribePoses`, `GetMapCloud`, the fleet's) are not
-//! forwarded.
+//! the method and the caller's token), `GetMapCloud`'s chunks come back together,
+//! and `ListSessions` lists every server's sessions. Live data (the dashboard's
+//! event stream, `SubscribePoses`) comes from the other servers' publications
+//! (`relay.rs`). The fleet endpoints are each server's own.
 
 use std::collections::BTreeSet;
 use std::net::SocketAddr;
@@ -54,6 +55,11 @@ impl Membership {
         Arc::new(Self { own: own.to_string(), live: Mutex::new(BTreeSet::from([own.to_string()])) })
     }
 
+    /// This server's id.
+    pub fn own(&self) -> &str {
+        &self.own
+    }
+
     /// Whether robot `robot_id` belongs to this server among the live ones.
     pub fn owns(&self, robot_id: &str) -> bool {
         let live = lock(&self.live);
@@ -65,7 +71,7 @@ impl Membership {
         lock(&self.live).iter().cloned().collect()
     }
 
-    fn seen(&self, id: &str, alive: bool) {
+    pub(crate) fn seen(&self, id: &str, alive: bool) {
         if id == self.own {
             return;
         }

@@ -19,6 +19,8 @@ pub mod pipeline;
 pub mod pool;
 pub mod queue;
 pub mod ratelimit;
+#[cfg(feature = "zenoh")]
+pub mod relay;
 pub mod replica;
 pub mod session;
 pub mod store;
@@ -259,6 +261,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let bound_grpc = grpc_listener.local_addr().map_err(ServerError::Http)?;
     let bound_http = http_listener.local_addr().map_err(ServerError::Http)?;
 
+    // The other servers' live data, for the dashboard's events and SubscribePoses.
+    #[cfg_attr(not(feature = "zenoh"), allow(unused_mut))]
+    let mut remote_live: Option<Arc<dyn api::RemoteLive>> = None;
     #[cfg(feature = "zenoh")]
     let zenoh_task = if config.zenoh.enabled {
         let z = zenoh::open(ingest::zenoh::zenoh_config(&config.zenoh)?).await.map_err(|e| ServerError::Zenoh(format!("open: {e}")))?;
@@ -290,10 +295,17 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             started_unix_ns: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64),
             max_sessions: config.limits.max_sessions,
         };
+        let live = relay::Relay::new(membership.clone());
+        remote_live = Some(live.clone());
+        let relaying = relay::run(z.clone(), live, registry.clone(), shutdown.clone());
         let announcement = cluster::announce(z.clone(), registry.clone(), identity, membership, shutdown.clone());
         let announce = tokio::spawn(async move {
-            if let Err(e) = announcement.await {
+            let (announced, relayed) = tokio::join!(announcement, relaying);
+            if let Err(e) = announced {
                 tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}");
+            }
+            if let Err(e) = relayed {
+                tracing::error!("not sharing live data with the other servers: {e}");
             }
         });
         Some((z, task, announce, forwarder, server_id, token))
@@ -322,7 +334,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     #[cfg(not(feature = "zenoh"))]
     let remote = None;
     let query = QueryServer::with_interceptor(
-        api::query::QueryService { registry: registry.clone(), remote },
+        api::query::QueryService { registry: registry.clone(), remote, remote_live: remote_live.clone() },
         move |request: tonic::Request<()>| {
             let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
             query_auth.get().check(authorization, auth::Need::Read).map_err(|r| r.grpc_status())?;
@@ -373,6 +385,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         import_max_bytes: config.store.import_max_bytes,
         max_event_viewers: config.http.max_event_viewers,
         pose_event_interval: std::time::Duration::from_millis(config.http.pose_event_interval_ms),
+        remote_live: remote_live.clone(),
     });
     match &dashboard_dir {
         Some(d) => tracing::info!(dir = %d.display(), "dashboard at /"),
@@ -390,7 +403,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         Some((z, _, _, forwarder, server_id, _)) => {
             let answering = cluster::answer_forwarded(z.clone(), server_id.clone(), http_app.clone(), registry.clone(), shutdown.clone());
             // Forwarded gRPC queries are answered by this server alone (never forwarded again).
-            let alone = Arc::new(api::query::QueryService { registry: registry.clone(), remote: None });
+            let alone = Arc::new(api::query::QueryService { registry: registry.clone(), remote: None, remote_live: None });
             let answering_grpc = cluster::answer_forwarded_grpc(z.clone(), server_id.clone(), alone, auth.clone(), shutdown.clone());
             let answer = tokio::spawn(async move {
                 let (http, grpc) = tokio::join!(answering, answering_grpc);

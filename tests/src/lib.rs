@@ -444,12 +444,17 @@ impl Postgres {
 
     /// A query's rows, from a thread of its own (the synchronous client runs a runtime of its own).
     pub fn query(&self, sql: &str) -> Vec<postgres::Row> {
+        self.try_query(sql).unwrap_or_else(|e| panic!("{sql}: {e}"))
+    }
+
+    /// A query's rows, or PostgreSQL's error (a table the server has not created yet).
+    pub fn try_query(&self, sql: &str) -> Result<Vec<postgres::Row>, postgres::Error> {
         let (url, sql) = (self.url(), sql.to_string());
         std::thread::Builder::new()
             .name("postgres-query".into())
             .spawn(move || {
                 let mut client = postgres::Client::connect(&url, postgres::NoTls).expect("connect to the test's PostgreSQL");
-                client.query(&sql, &[]).expect("query")
+                client.query(&sql, &[])
             })
             .expect("thread")
             .join()

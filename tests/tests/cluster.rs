@@ -206,6 +206,57 @@ async fn robots_on(server: &Server, id: &str) -> (Vec<String>, Vec<String>) {
     (all, connected)
 }
 
+/// What a dashboard opened on `viewer` sees of the sessions server `holder_id`
+/// holds (`held`): its event stream lists them, tagged with their server, and
+/// carries their poses; and a gRPC `SubscribePoses` there follows one of them.
+async fn live_across_servers(viewer: &Server, holder_id: &str, held: &[String]) {
+    let mut r = reqwest::get(format!("http://{}/api/v1/events", viewer.http)).await.expect("GET events");
+    assert_eq!(r.status(), 200);
+    let (mut text, mut listed, mut posed) = (String::new(), false, false);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !(listed && posed) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let chunk = tokio::time::timeout(left, r.chunk())
+            .await
+            .unwrap_or_else(|_| panic!("{holder_id}'s sessions listed ({listed}) and posed ({posed}) by another server's events"))
+            .expect("stream open")
+            .expect("chunk");
+        text.push_str(&String::from_utf8_lossy(&chunk));
+        while let Some(end) = text.find("\n\n") {
+            let event: String = text.drain(..end + 2).collect();
+            let field = |name: &str| event.lines().find_map(|l| l.strip_prefix(name)).map(str::trim).unwrap_or_default().to_string();
+            let Ok(data) = serde_json::from_str::<serde_json::Value>(&field("data:")) else { continue };
+            match field("event:").as_str() {
+                "sessions" => {
+                    let sessions = data["sessions"].as_array().cloned().unwrap_or_default();
+                    listed |= held.iter().all(|id| {
+                        sessions.iter().any(|s| s["session_id"] == id.as_str() && s["server_id"] == holder_id && s["connected"] == true)
+                    });
+                }
+                "poses" => {
+                    posed |=
+                        data.as_array().is_some_and(|poses| poses.iter().any(|p| held.iter().any(|id| p["session_id"] == id.as_str())));
+                }
+                _ => {}
+            }
+        }
+    }
+    let mut q = QueryClient::connect(viewer.grpc_url()).await.expect("connect");
+    let mut poses = q.subscribe_poses(pb::SessionRef { session_id: held[0].clone() }).await.expect("subscribe elsewhere").into_inner();
+    let mut sequences = Vec::new();
+    while sequences.len() < 3 {
+        let pose = tokio::time::timeout(Duration::from_secs(5), poses.message())
+            .await
+            .expect("a pose of another server's session in time")
+            .expect("stream open")
+            .expect("a pose");
+        sequences.push(pose.sequence);
+    }
+    assert!(sequences.windows(2).all(|w| w[0] < w[1]), "{sequences:?}");
+    let missing = q.subscribe_poses(pb::SessionRef { session_id: "nobody-1".into() }).await.expect_err("no such session anywhere");
+    assert_eq!(missing.code(), tonic::Code::NotFound, "{missing:?}");
+}
+
 /// A router, two servers and four robots on Zenoh: each robot is answered by the
 /// one server placement gives it, and when that server is killed with `kill -9` its
 /// robots say hello again and stream on to the other server; every frame is
@@ -233,8 +284,9 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     eprintln!("placement: {} on {id_a}, {} on {id_b}", on_a.len(), on_b.len());
     assert!(!on_b.is_empty() && !on_a.is_empty(), "this test needs robots on both servers");
 
-    // 150 frames at 15 Hz: 10 s of streaming each, time to check placement first.
-    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "15", "placed");
+    // 150 frames at 10 Hz: 15 s of streaming each, time to check placement, the
+    // live data and the forwarded queries first.
+    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "10", "placed");
 
     // Each robot streams to its owner, and only there.
     eventually(Duration::from_secs(10), "every robot streaming on its server", async || {
@@ -242,6 +294,22 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     })
     .await;
     assert!(robots_on(&b, id_a).await.0 == on_a && robots_on(&b, id_b).await.0 == on_b, "a robot opened a session on the wrong server");
+
+    // Live data too: a dashboard on either server sees the other's sessions and
+    // poses, and SubscribePoses follows a session the other server holds.
+    for (holder, holder_id, viewer) in [(&a, id_a, &b), (&b, id_b, &a)] {
+        let (_, list) = holder.get_json("/api/v1/sessions").await;
+        let held: Vec<String> = list["sessions"]
+            .as_array()
+            .expect("sessions")
+            .iter()
+            .filter(|s| s["server_id"] == holder_id)
+            .filter_map(|s| s["session_id"].as_str().map(str::to_string))
+            .collect();
+        let t = Instant::now();
+        live_across_servers(viewer, holder_id, &held).await;
+        eprintln!("{holder_id}'s live sessions and poses seen from the other server in {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
+    }
 
     // Any server answers for any session: asked of the server without it, the query
     // is forwarded over Zenoh to the one holding it (JSON and text alike).
@@ -290,6 +358,24 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
                 (Ok(forwarded), Ok(_)) => assert!(forwarded.get_ref().png.starts_with(b"\x89PNG"), "{id}: a PNG"),
                 (Err(forwarded), Err(own)) => assert_eq!((forwarded.code(), forwarded.message()), (own.code(), own.message()), "{id}"),
                 (forwarded, own) => panic!("{id}: tile forwarded {forwarded:?}, at the holder {own:?}"),
+            }
+            // The map cloud: the holder's chunks, streamed from the other server.
+            let cloud = pb::MapCloudRequest { session_id: id.clone(), bbox: None };
+            match (there.get_map_cloud(cloud.clone()).await, here.get_map_cloud(cloud).await) {
+                (Ok(forwarded), Ok(own)) => {
+                    let (mut forwarded, mut own) = (forwarded.into_inner(), own.into_inner());
+                    let own_names = own.message().await.expect("a chunk").expect("a first chunk").class_names;
+                    let mut n = 0;
+                    while let Some(chunk) = forwarded.message().await.expect("a forwarded chunk") {
+                        assert_eq!(chunk.xyz.len(), 3 * chunk.class_id.len(), "{id}");
+                        let names = if n == 0 { own_names.clone() } else { vec![] };
+                        assert_eq!(chunk.class_names, names, "{id}: the holder's class names, with the first chunk only");
+                        n += 1;
+                    }
+                    assert!(n >= 1, "{id}: at least one chunk");
+                }
+                (Err(forwarded), Err(own)) => assert_eq!((forwarded.code(), forwarded.message()), (own.code(), own.message()), "{id}"),
+                (forwarded, own) => panic!("{id}: cloud forwarded {:?}, at the holder {:?}", forwarded.err(), own.err()),
             }
         }
         let listed = there.list_sessions(pb::ListSessionsRequest {}).await.expect("sessions").into_inner();

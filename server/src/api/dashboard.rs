@@ -181,11 +181,19 @@ pub struct EventFeed {
     /// (`http.pose_event_interval_ms`): a viewer's writes do not grow with the fleet's
     /// frame rate (16 robots at 30 Hz would be 480 events a second per viewer).
     pose_interval: Duration,
+    /// The other servers' sessions and poses (a cluster on Zenoh).
+    remote: Option<Arc<dyn crate::api::RemoteLive>>,
 }
 
 impl EventFeed {
-    pub fn new(registry: Arc<Registry>, max_viewers: usize, pose_interval: Duration) -> Arc<Self> {
+    pub fn new(
+        registry: Arc<Registry>,
+        max_viewers: usize,
+        pose_interval: Duration,
+        remote: Option<Arc<dyn crate::api::RemoteLive>>,
+    ) -> Arc<Self> {
         Arc::new(Self {
+            remote,
             registry,
             snapshot: watch::channel(Arc::from("{\"sessions\":[]}")).0,
             poses: broadcast::channel(POSE_EVENTS_BUFFER).0,
@@ -215,29 +223,42 @@ impl EventFeed {
                         continue;
                     }
                     let registry = feed.registry.clone();
-                    let Ok((text, seen)) = tokio::task::spawn_blocking(move || snapshot(&registry, previous)).await else { break };
+                    let Ok((mut sessions, seen)) = tokio::task::spawn_blocking(move || session_list(&registry, previous)).await else {
+                        break;
+                    };
                     previous = seen;
-                    feed.snapshot.send_replace(text);
+                    if let Some(remote) = &feed.remote {
+                        sessions = with_remote(sessions, remote.own_id(), remote.sessions());
+                    }
+                    feed.snapshot.send_replace(Arc::from(json!({ "sessions": sessions }).to_string()));
                 }
             });
             let feed = self.clone();
-            let mut poses = feed.registry.subscribe_fleet();
+            let mut local = feed.registry.subscribe_fleet();
+            // The other servers' poses, when there are other servers.
+            let mut remote = feed.remote.as_ref().map(|r| r.subscribe_poses());
             tokio::spawn(async move {
                 let mut pending: Vec<String> = Vec::new();
                 let mut interval = tokio::time::interval(feed.pose_interval);
                 interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
                 loop {
+                    let mut remote_closed = false;
+                    let from_remote = async {
+                        match remote.as_mut() {
+                            Some(r) => r.recv().await,
+                            None => std::future::pending().await,
+                        }
+                    };
                     tokio::select! {
-                        received = poses.recv() => match received {
-                            Ok((id, p)) => {
-                                if pending.len() < MAX_POSES_PER_EVENT && feed.poses.receiver_count() > 0 {
-                                    let pose = p.world_from_camera.unwrap_or_default();
-                                    let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
-                                    pending.push(json!({ "session_id": &*id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] }).to_string());
-                                }
-                            }
+                        received = local.recv() => match received {
+                            Ok((id, p)) => feed.pending_pose(&mut pending, &id, &p),
                             Err(broadcast::error::RecvError::Lagged(_)) => {}
                             Err(broadcast::error::RecvError::Closed) => break,
+                        },
+                        received = from_remote => match received {
+                            Ok((id, p)) => feed.pending_pose(&mut pending, &id, &p),
+                            Err(broadcast::error::RecvError::Lagged(_)) => {}
+                            Err(broadcast::error::RecvError::Closed) => remote_closed = true,
                         },
                         _ = interval.tick() => {
                             if !pending.is_empty() {
@@ -247,15 +268,57 @@ impl EventFeed {
                             }
                         }
                     }
+                    if remote_closed {
+                        remote = None;
+                    }
                 }
             });
         });
     }
 }
 
-/// The sessions event's data, and each session's processed count and time (for
-/// the next snapshot's frames/s).
-fn snapshot(registry: &Registry, mut previous: HashMap<String, (u64, Instant)>) -> (Arc<str>, HashMap<String, (u64, Instant)>) {
+impl EventFeed {
+    /// Adds a pose to the next `poses` event (while anyone watches, up to the cap).
+    fn pending_pose(&self, pending: &mut Vec<String>, id: &str, p: &pb::PoseStamped) {
+        if pending.len() < MAX_POSES_PER_EVENT && self.poses.receiver_count() > 0 {
+            let pose = p.world_from_camera.unwrap_or_default();
+            let (t, q) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
+            pending.push(
+                json!({ "session_id": id, "sequence": p.sequence, "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
+                    .to_string(),
+            );
+        }
+    }
+}
+
+/// This server's sessions (tagged `server_id` = `own`) and the other servers'.
+/// A session listed twice (stored here, live there after a move) is shown once:
+/// the connected one, else this server's.
+fn with_remote(mut sessions: Vec<Value>, own: &str, remote: Vec<Value>) -> Vec<Value> {
+    for s in &mut sessions {
+        if let Some(o) = s.as_object_mut() {
+            o.insert("server_id".into(), own.into());
+        }
+    }
+    for theirs in remote {
+        match sessions.iter_mut().find(|s| s["session_id"] == theirs["session_id"]) {
+            Some(ours) => {
+                if theirs["connected"] == true && ours["connected"] != true {
+                    *ours = theirs;
+                }
+            }
+            None => sessions.push(theirs),
+        }
+    }
+    sessions
+}
+
+/// The sessions event's list, and each session's processed count and time (for
+/// the next list's frames/s).
+pub(crate) fn session_list(
+    registry: &Registry,
+    mut previous: HashMap<String, (u64, Instant)>,
+) -> (Vec<Value>, HashMap<String, (u64, Instant)>) {
     let now = Instant::now();
     let list = registry.list();
     let mut seen = HashMap::with_capacity(list.len());
@@ -272,7 +335,7 @@ fn snapshot(registry: &Registry, mut previous: HashMap<String, (u64, Instant)>) 
         })
         .chain(registry.dormant().iter().map(|d| listed_json(d, 0.0, json!({}), Value::Null)))
         .collect();
-    (Arc::from(json!({ "sessions": sessions }).to_string()), seen)
+    (sessions, seen)
 }
 
 /// Counts a viewer for as long as its stream lives.
@@ -308,12 +371,14 @@ pub async fn events(State(state): State<DashboardState>) -> Response {
             .into_response();
     }
     let viewer = Viewer(feed.viewers.clone());
+    // The other servers publish their live data while a viewer watches here.
+    let watching = feed.remote.as_ref().map(|r| r.watch());
     feed.start();
     let sessions = WatchStream::new(feed.snapshot.subscribe()).map(|text| Event::default().event("sessions").data(&*text));
     let poses =
         BroadcastStream::new(feed.poses.subscribe()).filter_map(|p| p.ok().map(|text| Event::default().event("poses").data(&*text)));
     let stream = sessions.merge(poses).map(move |event| {
-        let _counted = &viewer;
+        let _counted = (&viewer, &watching);
         Ok::<_, Infallible>(event)
     });
     Sse::new(stream).keep_alive(KeepAlive::default()).into_response()

@@ -49,10 +49,17 @@ pub struct HttpSettings {
     pub max_event_viewers: usize,
     /// `http.pose_event_interval_ms`.
     pub pose_event_interval: std::time::Duration,
+    /// The other servers' live data for the dashboard's event stream (a cluster on Zenoh).
+    pub remote_live: Option<Arc<dyn crate::api::RemoteLive>>,
 }
 
 pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>, settings: Arc<HttpSettings>) -> Router {
-    let feed = crate::api::dashboard::EventFeed::new(registry.clone(), settings.max_event_viewers, settings.pose_event_interval);
+    let feed = crate::api::dashboard::EventFeed::new(
+        registry.clone(),
+        settings.max_event_viewers,
+        settings.pose_event_interval,
+        settings.remote_live.clone(),
+    );
     let dashboard = crate::api::dashboard::DashboardState { registry: registry.clone(), dir: dashboard_dir, feed };
     let read = axum::middleware::from_fn_with_state(settings.clone(), require_read);
     let rate_limited = axum::middleware::from_fn_with_state(settings.clone(), rate_limit);

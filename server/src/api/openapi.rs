@@ -110,6 +110,10 @@ pub struct SessionView {
     /// Only in `GET /api/v1/sessions/{id}`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub camera: Option<CameraView>,
+    /// On servers sharing a Zenoh network, in the sessions list: the server holding
+    /// the session (its `--server-id`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub server_id: Option<String>,
 }
 
 #[derive(Debug, Serialize, ToSchema)]
@@ -247,6 +251,7 @@ impl SessionView {
                 last_received_sequence: s.last_received_sequence,
             },
             camera: if detail { sum.camera.as_ref().map(CameraView::from) } else { None },
+            server_id: None,
         }
     }
 }

@@ -17,9 +17,11 @@ use crate::session::{Registry, Session};
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
-/// The unary queries other servers answer for sessions this one does not hold
-/// (`cluster::Forwarder` on Zenoh). Streams are not forwarded.
-pub const FORWARDED_METHODS: [&str; 4] = ["ListSessions", "GetLatestPose", "GetTrajectory", "GetMapTile"];
+/// The queries other servers answer for sessions this one does not hold
+/// (`cluster::Forwarder` on Zenoh). `GetMapCloud`'s chunks come back together
+/// (length-delimited), and are streamed from here; `SubscribePoses` follows the
+/// other servers' live poses instead (`RemoteLive`).
+pub const FORWARDED_METHODS: [&str; 5] = ["ListSessions", "GetLatestPose", "GetTrajectory", "GetMapTile", "GetMapCloud"];
 
 /// The other servers of a cluster, asked what this one does not hold.
 #[tonic::async_trait]
@@ -36,6 +38,8 @@ pub struct QueryService {
     pub registry: Arc<Registry>,
     /// The other servers (none: a single server, or the side answering a forwarded query).
     pub remote: Option<Arc<dyn Remote>>,
+    /// The other servers' live poses (`SubscribePoses` of a session another server holds).
+    pub remote_live: Option<Arc<dyn crate::api::RemoteLive>>,
 }
 
 fn authorization<T>(request: &Request<T>) -> Option<String> {
@@ -58,12 +62,15 @@ impl QueryService {
         id: &str,
         request: &Request<Q>,
     ) -> Result<Response<R>, Status> {
+        let bytes = self.forwarded_bytes(method, id, request).await?;
+        R::decode(bytes.as_slice()).map(Response::new).map_err(|e| Status::internal(format!("another server's answer: {e}")))
+    }
+
+    /// The encoded answer of the server holding session `id` to `request`.
+    async fn forwarded_bytes<Q: prost::Message>(&self, method: &'static str, id: &str, request: &Request<Q>) -> Result<Vec<u8>, Status> {
         let Some(remote) = &self.remote else { return Err(Self::unknown(id)) };
         match remote.call(method, request.get_ref().encode_to_vec(), authorization(request)).await {
-            Some(Ok(bytes)) => {
-                R::decode(bytes.as_slice()).map(Response::new).map_err(|e| Status::internal(format!("another server's answer: {e}")))
-            }
-            Some(Err(status)) => Err(status),
+            Some(answer) => answer,
             None => Err(Self::unknown(id)),
         }
     }
@@ -75,6 +82,7 @@ impl QueryService {
             "GetLatestPose" => pb::SessionRef::decode(request).map(|r| r.session_id),
             "GetTrajectory" => pb::TrajectoryRequest::decode(request).map(|r| r.session_id),
             "GetMapTile" => pb::MapTileRequest::decode(request).map(|r| r.session_id),
+            "GetMapCloud" => pb::MapCloudRequest::decode(request).map(|r| r.session_id),
             _ => return method == "ListSessions",
         };
         session_id.is_ok_and(|id| self.registry.info(&id).is_some())
@@ -94,6 +102,15 @@ impl QueryService {
             "GetLatestPose" => self.get_latest_pose(decode(request)?).await.map(|r| encoded_of(&r)),
             "GetTrajectory" => self.get_trajectory(decode(request)?).await.map(|r| encoded_of(&r)),
             "GetMapTile" => self.get_map_tile(decode(request)?).await.map(|r| encoded_of(&r)),
+            "GetMapCloud" => {
+                // Every chunk, length-delimited, in one answer.
+                let mut chunks = self.get_map_cloud(decode(request)?).await?.into_inner();
+                let mut out = Vec::new();
+                while let Some(chunk) = chunks.next().await {
+                    chunk?.encode_length_delimited(&mut out).map_err(|e| Status::internal(format!("map cloud: {e}")))?;
+                }
+                Ok(out)
+            }
             other => Err(Status::unimplemented(format!("{other} is not forwarded between servers"))),
         }
     }
@@ -187,9 +204,23 @@ impl Query for QueryService {
     }
 
     async fn subscribe_poses(&self, request: Request<pb::SessionRef>) -> Result<Response<Self::SubscribePosesStream>, Status> {
-        let session = self.session(&request.get_ref().session_id)?;
-        // A lagging subscriber skips poses rather than holding the pipeline.
-        let stream = BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
+        let id = request.get_ref().session_id.clone();
+        if let Some(session) = self.registry.get(&id) {
+            // A lagging subscriber skips poses rather than holding the pipeline.
+            let stream = BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
+            return Ok(Response::new(Box::pin(stream)));
+        }
+        // Held by another server: its poses come over Zenoh (relay.rs), from the
+        // holder's next tick on, and from whichever server holds the session later.
+        let Some(live) = &self.remote_live else { return Err(Self::unknown(&id)) };
+        let watching = live.watch();
+        let poses = live.subscribe_poses();
+        // Some live server holds it (asked as GetLatestPose: NOT_FOUND, or the holder's refusal).
+        let _: Response<pb::LatestPose> = self.forwarded("GetLatestPose", &id, &request).await?;
+        let stream = BroadcastStream::new(poses).filter_map(move |r| {
+            let _counted = &watching;
+            r.ok().filter(|(session, _)| **session == *id).map(|(_, pose)| Ok(pose))
+        });
         Ok(Response::new(Box::pin(stream)))
     }
 
@@ -209,6 +240,17 @@ impl Query for QueryService {
     }
 
     async fn get_map_cloud(&self, request: Request<pb::MapCloudRequest>) -> Result<Response<Self::GetMapCloudStream>, Status> {
+        if self.registry.get(&request.get_ref().session_id).is_none() {
+            let id = request.get_ref().session_id.clone();
+            let answer = self.forwarded_bytes("GetMapCloud", &id, &request).await?;
+            let (mut rest, mut chunks) = (answer.as_slice(), Vec::new());
+            while !rest.is_empty() {
+                let chunk = pb::MapCloudChunk::decode_length_delimited(&mut rest)
+                    .map_err(|e| Status::internal(format!("another server's map cloud: {e}")))?;
+                chunks.push(Ok(chunk));
+            }
+            return Ok(Response::new(Box::pin(tokio_stream::iter(chunks))));
+        }
         let r = request.into_inner();
         let map = self.map(&r.session_id)?;
         let bbox = match r.bbox {
