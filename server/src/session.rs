@@ -1518,14 +1518,28 @@ impl Registry {
             return Err(ImportError::Exists(stored.id));
         }
         store.import(&stored).map_err(ImportError::Store)?;
-        let head = SessionHead {
+        let mut head = SessionHead {
             id: stored.id.clone(),
             meta: stored.meta,
             camera: stored.camera,
             pose_count: stored.poses.len(),
             latest: stored.poses.last().copied(),
-            keyframes: Vec::new(),
+            keyframes: stored.keyframes,
         };
+        // It joins its fleet as a restart would bring it back: the fleet's first
+        // session anchors it (a robot then merges into the imported map), else it
+        // is merged when a merged session's keyframe matches its own.
+        if let Some(fleets) = &self.fleets {
+            let fleet = fleets.fleet_for(&head.meta.fleet);
+            match fleets.admits(&fleet) {
+                Ok(()) => fleets.restore(std::slice::from_ref(&head)),
+                Err((held, max)) => tracing::warn!(
+                    session = %head.id,
+                    "imported into no fleet: its fleet {fleet:?} is new here and the server holds {held} fleets (fleet.max_fleets = {max})"
+                ),
+            }
+        }
+        head.keyframes = Vec::new();
         self.restore(std::slice::from_ref(&head));
         Ok(head.id)
     }

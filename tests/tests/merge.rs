@@ -380,3 +380,77 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     drop(server);
     let _ = std::fs::remove_file(&store);
 }
+
+/// A map built on one server and imported into another anchors its fleet there, and
+/// a robot streaming the same room merges into it: robots find themselves in a map
+/// loaded from a file. Robot B maps `rgbd_dataset_freiburg1_rpy_b` on the first
+/// server; its map file is imported into the second; robot A streams
+/// `rgbd_dataset_freiburg1_rpy` there and is merged into B's frame, where its poses
+/// score against the ground truth with B's alignment.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_robot_merges_into_an_imported_map() {
+    let a_dir = tum_dir();
+    let b_dir = stillmap_dataset::shared::fr1_rpy_b();
+    let (first_store, second_store) = (tempfile_path("mapped.redb"), tempfile_path("imported.redb"));
+    let first = Server::start(&["--no-zenoh", "--no-perception", "--store", first_store.to_str().expect("utf-8")]);
+    let stream = |server: &Server, dir: &std::path::Path, robot: &str| {
+        let (out, summary) = run_client(&[
+            "--source",
+            &format!("tum:{}", dir.display()),
+            "--server",
+            &server.grpc_url(),
+            "--rate",
+            "max",
+            "--robot-id",
+            robot,
+            "--fleet",
+            "lab",
+        ]);
+        assert!(out.status.success(), "{robot}: {}", String::from_utf8_lossy(&out.stderr));
+        summary.expect("summary")["session_id"].as_str().expect("session id").to_string()
+    };
+    let b_id = stream(&first, &b_dir, "beta");
+    settled(&first).await;
+    let file = reqwest::get(format!("http://{}/api/v1/maps/{b_id}/export", first.http)).await.expect("export");
+    assert_eq!(file.status(), 200);
+    let file = file.bytes().await.expect("map file");
+    drop(first);
+
+    let second = Server::start(&["--no-zenoh", "--no-perception", "--store", second_store.to_str().expect("utf-8")]);
+    let imported =
+        reqwest::Client::new().post(format!("http://{}/api/v1/maps/import", second.http)).body(file).send().await.expect("import");
+    assert_eq!(imported.status(), 201);
+    let fleet = wait_for_fleet(&second, "lab", Duration::from_secs(10), |f| f["anchor_session_id"] == b_id.as_str()).await;
+    assert_eq!(fleet["sessions"].as_array().map(Vec::len), Some(1), "{fleet}");
+
+    let a_id = stream(&second, &a_dir, "alpha");
+    wait_for_fleet(&second, "lab", Duration::from_secs(60), |f| member(f, &a_id)["merged"] == true).await;
+    let fleet = settled(&second).await;
+    assert_eq!(fleet["anchor_session_id"], b_id.as_str(), "the imported map stays the anchor");
+
+    // A in the fleet frame (the imported map's), with B's alignment to the ground truth.
+    let gt = read_tum(&a_dir.join("groundtruth.txt")).expect("ground truth");
+    let trajectory = |text: &str| parse_tum(text, std::path::Path::new("served")).expect("TUM trajectory");
+    let paired = |text: &str| {
+        let pairs = associate(&gt, &trajectory(text), 0.02, 0.0).expect("associated");
+        (pairs.reference.iter().map(|p| p.1).collect::<Vec<_>>(), pairs.estimate.iter().map(|p| p.1).collect::<Vec<_>>())
+    };
+    let rmse = |reference: &[_], estimate: &[_], relation| Stats::of(&ape(reference, estimate, relation)).map_or(f64::NAN, |s| s.rmse);
+    let (status, b_text) = get_text(&second, &format!("/api/v1/sessions/{b_id}/trajectory?format=tum")).await;
+    assert_eq!(status, 200);
+    let (status, a_text) = get_text(&second, &format!("/api/v1/sessions/{a_id}/trajectory?format=tum&frame=fleet")).await;
+    assert_eq!(status, 200);
+    let (b_reference, b_estimate) = paired(&b_text);
+    let gt_from_b = align_orientations(&b_reference, &b_estimate).expect("B aligned");
+    let (reference, a_estimate) = paired(&a_text);
+    let estimate: Vec<_> = a_estimate.iter().map(|p| gt_from_b * p).collect();
+    let (a_m, a_deg) = (rmse(&reference, &estimate, Relation::Translation), rmse(&reference, &estimate, Relation::RotationDeg));
+    let merge = &member(&fleet, &a_id)["fleet_from_session"];
+    eprintln!(
+        "A in the imported map's frame with B's alignment: {:.2} cm, {a_deg:.2}° over {} poses; merge {merge}",
+        100.0 * a_m,
+        reference.len()
+    );
+    // The bound of the live merge test (B into A's frame: 1.21–1.70 cm, 0.67–0.90°).
+    assert!(a_m < 0.025 && a_deg < 1.5, "A in the imported map's frame: {:.2} cm, {a_deg:.2}°", 100.0 * a_m);
+}
