@@ -78,7 +78,7 @@ function linkBadge(s) {
 function trackingBadge(t) {
   const name = t.replace("TRACKING_STATE_", "").toLowerCase();
   const kind = name === "tracking" || name === "relocalized" ? "ok" : name === "lost" ? "bad" : "warn";
-  return `<span class="badge ${kind}">${name}</span>`;
+  return `<span class="badge ${kind}">${escapeHtml(name)}</span>`;
 }
 
 function renderTable() {
@@ -91,12 +91,13 @@ function renderTable() {
     const sparks = latencyCell(s, hist);
     const t = s.pose?.translation;
     const pose = t ? `${fmt(t[0], 2)}, ${fmt(t[1], 2)}, ${fmt(t[2], 2)}` : "–";
-    const map = s.map ? `${s.map.keyframes} kf · ${s.map.occupied_voxels.toLocaleString()} voxels` : "–";
+    const map = s.map ? `${Number(s.map.keyframes)} kf · ${Number(s.map.occupied_voxels).toLocaleString()} voxels` : "–";
     const sel = s.session_id === state.selected ? "selected" : "";
-    return `<tr data-session="${s.session_id}" class="${sel}">
-      <td>${s.robot_id}</td><td class="muted id" title="${s.session_id}">${shortId(s)}</td><td class="link">${linkBadge(s)}</td>
-      <td>${trackingBadge(s.tracking_state)}</td><td class="frames">${s.frames_processed}</td>
-      <td class="fps">${fmt(s.fps)}</td><td class="dropped">${s.frames_dropped}</td><td class="sparks">${sparks}</td>
+    // Escaped: on servers sharing a Zenoh network, rows come from other servers too.
+    return `<tr data-session="${escapeHtml(s.session_id)}" class="${sel}">
+      <td>${escapeHtml(s.robot_id)}</td><td class="muted id" title="${escapeHtml(s.session_id)}">${escapeHtml(shortId(s))}</td><td class="link">${linkBadge(s)}</td>
+      <td>${trackingBadge(String(s.tracking_state))}</td><td class="frames">${Number(s.frames_processed)}</td>
+      <td class="fps">${fmt(s.fps)}</td><td class="dropped">${Number(s.frames_dropped)}</td><td class="sparks">${sparks}</td>
       <td>${pose}</td><td class="map">${map}</td></tr>`;
   });
   body.innerHTML = rows.join("");

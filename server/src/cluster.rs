@@ -581,6 +581,13 @@ pub async fn answer_forwarded_grpc(
                         (status(refused.code(), refused.message()), vec![])
                     }
                     Ok(()) => match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, service.answer(&call.method, &request)).await {
+                        Ok(Ok(body)) if body.len() > MAX_FORWARDED_BYTES => (
+                            status(
+                                tonic::Code::ResourceExhausted,
+                                &format!("the answer is {} bytes: more than forwarded answers carry ({MAX_FORWARDED_BYTES}); ask the server holding the session", body.len()),
+                            ),
+                            vec![],
+                        ),
                         Ok(Ok(body)) => (status(tonic::Code::Ok, ""), body),
                         Ok(Err(failed)) => (status(failed.code(), failed.message()), vec![]),
                         Err(_) => (status(tonic::Code::DeadlineExceeded, "answer took too long"), vec![]),

@@ -32,6 +32,8 @@ const SESSIONS_EVERY: Duration = Duration::from_millis(500);
 pub const SESSIONS_STALE: Duration = Duration::from_secs(3);
 /// Other servers' poses buffered for local consumers; a laggard skips poses.
 const REMOTE_POSES_BUFFER: usize = 1024;
+/// Sessions lists received and not yet parsed, at most.
+const LISTS_QUEUE: usize = 64;
 /// Largest message accepted from another server (a sessions list of thousands of sessions).
 const MAX_RELAYED_BYTES: usize = 8 << 20;
 
@@ -157,6 +159,8 @@ pub async fn run(
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut poses_watched = false;
     let mut subscriber = None;
+    // Sessions lists are parsed here, not on Zenoh's receive path (a full queue drops one).
+    let (lists_tx, mut lists_rx) = tokio::sync::mpsc::channel::<(String, Vec<u8>)>(LISTS_QUEUE);
     let mut previous = HashMap::new();
     loop {
         tokio::select! {
@@ -175,7 +179,7 @@ pub async fn run(
                 }
                 let wanted = relay.interest.load(Ordering::SeqCst) > 0;
                 if wanted && subscriber.is_none() {
-                    let r = relay.clone();
+                    let (r, lists) = (relay.clone(), lists_tx.clone());
                     let declared = zenoh
                         .declare_subscriber(keys::ALL_SERVER_LIVE)
                         .callback(move |sample: zenoh::sample::Sample| {
@@ -186,7 +190,7 @@ pub async fn run(
                             } else if is_pose {
                                 r.received_pose(&server, &payload);
                             } else {
-                                r.received_sessions(&server, &payload);
+                                let _ = lists.try_send((server, payload.into_owned()));
                             }
                         })
                         .await;
@@ -197,6 +201,12 @@ pub async fn run(
                 } else if !wanted && subscriber.is_some() {
                     subscriber = None;
                     lock(&relay.sessions).clear();
+                }
+            }
+            Some((server, payload)) = lists_rx.recv() => {
+                // Only a live server's list is kept (a stale or unknown one is not).
+                if relay.membership.servers().contains(&server) {
+                    relay.received_sessions(&server, &payload);
                 }
             }
             received = local.recv() => match received {

@@ -203,6 +203,25 @@ impl Replica {
             .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
     }
 
+    /// Takes session `id` over from server `writer`, its last writer, in one
+    /// statement: true when this server writes it from now on, false when another
+    /// server took it first (two servers never resume one session).
+    pub fn claim(&self, id: &str, writer: &str) -> Result<bool, ReplicaError> {
+        let (config, id, writer, me) = (self.config.clone(), id.to_string(), writer.to_string(), crate::lock(&self.server_id).clone());
+        std::thread::Builder::new()
+            .name("replica-claim".into())
+            .spawn(move || {
+                let mut client = config.connect(postgres::NoTls).map_err(|e| ReplicaError::Read(describe(&e)))?;
+                let n = client
+                    .execute("UPDATE stillmap_sessions SET server_id = $1 WHERE id = $2 AND server_id = $3", &[&me, &id, &writer])
+                    .map_err(|e| ReplicaError::Read(describe(&e)))?;
+                Ok(n == 1)
+            })
+            .map_err(ReplicaError::Thread)?
+            .join()
+            .map_err(|_| ReplicaError::Read("the claiming thread panicked".into()))?
+    }
+
     /// Sends `hash` (its resume secret's) with every later commit of session `session_id`.
     pub fn remember(&self, session_id: &str, hash: Vec<u8>) {
         crate::lock(&self.secrets).insert(session_id.to_string(), hash);

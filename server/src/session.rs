@@ -797,6 +797,9 @@ pub enum BadHello {
     /// The server could not start the session (INTERNAL).
     #[error("{0}")]
     Internal(String),
+    /// Not now: try again (UNAVAILABLE), e.g. another server is resuming the session.
+    #[error("{0}")]
+    Unavailable(String),
 }
 
 /// Checks a hello that opens a new session, before anything is allocated for
@@ -827,6 +830,7 @@ impl BadHello {
             Self::Full { .. } | Self::TooLarge(_) | Self::Limit { .. } => tonic::Code::ResourceExhausted,
             Self::Internal(_) => tonic::Code::Internal,
             Self::Unauthenticated(_) => tonic::Code::Unauthenticated,
+            Self::Unavailable(_) => tonic::Code::Unavailable,
         };
         tonic::Status::new(code, self.to_string())
     }
@@ -1001,7 +1005,14 @@ impl Registry {
             }
         };
         let session = self.archived_session(stored);
-        write(&self.sessions).insert(id.to_string(), session.clone());
+        {
+            // A resume may have made it live meanwhile: that one stays.
+            let mut sessions = write(&self.sessions);
+            if let Some(live) = sessions.get(id) {
+                return Some(live.clone());
+            }
+            sessions.insert(id.to_string(), session.clone());
+        }
         write(&self.dormant).remove(id);
         self.metrics.session_loaded();
         self.metrics.resident_delta(1);
@@ -1282,6 +1293,15 @@ impl Registry {
         Ok(())
     }
 
+    /// Whether opening `hello` may read the shared storage (it resumes a session
+    /// this server does not hold, and there is a replica): the shells run such an
+    /// open off their loop, since it waits on PostgreSQL.
+    pub fn reads_replica(&self, hello: &pb::Hello) -> bool {
+        !hello.resume_session_id.is_empty()
+            && self.store.as_ref().is_some_and(|s| s.replica().is_some())
+            && self.resident(&hello.resume_session_id).is_none()
+    }
+
     /// Tells the registry which servers are live besides this one (the cluster's
     /// membership): a session last written by one of them is not resumed here.
     pub fn set_live_elsewhere(&self, live: LiveElsewhere) {
@@ -1330,6 +1350,15 @@ impl Registry {
         if read(&self.live_elsewhere).as_ref().is_some_and(|live| live(&writer)) {
             tracing::warn!(session = id, server = %writer, "the session's server is still live: a new session instead");
             return Ok(None);
+        }
+        // Taken over in PostgreSQL first: one server wins a race to resume it.
+        match replica.claim(id, &writer) {
+            Ok(true) => {}
+            Ok(false) => return Err(BadHello::Unavailable(format!("session {id} is being resumed by another server: try again"))),
+            Err(e) => {
+                tracing::error!(session = id, "cannot take the session over in the shared storage: {e}");
+                return Err(BadHello::Unavailable(format!("session {id} cannot be taken over now (the shared storage): try again")));
+            }
         }
         if let Some(store) = &self.store
             && let Ok(Some(local)) = store.load(id)

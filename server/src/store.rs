@@ -399,6 +399,12 @@ impl Store {
     /// keeps a hash of its resume secret (empty: none), so that another server can
     /// resume it.
     pub fn put_session(&self, id: &str, meta: &SessionMeta, camera: &pb::CameraInfo, resume_secret: &str) -> Result<(), StoreError> {
+        // Later commits carry the hash even when this write fails here.
+        if let Some(replica) = &self.replica
+            && !resume_secret.is_empty()
+        {
+            replica.remember(id, crate::replica::secret_hash(resume_secret));
+        }
         let db = self.db_for_write()?;
         let json = serde_json::to_vec(meta).map_err(|e| self.err(e))?;
         self.written((|| {

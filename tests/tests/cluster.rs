@@ -241,6 +241,10 @@ async fn live_across_servers(viewer: &Server, holder_id: &str, held: &[String]) 
             }
         }
     }
+    // The viewer leaves: nothing watches the other server from here any more (the
+    // relay lets go at its next tick); SubscribePoses must ask for the poses itself.
+    drop(r);
+    tokio::time::sleep(Duration::from_millis(1200)).await;
     let mut q = QueryClient::connect(viewer.grpc_url()).await.expect("connect");
     let mut poses = q.subscribe_poses(pb::SessionRef { session_id: held[0].clone() }).await.expect("subscribe elsewhere").into_inner();
     let mut sequences = Vec::new();
@@ -284,9 +288,10 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     eprintln!("placement: {} on {id_a}, {} on {id_b}", on_a.len(), on_b.len());
     assert!(!on_b.is_empty() && !on_a.is_empty(), "this test needs robots on both servers");
 
-    // 150 frames at 10 Hz: 15 s of streaming each, time to check placement, the
+    // 150 frames at 8 Hz: 19 s of streaming each, time to check placement, the
     // live data and the forwarded queries first.
-    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "10", "placed");
+    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "8", "placed");
+    let streaming = Instant::now();
 
     // Each robot streams to its owner, and only there.
     eventually(Duration::from_secs(10), "every robot streaming on its server", async || {
@@ -306,6 +311,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
             .filter(|s| s["server_id"] == holder_id)
             .filter_map(|s| s["session_id"].as_str().map(str::to_string))
             .collect();
+        assert!(!held.is_empty(), "{holder_id} holds sessions");
         let t = Instant::now();
         live_across_servers(viewer, holder_id, &held).await;
         eprintln!("{holder_id}'s live sessions and poses seen from the other server in {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
@@ -374,8 +380,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
                     }
                     assert!(n >= 1, "{id}: at least one chunk");
                 }
-                (Err(forwarded), Err(own)) => assert_eq!((forwarded.code(), forwarded.message()), (own.code(), own.message()), "{id}"),
-                (forwarded, own) => panic!("{id}: cloud forwarded {:?}, at the holder {:?}", forwarded.err(), own.err()),
+                (forwarded, own) => panic!("{id}: cloud forwarded {:?}, at the holder {:?} (mapping is on)", forwarded.err(), own.err()),
             }
         }
         let listed = there.list_sessions(pb::ListSessionsRequest {}).await.expect("sessions").into_inner();
@@ -388,6 +393,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     assert_eq!(missing.code(), tonic::Code::NotFound, "{missing:?}");
 
     // kill -9 B mid-stream: its robots reach A within 5 s.
+    eprintln!("killing B {:.1} s into the robots' 19 s", streaming.elapsed().as_secs_f64());
     b.kill9();
     let killed = Instant::now();
     eventually(Duration::from_secs(5), "B's robots streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;

@@ -184,3 +184,27 @@ async fn another_server_resumes_a_session_only_with_its_secret() {
     let (status, detail) = second.get_json(&format!("/api/v1/sessions/{id}")).await;
     assert_eq!((status, detail["robot_id"].as_str()), (200, Some("owner")), "{detail}");
 }
+
+/// Two servers racing to resume one session (both read the same last writer): the
+/// take-over is one PostgreSQL statement, so exactly one of them wins; a session
+/// PostgreSQL does not hold is taken by nobody.
+#[test]
+fn only_one_server_takes_a_session_over() {
+    use stillmap_server::replica::{Replica, ReplicaCounters};
+    let pg = Postgres::start();
+    pg.execute(stillmap_server::replica::SCHEMA);
+    pg.execute("INSERT INTO stillmap_sessions (id, server_id, meta) VALUES ('robot-1', 'dead', '{}')");
+    let start = |id: &str| {
+        let r = Replica::start(&pg.url(), 4, ReplicaCounters::default()).expect("replica");
+        r.name_server(id);
+        r
+    };
+    let (a, b) = (start("a"), start("b"));
+    assert!(a.claim("robot-1", "dead").expect("claim"), "a takes it over from the dead server");
+    assert!(!b.claim("robot-1", "dead").expect("claim"), "b read the same writer: a was first");
+    let writer: String = pg.query("SELECT server_id FROM stillmap_sessions WHERE id = 'robot-1'")[0].get(0);
+    assert_eq!(writer, "a");
+    assert!(!a.claim("nobody-1", "dead").expect("claim"), "not in PostgreSQL");
+    a.close();
+    b.close();
+}

@@ -205,19 +205,29 @@ impl Query for QueryService {
 
     async fn subscribe_poses(&self, request: Request<pb::SessionRef>) -> Result<Response<Self::SubscribePosesStream>, Status> {
         let id = request.get_ref().session_id.clone();
-        if let Some(session) = self.registry.get(&id) {
-            // A lagging subscriber skips poses rather than holding the pipeline.
-            let stream = BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
-            return Ok(Response::new(Box::pin(stream)));
+        let here = self.registry.get(&id);
+        // A lagging subscriber skips poses rather than holding the pipeline.
+        let local = |session: &Session| BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
+        if let Some(session) = here.as_ref().filter(|s| !s.is_archived()) {
+            return Ok(Response::new(Box::pin(local(session))));
         }
-        // Held by another server: its poses come over Zenoh (relay.rs), from the
-        // holder's next tick on, and from whichever server holds the session later.
-        let Some(live) = &self.remote_live else { return Err(Self::unknown(&id)) };
+        // Held by another server (or stored here and live there after a move): its
+        // poses come over Zenoh (relay.rs), from the holder's next tick on, and
+        // whichever server holds the session later (this one included).
+        let Some(live) = &self.remote_live else {
+            return here.map(|s| Response::new(Box::pin(local(&s)) as Self::SubscribePosesStream)).ok_or_else(|| Self::unknown(&id));
+        };
         let watching = live.watch();
-        let poses = live.subscribe_poses();
-        // Some live server holds it (asked as GetLatestPose: NOT_FOUND, or the holder's refusal).
-        let _: Response<pb::LatestPose> = self.forwarded("GetLatestPose", &id, &request).await?;
-        let stream = BroadcastStream::new(poses).filter_map(move |r| {
+        let (poses, own) = (live.subscribe_poses(), self.registry.subscribe_fleet());
+        // Some live server holds it (asked as GetLatestPose): else this server's
+        // stored copy, or NOT_FOUND (or the holder's refusal).
+        if let Err(status) = self.forwarded::<_, pb::LatestPose>("GetLatestPose", &id, &request).await {
+            return match here {
+                Some(s) if status.code() == tonic::Code::NotFound => Ok(Response::new(Box::pin(local(&s)))),
+                _ => Err(status),
+            };
+        }
+        let stream = BroadcastStream::new(poses).merge(BroadcastStream::new(own)).filter_map(move |r| {
             let _counted = &watching;
             r.ok().filter(|(session, _)| **session == *id).map(|(_, pose)| Ok(pose))
         });

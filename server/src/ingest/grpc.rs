@@ -40,7 +40,7 @@ impl Ingest for IngestService {
         let auth = self.auth.clone();
         let max = self.max_message_bytes;
         tokio::spawn(async move {
-            if let Err(status) = serve_stream(inbound, &registry, &auth, tx.clone(), max).await {
+            if let Err(status) = serve_stream(inbound, registry, &auth, tx.clone(), max).await {
                 let _ = tx.send(Err(status)).await;
             }
         });
@@ -51,7 +51,7 @@ impl Ingest for IngestService {
 /// Runs one ingest connection; an `Err` ends the stream with that status.
 async fn serve_stream(
     mut inbound: Streaming<pb::ClientMessage>,
-    registry: &Registry,
+    registry: Arc<Registry>,
     auth: &crate::auth::AuthHandle,
     sink: ResultSink,
     max_message_bytes: usize,
@@ -70,7 +70,16 @@ async fn serve_stream(
         }
     };
     auth.get().check_hello(&hello).inspect_err(|_| metrics.rejected("unauthenticated"))?;
-    let opened = registry.open(&hello, Transport::Grpc, sink.clone()).map_err(|e| refusal(&e, &metrics))?;
+    // A resume that reads the shared storage blocks on PostgreSQL: off the runtime.
+    let opened = if registry.reads_replica(&hello) {
+        let (registry, hello, sink) = (registry.clone(), hello.clone(), sink.clone());
+        tokio::task::spawn_blocking(move || registry.open(&hello, Transport::Grpc, sink))
+            .await
+            .map_err(|e| Status::internal(format!("opening the session failed: {e}")))?
+    } else {
+        registry.open(&hello, Transport::Grpc, sink.clone())
+    }
+    .map_err(|e| refusal(&e, &metrics))?;
     let session = opened.session.clone();
     sink.send(Ok(accepted_message(&opened, max_message_bytes))).await.map_err(|_| Status::cancelled("client went away"))?;
     let outcome = read_frames(&mut inbound, &session, &metrics).await;

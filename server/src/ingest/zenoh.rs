@@ -105,11 +105,26 @@ pub async fn serve(
     let subscriber =
         zenoh.declare_subscriber(keys::ALL_FRAMES).await.map_err(|e| ServerError::Zenoh(format!("subscribe {}: {e}", keys::ALL_FRAMES)))?;
     let mut links: HashMap<String, Link> = HashMap::new();
+    // Hellos whose open reads the shared storage (PostgreSQL) run on a blocking
+    // thread; their outcome comes back here. Meanwhile the robot's repeated hellos
+    // wait for it, and every other robot is served.
+    let (opened_tx, mut opened_rx) = mpsc::channel::<OpenedHello>(OPENS_IN_FLIGHT);
+    let mut opening: std::collections::HashSet<String> = std::collections::HashSet::new();
     let mut idle_check = tokio::time::interval((idle_disconnect / 2).clamp(Duration::from_millis(10), MAX_IDLE_CHECK));
     idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         let sample = tokio::select! {
             s = subscriber.recv_async() => match s { Ok(s) => s, Err(_) => break },
+            Some((robot, hello, sink, result)) = opened_rx.recv() => {
+                opening.remove(&robot);
+                // Placement may have moved the robot meanwhile: its new owner answers it.
+                if membership.owns(&robot) {
+                    answer_open(&mut links, robot, hello, sink, result, max_message_bytes, registry.metrics()).await;
+                } else if let Ok(opened) = result {
+                    opened.session.detach(&sink);
+                }
+                continue;
+            }
             _ = idle_check.tick(), if !idle_disconnect.is_zero() => {
                 // Quiet and answered: a robot whose frames are still in the pipeline
                 // (its window full behind a slow server) is waiting, not gone.
@@ -200,20 +215,21 @@ pub async fn serve(
                         continue;
                     }
                 }
-                let sink = spawn_publisher(zenoh.clone(), keys::results(&robot), result_buffer);
-                match registry.open(&hello, Transport::Zenoh, sink.clone()) {
-                    Ok(opened) => {
-                        let _ = sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
-                        let mut link = Link::new(opened.session, sink, hello);
-                        link.restored = opened.restored;
-                        if let Some(old) = links.insert(robot.clone(), link) {
-                            old.session.detach(&old.sink);
-                        }
-                    }
-                    Err(e) => {
-                        let _ = sink.send(Err(refusal(&e, metrics))).await;
-                    }
+                if opening.contains(&robot) {
+                    continue; // answered when its open (a read of the shared storage) is done
                 }
+                let sink = spawn_publisher(zenoh.clone(), keys::results(&robot), result_buffer);
+                if registry.reads_replica(&hello) && opening.len() < OPENS_IN_FLIGHT {
+                    opening.insert(robot.clone());
+                    let (registry, opened_tx) = (registry.clone(), opened_tx.clone());
+                    tokio::task::spawn_blocking(move || {
+                        let result = registry.open(&hello, Transport::Zenoh, sink.clone());
+                        let _ = opened_tx.blocking_send((robot, hello, sink, result));
+                    });
+                    continue;
+                }
+                let result = registry.open(&hello, Transport::Zenoh, sink.clone());
+                answer_open(&mut links, robot, hello, sink, result, max_message_bytes, metrics).await;
             }
             ZenohMessage::Frame(frame) => {
                 let Some(link) = links.get_mut(&robot) else {
@@ -233,6 +249,37 @@ pub async fn serve(
         link.session.detach(&link.sink);
     }
     Ok(())
+}
+
+/// Opens that read the shared storage at once, at most (beyond: opened inline).
+const OPENS_IN_FLIGHT: usize = 16;
+
+/// A hello's open done off the loop: the robot, its hello, its results sink, the outcome.
+type OpenedHello = (String, pb::Hello, ResultSink, Result<crate::session::Opened, crate::session::BadHello>);
+
+/// Answers a hello with its open's outcome: the accept and the robot's link, or the refusal.
+async fn answer_open(
+    links: &mut HashMap<String, Link>,
+    robot: String,
+    hello: pb::Hello,
+    sink: ResultSink,
+    result: Result<crate::session::Opened, crate::session::BadHello>,
+    max_message_bytes: usize,
+    metrics: &crate::metrics::Metrics,
+) {
+    match result {
+        Ok(opened) => {
+            let _ = sink.send(Ok(accepted_message(&opened, max_message_bytes))).await;
+            let mut link = Link::new(opened.session, sink, hello);
+            link.restored = opened.restored;
+            if let Some(old) = links.insert(robot, link) {
+                old.session.detach(&old.sink);
+            }
+        }
+        Err(e) => {
+            let _ = sink.send(Err(refusal(&e, metrics))).await;
+        }
+    }
 }
 
 fn error_message(status: Status) -> pb::ServerMessage {
