@@ -13,7 +13,7 @@
 //! frames reach their new owner, which tells them to say hello again; when one
 //! joins, the robots it now owns move to it the same way. With storage shared by
 //! the servers (`store.replica_url`, `replica.rs`), a moved robot's session comes
-//! back on its new owner (`Registry::resume_from_replica`); without, it starts a
+//! back on its new owner (`Registry::read_from_replica`); without, it starts a
 //! new session.
 //!
 //! **Any server answers.** An HTTP GET for a session or map this server does not

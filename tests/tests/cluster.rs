@@ -261,30 +261,55 @@ async fn live_across_servers(viewer: &Server, holder_id: &str, held: &[String]) 
     assert_eq!(missing.code(), tonic::Code::NotFound, "{missing:?}");
 }
 
+/// The two servers' fixed ids (the router is the test's own): placement is the same every run.
+const ID_A: &str = "server-a";
+const ID_B: &str = "server-b";
+
+/// A router of the test's own, two servers on it that see each other, and four
+/// robot ids with the server placement gives each.
+struct Pair {
+    router: String,
+    /// The router and a tool's session (kept open while the test runs).
+    _zenoh: (zenoh::Session, zenoh::Session),
+    a: Server,
+    b: Server,
+    robots: Vec<String>,
+    on_a: Vec<String>,
+    on_b: Vec<String>,
+}
+
+impl Pair {
+    async fn start(extra: &[&str]) -> Self {
+        let router = format!("tcp/127.0.0.1:{}", free_port());
+        let router_session = open("router", ("listen/endpoints", &router)).await;
+        let start = |id: &str| {
+            let mut args = vec!["--no-perception", "--zenoh-connect", &router, "--server-id", id];
+            args.extend_from_slice(extra);
+            Server::start(&args)
+        };
+        let (a, b) = (start(ID_A), start(ID_B));
+        let tool = open("client", ("connect/endpoints", &router)).await;
+        eventually(Duration::from_secs(10), "both servers seeing both", async || {
+            let s = statuses(&tool).await;
+            s.len() == 2 && s.values().all(|v| v["servers"] == serde_json::json!([ID_A, ID_B]))
+        })
+        .await;
+        let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
+        let owner = |r: &str| stillmap_proto::placement_owner(r, [ID_A, ID_B]).expect("owner");
+        let on_a: Vec<String> = robots.iter().filter(|r| owner(r) == ID_A).cloned().collect();
+        let on_b: Vec<String> = robots.iter().filter(|r| owner(r) == ID_B).cloned().collect();
+        Self { router, _zenoh: (router_session, tool), a, b, robots, on_a, on_b }
+    }
+}
+
 /// A router, two servers and four robots on Zenoh: each robot is answered by the
 /// one server placement gives it, and when that server is killed with `kill -9` its
 /// robots say hello again and stream on to the other server; every frame is
 /// answered or counted lost.
 #[tokio::test(flavor = "multi_thread")]
 async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
-    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
-    // Fixed ids (the router is this test's own): placement is the same every run.
-    let (id_a, id_b) = ("server-a", "server-b");
-    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
-    let a = start(id_a);
-    let mut b = start(id_b);
-    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
-    eventually(Duration::from_secs(10), "both servers seeing both", async || {
-        let s = statuses(&tool).await;
-        s.len() == 2 && s.values().all(|v| v["servers"] == serde_json::json!([id_a, id_b]))
-    })
-    .await;
-
-    let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
-    let owner = |r: &str| stillmap_proto::placement_owner(r, [id_a, id_b]).expect("owner");
-    let on_b: Vec<String> = robots.iter().filter(|r| owner(r) == id_b).cloned().collect();
-    let on_a: Vec<String> = robots.iter().filter(|r| owner(r) == id_a).cloned().collect();
+    let Pair { router: router_endpoint, _zenoh, a, mut b, robots, on_a, on_b } = Pair::start(&[]).await;
+    let (id_a, id_b) = (ID_A, ID_B);
     eprintln!("placement: {} on {id_a}, {} on {id_b}", on_a.len(), on_b.len());
     assert!(!on_b.is_empty() && !on_a.is_empty(), "this test needs robots on both servers");
 
@@ -459,24 +484,8 @@ fn ate_m(trajectory_tum: &str) -> f64 {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_killed_servers_robots_resume_their_sessions_from_the_shared_storage() {
     let pg = Postgres::start();
-    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
-    let (id_a, id_b) = ("server-a", "server-b");
-    let url = pg.url();
-    let start =
-        |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id, "--replica-url", &url]);
-    let a = start(id_a);
-    let mut b = start(id_b);
-    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
-    eventually(Duration::from_secs(10), "both servers seeing both", async || {
-        let s = statuses(&tool).await;
-        s.len() == 2 && s.values().all(|v| v["servers"] == serde_json::json!([id_a, id_b]))
-    })
-    .await;
-    let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
-    let owner = |r: &str| stillmap_proto::placement_owner(r, [id_a, id_b]).expect("owner");
-    let on_b: Vec<String> = robots.iter().filter(|r| owner(r) == id_b).cloned().collect();
-    let on_a: Vec<String> = robots.iter().filter(|r| owner(r) == id_a).cloned().collect();
+    let Pair { router: router_endpoint, _zenoh, a, mut b, robots, on_a, on_b } = Pair::start(&["--replica-url", &pg.url()]).await;
+    let (id_a, id_b) = (ID_A, ID_B);
     let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "15", "resumed");
     eventually(Duration::from_secs(10), "every robot streaming on its server", async || {
         robots_on(&a, id_a).await.1 == on_a && robots_on(&a, id_b).await.1 == on_b
