@@ -109,7 +109,8 @@ pub async fn serve(
     // thread; their outcome comes back here. Meanwhile the robot's repeated hellos
     // wait for it, and every other robot is served.
     let (opened_tx, mut opened_rx) = mpsc::channel::<OpenedHello>(OPENS_IN_FLIGHT);
-    let mut opening: std::collections::HashSet<String> = std::collections::HashSet::new();
+    // (with when each began: one that never reports back is forgotten after OPEN_GIVE_UP)
+    let mut opening: HashMap<String, Instant> = HashMap::new();
     let mut idle_check = tokio::time::interval((idle_disconnect / 2).clamp(Duration::from_millis(10), MAX_IDLE_CHECK));
     idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -215,12 +216,13 @@ pub async fn serve(
                         continue;
                     }
                 }
-                if opening.contains(&robot) {
+                opening.retain(|_, began| began.elapsed() < OPEN_GIVE_UP);
+                if opening.contains_key(&robot) {
                     continue; // answered when its open (a read of the shared storage) is done
                 }
                 let sink = spawn_publisher(zenoh.clone(), keys::results(&robot), result_buffer);
                 if registry.reads_replica(&hello) && opening.len() < OPENS_IN_FLIGHT {
-                    opening.insert(robot.clone());
+                    opening.insert(robot.clone(), Instant::now());
                     let (registry, opened_tx) = (registry.clone(), opened_tx.clone());
                     tokio::task::spawn_blocking(move || {
                         let result = registry.open(&hello, Transport::Zenoh, sink.clone());
@@ -253,6 +255,9 @@ pub async fn serve(
 
 /// Opens that read the shared storage at once, at most (beyond: opened inline).
 const OPENS_IN_FLIGHT: usize = 16;
+/// An open off the loop that has not reported back after this long (PostgreSQL's
+/// connect and statement timeouts are 5 s and 30 s) no longer holds its robot's hellos.
+const OPEN_GIVE_UP: Duration = Duration::from_secs(60);
 
 /// A hello's open done off the loop: the robot, its hello, its results sink, the outcome.
 type OpenedHello = (String, pb::Hello, ResultSink, Result<crate::session::Opened, crate::session::BadHello>);
