@@ -301,12 +301,22 @@ impl Forwarder {
     /// body), in the order the servers are listed, and whether every one answered.
     async fn ask(&self, request: &Forwarded) -> (Vec<(String, ForwardedHead, Vec<u8>)>, bool) {
         let Ok(payload) = serde_json::to_vec(request) else { return (Vec::new(), false) };
+        self.ask_headed(keys::server_http, &request.path_and_query, payload, None).await
+    }
+
+    /// [`Self::ask_raw`] with each reply's attachment read as its head `H` (a reply
+    /// without one is left out), and whether every other live server answered.
+    async fn ask_headed<H: serde::de::DeserializeOwned>(
+        &self,
+        key_of: fn(&str) -> String,
+        what: &str,
+        payload: Vec<u8>,
+        attachment: Option<Vec<u8>>,
+    ) -> (Vec<(String, H, Vec<u8>)>, bool) {
         let asked = self.others();
-        let replies = self.ask_raw(keys::server_http, &request.path_and_query, payload, None).await;
-        let answers: Vec<(String, ForwardedHead, Vec<u8>)> = replies
-            .into_iter()
-            .filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<ForwardedHead>(&head).ok()?, body)))
-            .collect();
+        let replies = self.ask_raw(key_of, what, payload, attachment).await;
+        let answers: Vec<(String, H, Vec<u8>)> =
+            replies.into_iter().filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<H>(&head).ok()?, body))).collect();
         let all = asked.iter().all(|s| answers.iter().any(|(server, _, _)| server == s));
         (answers, all)
     }
@@ -320,14 +330,7 @@ impl Forwarder {
     /// encoded response), and whether every one of them answered.
     async fn ask_grpc(&self, call: &ForwardedCall, request: Vec<u8>) -> (Vec<(String, ForwardedStatus, Vec<u8>)>, bool) {
         let Ok(head) = serde_json::to_vec(call) else { return (Vec::new(), false) };
-        let asked = self.others();
-        let replies = self.ask_raw(keys::server_grpc, &call.method, request, Some(head)).await;
-        let answers: Vec<(String, ForwardedStatus, Vec<u8>)> = replies
-            .into_iter()
-            .filter_map(|(server, head, body)| Some((server, serde_json::from_slice::<ForwardedStatus>(&head).ok()?, body)))
-            .collect();
-        let all = asked.iter().all(|s| answers.iter().any(|(server, _, _)| server == s));
-        (answers, all)
+        self.ask_headed(keys::server_grpc, &call.method, request, Some(head)).await
     }
 
     /// The answer of the other live server holding what `request` names; 503 when

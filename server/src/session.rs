@@ -1334,10 +1334,9 @@ impl Registry {
     /// there (or the storage cannot be read: logged), so the robot gets a new one.
     fn read_from_replica(&self, hello: &pb::Hello) -> Result<Option<(StoredSession, bool)>, BadHello> {
         let id = hello.resume_session_id.as_str();
-        let Some(replica) = self.store.as_ref().and_then(|s| s.replica()) else { return Ok(None) };
-        if id.is_empty() || self.resident(id).is_some() {
+        let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).filter(|_| self.reads_replica(hello)) else {
             return Ok(None);
-        }
+        };
         let (s, writer) = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
             Ok(crate::replica::ReplicaSession::Found { session, server_id }) => (*session, server_id),
             Ok(crate::replica::ReplicaSession::Absent) => return Ok(None),

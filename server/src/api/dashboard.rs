@@ -300,14 +300,20 @@ fn with_remote(mut sessions: Vec<Value>, own: &str, remote: Vec<Value>) -> Vec<V
             o.insert("server_id".into(), own.into());
         }
     }
+    let mut at: HashMap<String, usize> =
+        sessions.iter().enumerate().filter_map(|(i, s)| Some((s["session_id"].as_str()?.to_string(), i))).collect();
     for theirs in remote {
-        match sessions.iter_mut().find(|s| s["session_id"] == theirs["session_id"]) {
-            Some(ours) => {
-                if theirs["connected"] == true && ours["connected"] != true {
-                    *ours = theirs;
+        let id = theirs["session_id"].as_str().unwrap_or_default().to_string();
+        match at.get(&id) {
+            Some(&i) => {
+                if theirs["connected"] == true && sessions[i]["connected"] != true {
+                    sessions[i] = theirs;
                 }
             }
-            None => sessions.push(theirs),
+            None => {
+                at.insert(id, sessions.len());
+                sessions.push(theirs);
+            }
         }
     }
     sessions
@@ -382,4 +388,32 @@ pub async fn events(State(state): State<DashboardState>) -> Response {
         Ok::<_, Infallible>(event)
     });
     Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every row is tagged with its server; a session both list is shown once, the
+    /// connected one (or this server's when neither is).
+    #[test]
+    fn other_servers_rows_join_this_servers_once_each() {
+        let row = |id: &str, connected: bool| json!({ "session_id": id, "connected": connected });
+        let theirs = |id: &str, connected: bool| {
+            let mut r = row(id, connected);
+            r["server_id"] = "b".into();
+            r
+        };
+        let merged = with_remote(
+            vec![row("moved", false), row("here", true), row("both-stored", false)],
+            "a",
+            vec![theirs("moved", true), theirs("there", true), theirs("both-stored", false), theirs("here", false)],
+        );
+        let by_id = |id: &str| merged.iter().find(|s| s["session_id"] == id).map(|s| s["server_id"].clone());
+        assert_eq!(merged.len(), 4, "{merged:?}");
+        assert_eq!(by_id("moved"), Some("b".into()), "live there");
+        assert_eq!(by_id("here"), Some("a".into()), "live here");
+        assert_eq!(by_id("both-stored"), Some("a".into()), "neither live: ours");
+        assert_eq!(by_id("there"), Some("b".into()));
+    }
 }
