@@ -60,11 +60,22 @@ pub struct SolveConfig {
     pub max_iterations: usize,
     /// The keyframe whose pose is held (the gauge: a session's first keyframe, or the fleet's anchor).
     pub fixed: usize,
+    /// Rounds of re-weighting after the first solve: each group of edges
+    /// (odometry; loop and inter-session) has its σ scaled by its RMS normalised
+    /// residual in the last solution (within `1/MAX_REWEIGHT..=MAX_REWEIGHT` of
+    /// the given σ), and the graph is solved again from the given poses. The
+    /// configured σ are then a starting point: a group that disagrees with the
+    /// rest more than its σ allow (odometry that drifted) loosens, one that
+    /// agrees better tightens. 0: the σ as given.
+    pub reweight_rounds: usize,
 }
+
+/// How far re-weighting may scale a group's σ, either way.
+pub const MAX_REWEIGHT: f64 = 10.0;
 
 impl Default for SolveConfig {
     fn default() -> Self {
-        Self { max_iterations: 50, fixed: 0 }
+        Self { max_iterations: 50, fixed: 0, reweight_rounds: 0 }
     }
 }
 
@@ -87,8 +98,37 @@ impl PoseGraph {
         Ok(())
     }
 
-    /// The optimised `world_from_camera` of every keyframe, `config.fixed` held.
+    /// The optimised `world_from_camera` of every keyframe, `config.fixed` held,
+    /// re-weighted `config.reweight_rounds` times.
     pub fn optimize(&self, config: &SolveConfig) -> Result<Vec<Isometry3<f64>>, PlacesError> {
+        let mut solved = self.solve_once(config)?;
+        for _ in 0..config.reweight_rounds {
+            let residual = |odometry: bool| {
+                let (mut sum, mut n) = (0.0, 0usize);
+                for e in self.edges.iter().filter(|e| (e.kind == EdgeKind::Odometry) == odometry) {
+                    let error = e.from_from_to.inverse() * (solved[e.from].inverse() * solved[e.to]);
+                    let t = error.translation.vector.norm() / e.sigma_translation_m;
+                    let r = error.rotation.angle() / e.sigma_rotation_rad;
+                    sum += (t * t + r * r) / 2.0;
+                    n += 1;
+                }
+                (n > 0).then(|| (sum / n as f64).sqrt())
+            };
+            let (Some(o), Some(p)) = (residual(true), residual(false)) else { break };
+            let odometry_scale = o.clamp(1.0 / MAX_REWEIGHT, MAX_REWEIGHT);
+            let place_scale = p.clamp(1.0 / MAX_REWEIGHT, MAX_REWEIGHT);
+            let mut scaled = self.clone();
+            for e in &mut scaled.edges {
+                let k = if e.kind == EdgeKind::Odometry { odometry_scale } else { place_scale };
+                e.sigma_translation_m *= k;
+                e.sigma_rotation_rad *= k;
+            }
+            solved = scaled.solve_once(config)?;
+        }
+        Ok(solved)
+    }
+
+    fn solve_once(&self, config: &SolveConfig) -> Result<Vec<Isometry3<f64>>, PlacesError> {
         if config.fixed >= self.poses.len() {
             return Err(PlacesError::Config(format!("pose graph: fixed keyframe {} of {} poses", config.fixed, self.poses.len())));
         }
@@ -260,5 +300,10 @@ mod tests {
         let solved = graph.optimize(&SolveConfig::default()).expect("solved");
         let worst = solved.iter().zip(&graph.poses).map(|(s, p)| (s.translation.vector - p.translation.vector).norm()).fold(0.0, f64::max);
         assert!(worst < 0.25, "the wrong loop moved a keyframe {worst:.3} m (it asks for 2 m)");
+        // Re-weighting loosens the group that fits worst: here the loop, so it pulls less.
+        let reweighted = graph.optimize(&SolveConfig { reweight_rounds: 2, ..SolveConfig::default() }).expect("solved");
+        let worst_reweighted =
+            reweighted.iter().zip(&graph.poses).map(|(s, p)| (s.translation.vector - p.translation.vector).norm()).fold(0.0, f64::max);
+        assert!(worst_reweighted < worst, "re-weighted {worst_reweighted:.3} m, plain {worst:.3} m");
     }
 }

@@ -135,6 +135,25 @@ pub struct FleetConfig {
     pub refine_support: usize,
     /// Inliers a candidate needs after PnP-RANSAC and pose optimisation.
     pub min_inliers: usize,
+    /// The fleet's pose graph (merged sessions' keyframes; odometry, loop and
+    /// inter-session edges) is solved on its own thread at most this often
+    /// (seconds), after a new loop or inter-session edge; 0 turns it off.
+    pub graph_interval_s: f64,
+    /// A keyframe matching one of its own session's keyframes at least this much
+    /// older (capture time, seconds) is a loop edge; younger ones are odometry's.
+    pub loop_min_age_s: f64,
+    /// σ of an odometry edge (consecutive keyframes of a session, from tracking):
+    /// translation (metres) and rotation (degrees).
+    pub odometry_sigma_m: f64,
+    pub odometry_sigma_deg: f64,
+    /// σ of a loop or inter-session edge (one verified match), behind a Huber kernel.
+    pub place_sigma_m: f64,
+    pub place_sigma_deg: f64,
+    /// Rounds of re-weighting per solve: the odometry and the place edges each
+    /// have their σ scaled by how well they fit the last solution (up to 10×
+    /// either way), and the graph is solved again: drift beyond the odometry's σ
+    /// loosens it. 0: the σ as configured.
+    pub reweight_rounds: usize,
 }
 
 impl Default for FleetConfig {
@@ -153,6 +172,13 @@ impl Default for FleetConfig {
             agreement_deg: 2.0,
             refine_support: 32,
             min_inliers: 60,
+            graph_interval_s: 2.0,
+            loop_min_age_s: 3.0,
+            odometry_sigma_m: 0.002,
+            odometry_sigma_deg: 0.1,
+            place_sigma_m: 0.03,
+            place_sigma_deg: 1.0,
+            reweight_rounds: 2,
         }
     }
 }
@@ -589,6 +615,22 @@ impl ServerConfig {
                 f.agreement_m, f.agreement_deg
             ));
         }
+        if !(f.graph_interval_s >= 0.0 && f.graph_interval_s <= 3600.0 && f.loop_min_age_s >= 0.0 && f.loop_min_age_s <= 3600.0) {
+            return bad(format!(
+                "fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600 seconds, got {} and {}",
+                f.graph_interval_s, f.loop_min_age_s
+            ));
+        }
+        if f.reweight_rounds > 8 {
+            return bad(format!("fleet.reweight_rounds must be in 0..=8, got {}", f.reweight_rounds));
+        }
+        let sigma = |v: f64| v > 0.0 && v <= 10.0;
+        if ![f.odometry_sigma_m, f.odometry_sigma_deg, f.place_sigma_m, f.place_sigma_deg].into_iter().all(sigma) {
+            return bad(format!(
+                "fleet.odometry_sigma_m, odometry_sigma_deg, place_sigma_m and place_sigma_deg must be in (0, 10], got {}, {}, {} and {}",
+                f.odometry_sigma_m, f.odometry_sigma_deg, f.place_sigma_m, f.place_sigma_deg
+            ));
+        }
         if !(self.session.idle_evict_s >= 0.0 && self.session.idle_evict_s <= MAX_IDLE_DISCONNECT_S) {
             return bad(format!(
                 "session.idle_evict_s must be 0 (only under the limits) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}",
@@ -701,6 +743,8 @@ mod tests {
         );
         assert!(err("[fleet]\ncandidates = 0\n").contains("fleet.candidates must be in 1..=32"));
         assert!(err("[fleet]\nagreement_m = -1.0\n").contains("fleet.agreement_m must be in (0, 1]"));
+        assert!(err("[fleet]\ngraph_interval_s = -1.0\n").contains("fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600"));
+        assert!(err("[fleet]\nplace_sigma_m = 0.0\n").contains("place_sigma_m and place_sigma_deg must be in (0, 10]"));
         assert_eq!(
             err("[perception.fusion]\nretract_keyframes = 1000\n"),
             "invalid configuration: perception.fusion.retract_keyframes must be at most 64, got 1000"

@@ -23,15 +23,18 @@
 use std::collections::{HashMap, VecDeque};
 use std::sync::mpsc::{SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
-use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use nalgebra::{Isometry3, Point2, Quaternion, Translation3, UnitQuaternion};
-use stillmap_places::{BowVector, MergeConfig, MergeDetector, Place, PlaceIndex, VerifyConfig, Vocabulary, propose, verify};
+use stillmap_places::{
+    BowVector, Edge, EdgeKind, MergeConfig, MergeDetector, Place, PlaceIndex, PoseGraph, SolveConfig, VerifyConfig, Vocabulary, propose,
+    verify,
+};
 use stillmap_tracking::Camera;
 
 use crate::config::FleetConfig;
 use crate::lock;
-use crate::store::{FleetFrame, KeyframeRecord, SessionHead, Store};
+use crate::store::{FleetFrame, FleetGraph, GraphEdge, GraphSolve, KeyframeRecord, SessionHead, Store};
 
 /// A committed keyframe of some session, for place recognition.
 pub struct FleetJob {
@@ -55,6 +58,8 @@ struct Member {
     heard: usize,
     /// Capture times of its first and latest keyframes seen here.
     keyframe_span_ns: Option<(u64, u64)>,
+    /// The pose graph's corrections of its keyframes (see [`FleetTransform`]).
+    corrections: Arc<Vec<(u64, Isometry3<f64>)>>,
 }
 
 /// One fleet: its members and the index of its merged keyframes.
@@ -62,11 +67,59 @@ struct Member {
 struct Fleet {
     members: Vec<Member>,
     index: PlaceIndex<(u32, u64)>,
-    /// Per indexed keyframe: `session_from_camera` and its place (the fleet frame
-    /// is its member's `fleet_from_session` away, which a refined merge may move).
-    places: HashMap<(u32, u64), (Isometry3<f64>, Arc<Place>)>,
+    /// Per indexed keyframe: `session_from_camera`, its place (the fleet frame
+    /// is its member's `fleet_from_session` away, which a refined merge may move)
+    /// and its capture time.
+    places: HashMap<(u32, u64), Indexed>,
     /// Indexed keyframes, oldest first (the first forgotten beyond `max_places`).
     order: VecDeque<(u32, u64)>,
+    /// Verified matches between merged keyframes (loop and inter-session edges of
+    /// the pose graph); those of forgotten keyframes are dropped.
+    edges: Vec<PlaceEdge>,
+    /// A place edge came since the last solve.
+    dirty: bool,
+    last_solve: Option<Instant>,
+    last_correction: Option<GraphSolve>,
+}
+
+/// An indexed keyframe.
+struct Indexed {
+    session_from_camera: Isometry3<f64>,
+    place: Arc<Place>,
+    /// Capture time.
+    timestamp_ns: u64,
+}
+
+/// A verified match between two indexed keyframes (member, keyframe id):
+/// `a_from_b` is b's camera in a's camera frame.
+#[derive(Debug, Clone, Copy)]
+struct PlaceEdge {
+    a: (u32, u64),
+    b: (u32, u64),
+    a_from_b: Isometry3<f64>,
+    kind: EdgeKind,
+}
+
+/// A merged session's poses into the fleet frame: its merge (`fleet_from_session`)
+/// and the pose graph's correction of its keyframes, each applying from its
+/// keyframe's capture time on (the first keyframe's before it).
+#[derive(Debug, Clone)]
+pub struct FleetTransform {
+    pub fleet_from_session: Isometry3<f64>,
+    /// (capture time, `fleet_corrected_from_fleet`), in time order.
+    pub corrections: Arc<Vec<(u64, Isometry3<f64>)>>,
+}
+
+impl FleetTransform {
+    /// `fleet_from_session` for a pose captured at `t_ns`, corrected.
+    pub fn at(&self, t_ns: u64) -> Isometry3<f64> {
+        let c = &self.corrections;
+        let i = c.partition_point(|(t, _)| *t <= t_ns);
+        match c.get(i.saturating_sub(1)) {
+            Some((_, correction)) => correction * self.fleet_from_session,
+            None => self.fleet_from_session,
+        }
+    }
 }
 
 /// A session's place in its fleet, for the APIs.
@@ -83,6 +136,7 @@ pub struct FleetView {
     pub name: String,
     pub members: Vec<MemberView>,
     pub indexed_keyframes: usize,
+    pub last_correction: Option<GraphSolve>,
 }
 
 struct Shared {
@@ -102,13 +156,15 @@ pub struct FleetService {
     backlog: Arc<std::sync::atomic::AtomicUsize>,
     jobs: Mutex<Option<SyncSender<FleetJob>>>,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// The pose-graph thread, and the sender whose drop stops it.
+    solver: Mutex<Option<(std::sync::mpsc::Sender<()>, std::thread::JoinHandle<()>)>>,
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum FleetError {
     #[error("fleet.vocabulary_path {path}: {message}")]
     Vocabulary { path: String, message: String },
-    #[error("cannot start the place-recognition thread: {0}")]
+    #[error("cannot start the place-recognition or pose-graph thread: {0}")]
     Thread(std::io::Error),
     #[error("fleet: {0}")]
     Config(String),
@@ -146,7 +202,23 @@ impl FleetService {
                 }
             })
             .map_err(FleetError::Thread)?;
-        Ok(Arc::new(Self { shared, backlog, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)) }))
+        let solver = if config.graph_interval_s > 0.0 {
+            let (stop, stopped) = std::sync::mpsc::channel::<()>();
+            let solver_shared = shared.clone();
+            let tick = Duration::from_secs_f64(config.graph_interval_s.min(0.25));
+            let thread = std::thread::Builder::new()
+                .name("pose-graph".into())
+                .spawn(move || {
+                    while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = stopped.recv_timeout(tick) {
+                        solver_shared.solve_due();
+                    }
+                })
+                .map_err(FleetError::Thread)?;
+            Some((stop, thread))
+        } else {
+            None
+        };
+        Ok(Arc::new(Self { shared, backlog, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)), solver: Mutex::new(solver) }))
     }
 
     /// The fleet of a hello that named `requested` (empty: the default fleet).
@@ -218,6 +290,18 @@ impl FleetService {
                 self.shared.add_keyframe(f, m, &camera, k);
             }
         }
+        let graphs = match &self.shared.store {
+            Some(store) => store.fleet_graphs().unwrap_or_else(|e| {
+                tracing::error!("fleet pose graphs cannot be read from the store: {e}");
+                HashMap::new()
+            }),
+            None => HashMap::new(),
+        };
+        for (name, graph) in graphs {
+            if let Some(f) = fleets.get_mut(&name) {
+                restore_graph(f, graph);
+            }
+        }
     }
 
     /// Every fleet, by name.
@@ -239,13 +323,87 @@ impl FleetService {
         member.frame.as_ref().map(|f| isometry(&f.fleet_from_session))
     }
 
-    /// Waits until every submitted keyframe has been processed, and stops the thread.
+    /// A merged session's transform into the fleet frame, with the pose graph's corrections.
+    pub fn fleet_transform(&self, fleet: &str, session_id: &str) -> Option<FleetTransform> {
+        let fleets = lock(&self.shared.fleets);
+        let member = fleets.get(fleet)?.members.iter().find(|m| m.session_id == session_id)?;
+        member
+            .frame
+            .as_ref()
+            .map(|f| FleetTransform { fleet_from_session: isometry(&f.fleet_from_session), corrections: member.corrections.clone() })
+    }
+
+    /// Solves the pose graph of every fleet with new place edges now (tests; the
+    /// pose-graph thread does it every `fleet.graph_interval_s`).
+    pub fn solve_now(&self) {
+        let names: Vec<String> = lock(&self.shared.fleets).iter().filter(|(_, f)| f.dirty).map(|(n, _)| n.clone()).collect();
+        for name in names {
+            self.shared.solve(&name);
+        }
+    }
+
+    /// Waits until every submitted keyframe has been processed, and stops the threads.
     pub fn close(&self) {
         lock(&self.jobs).take();
         if let Some(worker) = lock(&self.worker).take() {
             let _ = worker.join();
         }
+        if let Some((stop, thread)) = lock(&self.solver).take() {
+            drop(stop);
+            let _ = thread.join();
+        }
     }
+}
+
+fn pose7(p: &Isometry3<f64>) -> [f64; 7] {
+    let (v, q) = (p.translation.vector, p.rotation.coords);
+    [v.x, v.y, v.z, q.x, q.y, q.z, q.w]
+}
+
+/// A fleet's pose graph as the store keeps it.
+fn stored_graph(f: &Fleet) -> FleetGraph {
+    let key = |k: &(u32, u64)| f.members.get(k.0 as usize).map(|m| (m.session_id.clone(), k.1));
+    let edges = f
+        .edges
+        .iter()
+        .filter_map(|e| Some(GraphEdge { a: key(&e.a)?, b: key(&e.b)?, a_from_b: pose7(&e.a_from_b), is_loop: e.kind == EdgeKind::Loop }))
+        .collect();
+    let corrections = f
+        .members
+        .iter()
+        .filter(|m| !m.corrections.is_empty())
+        .map(|m| (m.session_id.clone(), m.corrections.iter().map(|(t, c)| (*t, pose7(c))).collect()))
+        .collect();
+    FleetGraph { edges, corrections, last_solve: f.last_correction.clone() }
+}
+
+/// Puts a stored pose graph back: its edges and corrections for the sessions the
+/// fleet has (merged ones: a correction is relative to the merge).
+fn restore_graph(f: &mut Fleet, g: FleetGraph) {
+    let member = |f: &Fleet, session: &str| f.members.iter().position(|m| m.session_id == session && m.frame.is_some());
+    f.edges = g
+        .edges
+        .iter()
+        .filter_map(|e| {
+            let a = (member(f, &e.a.0)? as u32, e.a.1);
+            let b = (member(f, &e.b.0)? as u32, e.b.1);
+            let kind = if e.is_loop { EdgeKind::Loop } else { EdgeKind::InterSession };
+            Some(PlaceEdge { a, b, a_from_b: isometry(&e.a_from_b), kind })
+        })
+        .collect();
+    for (session, list) in &g.corrections {
+        if let Some(m) = member(f, session) {
+            // As stored (unit when written): not normalised again, so a restart serves the same poses.
+            let exact = |p: &[f64; 7]| {
+                Isometry3::from_parts(
+                    Translation3::new(p[0], p[1], p[2]),
+                    UnitQuaternion::new_unchecked(Quaternion::new(p[6], p[3], p[4], p[5])),
+                )
+            };
+            f.members[m].corrections = Arc::new(list.iter().map(|(t, c)| (*t, exact(c))).collect());
+        }
+    }
+    f.last_correction = g.last_solve;
 }
 
 fn view(name: &str, f: &Fleet) -> FleetView {
@@ -257,6 +415,7 @@ fn view(name: &str, f: &Fleet) -> FleetView {
             .map(|m| MemberView { session_id: m.session_id.clone(), robot_id: m.robot_id.clone(), frame: m.frame.clone() })
             .collect(),
         indexed_keyframes: f.index.len(),
+        last_correction: f.last_correction.clone(),
     }
 }
 
@@ -270,6 +429,7 @@ impl Shared {
             indexed: VecDeque::new(),
             heard: 0,
             keyframe_span_ns: None,
+            corrections: Arc::default(),
         }
     }
 
@@ -322,8 +482,10 @@ impl Shared {
     fn process(&self, job: FleetJob) {
         let started = Instant::now();
         let (place, bow, session_from_query) = self.place_of(&job.camera, &job.keyframe);
-        // (the candidate's member, fleet_from_query or None, fleet_from_candidate or None, session_from_candidate, place)
-        type Candidate = (usize, Option<Isometry3<f64>>, Option<Isometry3<f64>>, Isometry3<f64>, Arc<Place>);
+        let query_key = |m: usize| (m as u32, job.keyframe.id);
+        // (the candidate's key, fleet_from_query or None, fleet_from_candidate or
+        // None, session_from_candidate, place, whether the match is a pose-graph edge)
+        type Candidate = ((u32, u64), Option<Isometry3<f64>>, Option<Isometry3<f64>>, Isometry3<f64>, Arc<Place>, bool);
         let (m, candidates) = {
             let mut fleets = lock(&self.fleets);
             let f = fleets.entry(job.fleet.clone()).or_default();
@@ -334,29 +496,50 @@ impl Shared {
                 let r = k.0 as usize;
                 r != m && ((m_refining && f.members[r].frame.is_some()) || (m_frame.is_some() && self.refining(f, r)))
             });
+            // The pose graph's edges: a merged keyframe against other merged
+            // sessions' keyframes and its own session's older ones (loops).
+            let graph = self.config.graph_interval_s > 0.0 && m_frame.is_some();
+            let min_age_ns = (self.config.loop_min_age_s * 1e9) as u64;
+            let t = job.keyframe.timestamp_ns;
+            let for_graph = if graph {
+                f.index.query(&bow, self.config.candidates, 0.0, |k| {
+                    let r = k.0 as usize;
+                    f.members[r].frame.is_some()
+                        && !found.iter().any(|(seen, _)| seen == k)
+                        && (r != m || f.places.get(k).is_some_and(|p| p.timestamp_ns.saturating_add(min_age_ns) <= t))
+                })
+            } else {
+                Vec::new()
+            };
             let candidates: Vec<Candidate> = found
                 .iter()
-                .filter_map(|(k, _)| {
+                .map(|(k, _)| (*k, false))
+                .chain(for_graph.iter().map(|(k, _)| (*k, true)))
+                .filter_map(|(k, graph_only)| {
                     let r = k.0 as usize;
-                    let (session_from_candidate, candidate) = f.places.get(k)?;
+                    let Indexed { session_from_camera: session_from_candidate, place: candidate, .. } = f.places.get(&k)?;
                     let fleet_from_candidate =
                         f.members[r].frame.as_ref().map(|fr| isometry(&fr.fleet_from_session) * session_from_candidate);
-                    let fleet_from_query = m_frame.filter(|_| self.refining(f, r)).map(|t| t * session_from_query);
-                    let fleet_from_candidate = fleet_from_candidate.filter(|_| m_refining);
-                    Some((r, fleet_from_query, fleet_from_candidate, *session_from_candidate, candidate.clone()))
+                    let fleet_from_query = m_frame.filter(|_| !graph_only && self.refining(f, r)).map(|t| t * session_from_query);
+                    let fleet_from_candidate = fleet_from_candidate.filter(|_| !graph_only && m_refining);
+                    // Every verified match is an edge; the graph takes those between merged sessions.
+                    let edge = self.config.graph_interval_s > 0.0;
+                    Some((k, fleet_from_query, fleet_from_candidate, *session_from_candidate, candidate.clone(), edge))
                 })
                 .collect();
-            let t = job.keyframe.timestamp_ns;
             let span = &mut f.members[m].keyframe_span_ns;
             *span = Some(span.map_or((t, t), |(first, last)| (first.min(t), last.max(t))));
-            self.add_place(f, m, job.keyframe.id, session_from_query, place.clone(), bow);
+            let indexed = Indexed { session_from_camera: session_from_query, place: place.clone(), timestamp_ns: t };
+            self.add_place(f, m, job.keyframe.id, indexed, bow);
             (m, candidates)
         };
         // Verification (the expensive part) holds no lock. Per target member, the
         // proposal of the verification with the most inliers.
         let mut best: HashMap<usize, (Isometry3<f64>, usize)> = HashMap::new();
-        for (r, fleet_from_query, fleet_from_candidate, session_from_candidate, candidate) in &candidates {
+        let mut edges = Vec::new();
+        for (k, fleet_from_query, fleet_from_candidate, session_from_candidate, candidate, edge) in &candidates {
             let Some(v) = verify(&job.camera, &place, candidate, &self.verify) else { continue };
+            let r = k.0 as usize;
             let mut offer = |target: usize, proposal: Isometry3<f64>| {
                 if best.get(&target).is_none_or(|b| v.inliers > b.1) {
                     best.insert(target, (proposal, v.inliers));
@@ -367,13 +550,173 @@ impl Shared {
             }
             if let Some(fleet_from_query) = fleet_from_query {
                 // The candidate's session from the query side: fleet ← query ← candidate ← its session.
-                offer(*r, fleet_from_query * v.query_from_candidate * session_from_candidate.inverse());
+                offer(r, fleet_from_query * v.query_from_candidate * session_from_candidate.inverse());
+            }
+            if *edge {
+                let kind = if r == m { EdgeKind::Loop } else { EdgeKind::InterSession };
+                edges.push(PlaceEdge { a: query_key(m), b: *k, a_from_b: v.query_from_candidate, kind });
             }
         }
         let mut fleets = lock(&self.fleets);
         let Some(f) = fleets.get_mut(&job.fleet) else { return };
         for (target, (proposal, inliers)) in best {
             self.observe(f, &job.fleet, target, proposal, inliers, started);
+        }
+        if !edges.is_empty() {
+            f.edges.extend(edges);
+            f.dirty = true;
+            // Bounded: edges of forgotten keyframes go (each keyframe brings at most
+            // 2 × `fleet.candidates`).
+            if f.edges.len() > 4 * self.config.max_places * self.config.candidates {
+                let places = &f.places;
+                f.edges.retain(|e| places.contains_key(&e.a) && places.contains_key(&e.b));
+            }
+        }
+    }
+
+    /// Solves every fleet whose graph has new place edges and whose last solve is
+    /// `fleet.graph_interval_s` old (the pose-graph thread).
+    fn solve_due(&self) {
+        let interval = Duration::from_secs_f64(self.config.graph_interval_s);
+        let due: Vec<String> = lock(&self.fleets)
+            .iter()
+            .filter(|(_, f)| f.dirty && f.last_solve.is_none_or(|t| t.elapsed() >= interval))
+            .map(|(n, _)| n.clone())
+            .collect();
+        for name in due {
+            self.solve(&name);
+        }
+    }
+
+    /// One solve of fleet `name`'s pose graph: merged sessions' indexed keyframes in
+    /// the fleet frame, odometry edges between a session's consecutive keyframes,
+    /// the place edges; the anchor's first keyframe held. The lock is held only to
+    /// take the graph and to hand the corrections back.
+    fn solve(&self, name: &str) {
+        let c = &self.config;
+        let (graph, keys, fixed, counts) = {
+            let mut fleets = lock(&self.fleets);
+            let Some(f) = fleets.get_mut(name) else { return };
+            f.dirty = false;
+            f.last_solve = Some(Instant::now());
+            let places = &f.places;
+            f.edges.retain(|e| places.contains_key(&e.a) && places.contains_key(&e.b));
+            let mut graph = PoseGraph::default();
+            let mut keys: Vec<(u32, u64)> = Vec::new();
+            let mut node: HashMap<(u32, u64), usize> = HashMap::new();
+            let mut fixed = None;
+            let (mut odometry, mut loops, mut inter) = (0, 0, 0);
+            for (mi, member) in f.members.iter().enumerate() {
+                let Some(frame) = &member.frame else { continue };
+                let fleet_from_session = isometry(&frame.fleet_from_session);
+                let mut mine: Vec<(u64, u64, Isometry3<f64>)> = member
+                    .indexed
+                    .iter()
+                    .filter_map(|id| f.places.get(&(mi as u32, *id)).map(|p| (p.timestamp_ns, *id, p.session_from_camera)))
+                    .collect();
+                mine.sort_by_key(|(t, id, _)| (*t, *id));
+                let mut previous: Option<(usize, Isometry3<f64>)> = None;
+                for (_, id, session_from_camera) in mine {
+                    let i = graph.add_pose(fleet_from_session * session_from_camera);
+                    keys.push((mi as u32, id));
+                    node.insert((mi as u32, id), i);
+                    if frame.anchor && fixed.is_none() {
+                        fixed = Some(i);
+                    }
+                    if let Some((p, session_from_previous)) = previous {
+                        let edge = Edge {
+                            from: p,
+                            to: i,
+                            from_from_to: session_from_previous.inverse() * session_from_camera,
+                            kind: EdgeKind::Odometry,
+                            sigma_rotation_rad: c.odometry_sigma_deg.to_radians(),
+                            sigma_translation_m: c.odometry_sigma_m,
+                        };
+                        if graph.add_edge(edge).is_ok() {
+                            odometry += 1;
+                        }
+                    }
+                    previous = Some((i, session_from_camera));
+                }
+            }
+            for e in &f.edges {
+                let (Some(&a), Some(&b)) = (node.get(&e.a), node.get(&e.b)) else { continue };
+                let edge = Edge {
+                    from: a,
+                    to: b,
+                    from_from_to: e.a_from_b,
+                    kind: e.kind,
+                    sigma_rotation_rad: c.place_sigma_deg.to_radians(),
+                    sigma_translation_m: c.place_sigma_m,
+                };
+                if graph.add_edge(edge).is_ok() {
+                    match e.kind {
+                        EdgeKind::Loop => loops += 1,
+                        _ => inter += 1,
+                    }
+                }
+            }
+            if loops + inter == 0 {
+                return;
+            }
+            (graph, keys, fixed.unwrap_or(0), (odometry, loops, inter))
+        };
+        let started = Instant::now();
+        let solved = match graph.optimize(&SolveConfig { fixed, reweight_rounds: c.reweight_rounds, ..SolveConfig::default() }) {
+            Ok(solved) => solved,
+            Err(e) => {
+                tracing::warn!(fleet = name, "pose graph not solved (the fleet keeps its last corrections): {e}");
+                return;
+            }
+        };
+        let solve_ms = started.elapsed().as_secs_f64() * 1e3;
+        let (mut moved, mut max_t, mut max_r) = (0, 0.0f64, 0.0f64);
+        let mut corrections: HashMap<u32, Vec<(u64, Isometry3<f64>)>> = HashMap::new();
+        let mut fleets = lock(&self.fleets);
+        let Some(f) = fleets.get_mut(name) else { return };
+        for (i, key) in keys.iter().enumerate() {
+            let (before, after) = (&graph.poses[i], &solved[i]);
+            let dt = (after.translation.vector - before.translation.vector).norm();
+            let dr = (after.rotation * before.rotation.inverse()).angle().to_degrees();
+            moved += usize::from(dt > 0.01 || dr > 0.5);
+            max_t = max_t.max(dt);
+            max_r = max_r.max(dr);
+            let stamp = f.places.get(key).map_or(0, |p| p.timestamp_ns);
+            corrections.entry(key.0).or_default().push((stamp, after * before.inverse()));
+        }
+        for (mi, list) in corrections {
+            if let Some(member) = f.members.get_mut(mi as usize).filter(|m| m.frame.is_some()) {
+                member.corrections = Arc::new(list);
+            }
+        }
+        let (odometry_edges, loop_edges, inter_session_edges) = counts;
+        let correction = GraphSolve {
+            solved_unix_ns: now_ns(),
+            keyframes: keys.len(),
+            odometry_edges,
+            loop_edges,
+            inter_session_edges,
+            moved_keyframes: moved,
+            max_translation_m: max_t,
+            max_rotation_deg: max_r,
+            solve_ms,
+        };
+        tracing::info!(
+            fleet = name,
+            keyframes = keys.len(),
+            loop_edges,
+            inter_session_edges,
+            moved,
+            max_translation_m = max_t,
+            solve_ms,
+            "fleet pose graph solved"
+        );
+        f.last_correction = Some(correction);
+        let Some(store) = &self.store else { return };
+        let stored = stored_graph(f);
+        drop(fleets);
+        if let Err(e) = store.put_fleet_graph(name, &stored) {
+            tracing::error!(fleet = name, "pose graph not persisted (the store failed): {e}");
         }
     }
 
@@ -416,18 +759,21 @@ impl Shared {
             if member.frame.is_some() { "merge refined" } else { "session merged into its fleet's frame" }
         );
         member.frame = Some(frame);
+        // The matches heard before the merge join the pose graph now.
+        f.dirty = true;
     }
 
     /// Adds a stored keyframe of member `m`.
     fn add_keyframe(&self, f: &mut Fleet, m: usize, camera: &Camera, record: &KeyframeRecord) {
         let (place, bow, session_from_camera) = self.place_of(camera, record);
-        self.add_place(f, m, record.id, session_from_camera, place, bow);
+        let indexed = Indexed { session_from_camera, place, timestamp_ns: record.timestamp_ns };
+        self.add_place(f, m, record.id, indexed, bow);
     }
 
     /// Indexes a keyframe of member `m`; an unmerged member keeps only its latest
     /// `fleet.pending_keyframes` there.
-    fn add_place(&self, f: &mut Fleet, m: usize, id: u64, session_from_camera: Isometry3<f64>, place: Arc<Place>, bow: BowVector) {
-        self.index(f, m, id, session_from_camera, place, bow);
+    fn add_place(&self, f: &mut Fleet, m: usize, id: u64, indexed: Indexed, bow: BowVector) {
+        self.index(f, m, id, indexed, bow);
         if f.members[m].frame.is_none() {
             while f.members[m].indexed.len() > self.config.pending_keyframes {
                 if let Some(old) = f.members[m].indexed.pop_front() {
@@ -438,7 +784,8 @@ impl Shared {
         }
     }
 
-    fn index(&self, f: &mut Fleet, m: usize, id: u64, session_from_camera: Isometry3<f64>, place: Arc<Place>, bow: BowVector) {
+    fn index(&self, f: &mut Fleet, m: usize, id: u64, indexed: Indexed, bow: BowVector) {
+        let Indexed { session_from_camera, place, timestamp_ns } = indexed;
         let key = (m as u32, id);
         // As a candidate, only the features with depth count, and of them only the
         // point and the descriptor (verification reads the query's pixels).
@@ -450,7 +797,7 @@ impl Shared {
             descriptors: with_depth.iter().map(|&i| place.descriptors[i]).collect(),
         });
         f.index.insert(key, bow);
-        if f.places.insert(key, (session_from_camera, place)).is_none() {
+        if f.places.insert(key, Indexed { session_from_camera, place, timestamp_ns }).is_none() {
             f.order.push_back(key);
             f.members[m].indexed.push_back(id);
         }
@@ -501,4 +848,96 @@ pub fn isometry(p: &[f64; 7]) -> Isometry3<f64> {
 
 fn now_ns() -> u64 {
     SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(anchor: bool, fleet_from_session: &Isometry3<f64>) -> FleetFrame {
+        FleetFrame {
+            fleet: "lab".into(),
+            fleet_from_session: pose7(fleet_from_session),
+            anchor,
+            support: 3,
+            inliers: 100,
+            merged_unix_ns: 1,
+            first_merged_unix_ns: 1,
+            merged_after_ns: 0,
+        }
+    }
+
+    /// A known answer: robot B's merge is 5 cm and 2° off, and five verified
+    /// matches say B's keyframes are where A's are. The solve moves B's keyframes
+    /// (and the poses between them) onto the truth; A, anchored, stays.
+    #[test]
+    fn the_graph_moves_a_misplaced_session_onto_its_matches() {
+        let config = FleetConfig { graph_interval_s: 60.0, ..FleetConfig::default() };
+        let service = FleetService::start(&config, None).expect("started");
+        let wrong =
+            Isometry3::from_parts(Translation3::new(0.05, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians()));
+        let truth = |i: u64| {
+            Isometry3::from_parts(
+                Translation3::new(0.1 * i as f64, 0.02 * i as f64, 1.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.05 * i as f64, 0.0),
+            )
+        };
+        {
+            let mut fleets = lock(&service.shared.fleets);
+            let f = fleets.entry("lab".into()).or_default();
+            f.members.push(service.shared.new_member("a", "alpha", Some(frame(true, &Isometry3::identity()))));
+            f.members.push(service.shared.new_member("b", "beta", Some(frame(false, &wrong))));
+            for m in 0..2u32 {
+                for i in 0..5u64 {
+                    let indexed = Indexed { session_from_camera: truth(i), place: Arc::default(), timestamp_ns: 1_000 + i };
+                    f.places.insert((m, i), indexed);
+                    f.members[m as usize].indexed.push_back(i);
+                }
+            }
+            for i in 0..5u64 {
+                f.edges.push(PlaceEdge { a: (1, i), b: (0, i), a_from_b: Isometry3::identity(), kind: EdgeKind::InterSession });
+            }
+            f.dirty = true;
+        }
+        service.solve_now();
+        let view = service.get("lab").expect("fleet");
+        let solve = view.last_correction.expect("solved");
+        assert_eq!((solve.keyframes, solve.odometry_edges, solve.loop_edges, solve.inter_session_edges), (10, 8, 0, 5));
+        assert_eq!(solve.moved_keyframes, 5, "B's five keyframes");
+        let a = service.fleet_transform("lab", "a").expect("anchor");
+        let b = service.fleet_transform("lab", "b").expect("merged");
+        assert_eq!(b.fleet_from_session, wrong, "the merge itself stays as it was found");
+        for i in 0..5u64 {
+            let t = 1_000 + i;
+            let b_in_fleet = b.at(t) * truth(i);
+            let error = truth(i).inverse() * b_in_fleet;
+            assert!(error.translation.vector.norm() < 1e-3 && error.rotation.angle() < 1e-3, "keyframe {i}: {error}");
+            let a_error = truth(i).inverse() * (a.at(t) * truth(i));
+            assert!(a_error.translation.vector.norm() < 1e-3, "A moved: {a_error}");
+        }
+        // Before its first keyframe a pose takes the first correction; between
+        // keyframes, the one before it.
+        assert_eq!(b.at(0), b.at(1_000));
+        assert_eq!(b.at(1_002), b.corrections[2].1 * wrong);
+        assert_eq!(b.at(1_003), b.corrections[3].1 * wrong);
+        assert_eq!(b.corrections.len(), 5);
+        // What the store keeps gives the same graph back.
+        let stored = {
+            let fleets = lock(&service.shared.fleets);
+            stored_graph(&fleets["lab"])
+        };
+        assert_eq!(stored.edges.len(), 5);
+        assert_eq!(stored.edges[0].a, ("b".to_string(), 0));
+        let mut fresh = Fleet::default();
+        fresh.members.push(service.shared.new_member("a", "alpha", Some(frame(true, &Isometry3::identity()))));
+        fresh.members.push(service.shared.new_member("b", "beta", Some(frame(false, &wrong))));
+        restore_graph(&mut fresh, stored.clone());
+        assert_eq!(fresh.edges.len(), 5);
+        assert_eq!(stored_graph(&fresh).corrections, stored.corrections);
+        assert_eq!(fresh.last_correction, stored.last_solve);
+        // Nothing new: no solve.
+        service.solve_now();
+        assert_eq!(service.get("lab").expect("fleet").last_correction.map(|c| c.solved_unix_ns), Some(solve.solved_unix_ns));
+        service.close();
+    }
 }

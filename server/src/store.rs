@@ -31,6 +31,7 @@ const KEYFRAMES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("key
 const BLOCKS: TableDefinition<(&str, i32, i32, i32), &[u8]> = TableDefinition::new("map_blocks");
 /// Session id → its frame in its fleet (JSON [`FleetFrame`]), once anchored or merged.
 const FLEET_FRAMES: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_frames");
+const FLEET_GRAPHS: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_graphs");
 
 /// redb's page cache unless `store.cache_bytes` says otherwise.
 pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
@@ -87,6 +88,44 @@ pub struct FleetFrame {
     pub first_merged_unix_ns: u64,
     #[serde(default)]
     pub merged_after_ns: u64,
+}
+
+/// A fleet's pose graph as its last solve left it: the place edges (so a solve
+/// after a restart keeps them), every merged session's keyframe corrections and
+/// the solve's summary.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct FleetGraph {
+    pub edges: Vec<GraphEdge>,
+    /// Per session id: (keyframe capture time, tx, ty, tz, qx, qy, qz, qw of
+    /// `fleet_corrected_from_fleet`), in time order.
+    pub corrections: std::collections::BTreeMap<String, Vec<(u64, [f64; 7])>>,
+    pub last_solve: Option<GraphSolve>,
+}
+
+/// What a fleet's pose-graph solve did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GraphSolve {
+    pub solved_unix_ns: u64,
+    pub keyframes: usize,
+    pub odometry_edges: usize,
+    pub loop_edges: usize,
+    pub inter_session_edges: usize,
+    /// Keyframes the solve put more than 1 cm or 0.5° from where their merge put them.
+    pub moved_keyframes: usize,
+    pub max_translation_m: f64,
+    pub max_rotation_deg: f64,
+    pub solve_ms: f64,
+}
+
+/// A verified match between two keyframes (session id, keyframe id): `a_from_b`
+/// (tx, ty, tz, qx, qy, qz, qw) is b's camera in a's camera frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GraphEdge {
+    pub a: (String, u64),
+    pub b: (String, u64),
+    pub a_from_b: [f64; 7],
+    /// Within one session.
+    pub is_loop: bool,
 }
 
 /// A keyframe as stored: pose, keypoints and descriptors (for relocalization
@@ -260,6 +299,7 @@ impl Store {
             tx.open_table(KEYFRAMES).map_err(|e| err(&e))?;
             tx.open_table(BLOCKS).map_err(|e| err(&e))?;
             tx.open_table(FLEET_FRAMES).map_err(|e| err(&e))?;
+            tx.open_table(FLEET_GRAPHS).map_err(|e| err(&e))?;
         }
         tx.commit().map_err(|e| err(&e))?;
         Ok(Self {
@@ -440,6 +480,38 @@ impl Store {
             }
             tx.commit().map_err(|e| self.err(e))
         })())
+    }
+
+    /// Records a fleet's pose graph after a solve.
+    pub fn put_fleet_graph(&self, fleet: &str, graph: &FleetGraph) -> Result<(), StoreError> {
+        let db = self.db_for_write()?;
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            {
+                let json = serde_json::to_vec(graph).map_err(|e| self.err(e))?;
+                tx.open_table(FLEET_GRAPHS).map_err(|e| self.err(e))?.insert(fleet, json.as_slice()).map_err(|e| self.err(e))?;
+            }
+            tx.commit().map_err(|e| self.err(e))
+        })())
+    }
+
+    /// Every fleet's pose graph, by fleet name.
+    pub fn fleet_graphs(&self) -> Result<std::collections::HashMap<String, FleetGraph>, StoreError> {
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
+        let table = match tx.open_table(FLEET_GRAPHS) {
+            Ok(table) => table,
+            // A store written before pose graphs were kept (opened read-only).
+            Err(redb::TableError::TableDoesNotExist(_)) => return Ok(std::collections::HashMap::new()),
+            Err(e) => return Err(self.err(e)),
+        };
+        let mut out = std::collections::HashMap::new();
+        for entry in table.iter().map_err(|e| self.err(e))? {
+            let (k, v) = entry.map_err(|e| self.err(e))?;
+            let graph: FleetGraph =
+                serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("pose graph of fleet {}: {e}", k.value())))?;
+            out.insert(k.value().to_string(), graph);
+        }
+        Ok(out)
     }
 
     /// Every session's fleet frame.

@@ -166,8 +166,9 @@ pub(crate) struct FrameQuery {
 }
 
 /// The transform taking this session's poses into the asked frame, and that frame's description.
-/// `fleet_from_world` (none for the session's own world) and the frame's description.
-type Frame = (Option<nalgebra::Isometry3<f64>>, &'static str);
+/// The transform into the fleet frame with the pose graph's corrections (none for
+/// the session's own world) and the frame's description.
+type Frame = (Option<crate::fleet::FleetTransform>, &'static str);
 
 fn frame_of(registry: &Registry, s: &Session, frame: Option<&str>) -> Result<Frame, (StatusCode, String)> {
     match frame {
@@ -176,7 +177,7 @@ fn frame_of(registry: &Registry, s: &Session, frame: Option<&str>) -> Result<Fra
             let Some(fleets) = registry.fleets() else {
                 return Err((StatusCode::CONFLICT, "fleets are off on this server (fleet.enabled)".into()));
             };
-            match fleets.fleet_from_session(&s.fleet_name, &s.id) {
+            match fleets.fleet_transform(&s.fleet_name, &s.id) {
                 Some(t) => Ok((Some(t), FLEET_FRAME)),
                 None => Err((StatusCode::CONFLICT, format!("session {} is not merged into fleet {:?} yet", s.id, s.fleet_name))),
             }
@@ -185,9 +186,9 @@ fn frame_of(registry: &Registry, s: &Session, frame: Option<&str>) -> Result<Fra
     }
 }
 
-/// `p` expressed through `fleet_from_world` when given.
-fn in_frame(p: &pb::PoseStamped, fleet_from_world: Option<&nalgebra::Isometry3<f64>>) -> pb::PoseStamped {
-    fleet_from_world.map_or(*p, |t| crate::convert::pose_in(p, t))
+/// `p` in the fleet frame when a transform is given (corrected as of its capture time).
+fn in_frame(p: &pb::PoseStamped, fleet: Option<&crate::fleet::FleetTransform>) -> pb::PoseStamped {
+    fleet.map_or(*p, |t| crate::convert::pose_in(p, &t.at(p.capture_time_ns)))
 }
 
 #[utoipa::path(
@@ -307,8 +308,8 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
             })
             .collect::<Vec<_>>()
             .into();
-        // Pose-graph corrections are not built yet: merges are the only changes.
-        v["last_correction"] = Value::Null;
+        // The pose graph's last solve (null until a loop or inter-session edge came).
+        v["last_correction"] = f.last_correction.as_ref().map_or(Value::Null, |c| json!(c));
         v["tiles"] = json!({
             "url": format!("/api/v1/fleets/{}/tiles/{{z}}/{{x}}/{{y}}.png", f.name),
             "legend": format!("/api/v1/fleets/{}/legend", f.name),

@@ -136,7 +136,7 @@ impl Query for QueryService {
         let (fleets, fleet) = self.fleet(&request.get_ref().fleet)?;
         let mut out = pb::FleetPoses::default();
         for m in &fleet.members {
-            let Some(fleet_from_session) = fleets.fleet_from_session(&fleet.name, &m.session_id) else {
+            let Some(to_fleet) = fleets.fleet_transform(&fleet.name, &m.session_id) else {
                 out.unmerged_session_ids.push(m.session_id.clone());
                 continue;
             };
@@ -146,7 +146,7 @@ impl Query for QueryService {
                 out.poses.push(pb::FleetPose {
                     session_id: m.session_id.clone(),
                     robot_id: m.robot_id.clone(),
-                    pose: Some(crate::convert::pose_in(&p, &fleet_from_session)),
+                    pose: Some(crate::convert::pose_in(&p, &to_fleet.at(p.capture_time_ns))),
                 });
             }
         }
@@ -161,11 +161,11 @@ impl Query for QueryService {
         let stream = BroadcastStream::new(self.registry.subscribe_fleet()).filter_map(move |r| {
             let (session_id, pose) = r.ok()?;
             let session = registry.get(&session_id).filter(|s| s.fleet_name == name)?;
-            let fleet_from_session = fleets.fleet_from_session(&name, &session_id)?;
+            let to_fleet = fleets.fleet_transform(&name, &session_id)?;
             Some(Ok(pb::FleetPose {
                 session_id: session_id.to_string(),
                 robot_id: session.robot_id.clone(),
-                pose: Some(crate::convert::pose_in(&pose, &fleet_from_session)),
+                pose: Some(crate::convert::pose_in(&pose, &to_fleet.at(pose.capture_time_ns))),
             }))
         });
         Ok(Response::new(Box::pin(stream)))
