@@ -171,6 +171,11 @@ impl MapBuilder {
         self.map.restore(key, block);
     }
 
+    /// The fusion input of keyframe `id` while it is in the re-fusion window.
+    pub fn input_of(&self, id: u64) -> Option<&FusionInput> {
+        self.window.iter().find(|f| f.id == id).map(|f| &f.input)
+    }
+
     /// Evicts beyond the budget now (a restored map), nearest to `camera_in_world` kept.
     pub fn evict_now(&mut self, camera_in_world: &Point3<f64>) -> Vec<(BlockKey, Block)> {
         self.map.evict(camera_in_world)

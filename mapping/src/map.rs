@@ -80,7 +80,7 @@ pub struct SurfaceSample {
 
 /// A keyframe reduced to what fusing it needs: surface samples (static pixels
 /// in range, one per pixel at the stride) and a 2×2 min-pooled depth for carving.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct FusionInput {
     pub samples: Vec<SurfaceSample>,
     pub carve_depth: Vec<f32>,
@@ -88,6 +88,87 @@ pub struct FusionInput {
     pub carve_height: usize,
     /// Pixels in range that the mask kept out.
     pub excluded_pixels: usize,
+}
+
+/// Largest decoded [`FusionInput::to_compact`] (a 4K depth image's worth).
+const MAX_COMPACT_BYTES: usize = 256 << 20;
+
+impl FusionInput {
+    /// The input, exactly, in a few hundred kilobytes (columns of samples and
+    /// the carving depth, zstd): what a map keeps of a keyframe to fuse it
+    /// again at a corrected pose long after it was fused.
+    pub fn to_compact(&self) -> Result<Vec<u8>, MappingError> {
+        let n = self.samples.len();
+        let mut raw = Vec::with_capacity(16 + n * 22 + self.carve_depth.len() * 4);
+        for v in [n, self.carve_width, self.carve_height, self.excluded_pixels] {
+            let v = u32::try_from(v).map_err(|_| MappingError::Encode(format!("fusion input count {v} beyond u32")))?;
+            raw.extend_from_slice(&v.to_le_bytes());
+        }
+        if self.carve_depth.len() != self.carve_width * self.carve_height {
+            return Err(MappingError::Encode("carving depth does not match its size".into()));
+        }
+        self.samples.iter().for_each(|s| raw.extend_from_slice(&s.pixel.to_le_bytes()));
+        for axis in 0..3 {
+            self.samples.iter().for_each(|s| raw.extend_from_slice(&s.point_in_camera[axis].to_le_bytes()));
+        }
+        for channel in 0..3 {
+            raw.extend(self.samples.iter().map(|s| s.rgb[channel]));
+        }
+        raw.extend(self.samples.iter().map(|s| u8::from(s.class.is_some())));
+        self.samples.iter().for_each(|s| raw.extend_from_slice(&s.class.unwrap_or(0).to_le_bytes()));
+        self.carve_depth.iter().for_each(|d| raw.extend_from_slice(&d.to_le_bytes()));
+        let raw_len = u32::try_from(raw.len()).map_err(|_| MappingError::Encode("fusion input beyond 4 GiB".into()))?;
+        let mut out = raw_len.to_le_bytes().to_vec();
+        out.extend(zstd::bulk::compress(&raw, 1).map_err(|e| MappingError::Encode(e.to_string()))?);
+        Ok(out)
+    }
+
+    /// Reads [`to_compact`](Self::to_compact)'s bytes back.
+    pub fn from_compact(bytes: &[u8]) -> Result<Self, MappingError> {
+        let corrupt = |what: &str| MappingError::Corrupt(format!("compact fusion input: {what}"));
+        let (len, frame) = bytes.split_first_chunk::<4>().ok_or_else(|| corrupt("no header"))?;
+        let raw_len = u32::from_le_bytes(*len) as usize;
+        if raw_len > MAX_COMPACT_BYTES {
+            return Err(corrupt("larger than a keyframe can be"));
+        }
+        let raw = zstd::bulk::decompress(frame, raw_len).map_err(|e| corrupt(&e.to_string()))?;
+        if raw.len() != raw_len {
+            return Err(corrupt("shorter than its header says"));
+        }
+        let mut at = 0usize;
+        let mut take = |k: usize| -> Result<&[u8], MappingError> {
+            let end = at.checked_add(k).filter(|&e| e <= raw.len()).ok_or_else(|| corrupt("truncated"))?;
+            let out = &raw[at..end];
+            at = end;
+            Ok(out)
+        };
+        let mut header = [0usize; 4];
+        for h in &mut header {
+            *h = u32::from_le_bytes(take(4)?.try_into().map_err(|_| corrupt("header"))?) as usize;
+        }
+        let [n, carve_width, carve_height, excluded_pixels] = header;
+        let cells = carve_width.checked_mul(carve_height).ok_or_else(|| corrupt("carving size"))?;
+        if n.checked_mul(22).and_then(|b| b.checked_add(cells.checked_mul(4)?)).is_none_or(|b| b + 16 != raw_len) {
+            return Err(corrupt("counts do not match its length"));
+        }
+        let u32s = |b: &[u8]| b.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
+        let f32s = |b: &[u8]| b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
+        let pixels = u32s(take(4 * n)?);
+        let (xs, ys, zs) = (f32s(take(4 * n)?), f32s(take(4 * n)?), f32s(take(4 * n)?));
+        let (r, g, b) = (take(n)?.to_vec(), take(n)?.to_vec(), take(n)?.to_vec());
+        let has_class = take(n)?.to_vec();
+        let classes: Vec<u16> = take(2 * n)?.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
+        let carve_depth = f32s(take(4 * cells)?);
+        let samples = (0..n)
+            .map(|i| SurfaceSample {
+                point_in_camera: [xs[i], ys[i], zs[i]],
+                rgb: [r[i], g[i], b[i]],
+                class: (has_class[i] != 0).then_some(classes[i]),
+                pixel: pixels[i],
+            })
+            .collect();
+        Ok(Self { samples, carve_depth, carve_width, carve_height, excluded_pixels })
+    }
 }
 
 /// What fusing one keyframe did.
@@ -571,6 +652,32 @@ mod tests {
         assert!(ours.version() > version);
     }
     use nalgebra::{Translation3, UnitQuaternion};
+
+    /// A keyframe kept compactly comes back exactly; damaged bytes are named errors.
+    #[test]
+    fn a_compact_fusion_input_comes_back_exactly() {
+        let cam = camera();
+        let rays = CameraRays::new(&cam);
+        let n = 160 * 120;
+        let depth: Vec<u16> = (0..n).map(|i| if i % 7 == 0 { 0 } else { 900 + (i % 160) as u16 * 3 }).collect();
+        let rgb: Vec<u8> = (0..3 * n).map(|i| (i * 31 % 251) as u8).collect();
+        let exclude: Vec<u8> = (0..n).map(|i| u8::from(i % 160 < 20)).collect();
+        let classes: Vec<u16> = (0..n).map(|i| (i / 160 % 5) as u16).collect();
+        let map = VoxelMap::new(MappingConfig::default()).unwrap();
+        let view = DepthView { depth: &depth, rgb: &rgb, exclude: Some(&exclude), classes: Some(&classes) };
+        let input = map.prepare(&rays, &view).unwrap();
+        assert!(input.samples.len() > 3000 && input.excluded_pixels > 0);
+        let compact = input.to_compact().unwrap();
+        assert_eq!(FusionInput::from_compact(&compact).unwrap(), input);
+        let plain = map.prepare(&rays, &DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None }).unwrap();
+        assert_eq!(FusionInput::from_compact(&plain.to_compact().unwrap()).unwrap(), plain, "no classes");
+        let err = |bytes: &[u8]| FusionInput::from_compact(bytes).unwrap_err().to_string();
+        assert_eq!(err(&compact[..3]), "corrupt map data: compact fusion input: no header");
+        assert!(err(&compact[..compact.len() / 2]).starts_with("corrupt map data: compact fusion input: "));
+        let mut lying = compact.clone();
+        lying[..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert_eq!(err(&lying), "corrupt map data: compact fusion input: larger than a keyframe can be");
+    }
 
     fn camera() -> Camera {
         Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0)

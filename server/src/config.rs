@@ -154,6 +154,16 @@ pub struct FleetConfig {
     /// either way), and the graph is solved again: drift beyond the odometry's σ
     /// loosens it. 0: the σ as configured.
     pub reweight_rounds: usize,
+    /// Map-lane jobs waiting for the fleet maps' thread (each holds a keyframe's
+    /// fusion input, about 2 MB at VGA); a job finding it full is left out (logged)
+    /// and the fleet's products fall back to merging its sessions' maps.
+    pub map_queue: usize,
+    /// Keyframe fusion inputs a fleet map keeps to fuse them again where the pose
+    /// graph moves them (compact, about 0.3–1 MB each); beyond, the oldest's stays
+    /// where it was fused.
+    pub map_keyframes: usize,
+    /// Keyframes a fleet map fuses (again) per pass of its thread: the bound on one pass's time.
+    pub refuse_per_pass: usize,
 }
 
 impl Default for FleetConfig {
@@ -179,6 +189,9 @@ impl Default for FleetConfig {
             place_sigma_m: 0.03,
             place_sigma_deg: 1.0,
             reweight_rounds: 2,
+            map_queue: 64,
+            map_keyframes: 1000,
+            refuse_per_pass: 8,
         }
     }
 }
@@ -623,6 +636,12 @@ impl ServerConfig {
         }
         if f.reweight_rounds > 8 {
             return bad(format!("fleet.reweight_rounds must be in 0..=8, got {}", f.reweight_rounds));
+        }
+        if !(1..=MAX_MAP_QUEUE).contains(&f.map_queue) || f.map_keyframes == 0 || !(1..=MAX_MAP_QUEUE).contains(&f.refuse_per_pass) {
+            return bad(format!(
+                "fleet.map_queue and fleet.refuse_per_pass must be in 1..={MAX_MAP_QUEUE} and fleet.map_keyframes at least 1, got {}, {} and {}",
+                f.map_queue, f.refuse_per_pass, f.map_keyframes
+            ));
         }
         let sigma = |v: f64| v > 0.0 && v <= 10.0;
         if ![f.odometry_sigma_m, f.odometry_sigma_deg, f.place_sigma_m, f.place_sigma_deg].into_iter().all(sigma) {

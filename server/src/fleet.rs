@@ -35,6 +35,7 @@ use stillmap_tracking::Camera;
 use crate::config::FleetConfig;
 use crate::lock;
 use crate::store::{FleetFrame, FleetGraph, GraphEdge, GraphSolve, KeyframeRecord, SessionHead, Store};
+use stillmap_mapping::MappingConfig;
 
 /// A committed keyframe of some session, for place recognition.
 pub struct FleetJob {
@@ -137,6 +138,8 @@ pub struct FleetView {
     pub members: Vec<MemberView>,
     pub indexed_keyframes: usize,
     pub last_correction: Option<GraphSolve>,
+    /// The fused fleet map's counts, when it has one.
+    pub map: Option<crate::fleet_map::FleetMapCounts>,
 }
 
 struct Shared {
@@ -158,6 +161,8 @@ pub struct FleetService {
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
     /// The pose-graph thread, and the sender whose drop stops it.
     solver: Mutex<Option<(std::sync::mpsc::Sender<()>, std::thread::JoinHandle<()>)>>,
+    /// The fleets' fused maps and their thread.
+    maps: crate::fleet_map::FleetMaps,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -171,8 +176,8 @@ pub enum FleetError {
 }
 
 impl FleetService {
-    /// Loads the vocabulary and starts the place-recognition thread.
-    pub fn start(config: &FleetConfig, store: Option<Arc<Store>>) -> Result<Arc<Self>, FleetError> {
+    /// Loads the vocabulary and starts the place-recognition, pose-graph and fleet-map threads.
+    pub fn start(config: &FleetConfig, mapping: &MappingConfig, store: Option<Arc<Store>>) -> Result<Arc<Self>, FleetError> {
         let vocabulary = if config.vocabulary_path.is_empty() {
             Vocabulary::shipped()
         } else {
@@ -218,7 +223,25 @@ impl FleetService {
         } else {
             None
         };
-        Ok(Arc::new(Self { shared, backlog, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)), solver: Mutex::new(solver) }))
+        let maps_shared = shared.clone();
+        let maps = crate::fleet_map::FleetMaps::start(
+            crate::fleet_map::FleetMapConfig {
+                mapping: mapping.clone(),
+                queue: config.map_queue,
+                max_keyframes: config.map_keyframes,
+                refuse_per_pass: config.refuse_per_pass,
+            },
+            Arc::new(move |fleet: &str, session: &str| maps_shared.transform(fleet, session)),
+        )
+        .map_err(FleetError::Thread)?;
+        Ok(Arc::new(Self {
+            shared,
+            backlog,
+            jobs: Mutex::new(Some(tx)),
+            worker: Mutex::new(Some(worker)),
+            solver: Mutex::new(solver),
+            maps,
+        }))
     }
 
     /// The fleet of a hello that named `requested` (empty: the default fleet).
@@ -306,14 +329,19 @@ impl FleetService {
 
     /// Every fleet, by name.
     pub fn list(&self) -> Vec<FleetView> {
-        let fleets = lock(&self.shared.fleets);
-        let mut all: Vec<FleetView> = fleets.iter().map(|(name, f)| view(name, f)).collect();
+        let mut all: Vec<FleetView> = lock(&self.shared.fleets).iter().map(|(name, f)| view(name, f)).collect();
         all.sort_by(|a, b| a.name.cmp(&b.name));
-        all
+        all.into_iter().map(|v| self.with_map(v)).collect()
     }
 
     pub fn get(&self, name: &str) -> Option<FleetView> {
-        lock(&self.shared.fleets).get(name).map(|f| view(name, f))
+        let v = lock(&self.shared.fleets).get(name).map(|f| view(name, f))?;
+        Some(self.with_map(v))
+    }
+
+    fn with_map(&self, mut v: FleetView) -> FleetView {
+        v.map = self.maps.state(&v.name).map(|s| s.counts());
+        v
     }
 
     /// `fleet_from_session` of a merged session.
@@ -325,12 +353,17 @@ impl FleetService {
 
     /// A merged session's transform into the fleet frame, with the pose graph's corrections.
     pub fn fleet_transform(&self, fleet: &str, session_id: &str) -> Option<FleetTransform> {
-        let fleets = lock(&self.shared.fleets);
-        let member = fleets.get(fleet)?.members.iter().find(|m| m.session_id == session_id)?;
-        member
-            .frame
-            .as_ref()
-            .map(|f| FleetTransform { fleet_from_session: isometry(&f.fleet_from_session), corrections: member.corrections.clone() })
+        self.shared.transform(fleet, session_id)
+    }
+
+    /// Hands a session's map-lane work to its fleet's fused map.
+    pub fn submit_map(&self, job: crate::fleet_map::FleetMapJob) {
+        self.maps.submit(job);
+    }
+
+    /// Fleet `name`'s fused map, when it has one.
+    pub fn map_state(&self, name: &str) -> Option<Arc<crate::fleet_map::FleetMapHandle>> {
+        self.maps.state(name)
     }
 
     /// Solves the pose graph of every fleet with new place edges now (tests; the
@@ -352,6 +385,7 @@ impl FleetService {
             drop(stop);
             let _ = thread.join();
         }
+        self.maps.close();
     }
 }
 
@@ -416,10 +450,20 @@ fn view(name: &str, f: &Fleet) -> FleetView {
             .collect(),
         indexed_keyframes: f.index.len(),
         last_correction: f.last_correction.clone(),
+        map: None,
     }
 }
 
 impl Shared {
+    fn transform(&self, fleet: &str, session_id: &str) -> Option<FleetTransform> {
+        let fleets = lock(&self.fleets);
+        let member = fleets.get(fleet)?.members.iter().find(|m| m.session_id == session_id)?;
+        member
+            .frame
+            .as_ref()
+            .map(|f| FleetTransform { fleet_from_session: isometry(&f.fleet_from_session), corrections: member.corrections.clone() })
+    }
+
     fn new_member(&self, session_id: &str, robot_id: &str, frame: Option<FleetFrame>) -> Member {
         Member {
             session_id: session_id.to_string(),
@@ -873,7 +917,7 @@ mod tests {
     #[test]
     fn the_graph_moves_a_misplaced_session_onto_its_matches() {
         let config = FleetConfig { graph_interval_s: 60.0, ..FleetConfig::default() };
-        let service = FleetService::start(&config, None).expect("started");
+        let service = FleetService::start(&config, &MappingConfig::default(), None).expect("started");
         let wrong =
             Isometry3::from_parts(Translation3::new(0.05, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians()));
         let truth = |i: u64| {

@@ -12,6 +12,7 @@ pub mod cluster;
 pub mod config;
 pub mod convert;
 pub mod fleet;
+pub mod fleet_map;
 pub mod ingest;
 pub mod map;
 pub mod metrics;
@@ -228,7 +229,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             "fleet.enabled needs mapping.enabled: place recognition looks at the keyframes the map lane commits, so no session will merge"
         );
     }
-    let fleets = if config.fleet.enabled { Some(fleet::FleetService::start(&config.fleet, store.clone())?) } else { None };
+    let fleets = if config.fleet.enabled { Some(fleet::FleetService::start(&config.fleet, &config.mapping, store.clone())?) } else { None };
     if let Some(f) = &fleets {
         f.restore(&stored);
     }

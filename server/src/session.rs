@@ -632,7 +632,25 @@ impl Session {
     /// new keyframe's fusion, then its store commit. Times go to `/metrics`.
     fn run_map_job(&self, job: MapJob) {
         let Some(map) = &self.map else { return };
-        if let Some(spent) = fuse::apply(map, &job) {
+        let fused = fuse::apply(map, &job);
+        // The fleet's fused map gets the same keyframe, moves and retractions.
+        if let Some(fleets) = &self.fleets
+            && (fused.is_some() || !job.retractions.is_empty())
+        {
+            let keyframe = job.keyframe.as_ref().filter(|_| fused.is_some()).and_then(|k| {
+                let input = lock(map).builder.input_of(k.id).cloned()?;
+                Some((k.id, k.capture_time_ns, job.world_from_camera, input))
+            });
+            fleets.submit_map(crate::fleet_map::FleetMapJob {
+                fleet: self.fleet_name.clone(),
+                session_id: self.id.clone(),
+                camera: crate::convert::camera_of(&self.camera),
+                keyframe,
+                keyframe_poses: job.keyframe_poses.clone(),
+                retractions: job.retractions.clone(),
+            });
+        }
+        if let Some(spent) = fused {
             self.metrics.keyframe_fused();
             self.metrics.stage(stage::MAP_FUSE, micros(spent));
             let keep = self.map_lane.as_ref().map_or(0, |l| l.keyframe_images);
@@ -1779,8 +1797,12 @@ mod tests {
     /// fleets already held (and the default one) still take sessions.
     #[test]
     fn fleets_beyond_the_limit_are_refused_by_name() {
-        let fleets = crate::fleet::FleetService::start(&crate::config::FleetConfig { max_fleets: 2, ..Default::default() }, None)
-            .expect("fleet service");
+        let fleets = crate::fleet::FleetService::start(
+            &crate::config::FleetConfig { max_fleets: 2, ..Default::default() },
+            &stillmap_mapping::MappingConfig::default(),
+            None,
+        )
+        .expect("fleet service");
         let registry = registry_with(None, SessionConfig::default(), LimitsConfig::default()).with_fleets(Some(fleets.clone()));
         let (sink, _rx) = mpsc::channel(4);
         let in_fleet = |robot: &str, fleet: &str| pb::Hello { fleet: fleet.into(), ..hello(robot) };

@@ -219,7 +219,7 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     // The pose graph: both robots' keyframes, solved with the verified matches
     // between them (and their own loops) as edges.
     let solve = fleet["last_correction"].clone();
-    eprintln!("last correction: {solve}");
+    eprintln!("last correction: {solve}; fleet map {}", fleet["map"]);
     assert!(solve["inter_session_edges"].as_u64().is_some_and(|n| n >= 3), "{solve}");
     assert!(solve["keyframes"].as_u64().is_some_and(|n| n >= 40), "{solve}");
     assert!(solve["max_translation_m"].as_f64().is_some_and(|m| m < 0.1), "no keyframe moves by 10 cm in one room: {solve}");
@@ -298,6 +298,13 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
         ply(format!("/api/v1/maps/{b_id}/cloud.ply")).await,
     );
     let (n_fleet, n_a, n_b) = (vertices(&fleet_ply), vertices(&a_ply), vertices(&b_ply));
+    // One map fused from both robots' keyframes in the fleet frame (each at its
+    // corrected pose, fused again as merges, bundle adjustment and the pose graph moved it).
+    let header = String::from_utf8_lossy(&fleet_ply[..fleet_ply.len().min(4096)]).into_owned();
+    assert!(header.contains("fused from their keyframes in the fleet frame"), "{header}");
+    let map = &fleet["map"];
+    assert_eq!(map["fused"], map["keyframes"], "{map}");
+    assert_eq!(map["keyframes"], solve["keyframes"], "every keyframe of both robots: {map} {solve}");
     eprintln!("fleet cloud {n_fleet} voxels; A {n_a}, B {n_b}");
     // The desk: the plane through A's most populated 2 cm height layer, refit on its
     // inliers. The fleet map's thickness there (RMS distance of voxel centres within

@@ -12,7 +12,7 @@ use axum::{Json, Router};
 use serde_json::{Value, json};
 use stillmap_proto::pb;
 
-use crate::api::map_queries::{self as mapping, BadQuery};
+use crate::api::map_queries::{self as mapping, BadQuery, FleetParts};
 use crate::api::openapi::{ApiError, Health, Imported, PoseReply, PoseView, SessionList, SessionView, StoreHealth, Trajectory};
 use crate::map::SharedMap;
 use crate::session::{Registry, Session};
@@ -287,6 +287,9 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
         "indexed_keyframes": f.indexed_keyframes,
     });
     if detail {
+        // The fused fleet map: keyframes held (fused, or waiting for their
+        // session's merge), fused, with their input kept, and fused again after moving.
+        v["map"] = f.map.map_or(Value::Null, |c| json!(c));
         v["sessions"] = f
             .members
             .iter()
@@ -341,11 +344,15 @@ pub(crate) async fn list_fleets(State(registry): State<Arc<Registry>>) -> Respon
     .into_response()
 }
 
-/// The fleet's merged sessions' maps, the anchor's first (the error is the finished
-/// HTTP response, as for `session_map`).
+/// The fleet's merged sessions' maps, the anchor's first, and the fused fleet map
+/// when it holds every keyframe of them (the error is the finished HTTP response,
+/// as for `session_map`).
 #[allow(clippy::result_large_err)]
-fn fleet_parts(registry: &Registry, name: &str) -> Result<Vec<(crate::map::SharedMap, nalgebra::Isometry3<f64>)>, Response> {
-    let Some(fleet) = registry.fleets().and_then(|f| f.get(name)) else {
+fn fleet_parts(registry: &Registry, name: &str) -> Result<FleetParts, Response> {
+    let Some(fleets) = registry.fleets() else {
+        return Err(error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")));
+    };
+    let Some(fleet) = fleets.get(name) else {
         return Err(error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")));
     };
     let mut members: Vec<_> = fleet
@@ -358,13 +365,14 @@ fn fleet_parts(registry: &Registry, name: &str) -> Result<Vec<(crate::map::Share
     if !anchor_has_map {
         return Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no anchor map yet")));
     }
-    Ok(members.iter().filter_map(|(_, id, t)| Some((registry.get(id)?.map()?.clone(), *t))).collect())
+    let maps = members.iter().filter_map(|(_, id, t)| Some((id.clone(), registry.get(id)?.map()?.clone(), *t))).collect();
+    Ok(FleetParts { maps, fused: fleets.map_state(name) })
 }
 
 /// Builds the fleet map off the runtime.
 async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap, usize), Response> {
     let parts = fleet_parts(registry, name)?;
-    let n = parts.len();
+    let n = parts.maps.len();
     match blocking(move || mapping::fleet_map(&parts)).await? {
         Some(m) => Ok((m, n)),
         None => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
@@ -499,8 +507,6 @@ async fn fleet_state(registry: &Registry, name: &str) -> Result<(FleetParts, u64
     })
     .await
 }
-
-type FleetParts = Vec<(SharedMap, nalgebra::Isometry3<f64>)>;
 
 /// The fleet map's top-down view for `parts` in the state `tag` (cached per fleet until a part changes).
 async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: u64) -> Result<Arc<mapping::FleetTop>, Response> {

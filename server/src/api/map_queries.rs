@@ -128,33 +128,64 @@ pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
     to_ply(&points, &m.class_names, &comment)
 }
 
-/// A fleet's map: the anchor session's map with every other merged session's
-/// surfaces moved into it by its `fleet_from_session` (the fleet's world is the
-/// anchor's; see `VoxelMap::merge_map`), and the anchor's map frame.
+/// A fleet's map in the anchor's map frame: the fleet map fused from every merged
+/// session's keyframes (`crate::fleet_map`) when it holds them all, else the
+/// anchor session's map with every other merged session's surfaces moved into
+/// it by its `fleet_from_session` (`VoxelMap::merge_map`).
 pub struct FleetMap {
     pub map: stillmap_mapping::VoxelMap,
     pub map_from_fleet: nalgebra::UnitQuaternion<f64>,
     pub class_names: Vec<String>,
     /// The anchor's occupancy defaults: lowest and highest height, resolution.
     pub occupancy: (f64, f64, f64),
+    /// Whether it is the fused fleet map (not the merge of the sessions' maps).
+    pub fused: bool,
 }
 
-/// Builds the fleet map from (map, `fleet_from_session`), the anchor's first.
-pub fn fleet_map(parts: &[(SharedMap, nalgebra::Isometry3<f64>)]) -> Option<FleetMap> {
-    let (anchor, _) = parts.first()?;
+/// What a fleet map is built from: the merged sessions' maps (session id, map,
+/// `fleet_from_session`), the anchor's first, and the fleet's fused map.
+pub struct FleetParts {
+    pub maps: Vec<(String, SharedMap, Isometry3<f64>)>,
+    pub fused: Option<Arc<crate::fleet_map::FleetMapHandle>>,
+}
+
+impl FleetParts {
+    /// The fused map, when every keyframe of every merged session's map is in it
+    /// (it locks each map: call it off the runtime).
+    pub fn complete_fused(&self) -> Option<&Arc<crate::fleet_map::FleetMapHandle>> {
+        self.fused.as_ref().filter(|state| {
+            self.maps.iter().all(|(id, map, _)| {
+                let keyframes = lock(map).builder.keyframes();
+                keyframes > 0 && lock(&state.state).held(id) == keyframes
+            })
+        })
+    }
+}
+
+/// Builds the fleet map from its parts.
+pub fn fleet_map(parts: &FleetParts) -> Option<FleetMap> {
+    let (_, anchor, _) = parts.maps.first()?;
+    let fused = parts.complete_fused();
     let mut fleet = {
         let m = lock(anchor);
         let cfg = m.builder.config();
+        let map = match fused {
+            Some(fused) => lock(&fused.state).map().clone(),
+            None => m.full_map().into_owned(),
+        };
         FleetMap {
-            map: m.full_map().into_owned(),
+            map,
             map_from_fleet: m.map_from_world(),
             class_names: m.class_names.clone(),
             occupancy: (cfg.occupancy_min_height_m, cfg.occupancy_max_height_m, cfg.occupancy_resolution_m),
+            fused: fused.is_some(),
         }
     };
-    for (map, fleet_from_session) in &parts[1..] {
-        let other = lock(map).full_map().into_owned();
-        fleet.map.merge_map(&other, fleet_from_session);
+    if fused.is_none() {
+        for (_, map, fleet_from_session) in &parts.maps[1..] {
+            let other = lock(map).full_map().into_owned();
+            fleet.map.merge_map(&other, fleet_from_session);
+        }
     }
     Some(fleet)
 }
@@ -164,8 +195,12 @@ pub fn fleet_ply(fleet: &FleetMap, name: &str, sessions: usize) -> Vec<u8> {
     let points = cloud(&fleet.map, &fleet.map_from_fleet, None);
     let q = fleet.map_from_fleet.coords;
     let comment = format!(
-        "stillmap fleet map {name}: {sessions} sessions merged\nmap frame: the anchor session's (z up, origin at its first camera); map_from_fleet rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
-        q.x, q.y, q.z, q.w
+        "stillmap fleet map {name}: {sessions} sessions merged, {}\nmap frame: the anchor session's (z up, origin at its first camera); map_from_fleet rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
+        if fleet.fused { "fused from their keyframes in the fleet frame" } else { "their maps' surfaces merged" },
+        q.x,
+        q.y,
+        q.z,
+        q.w
     );
     to_ply(&points, &fleet.class_names, &comment)
 }
@@ -205,10 +240,10 @@ pub struct FleetTops {
 }
 
 /// Identifies the state a fleet map is built from: each part's map (which one, its
-/// version and up direction) and its `fleet_from_session`.
-pub fn fleet_tag(parts: &[(SharedMap, Isometry3<f64>)]) -> u64 {
+/// version and up direction), its `fleet_from_session`, and the fused map's version.
+pub fn fleet_tag(parts: &FleetParts) -> u64 {
     let mut h = std::hash::DefaultHasher::new();
-    for (map, fleet_from_session) in parts {
+    for (_, map, fleet_from_session) in &parts.maps {
         (Arc::as_ptr(map) as usize).hash(&mut h);
         let (version, up) = {
             let m = lock(map);
@@ -217,6 +252,10 @@ pub fn fleet_tag(parts: &[(SharedMap, Isometry3<f64>)]) -> u64 {
         version.hash(&mut h);
         up.coords.iter().chain(fleet_from_session.to_homogeneous().iter()).for_each(|v| v.to_bits().hash(&mut h));
     }
+    if let Some(fused) = parts.complete_fused() {
+        (Arc::as_ptr(fused) as usize).hash(&mut h);
+        lock(&fused.state).map().version().hash(&mut h);
+    }
     h.finish()
 }
 
@@ -224,7 +263,7 @@ impl FleetTops {
     /// Fleet `name`'s top-down view of `parts` in the state `tag` ([`fleet_tag`]; see
     /// [`fleet_map`]), from the cache when nothing changed since it was built;
     /// `None` when there is no anchor map.
-    pub fn get(&self, name: &str, parts: &[(SharedMap, Isometry3<f64>)], tag: u64) -> Option<Arc<FleetTop>> {
+    pub fn get(&self, name: &str, parts: &FleetParts, tag: u64) -> Option<Arc<FleetTop>> {
         let cached = || lock(&self.built).get(name).filter(|t| t.tag == tag).cloned();
         if let Some(top) = cached() {
             return Some(top);

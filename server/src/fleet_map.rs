@@ -1,0 +1,408 @@
+//! One map per fleet, fused from every merged session's keyframes in the fleet
+//! frame, and fused again where the pose graph moves them.
+//!
+//! The map lane of each session hands its keyframes over after fusing them into
+//! the session's own map: the keyframe's fusion input (kept compactly, about
+//! 0.3–1 MB zstd), the current poses of the session's recent keyframes (local
+//! bundle adjustment still moves them) and the samples perception took back out
+//! (people found moving later). One thread of its own (`fleet-map`) behind a
+//! bounded queue (`fleet.map_queue`) keeps each fleet's map: a keyframe is fused
+//! once its session is merged, at `fleet_from_session` with the pose graph's
+//! correction for its capture time; after a merge is refined, a pose-graph solve
+//! or a bundle adjustment, each keyframe whose fleet pose moved more than
+//! `mapping.refuse_translation_m` / `refuse_rotation_deg` has its hits taken out
+//! where they were fused and is fused again where it is now — at most
+//! `fleet.refuse_per_pass` keyframes per pass, so one pass is bounded in time,
+//! and neither tracking nor a session's map waits for any of it.
+//!
+//! Bounded: `fleet.map_keyframes` inputs per fleet; beyond, the oldest input is
+//! dropped (what it fused stays, and is no longer moved). A fleet whose merged
+//! sessions all have every keyframe here (fused, or waiting for its merge) is
+//! served from this map; otherwise (sessions restored from the store, a full
+//! queue) the fleet products fall back to the merge of the sessions' own maps.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use nalgebra::Isometry3;
+use stillmap_mapping::map::FusionInput;
+use stillmap_mapping::{CameraRays, MappingConfig, VoxelMap};
+use stillmap_perception::origins::Retraction;
+use stillmap_tracking::Camera;
+
+use crate::fleet::FleetTransform;
+use crate::lock;
+
+/// One map-lane job of a session, for its fleet's map.
+pub struct FleetMapJob {
+    pub fleet: String,
+    pub session_id: String,
+    pub camera: Camera,
+    /// A new keyframe: id, capture time, `session_from_camera`, its fusion input.
+    pub keyframe: Option<(u64, u64, Isometry3<f64>, FusionInput)>,
+    /// Current `session_from_camera` of the session's recent keyframes.
+    pub keyframe_poses: Vec<(u64, Isometry3<f64>)>,
+    /// Samples of recent keyframes perception found moving since.
+    pub retractions: Vec<Retraction>,
+}
+
+/// A keyframe the fleet map holds.
+struct Kept {
+    timestamp_ns: u64,
+    session_from_camera: Isometry3<f64>,
+    /// Where in the fleet frame its hits are (none yet: its session is unmerged).
+    fused_at: Option<Isometry3<f64>>,
+    /// Its fusion input, compact (none: dropped beyond `fleet.map_keyframes`).
+    input: Option<Vec<u8>>,
+    width: u32,
+}
+
+/// One fleet's map and what it was fused from.
+pub struct FleetMapState {
+    map: VoxelMap,
+    rays: HashMap<String, Arc<CameraRays>>,
+    kept: HashMap<(String, u64), Kept>,
+    /// Keys with an input, oldest first.
+    order: VecDeque<(String, u64)>,
+    /// Keyframes per session fused here or waiting for the merge.
+    held: HashMap<String, u64>,
+    /// Keyframes fused again after their fleet pose moved.
+    refused: u64,
+}
+
+impl FleetMapState {
+    pub fn map(&self) -> &VoxelMap {
+        &self.map
+    }
+
+    /// What the map holds: keyframes fused here or waiting for a merge, of them
+    /// fused, of them with their input still kept, and the re-fusions done.
+    pub fn counts(&self) -> FleetMapCounts {
+        FleetMapCounts {
+            keyframes: self.held.values().sum(),
+            fused: self.kept.values().filter(|k| k.fused_at.is_some()).count() as u64,
+            kept_inputs: self.order.len() as u64,
+            refused: self.refused,
+        }
+    }
+
+    /// Keyframes of `session_id` fused here or waiting for its merge.
+    pub fn held(&self, session_id: &str) -> u64 {
+        self.held.get(session_id).copied().unwrap_or(0)
+    }
+}
+
+/// One fleet's map as the APIs reach it: the state (locked while a pass fuses)
+/// and its counts after the last job or pass (never waits for a pass).
+pub struct FleetMapHandle {
+    pub state: Mutex<FleetMapState>,
+    counts: Mutex<FleetMapCounts>,
+}
+
+impl FleetMapHandle {
+    pub fn counts(&self) -> FleetMapCounts {
+        *lock(&self.counts)
+    }
+}
+
+/// See [`FleetMapState::counts`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct FleetMapCounts {
+    pub keyframes: u64,
+    pub fused: u64,
+    pub kept_inputs: u64,
+    pub refused: u64,
+}
+
+/// Settings of the fleet maps.
+#[derive(Debug, Clone)]
+pub struct FleetMapConfig {
+    pub mapping: MappingConfig,
+    pub queue: usize,
+    pub max_keyframes: usize,
+    pub refuse_per_pass: usize,
+}
+
+/// The fleets' maps and their thread.
+pub struct FleetMaps {
+    states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>>,
+    jobs: Mutex<Option<SyncSender<FleetMapJob>>>,
+    worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+/// How the thread finds a session's transform into its fleet's frame.
+pub type TransformOf = Arc<dyn Fn(&str, &str) -> Option<FleetTransform> + Send + Sync>;
+
+impl FleetMaps {
+    pub fn start(config: FleetMapConfig, transform_of: TransformOf) -> std::io::Result<Self> {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<FleetMapJob>(config.queue.max(1));
+        let states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>> = Arc::default();
+        let worker_states = states.clone();
+        let worker =
+            std::thread::Builder::new().name("fleet-map".into()).spawn(move || run(&config, &rx, &worker_states, &transform_of))?;
+        Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)) })
+    }
+
+    /// Hands a map-lane job over; a full queue leaves it out (logged), and the
+    /// fleet products then fall back to the sessions' maps.
+    pub fn submit(&self, job: FleetMapJob) {
+        let Some(tx) = lock(&self.jobs).clone() else { return };
+        if let Err(TrySendError::Full(job)) = tx.try_send(job) {
+            tracing::warn!(session = %job.session_id, "fleet map queue full (fleet.map_queue): keyframe left out of the fleet map");
+        }
+    }
+
+    /// Fleet `name`'s map, when it has one.
+    pub fn state(&self, name: &str) -> Option<Arc<FleetMapHandle>> {
+        lock(&self.states).get(name).cloned()
+    }
+
+    /// Waits for the queued jobs and stops the thread.
+    pub fn close(&self) {
+        lock(&self.jobs).take();
+        if let Some(worker) = lock(&self.worker).take() {
+            let _ = worker.join();
+        }
+    }
+}
+
+/// How often a pass runs without a job (merges and pose-graph solves move keyframes).
+const PASS_INTERVAL: Duration = Duration::from_millis(250);
+
+fn run(
+    config: &FleetMapConfig,
+    jobs: &Receiver<FleetMapJob>,
+    states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>,
+    transform_of: &TransformOf,
+) {
+    loop {
+        match jobs.recv_timeout(PASS_INTERVAL) {
+            Ok(job) => {
+                let state = {
+                    let mut all = lock(states);
+                    match all.get(&job.fleet) {
+                        Some(s) => s.clone(),
+                        None => match VoxelMap::new(config.mapping.clone()) {
+                            Ok(map) => {
+                                let state = FleetMapState {
+                                    map,
+                                    rays: HashMap::new(),
+                                    kept: HashMap::new(),
+                                    order: VecDeque::new(),
+                                    held: HashMap::new(),
+                                    refused: 0,
+                                };
+                                let counts = Mutex::new(state.counts());
+                                let s = Arc::new(FleetMapHandle { state: Mutex::new(state), counts });
+                                all.insert(job.fleet.clone(), s.clone());
+                                s
+                            }
+                            Err(e) => {
+                                tracing::error!("fleet map not made: {e}");
+                                continue;
+                            }
+                        },
+                    }
+                };
+                let fleet = job.fleet.clone();
+                take_job(&mut lock(&state.state), job, config.max_keyframes);
+                pass(&fleet, &state, config, transform_of);
+            }
+            Err(RecvTimeoutError::Timeout) => {
+                let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+                for (fleet, state) in all {
+                    pass(&fleet, &state, config, transform_of);
+                }
+            }
+            Err(RecvTimeoutError::Disconnected) => return,
+        }
+    }
+}
+
+/// Records a job: the new keyframe kept (fused by the next pass), recent poses
+/// updated, retracted samples taken out of the kept input and of the map.
+fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
+    let width = job.camera.width;
+    s.rays.entry(job.session_id.clone()).or_insert_with(|| Arc::new(CameraRays::new(&job.camera)));
+    for (id, pose) in &job.keyframe_poses {
+        if let Some(k) = s.kept.get_mut(&(job.session_id.clone(), *id)) {
+            k.session_from_camera = *pose;
+        }
+    }
+    for r in &job.retractions {
+        let key = (job.session_id.clone(), r.keyframe);
+        let Some(k) = s.kept.get_mut(&key) else { continue };
+        let Some(Ok(mut input)) = k.input.as_deref().map(FusionInput::from_compact) else { continue };
+        let covered = r.pixel_test(k.width);
+        let (taken, kept): (Vec<_>, Vec<_>) = input.samples.iter().partition(|p| covered(p.pixel));
+        if taken.is_empty() {
+            continue;
+        }
+        input.samples = kept;
+        if let Some(at) = k.fused_at {
+            s.map.deintegrate_samples(&taken, &at);
+        }
+        k.input = input.to_compact().ok();
+    }
+    if let Some((id, timestamp_ns, session_from_camera, input)) = job.keyframe {
+        let compact = match input.to_compact() {
+            Ok(c) => c,
+            Err(e) => {
+                tracing::warn!(session = %job.session_id, keyframe = id, "keyframe left out of the fleet map: {e}");
+                return;
+            }
+        };
+        let key = (job.session_id.clone(), id);
+        let kept = Kept { timestamp_ns, session_from_camera, fused_at: None, input: Some(compact), width };
+        if s.kept.insert(key.clone(), kept).is_none() {
+            *s.held.entry(job.session_id).or_default() += 1;
+        }
+        s.order.push_back(key);
+        while s.order.len() > max_keyframes {
+            let Some(old) = s.order.pop_front() else { break };
+            if let Some(k) = s.kept.get_mut(&old) {
+                k.input = None;
+                if k.fused_at.is_none() {
+                    // Never fused and now never will be: its session's keyframes are no longer all here.
+                    s.kept.remove(&old);
+                    if let Some(n) = s.held.get_mut(&old.0) {
+                        *n = n.saturating_sub(1);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Fuses the keyframes of merged sessions not fused yet, and fuses again those
+/// whose fleet pose moved, at most `refuse_per_pass` of them.
+fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform_of: &TransformOf) {
+    let mut s = lock(&handle.state);
+    let mut transforms: HashMap<String, Option<FleetTransform>> = HashMap::new();
+    let (max_t, max_deg) = (config.mapping.refuse_translation_m, config.mapping.refuse_rotation_deg);
+    let mut todo: Vec<((String, u64), Isometry3<f64>)> = Vec::new();
+    for key in &s.order {
+        let Some(k) = s.kept.get(key) else { continue };
+        let t = transforms.entry(key.0.clone()).or_insert_with(|| transform_of(fleet, &key.0));
+        let Some(t) = t else { continue };
+        let target = t.at(k.timestamp_ns) * k.session_from_camera;
+        let due = match k.fused_at {
+            None => true,
+            Some(at) => {
+                let delta = at.inverse() * target;
+                delta.translation.vector.norm() > max_t || delta.rotation.angle().to_degrees() > max_deg
+            }
+        };
+        if due {
+            todo.push((key.clone(), target));
+            if todo.len() >= config.refuse_per_pass {
+                break;
+            }
+        }
+    }
+    for (key, target) in todo {
+        let FleetMapState { map, rays, kept, refused, .. } = &mut *s;
+        let (Some(k), Some(r)) = (kept.get_mut(&key), rays.get(&key.0)) else { continue };
+        let Some(Ok(input)) = k.input.as_deref().map(FusionInput::from_compact) else { continue };
+        if let Some(at) = k.fused_at {
+            map.deintegrate(&input, &at);
+            *refused += 1;
+        }
+        map.integrate(r, &input, &target);
+        k.fused_at = Some(target);
+    }
+    *lock(&handle.counts) = s.counts();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+    use stillmap_mapping::DepthView;
+
+    /// A wall 2 m ahead (the left half a box 1 m ahead), one keyframe of session "s".
+    fn job(camera: &Camera, id: u64, retractions: Vec<Retraction>) -> FleetMapJob {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let depth: Vec<u16> = (0..w * h).map(|i| if i % w < w / 2 { 1000 } else { 2000 }).collect();
+        let rgb = vec![100u8; w * h * 3];
+        let map = VoxelMap::new(MappingConfig::default()).expect("map");
+        let input =
+            map.prepare(&CameraRays::new(camera), &DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None }).expect("input");
+        FleetMapJob {
+            fleet: "lab".into(),
+            session_id: "s".into(),
+            camera: camera.clone(),
+            keyframe: (id == 7).then(|| (id, 1_000, Isometry3::identity(), input)),
+            keyframe_poses: Vec::new(),
+            retractions,
+        }
+    }
+
+    /// A keyframe waits for its session's merge, is fused where the merge puts it,
+    /// moves when the pose graph corrects it, and leaves the map where perception
+    /// takes its samples back.
+    #[test]
+    fn a_keyframe_is_fused_at_its_merge_moved_by_corrections_and_retracted() {
+        let camera = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0);
+        let transform: Arc<Mutex<Option<FleetTransform>>> = Arc::default();
+        let shared = transform.clone();
+        let maps = FleetMaps::start(
+            FleetMapConfig { mapping: MappingConfig::default(), queue: 4, max_keyframes: 10, refuse_per_pass: 8 },
+            Arc::new(move |_: &str, _: &str| lock(&shared).clone()),
+        )
+        .expect("started");
+        let wait = |done: &dyn Fn(FleetMapCounts) -> bool| {
+            let deadline = std::time::Instant::now() + Duration::from_secs(10);
+            loop {
+                if let Some(c) = maps.state("lab").map(|s| s.counts()).filter(|c| done(*c)) {
+                    return c;
+                }
+                assert!(std::time::Instant::now() < deadline, "never got there: {:?}", maps.state("lab").map(|s| s.counts()));
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        };
+        let mean_z = || {
+            let s = maps.state("lab").expect("state");
+            let s = lock(&s.state);
+            let far: Vec<f64> = s.map().occupied().map(|(_, c, _)| c.z).filter(|z| *z > 1.5).collect();
+            let near = s.map().occupied().filter(|(_, c, _)| c.z < 1.5 && c.z > 0.5).count();
+            (far.iter().sum::<f64>() / far.len().max(1) as f64, far.len(), near)
+        };
+        maps.submit(job(&camera, 7, Vec::new()));
+        let c = wait(&|c| c.keyframes == 1);
+        assert_eq!((c.fused, c.kept_inputs), (0, 1), "unmerged: kept, not fused");
+        assert_eq!(mean_z().1, 0);
+        // Merged, 10 cm along z.
+        let merge = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.1), UnitQuaternion::identity());
+        *lock(&transform) = Some(FleetTransform { fleet_from_session: merge, corrections: Arc::default() });
+        wait(&|c| c.fused == 1);
+        let (z, far, near) = mean_z();
+        assert!((z - 2.1).abs() < 0.02 && far > 100 && near > 100, "{z} {far} {near}");
+        // The pose graph moves it 20 cm further.
+        let correction = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.2), UnitQuaternion::identity());
+        *lock(&transform) = Some(FleetTransform { fleet_from_session: merge, corrections: Arc::new(vec![(1_000, correction)]) });
+        let c = wait(&|c| c.refused == 1);
+        assert_eq!((c.keyframes, c.fused), (1, 1));
+        let (z, far_after, _) = mean_z();
+        assert!((z - 2.3).abs() < 0.02, "{z}");
+        assert!(far_after <= far + far / 10, "its hits left the old place: {far} then {far_after}");
+        // The box (left half) is found moving: its samples leave the fleet map.
+        let box_cells = Retraction {
+            keyframe: 7,
+            cells: (0..12).flat_map(|y| (0..8).map(move |x| y * 16 + x)).collect(),
+            grid_width: 16,
+            grid_height: 12,
+            subsample: 10,
+        };
+        maps.submit(job(&camera, 8, vec![box_cells]));
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while mean_z().2 > 0 {
+            assert!(std::time::Instant::now() < deadline, "the box stays: {:?}", mean_z());
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        assert_eq!(mean_z().1, far_after, "the wall stays");
+        maps.close();
+    }
+}
