@@ -93,38 +93,51 @@ pub struct FusionInput {
 /// Largest decoded [`FusionInput::to_compact`] (a 4K depth image's worth).
 const MAX_COMPACT_BYTES: usize = 256 << 20;
 
+/// Bytes per sample in [`FusionInput::to_compact`]'s columns (pixel step, depth,
+/// colour, class flag, class).
+const COMPACT_SAMPLE_BYTES: usize = 4 + 2 + 3 + 1 + 2;
+
+/// Depth in whole millimetres (what a compact input keeps; carving and voxels are
+/// centimetres).
+fn to_mm(z_m: f32) -> u16 {
+    (z_m * 1000.0).round().clamp(0.0, f32::from(u16::MAX)) as u16
+}
+
 impl FusionInput {
-    /// The input, exactly, in a few hundred kilobytes (columns of samples and
-    /// the carving depth, zstd): what a map keeps of a keyframe to fuse it
-    /// again at a corrected pose long after it was fused.
+    /// The input in a few hundred kilobytes, depth to the millimetre (columns of
+    /// samples: pixel steps, depth, colour, class; the carving depth; zstd): what
+    /// a map keeps of a keyframe to fuse it again at a corrected pose long after
+    /// it was fused. [`from_compact`](Self::from_compact) needs the same camera.
     pub fn to_compact(&self) -> Result<Vec<u8>, MappingError> {
         let n = self.samples.len();
-        let mut raw = Vec::with_capacity(16 + n * 22 + self.carve_depth.len() * 4);
+        if self.carve_depth.len() != self.carve_width * self.carve_height {
+            return Err(MappingError::Encode("carving depth does not match its size".into()));
+        }
+        let mut raw = Vec::with_capacity(16 + n * COMPACT_SAMPLE_BYTES + self.carve_depth.len() * 2);
         for v in [n, self.carve_width, self.carve_height, self.excluded_pixels] {
             let v = u32::try_from(v).map_err(|_| MappingError::Encode(format!("fusion input count {v} beyond u32")))?;
             raw.extend_from_slice(&v.to_le_bytes());
         }
-        if self.carve_depth.len() != self.carve_width * self.carve_height {
-            return Err(MappingError::Encode("carving depth does not match its size".into()));
+        let mut previous = 0u32;
+        for p in self.samples.iter().map(|s| s.pixel) {
+            raw.extend_from_slice(&p.wrapping_sub(previous).to_le_bytes());
+            previous = p;
         }
-        self.samples.iter().for_each(|s| raw.extend_from_slice(&s.pixel.to_le_bytes()));
-        for axis in 0..3 {
-            self.samples.iter().for_each(|s| raw.extend_from_slice(&s.point_in_camera[axis].to_le_bytes()));
-        }
+        self.samples.iter().for_each(|s| raw.extend_from_slice(&to_mm(s.point_in_camera[2]).to_le_bytes()));
         for channel in 0..3 {
             raw.extend(self.samples.iter().map(|s| s.rgb[channel]));
         }
         raw.extend(self.samples.iter().map(|s| u8::from(s.class.is_some())));
         self.samples.iter().for_each(|s| raw.extend_from_slice(&s.class.unwrap_or(0).to_le_bytes()));
-        self.carve_depth.iter().for_each(|d| raw.extend_from_slice(&d.to_le_bytes()));
+        self.carve_depth.iter().for_each(|&d| raw.extend_from_slice(&to_mm(d).to_le_bytes()));
         let raw_len = u32::try_from(raw.len()).map_err(|_| MappingError::Encode("fusion input beyond 4 GiB".into()))?;
         let mut out = raw_len.to_le_bytes().to_vec();
-        out.extend(zstd::bulk::compress(&raw, 1).map_err(|e| MappingError::Encode(e.to_string()))?);
+        out.extend(zstd::bulk::compress(&raw, 3).map_err(|e| MappingError::Encode(e.to_string()))?);
         Ok(out)
     }
 
-    /// Reads [`to_compact`](Self::to_compact)'s bytes back.
-    pub fn from_compact(bytes: &[u8]) -> Result<Self, MappingError> {
+    /// Reads [`to_compact`](Self::to_compact)'s bytes back for the camera of `rays`.
+    pub fn from_compact(bytes: &[u8], rays: &CameraRays) -> Result<Self, MappingError> {
         let corrupt = |what: &str| MappingError::Corrupt(format!("compact fusion input: {what}"));
         let (len, frame) = bytes.split_first_chunk::<4>().ok_or_else(|| corrupt("no header"))?;
         let raw_len = u32::from_le_bytes(*len) as usize;
@@ -148,25 +161,36 @@ impl FusionInput {
         }
         let [n, carve_width, carve_height, excluded_pixels] = header;
         let cells = carve_width.checked_mul(carve_height).ok_or_else(|| corrupt("carving size"))?;
-        if n.checked_mul(22).and_then(|b| b.checked_add(cells.checked_mul(4)?)).is_none_or(|b| b + 16 != raw_len) {
+        let expected = n.checked_mul(COMPACT_SAMPLE_BYTES).and_then(|b| b.checked_add(cells.checked_mul(2)?)?.checked_add(16));
+        if expected != Some(raw_len) {
             return Err(corrupt("counts do not match its length"));
         }
-        let u32s = |b: &[u8]| b.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
-        let f32s = |b: &[u8]| b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
-        let pixels = u32s(take(4 * n)?);
-        let (xs, ys, zs) = (f32s(take(4 * n)?), f32s(take(4 * n)?), f32s(take(4 * n)?));
-        let (r, g, b) = (take(n)?.to_vec(), take(n)?.to_vec(), take(n)?.to_vec());
-        let has_class = take(n)?.to_vec();
-        let classes: Vec<u16> = take(2 * n)?.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
-        let carve_depth = f32s(take(4 * cells)?);
-        let samples = (0..n)
-            .map(|i| SurfaceSample {
-                point_in_camera: [xs[i], ys[i], zs[i]],
-                rgb: [r[i], g[i], b[i]],
-                class: (has_class[i] != 0).then_some(classes[i]),
-                pixel: pixels[i],
+        let u16s = |b: &[u8]| b.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect::<Vec<_>>();
+        let mut pixel = 0u32;
+        let pixels: Vec<u32> = take(4 * n)?
+            .chunks_exact(4)
+            .map(|c| {
+                pixel = pixel.wrapping_add(u32::from_le_bytes([c[0], c[1], c[2], c[3]]));
+                pixel
             })
             .collect();
+        let depth_mm = u16s(take(2 * n)?);
+        let (r, g, b) = (take(n)?.to_vec(), take(n)?.to_vec(), take(n)?.to_vec());
+        let has_class = take(n)?.to_vec();
+        let classes = u16s(take(2 * n)?);
+        let carve_depth = u16s(take(2 * cells)?).into_iter().map(|d| f32::from(d) / 1000.0).collect();
+        let samples = (0..n)
+            .map(|i| {
+                let [rx, ry] = *rays.rays.get(pixels[i] as usize).ok_or_else(|| corrupt("a pixel outside the camera"))?;
+                let z = f32::from(depth_mm[i]) / 1000.0;
+                Ok(SurfaceSample {
+                    point_in_camera: [rx * z, ry * z, z],
+                    rgb: [r[i], g[i], b[i]],
+                    class: (has_class[i] != 0).then_some(classes[i]),
+                    pixel: pixels[i],
+                })
+            })
+            .collect::<Result<Vec<_>, MappingError>>()?;
         Ok(Self { samples, carve_depth, carve_width, carve_height, excluded_pixels })
     }
 }
@@ -653,9 +677,10 @@ mod tests {
     }
     use nalgebra::{Translation3, UnitQuaternion};
 
-    /// A keyframe kept compactly comes back exactly; damaged bytes are named errors.
+    /// A keyframe kept compactly comes back to the millimetre (exactly, from a
+    /// camera in millimetre units); damaged bytes are named errors.
     #[test]
-    fn a_compact_fusion_input_comes_back_exactly() {
+    fn a_compact_fusion_input_comes_back_to_the_millimetre() {
         let cam = camera();
         let rays = CameraRays::new(&cam);
         let n = 160 * 120;
@@ -668,15 +693,29 @@ mod tests {
         let input = map.prepare(&rays, &view).unwrap();
         assert!(input.samples.len() > 3000 && input.excluded_pixels > 0);
         let compact = input.to_compact().unwrap();
-        assert_eq!(FusionInput::from_compact(&compact).unwrap(), input);
+        assert_eq!(FusionInput::from_compact(&compact, &rays).unwrap(), input, "millimetre depth units: exact");
         let plain = map.prepare(&rays, &DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None }).unwrap();
-        assert_eq!(FusionInput::from_compact(&plain.to_compact().unwrap()).unwrap(), plain, "no classes");
-        let err = |bytes: &[u8]| FusionInput::from_compact(bytes).unwrap_err().to_string();
+        assert_eq!(FusionInput::from_compact(&plain.to_compact().unwrap(), &rays).unwrap(), plain, "no classes");
+        // A finer depth unit (TUM's 5000 per metre) comes back within half a millimetre.
+        let tum = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 5000.0);
+        let tum_rays = CameraRays::new(&tum);
+        let fine = map.prepare(&tum_rays, &view).unwrap();
+        let back = FusionInput::from_compact(&fine.to_compact().unwrap(), &tum_rays).unwrap();
+        assert_eq!(back.samples.len(), fine.samples.len());
+        let worst =
+            back.samples.iter().zip(&fine.samples).map(|(a, b)| (a.point_in_camera[2] - b.point_in_camera[2]).abs()).fold(0.0, f32::max);
+        assert!(worst <= 0.0005 + 1e-6, "{worst}");
+        let err = |bytes: &[u8]| FusionInput::from_compact(bytes, &rays).unwrap_err().to_string();
         assert_eq!(err(&compact[..3]), "corrupt map data: compact fusion input: no header");
         assert!(err(&compact[..compact.len() / 2]).starts_with("corrupt map data: compact fusion input: "));
         let mut lying = compact.clone();
         lying[..4].copy_from_slice(&u32::MAX.to_le_bytes());
         assert_eq!(err(&lying), "corrupt map data: compact fusion input: larger than a keyframe can be");
+        let other = CameraRays::new(&Camera::pinhole(80, 60, 65.0, 65.0, 39.5, 29.5, 1000.0));
+        assert_eq!(
+            FusionInput::from_compact(&compact, &other).unwrap_err().to_string(),
+            "corrupt map data: compact fusion input: a pixel outside the camera"
+        );
     }
 
     fn camera() -> Camera {

@@ -159,7 +159,7 @@ pub struct FleetConfig {
     /// and the fleet's products fall back to merging its sessions' maps.
     pub map_queue: usize,
     /// Keyframe fusion inputs a fleet map keeps to fuse them again where the pose
-    /// graph moves them (compact, about 0.3–1 MB each); beyond, the oldest's stays
+    /// graph moves them (compact, about 200 KB each at VGA: 200 MB per fleet at the default); beyond, the oldest's stays
     /// where it was fused.
     pub map_keyframes: usize,
     /// Keyframes a fleet map fuses (again) per pass of its thread: the bound on one pass's time.

@@ -2,8 +2,8 @@
 //! frame, and fused again where the pose graph moves them.
 //!
 //! The map lane of each session hands its keyframes over after fusing them into
-//! the session's own map: the keyframe's fusion input (kept compactly, about
-//! 0.3–1 MB zstd), the current poses of the session's recent keyframes (local
+//! the session's own map: the keyframe's fusion input (kept compactly: depth to
+//! the millimetre, zstd, about 200 KB at VGA), the current poses of the session's recent keyframes (local
 //! bundle adjustment still moves them) and the samples perception took back out
 //! (people found moving later). One thread of its own (`fleet-map`) behind a
 //! bounded queue (`fleet.map_queue`) keeps each fleet's map: a keyframe is fused
@@ -84,6 +84,7 @@ impl FleetMapState {
             keyframes: self.held.values().sum(),
             fused: self.kept.values().filter(|k| k.fused_at.is_some()).count() as u64,
             kept_inputs: self.order.len() as u64,
+            kept_bytes: self.kept.values().filter_map(|k| k.input.as_ref()).map(|i| i.len() as u64).sum(),
             refused: self.refused,
         }
     }
@@ -113,6 +114,8 @@ pub struct FleetMapCounts {
     pub keyframes: u64,
     pub fused: u64,
     pub kept_inputs: u64,
+    /// Their compact size in all.
+    pub kept_bytes: u64,
     pub refused: u64,
 }
 
@@ -234,7 +237,8 @@ fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
     for r in &job.retractions {
         let key = (job.session_id.clone(), r.keyframe);
         let Some(k) = s.kept.get_mut(&key) else { continue };
-        let Some(Ok(mut input)) = k.input.as_deref().map(FusionInput::from_compact) else { continue };
+        let Some(rays) = s.rays.get(&job.session_id) else { continue };
+        let Some(Ok(mut input)) = k.input.as_deref().map(|b| FusionInput::from_compact(b, rays)) else { continue };
         let covered = r.pixel_test(k.width);
         let (taken, kept): (Vec<_>, Vec<_>) = input.samples.iter().partition(|p| covered(p.pixel));
         if taken.is_empty() {
@@ -305,7 +309,7 @@ fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform
     for (key, target) in todo {
         let FleetMapState { map, rays, kept, refused, .. } = &mut *s;
         let (Some(k), Some(r)) = (kept.get_mut(&key), rays.get(&key.0)) else { continue };
-        let Some(Ok(input)) = k.input.as_deref().map(FusionInput::from_compact) else { continue };
+        let Some(Ok(input)) = k.input.as_deref().map(|b| FusionInput::from_compact(b, r)) else { continue };
         if let Some(at) = k.fused_at {
             map.deintegrate(&input, &at);
             *refused += 1;
