@@ -213,7 +213,8 @@ function update3dTrajectory() {
 
 // ---------------------------------------------------------------- fleets
 // Every merged robot of each fleet on one top-down view: its trajectory moved by
-// its fleet_from_session, then into the anchor's map frame (z up); unmerged robots
+// its fleet_from_session and the pose graph's latest correction, then into the
+// anchor's map frame (z up); unmerged robots
 // listed apart. The fleets are polled; the poses come from the event stream.
 const FLEET_REFRESH_MS = 2000;
 const ROBOT_COLOURS = ["#e6194b", "#3cb44b", "#4363d8", "#f58231", "#911eb4", "#42d4f4", "#f032e6", "#bfef45"];
@@ -312,8 +313,11 @@ function drawFleets() {
     const up = anchor ? state.mapInfo.get(anchor.session_id)?.map_from_world_xyzw : null;
     const tracks = f.sessions.filter((m) => m.merged).map((m, i) => {
       const t = m.fleet_from_session;
+      // The pose graph's correction of the robot's latest keyframe, over the whole trail.
+      const c = m.latest_correction;
       const poses = (state.trajectories.get(m.session_id) || []).map((p) => {
-        const inFleet = rotate(t.rotation_xyzw, p.t).map((v, k) => v + t.translation[k]);
+        let inFleet = rotate(t.rotation_xyzw, p.t).map((v, k) => v + t.translation[k]);
+        if (c) inFleet = rotate(c.rotation_xyzw, inFleet).map((v, k) => v + c.translation[k]);
         return up ? rotate(up, inFleet) : inFleet;
       });
       return { colour: ROBOT_COLOURS[i % ROBOT_COLOURS.length], poses };

@@ -129,6 +129,8 @@ pub struct MemberView {
     pub session_id: String,
     pub robot_id: String,
     pub frame: Option<FleetFrame>,
+    /// The pose graph's correction of its latest keyframe (`fleet_corrected_from_fleet`).
+    pub latest_correction: Option<Isometry3<f64>>,
 }
 
 /// A fleet, for the APIs.
@@ -446,7 +448,12 @@ fn view(name: &str, f: &Fleet) -> FleetView {
         members: f
             .members
             .iter()
-            .map(|m| MemberView { session_id: m.session_id.clone(), robot_id: m.robot_id.clone(), frame: m.frame.clone() })
+            .map(|m| MemberView {
+                session_id: m.session_id.clone(),
+                robot_id: m.robot_id.clone(),
+                frame: m.frame.clone(),
+                latest_correction: m.corrections.last().map(|(_, c)| *c),
+            })
             .collect(),
         indexed_keyframes: f.index.len(),
         last_correction: f.last_correction.clone(),

@@ -223,6 +223,7 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     assert!(solve["inter_session_edges"].as_u64().is_some_and(|n| n >= 3), "{solve}");
     assert!(solve["keyframes"].as_u64().is_some_and(|n| n >= 40), "{solve}");
     assert!(solve["max_translation_m"].as_f64().is_some_and(|m| m < 0.1), "no keyframe moves by 10 cm in one room: {solve}");
+    assert!(member(&fleet, &b_id)["latest_correction"]["rotation_xyzw"].is_array(), "{fleet}");
     let (_, all) = server.get_json("/api/v1/fleets").await;
     assert_eq!(all["fleets"][0]["fleet"], "lab");
     assert_eq!(all["fleets"][0]["merged"], 2);

@@ -307,7 +307,19 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
                         "merged_after_s": fr.merged_after_ns as f64 * 1e-9,
                     })
                 });
-                json!({ "session_id": m.session_id, "robot_id": m.robot_id, "merged": m.frame.is_some(), "fleet_from_session": frame })
+                // The pose graph's correction of its latest keyframe (poses are
+                // corrected per keyframe: `?frame=fleet` applies them).
+                let correction = m.latest_correction.map(|c| {
+                    let (t, q) = (c.translation.vector, c.rotation.coords);
+                    json!({ "translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w] })
+                });
+                json!({
+                    "session_id": m.session_id,
+                    "robot_id": m.robot_id,
+                    "merged": m.frame.is_some(),
+                    "fleet_from_session": frame,
+                    "latest_correction": correction,
+                })
             })
             .collect::<Vec<_>>()
             .into();
