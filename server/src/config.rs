@@ -164,6 +164,10 @@ pub struct FleetConfig {
     pub map_keyframes: usize,
     /// Keyframes a fleet map fuses (again) per pass of its thread: the bound on one pass's time.
     pub refuse_per_pass: usize,
+    /// Niceness of the fleets' background threads (the pose graph's and the fleet
+    /// map's; not place recognition, whose merges are awaited): they yield the
+    /// cores to tracking. 0: the server's own.
+    pub nice: i32,
 }
 
 impl Default for FleetConfig {
@@ -192,6 +196,7 @@ impl Default for FleetConfig {
             map_queue: 64,
             map_keyframes: 1000,
             refuse_per_pass: 8,
+            nice: 10,
         }
     }
 }
@@ -633,6 +638,9 @@ impl ServerConfig {
                 "fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600 seconds, got {} and {}",
                 f.graph_interval_s, f.loop_min_age_s
             ));
+        }
+        if !(0..=19).contains(&f.nice) {
+            return bad(format!("fleet.nice must be in 0..=19, got {}", f.nice));
         }
         if f.reweight_rounds > 8 {
             return bad(format!("fleet.reweight_rounds must be in 0..=8, got {}", f.reweight_rounds));

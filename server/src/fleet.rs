@@ -216,6 +216,7 @@ impl FleetService {
             let thread = std::thread::Builder::new()
                 .name("pose-graph".into())
                 .spawn(move || {
+                    crate::lower_this_thread(solver_shared.config.nice, "pose-graph");
                     while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = stopped.recv_timeout(tick) {
                         solver_shared.solve_due();
                     }
@@ -232,6 +233,7 @@ impl FleetService {
                 queue: config.map_queue,
                 max_keyframes: config.map_keyframes,
                 refuse_per_pass: config.refuse_per_pass,
+                nice: config.nice,
             },
             Arc::new(move |fleet: &str, session: &str| maps_shared.transform(fleet, session)),
         )

@@ -16,10 +16,13 @@
 //! and neither tracking nor a session's map waits for any of it.
 //!
 //! Bounded: `fleet.map_keyframes` inputs per fleet; beyond, the oldest input is
-//! dropped (what it fused stays, and is no longer moved). A fleet whose merged
-//! sessions all have every keyframe here (fused, or waiting for its merge) is
-//! served from this map; otherwise (sessions restored from the store, a full
-//! queue) the fleet products fall back to the merge of the sessions' own maps.
+//! dropped (what it fused stays, and is no longer moved). Nothing is fused while a
+//! fleet has a single merged session (its map would be that session's own): the
+//! inputs wait for a second one. A fleet whose merged sessions all have every
+//! keyframe fused here is served from this map; otherwise (one session, sessions
+//! restored from the store, a full queue, a catch-up after a merge) the fleet
+//! products fall back to the merge of the sessions' own maps. The thread runs at
+//! niceness `fleet.nice`: it yields the cores to tracking.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
@@ -68,6 +71,8 @@ pub struct FleetMapState {
     order: VecDeque<(String, u64)>,
     /// Keyframes per session fused here or waiting for the merge.
     held: HashMap<String, u64>,
+    /// Keyframes per session fused here.
+    fused: HashMap<String, u64>,
     /// Keyframes fused again after their fleet pose moved.
     refused: u64,
 }
@@ -89,9 +94,9 @@ impl FleetMapState {
         }
     }
 
-    /// Keyframes of `session_id` fused here or waiting for its merge.
-    pub fn held(&self, session_id: &str) -> u64 {
-        self.held.get(session_id).copied().unwrap_or(0)
+    /// Keyframes of `session_id` fused here.
+    pub fn fused(&self, session_id: &str) -> u64 {
+        self.fused.get(session_id).copied().unwrap_or(0)
     }
 }
 
@@ -126,6 +131,8 @@ pub struct FleetMapConfig {
     pub queue: usize,
     pub max_keyframes: usize,
     pub refuse_per_pass: usize,
+    /// The thread's niceness (`fleet.nice`).
+    pub nice: i32,
 }
 
 /// The fleets' maps and their thread.
@@ -143,8 +150,10 @@ impl FleetMaps {
         let (tx, rx) = std::sync::mpsc::sync_channel::<FleetMapJob>(config.queue.max(1));
         let states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>> = Arc::default();
         let worker_states = states.clone();
-        let worker =
-            std::thread::Builder::new().name("fleet-map".into()).spawn(move || run(&config, &rx, &worker_states, &transform_of))?;
+        let worker = std::thread::Builder::new().name("fleet-map".into()).spawn(move || {
+            crate::lower_this_thread(config.nice, "fleet-map");
+            run(&config, &rx, &worker_states, &transform_of)
+        })?;
         Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)) })
     }
 
@@ -195,6 +204,7 @@ fn run(
                                     kept: HashMap::new(),
                                     order: VecDeque::new(),
                                     held: HashMap::new(),
+                                    fused: HashMap::new(),
                                     refused: 0,
                                 };
                                 let counts = Mutex::new(state.counts());
@@ -281,16 +291,21 @@ fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
 }
 
 /// Fuses the keyframes of merged sessions not fused yet, and fuses again those
-/// whose fleet pose moved, at most `refuse_per_pass` of them.
+/// whose fleet pose moved, at most `refuse_per_pass` of them. Nothing is fused
+/// while the fleet has one merged session (its map is that session's own): the
+/// inputs wait until a second one merges.
 fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform_of: &TransformOf) {
     let mut s = lock(&handle.state);
-    let mut transforms: HashMap<String, Option<FleetTransform>> = HashMap::new();
+    let transforms: HashMap<String, Option<FleetTransform>> = s.held.keys().map(|id| (id.clone(), transform_of(fleet, id))).collect();
+    if transforms.values().filter(|t| t.is_some()).count() < 2 {
+        *lock(&handle.counts) = s.counts();
+        return;
+    }
     let (max_t, max_deg) = (config.mapping.refuse_translation_m, config.mapping.refuse_rotation_deg);
     let mut todo: Vec<((String, u64), Isometry3<f64>)> = Vec::new();
     for key in &s.order {
         let Some(k) = s.kept.get(key) else { continue };
-        let t = transforms.entry(key.0.clone()).or_insert_with(|| transform_of(fleet, &key.0));
-        let Some(t) = t else { continue };
+        let Some(Some(t)) = transforms.get(&key.0) else { continue };
         let target = t.at(k.timestamp_ns) * k.session_from_camera;
         let due = match k.fused_at {
             None => true,
@@ -307,12 +322,15 @@ fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform
         }
     }
     for (key, target) in todo {
-        let FleetMapState { map, rays, kept, refused, .. } = &mut *s;
+        let FleetMapState { map, rays, kept, refused, fused, .. } = &mut *s;
         let (Some(k), Some(r)) = (kept.get_mut(&key), rays.get(&key.0)) else { continue };
         let Some(Ok(input)) = k.input.as_deref().map(|b| FusionInput::from_compact(b, r)) else { continue };
-        if let Some(at) = k.fused_at {
-            map.deintegrate(&input, &at);
-            *refused += 1;
+        match k.fused_at {
+            Some(at) => {
+                map.deintegrate(&input, &at);
+                *refused += 1;
+            }
+            None => *fused.entry(key.0.clone()).or_default() += 1,
         }
         map.integrate(r, &input, &target);
         k.fused_at = Some(target);
@@ -326,35 +344,43 @@ mod tests {
     use nalgebra::{Translation3, UnitQuaternion};
     use stillmap_mapping::DepthView;
 
-    /// A wall 2 m ahead (the left half a box 1 m ahead), one keyframe of session "s".
-    fn job(camera: &Camera, id: u64, retractions: Vec<Retraction>) -> FleetMapJob {
+    /// One keyframe (id 7, captured at 1 µs) of `session`: a wall 2 m ahead, and
+    /// for session "s" a box 1 m ahead in the left half (session t sees no left half).
+    fn job(camera: &Camera, session: &str, keyframe: bool, retractions: Vec<Retraction>) -> FleetMapJob {
         let (w, h) = (camera.width as usize, camera.height as usize);
-        let depth: Vec<u16> = (0..w * h).map(|i| if i % w < w / 2 { 1000 } else { 2000 }).collect();
+        // Session t sees only the wall's right half (nothing of the box, so it carves none of it).
+        let depth: Vec<u16> = (0..w * h)
+            .map(|i| match (session, i % w < w / 2) {
+                ("s", true) => 1000,
+                (_, true) => 0,
+                _ => 2000,
+            })
+            .collect();
         let rgb = vec![100u8; w * h * 3];
         let map = VoxelMap::new(MappingConfig::default()).expect("map");
         let input =
             map.prepare(&CameraRays::new(camera), &DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None }).expect("input");
         FleetMapJob {
             fleet: "lab".into(),
-            session_id: "s".into(),
+            session_id: session.into(),
             camera: camera.clone(),
-            keyframe: (id == 7).then(|| (id, 1_000, Isometry3::identity(), input)),
+            keyframe: keyframe.then(|| (7, 1_000, Isometry3::identity(), input)),
             keyframe_poses: Vec::new(),
             retractions,
         }
     }
 
-    /// A keyframe waits for its session's merge, is fused where the merge puts it,
-    /// moves when the pose graph corrects it, and leaves the map where perception
-    /// takes its samples back.
+    /// Keyframes wait until a second session merges, are fused where their merges
+    /// put them, move when the pose graph corrects them, and leave the map where
+    /// perception takes their samples back.
     #[test]
-    fn a_keyframe_is_fused_at_its_merge_moved_by_corrections_and_retracted() {
+    fn keyframes_are_fused_at_their_merge_moved_by_corrections_and_retracted() {
         let camera = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0);
-        let transform: Arc<Mutex<Option<FleetTransform>>> = Arc::default();
-        let shared = transform.clone();
+        let transforms: Arc<Mutex<HashMap<String, FleetTransform>>> = Arc::default();
+        let shared = transforms.clone();
         let maps = FleetMaps::start(
-            FleetMapConfig { mapping: MappingConfig::default(), queue: 4, max_keyframes: 10, refuse_per_pass: 8 },
-            Arc::new(move |_: &str, _: &str| lock(&shared).clone()),
+            FleetMapConfig { mapping: MappingConfig::default(), queue: 4, max_keyframes: 10, refuse_per_pass: 8, nice: 0 },
+            Arc::new(move |_: &str, session: &str| lock(&shared).get(session).cloned()),
         )
         .expect("started");
         let wait = |done: &dyn Fn(FleetMapCounts) -> bool| {
@@ -367,32 +393,39 @@ mod tests {
                 std::thread::sleep(Duration::from_millis(20));
             }
         };
-        let mean_z = || {
+        // (mean height of the wall's voxels, their count, the box's voxels)
+        let measure = || {
             let s = maps.state("lab").expect("state");
             let s = lock(&s.state);
             let far: Vec<f64> = s.map().occupied().map(|(_, c, _)| c.z).filter(|z| *z > 1.5).collect();
             let near = s.map().occupied().filter(|(_, c, _)| c.z < 1.5 && c.z > 0.5).count();
             (far.iter().sum::<f64>() / far.len().max(1) as f64, far.len(), near)
         };
-        maps.submit(job(&camera, 7, Vec::new()));
-        let c = wait(&|c| c.keyframes == 1);
-        assert_eq!((c.fused, c.kept_inputs), (0, 1), "unmerged: kept, not fused");
-        assert_eq!(mean_z().1, 0);
-        // Merged, 10 cm along z.
         let merge = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.1), UnitQuaternion::identity());
-        *lock(&transform) = Some(FleetTransform { fleet_from_session: merge, corrections: Arc::default() });
-        wait(&|c| c.fused == 1);
-        let (z, far, near) = mean_z();
+        let merged =
+            |corrections: Vec<(u64, Isometry3<f64>)>| FleetTransform { fleet_from_session: merge, corrections: Arc::new(corrections) };
+        lock(&transforms).insert("s".into(), merged(Vec::new()));
+        maps.submit(job(&camera, "s", true, Vec::new()));
+        maps.submit(job(&camera, "t", true, Vec::new()));
+        let c = wait(&|c| c.keyframes == 2);
+        assert_eq!((c.fused, c.kept_inputs), (0, 2), "one merged session: kept, not fused");
+        // Both merged, 10 cm along z.
+        lock(&transforms).insert("t".into(), merged(Vec::new()));
+        wait(&|c| c.fused == 2);
+        let (z, far, near) = measure();
         assert!((z - 2.1).abs() < 0.02 && far > 100 && near > 100, "{z} {far} {near}");
-        // The pose graph moves it 20 cm further.
+        assert_eq!(lock(&maps.state("lab").expect("state").state).fused("s"), 1);
+        // The pose graph moves both keyframes 20 cm further.
         let correction = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.2), UnitQuaternion::identity());
-        *lock(&transform) = Some(FleetTransform { fleet_from_session: merge, corrections: Arc::new(vec![(1_000, correction)]) });
-        let c = wait(&|c| c.refused == 1);
-        assert_eq!((c.keyframes, c.fused), (1, 1));
-        let (z, far_after, _) = mean_z();
+        for session in ["s", "t"] {
+            lock(&transforms).insert(session.into(), merged(vec![(1_000, correction)]));
+        }
+        let c = wait(&|c| c.refused == 2);
+        assert_eq!((c.keyframes, c.fused), (2, 2));
+        let (z, far_after, _) = measure();
         assert!((z - 2.3).abs() < 0.02, "{z}");
-        assert!(far_after <= far + far / 10, "its hits left the old place: {far} then {far_after}");
-        // The box (left half) is found moving: its samples leave the fleet map.
+        assert!(far_after <= far + far / 10, "their hits left the old place: {far} then {far_after}");
+        // The box (left half of session s's keyframe) is found moving: its samples leave the fleet map.
         let box_cells = Retraction {
             keyframe: 7,
             cells: (0..12).flat_map(|y| (0..8).map(move |x| y * 16 + x)).collect(),
@@ -400,13 +433,13 @@ mod tests {
             grid_height: 12,
             subsample: 10,
         };
-        maps.submit(job(&camera, 8, vec![box_cells]));
+        maps.submit(job(&camera, "s", false, vec![box_cells]));
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
-        while mean_z().2 > 0 {
-            assert!(std::time::Instant::now() < deadline, "the box stays: {:?}", mean_z());
+        while measure().2 > 0 {
+            assert!(std::time::Instant::now() < deadline, "the box stays: {:?}", measure());
             std::thread::sleep(Duration::from_millis(20));
         }
-        assert_eq!(mean_z().1, far_after, "the wall stays");
+        assert_eq!(measure().1, far_after, "the wall stays");
         maps.close();
     }
 }

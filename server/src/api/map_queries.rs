@@ -150,13 +150,13 @@ pub struct FleetParts {
 }
 
 impl FleetParts {
-    /// The fused map, when every keyframe of every merged session's map is in it
-    /// (it locks each map: call it off the runtime).
+    /// The fused map, when every keyframe of every merged session's map is fused
+    /// in it (it locks each map: call it off the runtime).
     pub fn complete_fused(&self) -> Option<&Arc<crate::fleet_map::FleetMapHandle>> {
         self.fused.as_ref().filter(|state| {
             self.maps.iter().all(|(id, map, _)| {
                 let keyframes = lock(map).builder.keyframes();
-                keyframes > 0 && lock(&state.state).held(id) == keyframes
+                keyframes > 0 && lock(&state.state).fused(id) == keyframes
             })
         })
     }
