@@ -197,6 +197,12 @@ pub struct EgoMotionConfig {
     /// Off: compensation waits for the tracked motion, and tracking uses the
     /// previous frame's mask alone.
     pub before_tracking: bool,
+    /// What the flow saw moving (cells dynamic in two frames in a row, any class)
+    /// is remembered in 3D for this many frames, and kept out of the camera-motion
+    /// estimate wherever the measured surface still lies on it: a thing of no known
+    /// class that moved, then rests, does not vote for the camera's motion when it
+    /// is picked up again. Tracking and the map are not affected. 0: off.
+    pub remember_moved_frames: u32,
 }
 
 /// How a prior-dynamic instance (a person, say) that does not move is treated by tracking.
@@ -466,6 +472,7 @@ impl Default for EgoMotionConfig {
             photometric_ratio: 2.0,
             refine_tracked_motion: true,
             before_tracking: true,
+            remember_moved_frames: 90,
         }
     }
 }

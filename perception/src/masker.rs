@@ -252,6 +252,9 @@ pub struct DynamicMasker {
     /// The accelerometer's direction in the pose chain's frame, decaying sum over
     /// recent frames (motion accelerations average out), with its epoch.
     up: Option<(u32, Vector3<f64>)>,
+    /// What the flow saw moving (`ego_motion.remember_moved_frames`): points in the
+    /// pose chain's frame, with its epoch and the frame they were seen on, oldest first.
+    moved: VecDeque<(u32, u64, [f32; 3])>,
 }
 
 struct Pending {
@@ -298,6 +301,7 @@ impl DynamicMasker {
             chain: None,
             epochs: 0,
             up: None,
+            moved: VecDeque::new(),
         })
     }
 
@@ -451,7 +455,8 @@ impl DynamicMasker {
 
         // What the camera-motion estimate must not listen to: the carried dynamic
         // cells and prior-dynamic instances.
-        let exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
+        let mut exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
+        self.exclude_remembered(&mut exclude, input.sequence, input.depth);
         times.warp = t.elapsed();
 
         // This frame's own labels, before tracking: compensation with the previous
@@ -637,6 +642,7 @@ impl DynamicMasker {
                 t.moved |= fused.instances.iter().any(|i| i.id == t.id && i.moving == Some(true));
             }
         }
+        self.remember_moved(&fused.labels, carried_cells.as_deref(), sequence, depth);
         self.dynamic_grid = Some((sequence, cells));
         let retractions = if self.origins.is_empty() {
             Vec::new()
@@ -1174,6 +1180,64 @@ impl DynamicMasker {
         cell_centres(self.camera.width as usize, self.camera.height as usize, self.config.flow.subsample as usize)
     }
 
+    /// Remembers the cells labelled dynamic on this frame and the previous one (the
+    /// flow saw them move twice: not one frame's noise) as points in the pose
+    /// chain's frame, and forgets those older than `ego_motion.remember_moved_frames`.
+    fn remember_moved(&mut self, labels: &[u8], carried: Option<&[u8]>, sequence: u64, depth: &[u16]) {
+        let limit = u64::from(self.config.ego_motion.remember_moved_frames);
+        let Some(chain) = self.chain.filter(|c| c.sequence == sequence && limit > 0) else {
+            self.moved.clear();
+            return;
+        };
+        while self.moved.front().is_some_and(|(epoch, seen, _)| *epoch != chain.epoch || seen + limit < sequence) {
+            self.moved.pop_front();
+        }
+        let Some(carried) = carried else { return };
+        let w = self.camera.width as usize;
+        let metres = 1.0 / self.camera.depth_units_per_metre;
+        let fresh: Vec<[f32; 3]> = self
+            .cell_centres()
+            .enumerate()
+            .filter(|(g, i)| labels[*i] == PixelLabel::Dynamic as u8 && carried.get(*g).is_some_and(|&c| c != 0))
+            .filter_map(|(_, i)| {
+                let d = *depth.get(i).filter(|&&d| d != 0)?;
+                let ideal = self.camera.undistort(&nalgebra::Point2::new((i % w) as f64, (i / w) as f64));
+                let p = chain.anchor_from_camera * self.camera.unproject(&ideal, f64::from(d) * metres);
+                Some([p.x as f32, p.y as f32, p.z as f32])
+            })
+            .collect();
+        self.moved.extend(fresh.into_iter().map(|p| (chain.epoch, sequence, p)));
+        while self.moved.len() > MAX_MOVED_POINTS {
+            self.moved.pop_front();
+        }
+    }
+
+    /// Marks in `exclude` the flow-grid cells where a remembered moving point lands
+    /// at the predicted pose of frame `sequence` and the measured depth agrees with
+    /// it (the thing is still there, resting).
+    fn exclude_remembered(&self, exclude: &mut [u8], sequence: u64, depth: &[u16]) {
+        let Some((epoch, anchor_from_camera)) = self.predicted_pose(sequence).filter(|_| !self.moved.is_empty()) else { return };
+        let camera_from_anchor = anchor_from_camera.inverse();
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let s = self.config.flow.subsample as usize;
+        let (gw, _) = self.ego.grid_size();
+        for (_, _, p) in self.moved.iter().filter(|(e, _, _)| *e == epoch) {
+            let q = camera_from_anchor * stored_point(p);
+            let Some(r) = self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) else { continue };
+            let (x, y) = (r.x.round(), r.y.round());
+            if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
+                continue;
+            }
+            let (x, y) = (x as usize, y as usize);
+            if x / s < gw
+                && self.on_surface(q.z, depth.get(y * w + x).copied().unwrap_or(0))
+                && let Some(cell) = exclude.get_mut((y / s) * gw + x / s)
+            {
+                *cell = 1;
+            }
+        }
+    }
+
     /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
     /// instances and the carried dynamic cells.
     fn exclusion_grid(&self, seg: Option<&Segmentation>, dynamic: Option<&[u8]>) -> Vec<u8> {
@@ -1223,6 +1287,8 @@ const MIN_COAST_PX: usize = 100;
 const MAX_OFFSCREEN_TRACKS: usize = 16;
 /// 3D points kept per track, at most.
 const MAX_TRACK_POINTS: usize = 1500;
+/// Points remembered of what the flow saw moving, at most (per session).
+const MAX_MOVED_POINTS: usize = 20_000;
 
 /// Row-major pixel indices inside a box (x0, y0, x1, y1; ends exclusive), clipped to the image.
 fn bbox_pixels(bbox: &[f32; 4], width: usize, height: usize) -> impl Iterator<Item = usize> {
@@ -1441,6 +1507,64 @@ mod tests {
         // Turning back finds him where he was; another epoch (tracking was lost) does not.
         assert_eq!(masker.project_track(&kept, &here, w, h), back);
         assert!(masker.project_track(&kept, &(2, Isometry3::identity()), w, h).is_empty());
+    }
+
+    /// What the flow saw moving twice in a row is kept out of the camera-motion
+    /// vote while the measured surface still lies on it (it rests), not once the
+    /// wall behind is measured there (it left), nor after
+    /// `ego_motion.remember_moved_frames`, nor in another epoch of the pose chain.
+    #[test]
+    fn a_thing_seen_moving_is_kept_out_of_the_vote_while_it_rests() {
+        let (w, h) = (96usize, 72usize);
+        let camera = pinhole(w, h, 80.0);
+        let mut masker = DynamicMasker::new(camera, PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        let s = masker.config.flow.subsample as usize;
+        let (gw, gh) = masker.ego.grid_size();
+        // A box 1 m ahead over columns 40..56 and rows 20..44, in front of a wall at 3 m.
+        let on_box = |x: usize, y: usize| (40..56).contains(&x) && (20..44).contains(&y);
+        let resting: Vec<u16> = (0..w * h).map(|i| if on_box(i % w, i / w) { 1000 } else { 3000 }).collect();
+        let gone = vec![3000u16; w * h];
+        let mut labels = vec![PixelLabel::Static as u8; w * h];
+        for (i, l) in labels.iter_mut().enumerate() {
+            if on_box(i % w, i / w) {
+                *l = PixelLabel::Dynamic as u8;
+            }
+        }
+        let box_cells: Vec<usize> = (0..gw * gh).filter(|g| on_box((g % gw) * s + s / 2, (g / gw) * s + s / 2)).collect();
+        assert!(box_cells.len() >= 8);
+        let at = |sequence: u64, epoch: u32| PoseChain {
+            sequence,
+            anchor_from_camera: Isometry3::identity(),
+            motion: Isometry3::identity(),
+            epoch,
+        };
+        masker.chain = Some(at(10, 1));
+        // Seen moving once: nothing remembered; twice (the previous frame's cells carried): remembered.
+        masker.remember_moved(&labels, None, 10, &resting);
+        assert!(masker.moved.is_empty());
+        let carried = vec![1u8; gw * gh];
+        masker.remember_moved(&labels, Some(&carried), 10, &resting);
+        assert_eq!(masker.moved.len(), box_cells.len());
+        let excluded = |masker: &DynamicMasker, sequence: u64, depth: &[u16]| {
+            let mut exclude = vec![0u8; gw * gh];
+            masker.exclude_remembered(&mut exclude, sequence, depth);
+            (0..gw * gh).filter(|g| exclude[*g] != 0).collect::<Vec<_>>()
+        };
+        assert_eq!(excluded(&masker, 40, &resting), box_cells, "resting: its cells, no others");
+        assert!(excluded(&masker, 40, &gone).is_empty(), "gone: the wall is measured there");
+        // Forgotten after remember_moved_frames (90 by default) …
+        let limit = u64::from(masker.config.ego_motion.remember_moved_frames);
+        masker.chain = Some(at(10 + limit + 1, 1));
+        masker.remember_moved(&vec![PixelLabel::Static as u8; w * h], Some(&carried), 10 + limit + 1, &resting);
+        assert!(masker.moved.is_empty());
+        // … and when the pose chain breaks (a new epoch).
+        masker.chain = Some(at(200, 1));
+        masker.remember_moved(&labels, Some(&carried), 200, &resting);
+        assert!(!masker.moved.is_empty());
+        masker.chain = Some(at(201, 2));
+        assert!(excluded(&masker, 201, &resting).is_empty(), "another epoch");
+        masker.remember_moved(&vec![PixelLabel::Static as u8; w * h], Some(&carried), 201, &resting);
+        assert!(masker.moved.is_empty());
     }
 
     /// A person the carried mask lost while he stands is still where his points are:
