@@ -1017,6 +1017,19 @@ impl DynamicMasker {
 
     /// Whether a remembered point at depth `z_m` (camera frame) lies on the surface
     /// the camera measures at its pixel (`raw` depth units; 0: no depth, no).
+    /// The pixel a point in the camera frame projects to, when it is in the image
+    /// and the measured depth there agrees with the point's ([`Self::on_surface`]).
+    fn surface_pixel(&self, q: &Point3<f64>, depth: &[u16]) -> Option<(usize, usize)> {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let r = self.camera.project(q).map(|ideal| self.camera.distort(&ideal))?;
+        let (x, y) = (r.x.round(), r.y.round());
+        if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
+            return None;
+        }
+        let (x, y) = (x as usize, y as usize);
+        self.on_surface(q.z, depth.get(y * w + x).copied().unwrap_or(0)).then_some((x, y))
+    }
+
     fn on_surface(&self, z_m: f64, raw: u16) -> bool {
         let d = f64::from(raw) / self.camera.depth_units_per_metre;
         raw != 0 && (d - z_m).abs() <= f64::from(COAST_DEPTH_GATE) * z_m
@@ -1035,15 +1048,7 @@ impl DynamicMasker {
         let s = tp.spacing_px as usize;
         for p in &tp.points {
             let q = camera_from_anchor * stored_point(p);
-            let Some(raw) = self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) else { continue };
-            let (x, y) = (raw.x.round(), raw.y.round());
-            if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
-                continue;
-            }
-            let (x, y) = (x as usize, y as usize);
-            if !self.on_surface(q.z, depth.get(y * w + x).copied().unwrap_or(0)) {
-                continue;
-            }
+            let Some((x, y)) = self.surface_pixel(&q, depth) else { continue };
             for yy in y..(y + s).min(h) {
                 for xx in x..(x + s).min(w) {
                     let i = yy * w + xx;
@@ -1218,19 +1223,12 @@ impl DynamicMasker {
     fn exclude_remembered(&self, exclude: &mut [u8], sequence: u64, depth: &[u16]) {
         let Some((epoch, anchor_from_camera)) = self.predicted_pose(sequence).filter(|_| !self.moved.is_empty()) else { return };
         let camera_from_anchor = anchor_from_camera.inverse();
-        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let s = self.config.flow.subsample as usize;
         let (gw, _) = self.ego.grid_size();
         for (_, _, p) in self.moved.iter().filter(|(e, _, _)| *e == epoch) {
             let q = camera_from_anchor * stored_point(p);
-            let Some(r) = self.camera.project(&q).map(|ideal| self.camera.distort(&ideal)) else { continue };
-            let (x, y) = (r.x.round(), r.y.round());
-            if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
-                continue;
-            }
-            let (x, y) = (x as usize, y as usize);
-            if x / s < gw
-                && self.on_surface(q.z, depth.get(y * w + x).copied().unwrap_or(0))
+            if let Some((x, y)) = self.surface_pixel(&q, depth)
+                && x / s < gw
                 && let Some(cell) = exclude.get_mut((y / s) * gw + x / s)
             {
                 *cell = 1;

@@ -471,59 +471,55 @@ impl Store {
 
     /// Records a session's frame in its fleet (its anchoring or its merge).
     pub fn put_fleet_frame(&self, id: &str, frame: &FleetFrame) -> Result<(), StoreError> {
-        let db = self.db_for_write()?;
-        self.written((|| {
-            let tx = db.begin_write().map_err(|e| self.err(e))?;
-            {
-                let json = serde_json::to_vec(frame).map_err(|e| self.err(e))?;
-                tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?.insert(id, json.as_slice()).map_err(|e| self.err(e))?;
-            }
-            tx.commit().map_err(|e| self.err(e))
-        })())
+        self.put_json(FLEET_FRAMES, id, frame)
     }
 
     /// Records a fleet's pose graph after a solve.
     pub fn put_fleet_graph(&self, fleet: &str, graph: &FleetGraph) -> Result<(), StoreError> {
+        self.put_json(FLEET_GRAPHS, fleet, graph)
+    }
+
+    /// Every fleet's pose graph, by fleet name.
+    pub fn fleet_graphs(&self) -> Result<std::collections::HashMap<String, FleetGraph>, StoreError> {
+        self.all_json(FLEET_GRAPHS, "pose graph of fleet")
+    }
+
+    /// Every session's fleet frame.
+    pub fn fleet_frames(&self) -> Result<std::collections::HashMap<String, FleetFrame>, StoreError> {
+        self.all_json(FLEET_FRAMES, "fleet frame of")
+    }
+
+    /// Writes `value` as JSON under `key` in one transaction.
+    fn put_json<T: Serialize>(&self, table: TableDefinition<&str, &[u8]>, key: &str, value: &T) -> Result<(), StoreError> {
         let db = self.db_for_write()?;
         self.written((|| {
             let tx = db.begin_write().map_err(|e| self.err(e))?;
             {
-                let json = serde_json::to_vec(graph).map_err(|e| self.err(e))?;
-                tx.open_table(FLEET_GRAPHS).map_err(|e| self.err(e))?.insert(fleet, json.as_slice()).map_err(|e| self.err(e))?;
+                let json = serde_json::to_vec(value).map_err(|e| self.err(e))?;
+                tx.open_table(table).map_err(|e| self.err(e))?.insert(key, json.as_slice()).map_err(|e| self.err(e))?;
             }
             tx.commit().map_err(|e| self.err(e))
         })())
     }
 
-    /// Every fleet's pose graph, by fleet name.
-    pub fn fleet_graphs(&self) -> Result<std::collections::HashMap<String, FleetGraph>, StoreError> {
+    /// Every JSON value of `table` by key (none when a store older than the table
+    /// was opened read-only); `what` names a value that does not parse.
+    fn all_json<T: serde::de::DeserializeOwned>(
+        &self,
+        table: TableDefinition<&str, &[u8]>,
+        what: &str,
+    ) -> Result<std::collections::HashMap<String, T>, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-        let table = match tx.open_table(FLEET_GRAPHS) {
+        let table = match tx.open_table(table) {
             Ok(table) => table,
-            // A store written before pose graphs were kept (opened read-only).
             Err(redb::TableError::TableDoesNotExist(_)) => return Ok(std::collections::HashMap::new()),
             Err(e) => return Err(self.err(e)),
         };
         let mut out = std::collections::HashMap::new();
         for entry in table.iter().map_err(|e| self.err(e))? {
             let (k, v) = entry.map_err(|e| self.err(e))?;
-            let graph: FleetGraph =
-                serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("pose graph of fleet {}: {e}", k.value())))?;
-            out.insert(k.value().to_string(), graph);
-        }
-        Ok(out)
-    }
-
-    /// Every session's fleet frame.
-    pub fn fleet_frames(&self) -> Result<std::collections::HashMap<String, FleetFrame>, StoreError> {
-        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-        let table = tx.open_table(FLEET_FRAMES).map_err(|e| self.err(e))?;
-        let mut out = std::collections::HashMap::new();
-        for entry in table.iter().map_err(|e| self.err(e))? {
-            let (k, v) = entry.map_err(|e| self.err(e))?;
-            let frame: FleetFrame =
-                serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("fleet frame of {}: {e}", k.value())))?;
-            out.insert(k.value().to_string(), frame);
+            let value: T = serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("{what} {}: {e}", k.value())))?;
+            out.insert(k.value().to_string(), value);
         }
         Ok(out)
     }
