@@ -57,8 +57,8 @@ struct Kept {
     session_from_camera: Isometry3<f64>,
     /// Where in the fleet frame its hits are (none yet: its session is unmerged).
     fused_at: Option<Isometry3<f64>>,
-    /// Its fusion input, compact (none: dropped beyond `fleet.map_keyframes`).
-    input: Option<Vec<u8>>,
+    /// Its fusion input, compact.
+    input: Vec<u8>,
     width: u32,
 }
 
@@ -87,9 +87,9 @@ impl FleetMapState {
     pub fn counts(&self) -> FleetMapCounts {
         FleetMapCounts {
             keyframes: self.held.values().sum(),
-            fused: self.kept.values().filter(|k| k.fused_at.is_some()).count() as u64,
+            fused: self.fused.values().sum(),
             kept_inputs: self.order.len() as u64,
-            kept_bytes: self.kept.values().filter_map(|k| k.input.as_ref()).map(|i| i.len() as u64).sum(),
+            kept_bytes: self.kept.values().map(|k| k.input.len() as u64).sum(),
             refused: self.refused,
         }
     }
@@ -248,7 +248,7 @@ fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
         let key = (job.session_id.clone(), r.keyframe);
         let Some(k) = s.kept.get_mut(&key) else { continue };
         let Some(rays) = s.rays.get(&job.session_id) else { continue };
-        let Some(Ok(mut input)) = k.input.as_deref().map(|b| FusionInput::from_compact(b, rays)) else { continue };
+        let Ok(mut input) = FusionInput::from_compact(&k.input, rays) else { continue };
         let covered = r.pixel_test(k.width);
         let (taken, kept): (Vec<_>, Vec<_>) = input.samples.iter().partition(|p| covered(p.pixel));
         if taken.is_empty() {
@@ -258,7 +258,10 @@ fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
         if let Some(at) = k.fused_at {
             s.map.deintegrate_samples(&taken, &at);
         }
-        k.input = input.to_compact().ok();
+        match input.to_compact() {
+            Ok(compact) => k.input = compact,
+            Err(e) => tracing::warn!(session = %job.session_id, keyframe = r.keyframe, "retraction not kept for the fleet map: {e}"),
+        }
     }
     if let Some((id, timestamp_ns, session_from_camera, input)) = job.keyframe {
         let compact = match input.to_compact() {
@@ -269,22 +272,23 @@ fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
             }
         };
         let key = (job.session_id.clone(), id);
-        let kept = Kept { timestamp_ns, session_from_camera, fused_at: None, input: Some(compact), width };
+        let kept = Kept { timestamp_ns, session_from_camera, fused_at: None, input: compact, width };
         if s.kept.insert(key.clone(), kept).is_none() {
             *s.held.entry(job.session_id).or_default() += 1;
         }
         s.order.push_back(key);
         while s.order.len() > max_keyframes {
             let Some(old) = s.order.pop_front() else { break };
-            if let Some(k) = s.kept.get_mut(&old) {
-                k.input = None;
-                if k.fused_at.is_none() {
-                    // Never fused and now never will be: its session's keyframes are no longer all here.
-                    s.kept.remove(&old);
-                    if let Some(n) = s.held.get_mut(&old.0) {
-                        *n = n.saturating_sub(1);
-                    }
-                }
+            // What it fused stays where it is; it will not move again.
+            if s.kept.remove(&old).is_some_and(|k| k.fused_at.is_none())
+                && let Some(n) = s.held.get_mut(&old.0)
+            {
+                // Never fused and now never will be: its session's keyframes are no longer all here.
+                *n = n.saturating_sub(1);
+            }
+            // A session with nothing kept any more needs no rays.
+            if !s.order.iter().any(|(session, _)| *session == old.0) {
+                s.rays.remove(&old.0);
             }
         }
     }
@@ -324,7 +328,7 @@ fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform
     for (key, target) in todo {
         let FleetMapState { map, rays, kept, refused, fused, .. } = &mut *s;
         let (Some(k), Some(r)) = (kept.get_mut(&key), rays.get(&key.0)) else { continue };
-        let Some(Ok(input)) = k.input.as_deref().map(|b| FusionInput::from_compact(b, r)) else { continue };
+        let Ok(input) = FusionInput::from_compact(&k.input, r) else { continue };
         match k.fused_at {
             Some(at) => {
                 map.deintegrate(&input, &at);
@@ -346,7 +350,7 @@ mod tests {
 
     /// One keyframe (id 7, captured at 1 µs) of `session`: a wall 2 m ahead, and
     /// for session "s" a box 1 m ahead in the left half (session t sees no left half).
-    fn job(camera: &Camera, session: &str, keyframe: bool, retractions: Vec<Retraction>) -> FleetMapJob {
+    fn job(camera: &Camera, session: &str, keyframe: Option<u64>, retractions: Vec<Retraction>) -> FleetMapJob {
         let (w, h) = (camera.width as usize, camera.height as usize);
         // Session t sees only the wall's right half (nothing of the box, so it carves none of it).
         let depth: Vec<u16> = (0..w * h)
@@ -364,7 +368,7 @@ mod tests {
             fleet: "lab".into(),
             session_id: session.into(),
             camera: camera.clone(),
-            keyframe: keyframe.then(|| (7, 1_000, Isometry3::identity(), input)),
+            keyframe: keyframe.map(|id| (id, 1_000, Isometry3::identity(), input)),
             keyframe_poses: Vec::new(),
             retractions,
         }
@@ -405,8 +409,8 @@ mod tests {
         let merged =
             |corrections: Vec<(u64, Isometry3<f64>)>| FleetTransform { fleet_from_session: merge, corrections: Arc::new(corrections) };
         lock(&transforms).insert("s".into(), merged(Vec::new()));
-        maps.submit(job(&camera, "s", true, Vec::new()));
-        maps.submit(job(&camera, "t", true, Vec::new()));
+        maps.submit(job(&camera, "s", Some(7), Vec::new()));
+        maps.submit(job(&camera, "t", Some(7), Vec::new()));
         let c = wait(&|c| c.keyframes == 2);
         assert_eq!((c.fused, c.kept_inputs), (0, 2), "one merged session: kept, not fused");
         // Both merged, 10 cm along z.
@@ -433,13 +437,22 @@ mod tests {
             grid_height: 12,
             subsample: 10,
         };
-        maps.submit(job(&camera, "s", false, vec![box_cells]));
+        maps.submit(job(&camera, "s", None, vec![box_cells]));
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
         while measure().2 > 0 {
             assert!(std::time::Instant::now() < deadline, "the box stays: {:?}", measure());
             std::thread::sleep(Duration::from_millis(20));
         }
         assert_eq!(measure().1, far_after, "the wall stays");
+        // Bounded: at most max_keyframes (10) inputs are kept; the rest stay where they were fused.
+        for id in 100..120 {
+            maps.submit(job(&camera, "t", Some(id), Vec::new()));
+            // Each fused before the next comes, so none is dropped unfused.
+            wait(&|c| c.keyframes == 2 + id - 99 && c.fused == c.keyframes);
+        }
+        let c = wait(&|c| c.keyframes == 22);
+        assert_eq!((c.keyframes, c.kept_inputs), (22, 10), "{c:?}");
+        assert_eq!(lock(&maps.state("lab").expect("state").state).fused("t"), 21);
         maps.close();
     }
 }
