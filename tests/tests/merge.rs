@@ -274,8 +274,8 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
         100.0 * rmse(&reference_w, &merged_only, Relation::Translation),
         rmse(&reference_w, &merged_only, Relation::RotationDeg),
     );
-    // Measured (2026-12-05, ten runs, with the pose graph's corrections): 1.17–1.31 cm
-    // and 0.65–0.71° (the merge alone 1.21–1.70 cm, 0.67–0.90°), with A itself at
+    // Measured (2026-12-05, 13 runs, with the pose graph's corrections): 1.13–1.31 cm
+    // and 0.63–0.71° (the merge alone 0.99–1.70 cm, 0.60–0.90°), with A itself at
     // 1.08 cm (B inherits A's error where they overlap). The goal is 2 cm and 2°.
     assert!(b_m < 0.02 && b_deg < 1.0, "B in the fleet frame: {:.2} cm, {b_deg:.2}°", 100.0 * b_m);
 
