@@ -627,7 +627,7 @@ const FLEET_MAP_FRAME: &str = "the fleet's map frame = the anchor session's map 
         ("fleet" = String, Path, description = "Fleet name"),
     ),
     responses(
-        (status = 200, description = "Sessions, merged or not, fleet_from_session transforms, tiles", body = Object),
+        (status = 200, description = "Sessions, merged or not, fleet_from_session transforms and latest corrections, the last pose-graph solve, the fused map's counts, tiles", body = Object),
         (status = 404, description = "Unknown fleet", body = ApiError),
     )
 )]
