@@ -348,13 +348,6 @@ impl FleetService {
         v
     }
 
-    /// `fleet_from_session` of a merged session.
-    pub fn fleet_from_session(&self, fleet: &str, session_id: &str) -> Option<Isometry3<f64>> {
-        let fleets = lock(&self.shared.fleets);
-        let member = fleets.get(fleet)?.members.iter().find(|m| m.session_id == session_id)?;
-        member.frame.as_ref().map(|f| isometry(&f.fleet_from_session))
-    }
-
     /// A merged session's transform into the fleet frame, with the pose graph's corrections.
     pub fn fleet_transform(&self, fleet: &str, session_id: &str) -> Option<FleetTransform> {
         self.shared.transform(fleet, session_id)
@@ -783,8 +776,6 @@ impl Shared {
         if f.members[t].frame.as_ref().is_some_and(|fr| fr.support >= merged.support) {
             return; // no more support than the merge already has
         }
-        let q = merged.fleet_from_session.rotation.coords;
-        let v = merged.fleet_from_session.translation.vector;
         let member = &mut f.members[t];
         let now = now_ns();
         let (first_merged_unix_ns, merged_after_ns) = match &member.frame {
@@ -793,7 +784,7 @@ impl Shared {
         };
         let frame = FleetFrame {
             fleet: fleet.to_string(),
-            fleet_from_session: [v.x, v.y, v.z, q.x, q.y, q.z, q.w],
+            fleet_from_session: pose7(&merged.fleet_from_session),
             anchor: false,
             support: merged.support,
             inliers: merged.inliers,

@@ -361,10 +361,7 @@ pub(crate) async fn list_fleets(State(registry): State<Arc<Registry>>) -> Respon
 /// as for `session_map`).
 #[allow(clippy::result_large_err)]
 fn fleet_parts(registry: &Registry, name: &str) -> Result<FleetParts, Response> {
-    let Some(fleets) = registry.fleets() else {
-        return Err(error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")));
-    };
-    let Some(fleet) = fleets.get(name) else {
+    let Some((fleets, fleet)) = registry.fleets().and_then(|f| Some((f, f.get(name)?))) else {
         return Err(error(StatusCode::NOT_FOUND, format!("unknown fleet {name:?}")));
     };
     let mut members: Vec<_> = fleet
@@ -383,9 +380,14 @@ fn fleet_parts(registry: &Registry, name: &str) -> Result<FleetParts, Response> 
 
 /// Builds the fleet map off the runtime.
 async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap, usize), Response> {
-    let parts = fleet_parts(registry, name)?;
+    let mut parts = fleet_parts(registry, name)?;
     let n = parts.maps.len();
-    match blocking(move || mapping::fleet_map(&parts)).await? {
+    match blocking(move || {
+        parts.drop_incomplete_fused();
+        mapping::fleet_map(&parts)
+    })
+    .await?
+    {
         Some(m) => Ok((m, n)),
         None => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
     }
@@ -512,8 +514,9 @@ pub(crate) async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(na
 /// Fleet `name`'s merged members and the tag of the state their maps are in (off
 /// the runtime: it locks every member's map).
 async fn fleet_state(registry: &Registry, name: &str) -> Result<(FleetParts, u64), Response> {
-    let parts = fleet_parts(registry, name)?;
+    let mut parts = fleet_parts(registry, name)?;
     blocking(move || {
+        parts.drop_incomplete_fused();
         let tag = mapping::fleet_tag(&parts);
         (parts, tag)
     })

@@ -143,29 +143,34 @@ pub struct FleetMap {
 }
 
 /// What a fleet map is built from: the merged sessions' maps (session id, map,
-/// `fleet_from_session`), the anchor's first, and the fleet's fused map.
+/// `fleet_from_session`), the anchor's first, and the fleet's fused map (settle
+/// it with [`FleetParts::drop_incomplete_fused`] before building or tagging).
 pub struct FleetParts {
     pub maps: Vec<(String, SharedMap, Isometry3<f64>)>,
     pub fused: Option<Arc<crate::fleet_map::FleetMapHandle>>,
 }
 
 impl FleetParts {
-    /// The fused map, when every keyframe of every merged session's map is fused
-    /// in it (it locks each map: call it off the runtime).
-    pub fn complete_fused(&self) -> Option<&Arc<crate::fleet_map::FleetMapHandle>> {
-        self.fused.as_ref().filter(|state| {
+    /// Keeps the fused map only when every keyframe of every merged session's map
+    /// is fused in it, once for the tag and the map built from these parts (it
+    /// locks each map: call it off the runtime).
+    pub fn drop_incomplete_fused(&mut self) {
+        let complete = |state: &crate::fleet_map::FleetMapHandle| {
             self.maps.iter().all(|(id, map, _)| {
                 let keyframes = lock(map).builder.keyframes();
                 keyframes > 0 && lock(&state.state).fused(id) == keyframes
             })
-        })
+        };
+        if self.fused.as_deref().is_some_and(|state| !complete(state)) {
+            self.fused = None;
+        }
     }
 }
 
 /// Builds the fleet map from its parts.
 pub fn fleet_map(parts: &FleetParts) -> Option<FleetMap> {
     let (_, anchor, _) = parts.maps.first()?;
-    let fused = parts.complete_fused();
+    let fused = parts.fused.as_ref();
     let mut fleet = {
         let m = lock(anchor);
         let cfg = m.builder.config();
@@ -252,7 +257,7 @@ pub fn fleet_tag(parts: &FleetParts) -> u64 {
         version.hash(&mut h);
         up.coords.iter().chain(fleet_from_session.to_homogeneous().iter()).for_each(|v| v.to_bits().hash(&mut h));
     }
-    if let Some(fused) = parts.complete_fused() {
+    if let Some(fused) = &parts.fused {
         (Arc::as_ptr(fused) as usize).hash(&mut h);
         lock(&fused.state).map().version().hash(&mut h);
     }
