@@ -365,8 +365,30 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let (fleet_drawn, a_drawn) = (drawn(&fleet_tile), drawn(&a_tile));
     let a_count = a_drawn.iter().filter(|&&d| d).count();
     let both = fleet_drawn.iter().zip(&a_drawn).filter(|(f, a)| **f && **a).count();
-    eprintln!("tile {tx},{ty}: A draws {a_count} pixels, the fleet {} ({both} of A's)", fleet_drawn.iter().filter(|&&d| d).count());
-    assert!(a_count > 1000 && both as f64 >= 0.95 * a_count as f64, "A draws {a_count} pixels, the fleet {both} of them");
+    // A's keyframes sit in the fleet map at their corrected fleet poses (the pose
+    // graph moves them by a fraction of a voxel), so at the finest zoom an edge of
+    // A's room may be drawn one pixel over: a pixel of A's counts as covered when the
+    // fleet draws it or one of its 8 neighbours. (Exactly the same pixel: 94.8–96.7 %
+    // over runs, varying with when the graph was solved; within one pixel 99.87–99.90 %.)
+    let near = (0..256 * 256)
+        .filter(|&i| a_drawn[i])
+        .filter(|&i| {
+            let (x, y) = ((i % 256) as i64, (i / 256) as i64);
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dx| {
+                    (0..256).contains(&(x + dx)) && (0..256).contains(&(y + dy)) && fleet_drawn[((y + dy) * 256 + x + dx) as usize]
+                })
+            })
+        })
+        .count();
+    eprintln!(
+        "tile {tx},{ty}: A draws {a_count} pixels, the fleet {}: {both} of A's exactly, {near} within one pixel",
+        fleet_drawn.iter().filter(|&&d| d).count()
+    );
+    assert!(
+        a_count > 1000 && near as f64 >= 0.99 * a_count as f64,
+        "A draws {a_count} pixels, the fleet {near} of them (within one pixel)"
+    );
     assert_eq!(http_get(&server, &tile_path, Some(&etag)).await.status(), 304, "an unchanged fleet map revalidates");
     assert_eq!(http_get(&server, "/api/v1/fleets/lab/tiles/9/0/0.png", None).await.status(), 400);
     assert_eq!(http_get(&server, "/api/v1/fleets/nobody/tiles/0/0/0.png", None).await.status(), 404);
