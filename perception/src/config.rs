@@ -48,6 +48,8 @@ pub const MAX_RETRACT_KEYFRAMES: usize = 64;
 pub const MAX_SEGMENTATION_BATCH: usize = 64;
 /// Largest `perception.segmentation.max_queue_delay_ms`: a batch waits at most a frame interval.
 pub const MAX_QUEUE_DELAY_MS: u64 = 33;
+/// The longest baseline (`ego_motion.baseline_frames`): its flows and images are kept.
+pub const MAX_BASELINE_FRAMES: u32 = 30;
 
 /// Instance segmentation (YOLOv8-seg style ONNX model).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -203,6 +205,14 @@ pub struct EgoMotionConfig {
     /// class that moved, then rests, does not vote for the camera's motion when it
     /// is picked up again. Tracking and the map are not affected. 0: off.
     pub remember_moved_frames: u32,
+    /// Movers are also looked for over this many frames (the flows composed):
+    /// one frame's flow cannot tell the camera's motion from that of a large
+    /// textured thing that starts moving (a sideways step with a compensating turn
+    /// explains the far background within the flow's noise), several frames'
+    /// parallax can. What moved over the baseline is kept out of this frame's
+    /// camera-motion estimate, and labelled moving when the per-frame motion
+    /// disagrees with the baseline's. 0 or 1: off; at most 30.
+    pub baseline_frames: u32,
 }
 
 /// How a prior-dynamic instance (a person, say) that does not move is treated by tracking.
@@ -333,6 +343,9 @@ impl PerceptionConfig {
         let e = &self.ego_motion;
         if e.sample_step == 0 {
             return Err("perception.ego_motion.sample_step must be at least 1".into());
+        }
+        if e.baseline_frames > MAX_BASELINE_FRAMES {
+            return Err(format!("perception.ego_motion.baseline_frames must be at most {MAX_BASELINE_FRAMES}, got {}", e.baseline_frames));
         }
         if !(e.flow_sigma_px > 0.0 && e.residual_sigmas > 0.0 && e.min_residual_px >= 0.0) {
             return Err("perception.ego_motion: flow_sigma_px and residual_sigmas must be positive, min_residual_px ≥ 0".into());
@@ -473,6 +486,7 @@ impl Default for EgoMotionConfig {
             refine_tracked_motion: true,
             before_tracking: true,
             remember_moved_frames: 90,
+            baseline_frames: 4,
         }
     }
 }

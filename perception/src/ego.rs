@@ -55,6 +55,21 @@ pub struct EgoResult {
     pub depth_m: Vec<f32>,
 }
 
+/// Per flow cell: the class and the residual (full-size pixels) under one motion.
+type Classified = (Vec<u8>, Vec<f32>);
+
+/// What [`EgoMotion::movers_over_baseline`] found.
+#[derive(Debug, Clone)]
+pub struct BaselineMovers {
+    /// The winning camera motion over the baseline.
+    pub reference_from_current: Isometry3<f64>,
+    /// Per flow cell: 1 where the composed flow is not explained by it.
+    pub moving: Vec<u8>,
+    /// Distinct candidate motions compared, and the flow samples they were refined on.
+    pub candidates: usize,
+    pub samples: usize,
+}
+
 /// Ego-motion compensation for one camera; caches per-pixel rays of the flow grid.
 pub struct EgoMotion {
     camera: Camera,
@@ -78,6 +93,11 @@ const SAME_MOTION: f64 = 1e-6;
 /// the same pixels.
 pub const RECONSIDER_TOLERANCE_M: f64 = 0.001;
 pub const RECONSIDER_TOLERANCE_RAD: f64 = 0.001;
+/// [`EgoMotion::movers_over_baseline`]: a cell whose composed flow lands on a
+/// surface farther from its own depth than this fraction was uncovered during the
+/// baseline (an occlusion, not a mover). A person walking at 1.5 m/s moves 0.3 m in
+/// depth over 6 frames, a fifth of his distance at 1.5 m.
+const OCCLUSION_DEPTH_RATIO: f64 = 0.25;
 /// PnP-RANSAC hypothesis: iterations, inlier threshold in flow σ, and confidence.
 const RANSAC_ITERATIONS: i32 = 100;
 const RANSAC_THRESHOLD_SIGMAS: f64 = 3.0;
@@ -142,27 +162,18 @@ impl EgoMotion {
         Some(self.camera.distort(&ideal))
     }
 
-    /// Chooses the camera motion (`prior`, the tracked one, or a refinement on the
-    /// flow) and classifies every flow pixel under it. `current` and `previous`
-    /// are the flow's grey images; `exclude` (flow-grid sized, nonzero = skip) keeps
-    /// known dynamic pixels out of the refinement.
-    pub fn compensate(
+    /// Flow samples for a refinement: current-camera points (from `depth_m`) against
+    /// their flow targets in the earlier image, with `information` (1/σ²).
+    fn flow_samples(
         &self,
         flow: &FlowField,
-        current: &SmallGray,
-        previous: &SmallGray,
-        depth: &[u16],
-        prior: Option<Isometry3<f64>>,
+        texture: &[f32],
+        depth_m: &[f32],
         exclude: Option<&[u8]>,
-    ) -> EgoResult {
-        debug_assert_eq!((flow.width, flow.height), (self.width, self.height));
+        information: f64,
+    ) -> Vec<(Point3<f64>, Measurement)> {
         let s = self.subsample as f64;
-        let depth_m = self.sample_depth(depth);
-        let texture = min_eigen_texture(current);
-
-        // Refinement: current-camera points against their flow targets in the previous image.
         let step = self.config.sample_step.max(1) as usize;
-        let information = 1.0 / (self.config.flow_sigma_px * self.config.flow_sigma_px);
         let mut correspondences = Vec::new();
         // One sample per step×step cell, at its most textured pixel, so that no
         // compact textured object can outvote the rest of the scene.
@@ -192,6 +203,29 @@ impl EgoMotion {
                 correspondences.push((Point3::new(r.x * z, r.y * z, z), Measurement { ideal, disparity: None, information }));
             }
         }
+        correspondences
+    }
+
+    /// Chooses the camera motion (`prior`, the tracked one, or a refinement on the
+    /// flow) and classifies every flow pixel under it. `current` and `previous`
+    /// are the flow's grey images; `exclude` (flow-grid sized, nonzero = skip) keeps
+    /// known dynamic pixels out of the refinement.
+    pub fn compensate(
+        &self,
+        flow: &FlowField,
+        current: &SmallGray,
+        previous: &SmallGray,
+        depth: &[u16],
+        prior: Option<Isometry3<f64>>,
+        exclude: Option<&[u8]>,
+    ) -> EgoResult {
+        debug_assert_eq!((flow.width, flow.height), (self.width, self.height));
+        let depth_m = self.sample_depth(depth);
+        let texture = min_eigen_texture(current);
+
+        // Refinement: current-camera points against their flow targets in the previous image.
+        let information = 1.0 / (self.config.flow_sigma_px * self.config.flow_sigma_px);
+        let correspondences = self.flow_samples(flow, &texture, &depth_m, exclude, information);
         let samples = correspondences.len();
 
         // Candidate camera motions: the tracked one (from static features) and its
@@ -243,7 +277,7 @@ impl EgoMotion {
                     continue;
                 }
                 seen.push(motion);
-                let vote = self.classify(flow, current, previous, &depth_m, &motion, Cells::VoteGrid, None);
+                let vote = self.classify(flow, current, previous, &depth_m, &motion, 1.0, Cells::VoteGrid, None);
                 let moving = moving_count(&vote.0, exclude);
                 if moving < best {
                     (best, previous_from_current, refined, inliers, classified) = (moving, motion, is_refined, n, Some(vote));
@@ -252,8 +286,8 @@ impl EgoMotion {
         }
         // The winner's vote cells are classified already.
         let (class, residual_px) = match classified {
-            Some(vote) => self.classify(flow, current, previous, &depth_m, &previous_from_current, Cells::OffVoteGrid, Some(vote)),
-            None => self.classify(flow, current, previous, &depth_m, &previous_from_current, Cells::All, None),
+            Some(vote) => self.classify(flow, current, previous, &depth_m, &previous_from_current, 1.0, Cells::OffVoteGrid, Some(vote)),
+            None => self.classify(flow, current, previous, &depth_m, &previous_from_current, 1.0, Cells::All, None),
         };
         let confirmed = candidates.iter().any(|&(_, is_refined, _)| is_refined);
         EgoResult { previous_from_current, refined, confirmed, samples, inliers, class, residual_px, depth_m }
@@ -271,14 +305,17 @@ impl EgoMotion {
         previous: &SmallGray,
         depth_m: &[f32],
         previous_from_current: &Isometry3<f64>,
+        steps: f64,
         cells: Cells,
-        into: Option<(Vec<u8>, Vec<f32>)>,
-    ) -> (Vec<u8>, Vec<f32>) {
+        into: Option<Classified>,
+    ) -> Classified {
         let s = self.subsample as f64;
         let n = self.width * self.height;
         let (mut class, mut residual_px) = into.unwrap_or_else(|| (vec![NO_PREDICTION; n], vec![0f32; n]));
         let (a, b) = (self.config.depth_sigma_a_m, self.config.depth_sigma_b_per_m);
-        let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px;
+        // The flow's noise adds up over the `steps` flows composed into `flow`.
+        let flow_var = self.config.flow_sigma_px * self.config.flow_sigma_px * steps;
+        let min_residual_px = self.config.min_residual_px * steps.sqrt();
         let rotation = previous_from_current.rotation.to_rotation_matrix();
         let translation = previous_from_current.translation.vector;
         let w = self.width;
@@ -313,13 +350,13 @@ impl EgoMotion {
                 residual_px[i] = residual as f32;
                 // The threshold is never below min_residual_px: most pixels are decided
                 // without the depth term.
-                let moving = residual > self.config.min_residual_px
+                let moving = residual > min_residual_px
                     && {
                         // The depth's effect on the prediction, through the pinhole (the lens
                         // scales it by a few per cent at most).
                         let ideal_far = self.camera.project(&far).unwrap_or(ideal);
                         let depth_var = (ideal_far - ideal).norm_squared();
-                        residual > (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(self.config.min_residual_px)
+                        residual > (self.config.residual_sigmas * (flow_var + depth_var).sqrt()).max(min_residual_px)
                     }
                     && {
                         // Where the camera motion alone puts this pixel in the previous flow image.
@@ -368,12 +405,12 @@ impl EgoMotion {
         if earlier_moving == 0 {
             return None; // nothing moves: no motion can leave fewer pixels moving
         }
-        let vote = self.classify(flow, current, previous, &earlier.depth_m, candidate, Cells::VoteGrid, None);
+        let vote = self.classify(flow, current, previous, &earlier.depth_m, candidate, 1.0, Cells::VoteGrid, None);
         let moving = moving_count(&vote.0, exclude);
         if moving >= earlier_moving {
             return None;
         }
-        let (class, residual_px) = self.classify(flow, current, previous, &earlier.depth_m, candidate, Cells::OffVoteGrid, Some(vote));
+        let (class, residual_px) = self.classify(flow, current, previous, &earlier.depth_m, candidate, 1.0, Cells::OffVoteGrid, Some(vote));
         Some(EgoResult {
             previous_from_current: *candidate,
             refined: false,
@@ -385,6 +422,171 @@ impl EgoMotion {
             residual_px,
             depth_m: earlier.depth_m.clone(),
         })
+    }
+
+    /// What moved over a longer baseline: `composed` is the flow of `steps` frames
+    /// (this frame's pixels to where they were in `reference`, the image `steps`
+    /// frames back). One frame's flow cannot tell the camera's motion from that of
+    /// a large textured thing that starts moving (a lateral translation with a
+    /// compensating rotation explains the far background within the flow's noise);
+    /// over several frames the wrong motion's parallax on the background outgrows
+    /// the noise. Candidate motions `reference_from_current` are refined on the
+    /// composed flow from `starts` (the chained per-frame motions), from an
+    /// EPnP-RANSAC hypothesis, from the nearer and the farther half of the samples
+    /// (depth layers), and from a second hypothesis on the samples the
+    /// best-supported refinement leaves out (the other rigid motion in view). Each
+    /// vote cell then goes to the candidate that explains it best, and the one most
+    /// of the scene follows wins; its moving cells are returned, less those the
+    /// mover uncovered (whose composed flow lands on another surface in
+    /// `reference_depth_m`, the reference frame's flow-grid depth). `None` when
+    /// the flow has too few samples.
+    #[allow(clippy::too_many_arguments)]
+    pub fn movers_over_baseline(
+        &self,
+        composed: &FlowField,
+        steps: usize,
+        current: &SmallGray,
+        reference: &SmallGray,
+        depth: &[u16],
+        reference_depth_m: &[f32],
+        starts: &[Isometry3<f64>],
+        exclude: Option<&[u8]>,
+    ) -> Option<BaselineMovers> {
+        debug_assert_eq!((composed.width, composed.height), (self.width, self.height));
+        let steps_f = steps.max(1) as f64;
+        let depth_m = self.sample_depth(depth);
+        let texture = min_eigen_texture(current);
+        let sigma = self.config.flow_sigma_px * steps_f.sqrt();
+        let correspondences = self.flow_samples(composed, &texture, &depth_m, exclude, 1.0 / (sigma * sigma));
+        let samples = correspondences.len();
+        if samples < self.config.min_samples {
+            return None;
+        }
+        let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
+        let params = PnpRansac {
+            iterations: RANSAC_ITERATIONS,
+            threshold_px: (sigma * RANSAC_THRESHOLD_SIGMAS) as f32,
+            confidence: RANSAC_CONFIDENCE,
+        };
+        let mut candidates: Vec<(Isometry3<f64>, usize)> = Vec::new();
+        let refine = |start: Isometry3<f64>, on: &[(Point3<f64>, Measurement)], candidates: &mut Vec<(Isometry3<f64>, usize)>| {
+            let estimate = optimize_pose(&self.camera, 1.0, start, on);
+            if estimate.inlier_count >= self.config.min_samples {
+                candidates.push((estimate.camera_from_world, estimate.inlier_count));
+            }
+        };
+        for start in starts.iter().copied().chain(pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose)) {
+            refine(start, &correspondences, &mut candidates);
+        }
+        // Depth layers: a thing held in front of the background moves with its own
+        // rigid motion; refined on the nearer and on the farther half of the samples
+        // (started where the whole scene's refinement ended), each layer's motion is
+        // a candidate.
+        if let Some(&(best, _)) = candidates.iter().max_by_key(|(_, n)| *n) {
+            let mut depths: Vec<f64> = correspondences.iter().map(|(p, _)| p.z).collect();
+            depths.sort_by(f64::total_cmp);
+            let median = depths[depths.len() / 2];
+            for near in [true, false] {
+                let layer: Vec<_> = correspondences.iter().filter(|(p, _)| (p.z < median) == near).cloned().collect();
+                if layer.len() >= self.config.min_samples {
+                    refine(best, &layer, &mut candidates);
+                }
+            }
+        }
+        // The other rigid motion: a hypothesis on what the best-supported candidate
+        // leaves unexplained, refined there (on all samples, the more textured
+        // motion would pull it back).
+        if let Some(&(best, _)) = candidates.iter().max_by_key(|(_, n)| *n) {
+            let threshold = sigma * RANSAC_THRESHOLD_SIGMAS;
+            let rest: Vec<_> = correspondences
+                .iter()
+                .filter(|(p, m)| self.camera.project(&(best * p)).is_none_or(|q| (q - m.ideal).norm() > threshold))
+                .cloned()
+                .collect();
+            let rest_pairs: Vec<_> = rest.iter().map(|(p, m)| (*p, m.ideal)).collect();
+            if rest.len() >= self.config.min_samples
+                && let Some((pose, _)) = pnp_ransac(&self.camera, &rest_pairs, params)
+            {
+                refine(pose, &rest, &mut candidates);
+            }
+        }
+        // Candidates whose predictions differ by less than the flow's noise on
+        // average (over the samples' points) are one: the flow cannot tell them apart,
+        // and they would split the cells they explain between them. The better
+        // supported (more inliers) is kept.
+        candidates.sort_by_key(|c| std::cmp::Reverse(c.1));
+        let mut distinct: Vec<Isometry3<f64>> = Vec::new();
+        for &(motion, _) in &candidates {
+            if !distinct.iter().any(|other| self.prediction_gap(&motion, other, &depth_m).is_some_and(|gap| gap < 2.0 * sigma)) {
+                distinct.push(motion);
+            }
+        }
+        let mut votes: Vec<(Isometry3<f64>, Classified)> = distinct
+            .iter()
+            .map(|motion| (*motion, self.classify(composed, current, reference, &depth_m, motion, steps_f, Cells::VoteGrid, None)))
+            .collect();
+        // Each vote cell goes to the candidate that explains it best (when it is
+        // static under it): the scene splits into the rigid motions in view, and the
+        // camera's is the one most of the scene follows. Not the one leaving the
+        // fewest cells beyond the noise: a large thing's motion explains the far
+        // background within the threshold even over several frames, only less well
+        // than the camera's motion, while the camera's motion leaves all of the thing.
+        let mut support = vec![0usize; votes.len()];
+        for i in self.vote_cells() {
+            if exclude.is_some_and(|m| m[i] != 0) || votes.iter().any(|(_, (class, _))| class[i] == NO_PREDICTION) {
+                continue;
+            }
+            let best = votes.iter().enumerate().min_by(|(_, a), (_, b)| a.1.1[i].total_cmp(&b.1.1[i])).map(|(k, _)| k);
+            if let Some(k) = best.filter(|&k| votes[k].1.0[i] == CONSISTENT) {
+                support[k] += 1;
+            }
+        }
+        // The first (best refined) of equally supported candidates.
+        let winner = (0..votes.len()).max_by_key(|&k| (support[k], std::cmp::Reverse(k)))?;
+        let (reference_from_current, vote) = votes.swap_remove(winner);
+        let (class, _) =
+            self.classify(composed, current, reference, &depth_m, &reference_from_current, steps_f, Cells::OffVoteGrid, Some(vote));
+        // A cell the thing uncovered during the baseline (background hidden behind
+        // it in the reference image) follows the thing back in the composed flow: it
+        // lands on a surface at another depth there. Only cells that land on their own
+        // surface are movers.
+        let moving = class
+            .iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                let f = composed.data[i];
+                let (x, y) = (((i % self.width) as f32 + f[0]).round(), ((i / self.width) as f32 + f[1]).round());
+                let own_surface = x >= 0.0
+                    && y >= 0.0
+                    && reference_depth_m.get(y as usize * self.width + x as usize).filter(|_| (x as usize) < self.width).is_some_and(
+                        |&z| {
+                            let here = depth_m[i];
+                            z > 0.0 && here > 0.0 && f64::from((z - here).abs()) <= OCCLUSION_DEPTH_RATIO * f64::from(here)
+                        },
+                    );
+                u8::from(c == RESIDUAL && own_surface)
+            })
+            .collect();
+        Some(BaselineMovers { reference_from_current, moving, candidates: distinct.len(), samples })
+    }
+
+    /// Mean distance (full-size pixels) between where two motions put the scene's
+    /// points (the cells with depth, every [`VOTE_STRIDE`]-th in each direction):
+    /// `None` without such points.
+    pub fn prediction_gap(&self, a: &Isometry3<f64>, b: &Isometry3<f64>, depth_m: &[f32]) -> Option<f64> {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for i in self.vote_cells() {
+            let z = f64::from(depth_m[i]);
+            if z == 0.0 {
+                continue;
+            }
+            let p = Point3::new(self.ray[i].x * z, self.ray[i].y * z, z);
+            if let (Some(pa), Some(pb)) = (self.camera.project(&(a * p)), self.camera.project(&(b * p))) {
+                sum += (pa - pb).norm();
+                n += 1;
+            }
+        }
+        (n > 0).then(|| sum / n as f64)
     }
 
     /// The flow cells candidate motions are compared on, row by row.
@@ -587,6 +789,120 @@ mod tests {
         let nudged = truth * Isometry3::new(Vector3::new(RECONSIDER_TOLERANCE_M * 0.5, 0.0, 0.0), Vector3::zeros());
         assert!(ego.reconsider(&flow, &current, &previous, &under_wrong, &nudged, None).is_some());
         assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &nudged, None).is_none());
+    }
+
+    /// Over a baseline, a near textured board that moved sideways (a fifth of the
+    /// view) in front of a far background at two depths: the board's own motion
+    /// explains the far background within the threshold (the fewest-moving rule
+    /// would take it for the camera's), yet the camera's motion is chosen, the board
+    /// is what moved, and background the board uncovered (whose flow followed the
+    /// board, as Farneback's does) is an occlusion, not a mover.
+    #[test]
+    fn the_baseline_tells_the_camera_from_a_large_mover() {
+        let config = EgoMotionConfig { min_samples: 20, ..EgoMotionConfig::default() };
+        let camera = wall_camera();
+        let ego = EgoMotion::new(camera.clone(), config, 2);
+        let (w, h) = ego.grid_size();
+        let truth = Isometry3::new(Vector3::new(0.01, 0.0, 0.005), Vector3::new(0.0, 0.02, 0.0));
+        let shift = Vector3::new(0.08, 0.0, 0.0); // the board's motion over the baseline, current camera axes
+        let board_motion = truth * nalgebra::Translation3::from(-shift);
+        let on_board = |x: usize, y: usize| (40..100).contains(&x) && (30..90).contains(&y);
+        let background_z = |x: usize| if x < w / 2 { 3.0 } else { 3.3 };
+        let z_of = |x: usize, y: usize| if on_board(x, y) { 0.8 } else { background_z(x) };
+        let point = |i: usize| {
+            let z = z_of(i % w, i / w);
+            Point3::new(ego.ray[i].x * z, ego.ray[i].y * z, z)
+        };
+        let grid = |p: &Point3<f64>| {
+            let raw = camera.distort(&camera.project(p).expect("in front"));
+            ((raw.x + 0.5) / 2.0 - 0.5, (raw.y + 0.5) / 2.0 - 0.5)
+        };
+        // The reference depth: the scene splatted into the reference view (nearest wins).
+        let mut reference_depth = vec![0f32; w * h];
+        for i in 0..w * h {
+            let motion = if on_board(i % w, i / w) { board_motion } else { truth };
+            let q = motion * point(i);
+            let (x, y) = grid(&q);
+            let (x, y) = (x.round(), y.round());
+            if x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h {
+                let cell = &mut reference_depth[y as usize * w + x as usize];
+                if *cell == 0.0 || (q.z as f32) < *cell {
+                    *cell = q.z as f32;
+                }
+            }
+        }
+        for (i, z) in reference_depth.iter_mut().enumerate().filter(|(_, z)| **z == 0.0) {
+            *z = background_z(i % w) as f32;
+        }
+        // Exact flow (where each cell was `steps` frames back), except on background
+        // the board hid then: there the flow follows the board.
+        let texture = |x: f64, y: f64| 128.0 + 60.0 * (0.7 * x).sin() * (0.5 * y).cos() + 40.0 * (0.31 * x + 0.17 * y).sin();
+        let reference =
+            SmallGray { width: w, height: h, data: (0..w * h).map(|i| texture((i % w) as f64, (i / w) as f64).round() as u8).collect() };
+        let (mut data, mut current, mut uncovered) = (Vec::with_capacity(w * h), Vec::with_capacity(w * h), Vec::new());
+        for i in 0..w * h {
+            let (x, y) = (i % w, i / w);
+            let static_target = grid(&(truth * point(i)));
+            let hidden = !on_board(x, y) && {
+                let (tx, ty) = (static_target.0.round(), static_target.1.round());
+                tx >= 0.0 && ty >= 0.0 && (tx as usize) < w && (ty as usize) < h && reference_depth[ty as usize * w + tx as usize] < 1.0
+            };
+            let (qx, qy) = if on_board(x, y) || hidden { grid(&(board_motion * point(i))) } else { static_target };
+            if hidden {
+                uncovered.push(i);
+            }
+            data.push([(qx - x as f64) as f32, (qy - y as f64) as f32]);
+            current.push(texture(qx, qy).round() as u8);
+        }
+        assert!(uncovered.len() > 100, "the board uncovered background: {}", uncovered.len());
+        let composed = FlowField { width: w, height: h, subsample: 2, data };
+        let current = SmallGray { width: w, height: h, data: current };
+        let depth: Vec<u16> = (0..320 * 240).map(|i| (1000.0 * z_of((i % 320) / 2, (i / 320) / 2)).round() as u16).collect();
+        let steps = 4;
+
+        // The board's motion with a compensating turn: the rigid motion that moves the
+        // board and the nearer wall exactly (fitted on their samples) leaves the
+        // farther wall within the threshold, so the fewest-moving rule would take it
+        // for the camera's motion.
+        let depth_m = ego.sample_depth(&depth);
+        let samples = ego.flow_samples(&composed, &min_eigen_texture(&current), &depth_m, None, 1.0);
+        let board_and_wall: Vec<_> = samples.iter().filter(|(p, _)| p.z < 1.0 || (p.z - 3.0).abs() < 1e-3).cloned().collect();
+        let impostor = optimize_pose(&camera, 1.0, board_motion, &board_and_wall).camera_from_world;
+        let moving_under = |m: &Isometry3<f64>| {
+            let (class, _) = ego.classify(&composed, &current, &reference, &depth_m, m, steps as f64, Cells::All, None);
+            class.iter().filter(|&&c| c == RESIDUAL).count()
+        };
+        assert!(
+            moving_under(&impostor) < moving_under(&truth) / 2,
+            "under the impostor {} cells move, under the camera's motion {}",
+            moving_under(&impostor),
+            moving_under(&truth)
+        );
+
+        let out = ego
+            .movers_over_baseline(&composed, steps, &current, &reference, &depth, &reference_depth, &[impostor], None)
+            .expect("enough samples");
+        let err = out.reference_from_current.inverse() * truth;
+        assert!(err.translation.vector.norm() < 1e-3 && err.rotation.angle() < 1e-4, "the camera's motion: {err:?}");
+        assert!(out.candidates >= 2, "the board's motion competed");
+        let interior = |x: usize, y: usize| (43..97).contains(&x) && (33..87).contains(&y);
+        let board_moving = (0..w * h).filter(|&i| interior(i % w, i / w) && out.moving[i] != 0).count();
+        let interior_cells = (0..w * h).filter(|&i| interior(i % w, i / w)).count();
+        assert!(board_moving as f64 >= 0.95 * interior_cells as f64, "{board_moving} of {interior_cells} board cells moved");
+        // Outside the band the board swept (it came from the left, 13 cells), no
+        // background moved.
+        let swept = |x: usize, y: usize| (24..103).contains(&x) && (27..93).contains(&y);
+        let elsewhere = (0..w * h).filter(|&i| !swept(i % w, i / w) && out.moving[i] != 0).count();
+        assert_eq!(elsewhere, 0, "background called moving");
+        // Uncovered background whose flow lands on the board in the reference: an occlusion.
+        let lands_on_board = |i: usize| {
+            let f = composed.data[i];
+            let (x, y) = (((i % w) as f32 + f[0]).round(), ((i / w) as f32 + f[1]).round());
+            x >= 0.0 && y >= 0.0 && reference_depth.get(y as usize * w + x as usize).is_some_and(|&z| z < 1.0)
+        };
+        let occluded: Vec<usize> = uncovered.iter().copied().filter(|&i| lands_on_board(i)).collect();
+        assert!(occluded.len() > 100, "{} uncovered cells land on the board", occluded.len());
+        assert_eq!(occluded.iter().filter(|&&i| out.moving[i] != 0).count(), 0, "uncovered background is an occlusion");
     }
 
     #[test]

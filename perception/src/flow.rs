@@ -81,6 +81,18 @@ impl FlowField {
         FlowField { data, ..self.clone_shape() }
     }
 
+    /// [`then`](Self::then), keeping track of the pixels whose chain stays in view:
+    /// `inside[i]` is cleared where this flow takes pixel `i` out of the image (the
+    /// earlier flow is then only clamped there, not measured).
+    pub fn then_inside(&self, earlier: &FlowField, inside: &mut [bool]) -> FlowField {
+        let (w, h) = (self.width as f32, self.height as f32);
+        for (i, (f, ok)) in self.data.iter().zip(inside.iter_mut()).enumerate() {
+            let (x, y) = ((i % self.width) as f32 + f[0], (i / self.width) as f32 + f[1]);
+            *ok &= (0.0..=w - 1.0).contains(&x) && (0.0..=h - 1.0).contains(&y);
+        }
+        self.then(earlier)
+    }
+
     fn clone_shape(&self) -> FlowField {
         FlowField { width: self.width, height: self.height, subsample: self.subsample, data: Vec::new() }
     }
@@ -163,5 +175,12 @@ mod tests {
         // Cell (5, 3): 2 → x = 7, where the earlier flow is 1.7 → total 3.7.
         let f = both.data[3 * w + 5];
         assert!((f[0] - 3.7).abs() < 1e-5 && (f[1] - 0.5).abs() < 1e-6, "{f:?}");
+        // The same chain, noting the cells the first step takes out of the image
+        // (x + 2 beyond 19): the composed flow is the same, they are marked.
+        let mut inside = vec![true; w * h];
+        assert_eq!(later.then_inside(&earlier, &mut inside).data, both.data);
+        for (i, ok) in inside.iter().enumerate() {
+            assert_eq!(*ok, i % w + 2 < w, "cell {},{}", i % w, i / w);
+        }
     }
 }

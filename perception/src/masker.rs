@@ -15,7 +15,7 @@ use stillmap_tracking::Camera;
 
 use crate::PerceptionError;
 use crate::config::{PerceptionConfig, PriorDynamicTracking};
-use crate::ego::{EgoMotion, EgoResult};
+use crate::ego::{CONSISTENT, EgoMotion, EgoResult, RESIDUAL};
 use crate::flow::{FlowField, SmallGray, farneback};
 use crate::fusion::{Fused, PixelLabel, cell_centres, dynamic_fraction, fuse, grow_over_depth};
 use crate::origins::{KeyframeOrigins, Retraction};
@@ -255,6 +255,10 @@ pub struct DynamicMasker {
     /// What the flow saw moving (`ego_motion.remember_moved_frames`): points in the
     /// pose chain's frame, with its epoch and the frame they were seen on, oldest first.
     moved: VecDeque<(u32, u64, [f32; 3])>,
+    /// Recent flow images and the chosen camera motion of the step ending at each
+    /// (`previous_from_current`), for the baseline (`ego_motion.baseline_frames`).
+    recent_images: VecDeque<(u64, SmallGray, Vec<f32>)>,
+    recent_motions: VecDeque<(u64, Isometry3<f64>)>,
 }
 
 struct Pending {
@@ -266,6 +270,8 @@ struct Pending {
     /// Compensation, labels and their dynamic flow-grid cells computed before
     /// tracking (`ego_motion.before_tracking`).
     early: Option<(EgoResult, Fused, Vec<u8>)>,
+    /// Flow-grid cells that moved over the baseline (`ego_motion.baseline_frames`).
+    baseline: Option<Baseline>,
     /// The previous frame's dynamic flow-grid cells carried into this frame.
     carried_cells: Option<Vec<u8>>,
     times: MaskTimes,
@@ -302,6 +308,8 @@ impl DynamicMasker {
             epochs: 0,
             up: None,
             moved: VecDeque::new(),
+            recent_images: VecDeque::new(),
+            recent_motions: VecDeque::new(),
         })
     }
 
@@ -430,7 +438,7 @@ impl DynamicMasker {
         }
         if let Some(step) = flow {
             self.flows.push_back(step);
-            while self.flows.len() > max_age as usize {
+            while self.flows.len() > (max_age as usize).max(self.config.ego_motion.baseline_frames as usize) {
                 self.flows.pop_front();
             }
         }
@@ -454,20 +462,29 @@ impl DynamicMasker {
         self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
 
         // What the camera-motion estimate must not listen to: the carried dynamic
-        // cells and prior-dynamic instances.
+        // cells, prior-dynamic instances, remembered movers at rest, and (below)
+        // what moved over the baseline.
         let mut exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
         self.exclude_remembered(&mut exclude, input.sequence, input.depth);
+        // Constant velocity over the frames this step spans (more than one after drops).
+        let step_frames = self.latest_step(input.sequence).map_or(1, FlowStep::frames);
+        let factor = step_frames as f64 / self.last_ego_frames.max(1) as f64;
+        let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
         times.warp = t.elapsed();
+        let t = Instant::now();
+        let baseline = self.baseline_movers(input.sequence, &small, input.depth, predicted, &exclude);
+        if let Some(b) = &baseline {
+            exclude.iter_mut().zip(&b.moving).for_each(|(e, &m)| *e |= m);
+        }
+        times.ego_motion += t.elapsed();
 
         // This frame's own labels, before tracking: compensation with the previous
         // frame's motion as the prediction (constant velocity), refined on the flow.
         let early = if self.config.ego_motion.before_tracking {
             let t = Instant::now();
-            // Constant velocity over the frames this step spans (more than one after drops).
-            let step_frames = self.latest_step(input.sequence).map_or(1, FlowStep::frames);
-            let factor = step_frames as f64 / self.last_ego_frames.max(1) as f64;
-            let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
-            let ego = self.compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), input.depth, predicted, &exclude);
+            let ego = self
+                .compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), input.depth, predicted, &exclude)
+                .map(|e| self.with_movers(e, baseline.as_ref()));
             times.ego_motion += t.elapsed();
             ego.map(|ego| {
                 let t = Instant::now();
@@ -564,6 +581,7 @@ impl DynamicMasker {
             previous: previous.map(|(_, p)| p),
             exclude,
             early,
+            baseline,
             carried_cells: persistent,
             times,
         });
@@ -577,7 +595,7 @@ impl DynamicMasker {
     /// when tracking failed: the flow refines identity then), and fusion into this
     /// frame's labels. `depth` is the frame's, as given to `prepare`.
     pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
-        let Some(Pending { sequence, small, previous, exclude, early, carried_cells, mut times }) = self.pending.take() else {
+        let Some(Pending { sequence, small, previous, exclude, early, baseline, carried_cells, mut times }) = self.pending.take() else {
             return Err(PerceptionError::Input("finish called without prepare".into()));
         };
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
@@ -599,16 +617,32 @@ impl DynamicMasker {
                 };
                 times.ego_motion += t.elapsed();
                 match better {
-                    Some(ego) => (Some(ego), None),
+                    Some(ego) => (Some(self.with_movers(ego, baseline.as_ref())), None),
                     None => (Some(early_ego), Some((early_fused, early_cells))),
                 }
             }
             None => {
-                let ego = self.compensate(sequence, &small, previous.as_ref(), depth, previous_from_current, &exclude);
+                let ego = self
+                    .compensate(sequence, &small, previous.as_ref(), depth, previous_from_current, &exclude)
+                    .map(|e| self.with_movers(e, baseline.as_ref()));
                 times.ego_motion += t.elapsed();
                 (ego, None)
             }
         };
+        // What the baseline needs: the images and the chosen motions of the last frames.
+        let keep = self.config.ego_motion.baseline_frames as usize;
+        if keep > 1 {
+            self.recent_images.push_back((sequence, small.clone(), self.ego.sample_depth(depth)));
+            if let Some(e) = &ego {
+                self.recent_motions.push_back((sequence, e.previous_from_current));
+            }
+            while self.recent_images.len() > keep + 1 {
+                self.recent_images.pop_front();
+            }
+            while self.recent_motions.front().is_some_and(|(q, _)| *q + keep as u64 + 1 < sequence) {
+                self.recent_motions.pop_front();
+            }
+        }
         self.previous = Some((sequence, small));
         // The pose chain: broken (a new epoch) when tracking gave no motion.
         self.chain = match (self.chain.take(), previous_from_current) {
@@ -715,6 +749,78 @@ impl DynamicMasker {
             (Some(step), Some(prev)) => Some(self.ego.compensate(&step.flow, small, prev, depth, prior, Some(exclude))),
             _ => None,
         }
+    }
+
+    /// Flow-grid cells that moved over the last `ego_motion.baseline_frames` flow
+    /// steps (see [`EgoMotion::movers_over_baseline`]); `None` without that many
+    /// consecutive steps ending at frame `sequence` or without their first image.
+    fn baseline_movers(
+        &self,
+        sequence: u64,
+        small: &SmallGray,
+        depth: &[u16],
+        predicted: Option<Isometry3<f64>>,
+        exclude: &[u8],
+    ) -> Option<Baseline> {
+        let n = self.config.ego_motion.baseline_frames as usize;
+        if n < 2 || self.flows.len() < n {
+            return None;
+        }
+        let steps: Vec<&FlowStep> = self.flows.iter().skip(self.flows.len() - n).collect();
+        if steps.last()?.to != sequence || steps.windows(2).any(|w| w[0].to != w[1].from) {
+            return None;
+        }
+        let reference_sequence = steps[0].from;
+        let (reference, reference_depth) =
+            self.recent_images.iter().find(|(q, _, _)| *q == reference_sequence).map(|(_, g, d)| (g, d.as_slice()))?;
+        // Composed back to the reference; cells whose chain leaves the image on the
+        // way are not judged (nor sampled).
+        let mut later = steps.iter().rev();
+        let latest = later.next()?.flow.clone();
+        let mut inside = vec![true; latest.data.len()];
+        let composed = later.fold(latest, |composed, earlier| composed.then_inside(&earlier.flow, &mut inside));
+        let (fw, fh) = (composed.width as f32, composed.height as f32);
+        for (i, (f, ok)) in composed.data.iter().zip(inside.iter_mut()).enumerate() {
+            let (x, y) = ((i % composed.width) as f32 + f[0], (i / composed.width) as f32 + f[1]);
+            *ok &= (0.0..=fw - 1.0).contains(&x) && (0.0..=fh - 1.0).contains(&y);
+        }
+        let ignored: Vec<u8> = exclude.iter().zip(&inside).map(|(&e, &ok)| u8::from(e != 0 || !ok)).collect();
+        // The chained motions: reference_from_current = m₁ · m₂ · … · mₙ (each step's
+        // previous_from_current), the last one predicted.
+        let chained = steps[..n - 1]
+            .iter()
+            .try_fold(Isometry3::identity(), |chain, step| self.recent_motions.iter().find(|(q, _)| *q == step.to).map(|(_, m)| chain * m));
+        let starts: Vec<Isometry3<f64>> = chained.map(|c| c * predicted.unwrap_or_else(Isometry3::identity)).into_iter().collect();
+        let chained = chained?;
+        let frames = usize::try_from(sequence - reference_sequence).ok()?;
+        let movers = self.ego.movers_over_baseline(&composed, frames, small, reference, depth, reference_depth, &starts, Some(&ignored))?;
+        let moving: Vec<u8> = movers.moving.into_iter().zip(&inside).map(|(m, &ok)| m & u8::from(ok)).collect();
+        // The composed flow is least exact along depth and contrast edges (motion
+        // blur, disocclusion): thin lines of "movers" there go; a moving thing is a region.
+        let (gw, gh) = self.ego.grid_size();
+        let moving = open_regions(moving, gw, gh, BASELINE_OPENING_CELLS).ok()?;
+        Some(Baseline { moving, reference_from_current: movers.reference_from_current, chained, frames })
+    }
+
+    /// `ego` with the cells that moved over the baseline marked as residual flow too
+    /// (where a prediction was made), when the baseline's camera motion disagrees
+    /// with the per-frame motions chained up to this frame (by more than twice the
+    /// composed flow's noise, on average over the scene): one frame's flow was
+    /// fooled by a large moving thing, and its labels missed it. When they agree, the
+    /// per-frame labels stand (the baseline's are coarser: its flow is composed).
+    fn with_movers(&self, mut ego: EgoResult, baseline: Option<&Baseline>) -> EgoResult {
+        let Some(b) = baseline else { return ego };
+        let implied = b.chained * ego.previous_from_current;
+        let noise = self.config.ego_motion.flow_sigma_px * (b.frames as f64).sqrt();
+        let disagree = self.ego.prediction_gap(&implied, &b.reference_from_current, &ego.depth_m).is_some_and(|gap| gap > 2.0 * noise);
+        if disagree {
+            for (c, &m) in ego.class.iter_mut().zip(&b.moving) {
+                if m != 0 && *c == CONSISTENT {
+                    *c = RESIDUAL;
+                }
+            }
+        }
+        ego
     }
 
     /// The latest flow step, when it ends at frame `sequence`.
@@ -1257,6 +1363,21 @@ impl DynamicMasker {
     }
 }
 
+/// What moved over the last `ego_motion.baseline_frames` frames.
+struct Baseline {
+    /// Flow-grid cells (1 = moved).
+    moving: Vec<u8>,
+    /// The camera motion over the baseline that most of the scene follows.
+    reference_from_current: Isometry3<f64>,
+    /// The per-frame motions chosen over the baseline but the last, chained.
+    chained: Isometry3<f64>,
+    frames: usize,
+}
+
+/// What moved over the baseline is opened by a disc of this radius (flow cells)
+/// before use: narrower lines are the composed flow's errors along edges.
+const BASELINE_OPENING_CELLS: u32 = 2;
+
 /// A new prior-dynamic detection covering at least this fraction of a carried
 /// prior-dynamic instance is that instance found again (it then replaces it).
 const COAST_MATCH_FRACTION: f64 = 0.3;
@@ -1325,6 +1446,32 @@ fn grow_over_surfaces(mut grid: Vec<u8>, depth_m: &[f32], width: usize, height: 
 }
 
 /// Dilates a 0/1 mask by a disc of `radius` pixels (OpenCV).
+/// `mask` (1 = set) opened by a disc of `radius` cells: what is narrower than the
+/// disc goes, the rest keeps its shape.
+fn open_regions(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
+    use opencv::core::{Mat, Point, Size};
+    use opencv::imgproc;
+    use opencv::prelude::*;
+    if radius == 0 || !mask.contains(&1) {
+        return Ok(mask);
+    }
+    let src = Mat::new_rows_cols_with_data(height as i32, width as i32, &mask)?;
+    let side = 2 * radius as i32 + 1;
+    let kernel = imgproc::get_structuring_element(imgproc::MORPH_ELLIPSE, Size::new(side, side), Point::new(-1, -1))?;
+    let mut out = Mat::default();
+    imgproc::morphology_ex(
+        &src,
+        &mut out,
+        imgproc::MORPH_OPEN,
+        &kernel,
+        Point::new(-1, -1),
+        1,
+        opencv::core::BORDER_CONSTANT,
+        imgproc::morphology_default_border_value()?,
+    )?;
+    Ok(out.data_bytes()?.to_vec())
+}
+
 fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
     use opencv::core::{Mat, Point, Size};
     use opencv::imgproc;
