@@ -171,6 +171,7 @@ impl EgoMotion {
         depth_m: &[f32],
         exclude: Option<&[u8]>,
         information: f64,
+        stride: usize,
     ) -> Vec<(Point3<f64>, Measurement)> {
         let s = self.subsample as f64;
         let step = self.config.sample_step.max(1) as usize;
@@ -180,8 +181,8 @@ impl EgoMotion {
         for cy in (0..self.height).step_by(step) {
             for cx in (0..self.width).step_by(step) {
                 let mut best: Option<(f32, usize)> = None;
-                for y in cy..(cy + step).min(self.height) {
-                    for x in cx..(cx + step).min(self.width) {
+                for y in (cy..(cy + step).min(self.height)).step_by(stride) {
+                    for x in (cx..(cx + step).min(self.width)).step_by(stride) {
                         let i = y * self.width + x;
                         if depth_m[i] == 0.0 || exclude.is_some_and(|m| m[i] != 0) {
                             continue;
@@ -225,7 +226,7 @@ impl EgoMotion {
 
         // Refinement: current-camera points against their flow targets in the previous image.
         let information = 1.0 / (self.config.flow_sigma_px * self.config.flow_sigma_px);
-        let correspondences = self.flow_samples(flow, &texture, &depth_m, exclude, information);
+        let correspondences = self.flow_samples(flow, &texture, &depth_m, exclude, information, 1);
         let samples = correspondences.len();
 
         // Candidate camera motions: the tracked one (from static features) and its
@@ -426,14 +427,15 @@ impl EgoMotion {
 
     /// What moved over a longer baseline: `composed` is the flow of `steps` frames
     /// (this frame's pixels to where they were in `reference`, the image `steps`
-    /// frames back). One frame's flow cannot tell the camera's motion from that of
+    /// frames back), read at every [`baseline_stride`](Self::baseline_stride)-th
+    /// cell in each direction; each judged cell stands for its block. One frame's flow cannot tell the camera's motion from that of
     /// a large textured thing that starts moving (a lateral translation with a
     /// compensating rotation explains the far background within the flow's noise);
     /// over several frames the wrong motion's parallax on the background outgrows
     /// the noise. Candidate motions `reference_from_current` are refined on the
-    /// composed flow from `starts` (the chained per-frame motions), from an
-    /// EPnP-RANSAC hypothesis, from the nearer and the farther half of the samples
-    /// (depth layers), and from a second hypothesis on the samples the
+    /// composed flow from `starts` (the chained per-frame motions), on the nearer
+    /// and on the farther half of the samples (depth layers), and from an
+    /// EPnP-RANSAC hypothesis on the samples the
     /// best-supported refinement leaves out (the other rigid motion in view). Each
     /// vote cell then goes to the candidate that explains it best, and the one most
     /// of the scene follows wins; its moving cells are returned, less those the
@@ -457,12 +459,11 @@ impl EgoMotion {
         let depth_m = self.sample_depth(depth);
         let texture = min_eigen_texture(current);
         let sigma = self.config.flow_sigma_px * steps_f.sqrt();
-        let correspondences = self.flow_samples(composed, &texture, &depth_m, exclude, 1.0 / (sigma * sigma));
+        let correspondences = self.flow_samples(composed, &texture, &depth_m, exclude, 1.0 / (sigma * sigma), VOTE_STRIDE);
         let samples = correspondences.len();
         if samples < self.config.min_samples {
             return None;
         }
-        let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
         let params = PnpRansac {
             iterations: RANSAC_ITERATIONS,
             threshold_px: (sigma * RANSAC_THRESHOLD_SIGMAS) as f32,
@@ -475,7 +476,7 @@ impl EgoMotion {
                 candidates.push((estimate.camera_from_world, estimate.inlier_count));
             }
         };
-        for start in starts.iter().copied().chain(pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose)) {
+        for &start in starts {
             refine(start, &correspondences, &mut candidates);
         }
         // Depth layers: a thing held in front of the background moves with its own
@@ -543,31 +544,41 @@ impl EgoMotion {
         }
         // The first (best refined) of equally supported candidates.
         let winner = (0..votes.len()).max_by_key(|&k| (support[k], std::cmp::Reverse(k)))?;
-        let (reference_from_current, vote) = votes.swap_remove(winner);
-        let (class, _) =
-            self.classify(composed, current, reference, &depth_m, &reference_from_current, steps_f, Cells::OffVoteGrid, Some(vote));
+        let (reference_from_current, (class, _)) = votes.swap_remove(winner);
         // A cell the thing uncovered during the baseline (background hidden behind
         // it in the reference image) follows the thing back in the composed flow: it
         // lands on a surface at another depth there. Only cells that land on their own
         // surface are movers.
-        let moving = class
-            .iter()
-            .enumerate()
-            .map(|(i, &c)| {
+        let mut moving = vec![0u8; class.len()];
+        for y in (0..self.height).step_by(VOTE_STRIDE) {
+            for x in (0..self.width).step_by(VOTE_STRIDE) {
+                let i = y * self.width + x;
+                if class[i] != RESIDUAL {
+                    continue;
+                }
                 let f = composed.data[i];
-                let (x, y) = (((i % self.width) as f32 + f[0]).round(), ((i / self.width) as f32 + f[1]).round());
-                let own_surface = x >= 0.0
-                    && y >= 0.0
-                    && reference_depth_m.get(y as usize * self.width + x as usize).filter(|_| (x as usize) < self.width).is_some_and(
-                        |&z| {
-                            let here = depth_m[i];
-                            z > 0.0 && here > 0.0 && f64::from((z - here).abs()) <= OCCLUSION_DEPTH_RATIO * f64::from(here)
-                        },
-                    );
-                u8::from(c == RESIDUAL && own_surface)
-            })
-            .collect();
+                // The nearest reference cell (+0.5 and truncation: no libm call).
+                let (tx, ty) = (x as f32 + f[0] + 0.5, y as f32 + f[1] + 0.5);
+                if tx < 0.0 || ty < 0.0 || tx as usize >= self.width || ty as usize >= self.height {
+                    continue;
+                }
+                let (there, here) = (reference_depth_m[ty as usize * self.width + tx as usize], depth_m[i]);
+                let own_surface = there > 0.0 && here > 0.0 && f64::from((there - here).abs()) <= OCCLUSION_DEPTH_RATIO * f64::from(here);
+                if own_surface {
+                    // The vote cell stands for its VOTE_STRIDE × VOTE_STRIDE block.
+                    for by in y..(y + VOTE_STRIDE).min(self.height) {
+                        moving[by * self.width + x..by * self.width + (x + VOTE_STRIDE).min(self.width)].fill(1);
+                    }
+                }
+            }
+        }
         Some(BaselineMovers { reference_from_current, moving, candidates: distinct.len(), samples })
+    }
+
+    /// The baseline judges every `baseline_stride()`-th flow cell in each direction
+    /// (its composed flow is needed only there).
+    pub fn baseline_stride(&self) -> usize {
+        VOTE_STRIDE
     }
 
     /// Mean distance (full-size pixels) between where two motions put the scene's
@@ -865,7 +876,7 @@ mod tests {
         // farther wall within the threshold, so the fewest-moving rule would take it
         // for the camera's motion.
         let depth_m = ego.sample_depth(&depth);
-        let samples = ego.flow_samples(&composed, &min_eigen_texture(&current), &depth_m, None, 1.0);
+        let samples = ego.flow_samples(&composed, &min_eigen_texture(&current), &depth_m, None, 1.0, 1);
         let board_and_wall: Vec<_> = samples.iter().filter(|(p, _)| p.z < 1.0 || (p.z - 3.0).abs() < 1e-3).cloned().collect();
         let impostor = optimize_pose(&camera, 1.0, board_motion, &board_and_wall).camera_from_world;
         let moving_under = |m: &Isometry3<f64>| {

@@ -68,29 +68,43 @@ impl FlowField {
     /// before): the flow from the current frame two steps back.
     pub fn then(&self, earlier: &FlowField) -> FlowField {
         let w = self.width;
-        let data = self
-            .data
-            .iter()
-            .enumerate()
-            .map(|(i, f)| {
-                let (x, y) = ((i % w) as f32 + f[0], (i / w) as f32 + f[1]);
-                let g = earlier.sample(x, y);
-                [f[0] + g[0], f[1] + g[1]]
-            })
-            .collect();
+        let mut data = Vec::with_capacity(self.data.len());
+        for y in 0..self.height {
+            for x in 0..w {
+                let f = self.data[y * w + x];
+                let g = earlier.sample(x as f32 + f[0], y as f32 + f[1]);
+                data.push([f[0] + g[0], f[1] + g[1]]);
+            }
+        }
         FlowField { data, ..self.clone_shape() }
     }
 
-    /// [`then`](Self::then), keeping track of the pixels whose chain stays in view:
-    /// `inside[i]` is cleared where this flow takes pixel `i` out of the image (the
-    /// earlier flow is then only clamped there, not measured).
-    pub fn then_inside(&self, earlier: &FlowField, inside: &mut [bool]) -> FlowField {
-        let (w, h) = (self.width as f32, self.height as f32);
-        for (i, (f, ok)) in self.data.iter().zip(inside.iter_mut()).enumerate() {
-            let (x, y) = ((i % self.width) as f32 + f[0], (i / self.width) as f32 + f[1]);
-            *ok &= (0.0..=w - 1.0).contains(&x) && (0.0..=h - 1.0).contains(&y);
+    /// This flow chained with `earlier` ones (each a step further back), followed
+    /// only from every `stride`-th pixel in each direction: the composed flow there
+    /// (0 elsewhere), and whether the path stayed in the image at every step
+    /// (false elsewhere; where it left, the earlier flows were only clamped).
+    pub fn chain_sparse(&self, earlier: &[&FlowField], stride: usize) -> (FlowField, Vec<bool>) {
+        let (w, h) = (self.width, self.height);
+        let (wf, hf) = ((w - 1) as f32, (h - 1) as f32);
+        let within = |x: f32, y: f32| (0.0..=wf).contains(&x) && (0.0..=hf).contains(&y);
+        let mut data = vec![[0f32; 2]; self.data.len()];
+        let mut inside = vec![false; self.data.len()];
+        for y in (0..h).step_by(stride.max(1)) {
+            for x in (0..w).step_by(stride.max(1)) {
+                let i = y * w + x;
+                let f = self.data[i];
+                let (mut px, mut py) = (x as f32 + f[0], y as f32 + f[1]);
+                let mut ok = within(px, py);
+                for e in earlier {
+                    let g = e.sample(px, py);
+                    (px, py) = (px + g[0], py + g[1]);
+                    ok &= within(px, py);
+                }
+                data[i] = [px - x as f32, py - y as f32];
+                inside[i] = ok;
+            }
         }
-        self.then(earlier)
+        (FlowField { data, ..self.clone_shape() }, inside)
     }
 
     fn clone_shape(&self) -> FlowField {
@@ -101,7 +115,8 @@ impl FlowField {
     pub fn sample(&self, x: f32, y: f32) -> [f32; 2] {
         let x = x.clamp(0.0, (self.width - 1) as f32);
         let y = y.clamp(0.0, (self.height - 1) as f32);
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        // Clamped to 0 or more: truncation is the floor (and no libm call).
+        let (x0, y0) = (x as usize, y as usize);
         let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
         let (tx, ty) = (x - x0 as f32, y - y0 as f32);
         let at = |x: usize, y: usize| self.data[y * self.width + x];
@@ -175,12 +190,22 @@ mod tests {
         // Cell (5, 3): 2 → x = 7, where the earlier flow is 1.7 → total 3.7.
         let f = both.data[3 * w + 5];
         assert!((f[0] - 3.7).abs() < 1e-5 && (f[1] - 0.5).abs() < 1e-6, "{f:?}");
-        // The same chain, noting the cells the first step takes out of the image
-        // (x + 2 beyond 19): the composed flow is the same, they are marked.
-        let mut inside = vec![true; w * h];
-        assert_eq!(later.then_inside(&earlier, &mut inside).data, both.data);
-        for (i, ok) in inside.iter().enumerate() {
-            assert_eq!(*ok, i % w + 2 < w, "cell {},{}", i % w, i / w);
+        // The same chain from every other cell: the same flow there, and the cells
+        // whose path leaves the image marked (x + 2 beyond 19 after the first step;
+        // x + 2 + 1 + (x + 2) / 10 beyond 19 after the second).
+        let (sparse, inside) = later.chain_sparse(&[&earlier], 2);
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if x % 2 == 0 && y % 2 == 0 {
+                    let (a, b) = (sparse.data[i], both.data[i]);
+                    assert!((a[0] - b[0]).abs() < 1e-5 && (a[1] - b[1]).abs() < 1e-5, "cell {x},{y}: {a:?} vs {b:?}");
+                    let end = (x + 2) as f32 + 1.0 + (x + 2).min(w - 1) as f32 / 10.0;
+                    assert_eq!(inside[i], x + 2 < w && end <= (w - 1) as f32, "cell {x},{y}");
+                } else {
+                    assert!(!inside[i] && sparse.data[i] == [0.0, 0.0], "cell {x},{y} is not followed");
+                }
+            }
         }
     }
 }

@@ -773,17 +773,13 @@ impl DynamicMasker {
         let reference_sequence = steps[0].from;
         let (reference, reference_depth) =
             self.recent_images.iter().find(|(q, _, _)| *q == reference_sequence).map(|(_, g, d)| (g, d.as_slice()))?;
-        // Composed back to the reference; cells whose chain leaves the image on the
-        // way are not judged (nor sampled).
-        let mut later = steps.iter().rev();
-        let latest = later.next()?.flow.clone();
-        let mut inside = vec![true; latest.data.len()];
-        let composed = later.fold(latest, |composed, earlier| composed.then_inside(&earlier.flow, &mut inside));
-        let (fw, fh) = (composed.width as f32, composed.height as f32);
-        for (i, (f, ok)) in composed.data.iter().zip(inside.iter_mut()).enumerate() {
-            let (x, y) = ((i % composed.width) as f32 + f[0], (i / composed.width) as f32 + f[1]);
-            *ok &= (0.0..=fw - 1.0).contains(&x) && (0.0..=fh - 1.0).contains(&y);
-        }
+        // Composed back to the reference from the cells the baseline judges (every
+        // other one each way); cells whose path leaves the image on the way are not
+        // judged (nor sampled).
+        let mut later = steps.iter().rev().map(|step| &step.flow);
+        let latest = later.next()?;
+        let earlier: Vec<&FlowField> = later.collect();
+        let (composed, inside) = latest.chain_sparse(&earlier, self.ego.baseline_stride());
         let ignored: Vec<u8> = exclude.iter().zip(&inside).map(|(&e, &ok)| u8::from(e != 0 || !ok)).collect();
         // The chained motions: reference_from_current = m₁ · m₂ · … · mₙ (each step's
         // previous_from_current), the last one predicted.
@@ -794,10 +790,19 @@ impl DynamicMasker {
         let chained = chained?;
         let frames = usize::try_from(sequence - reference_sequence).ok()?;
         let movers = self.ego.movers_over_baseline(&composed, frames, small, reference, depth, reference_depth, &starts, Some(&ignored))?;
-        let moving: Vec<u8> = movers.moving.into_iter().zip(&inside).map(|(m, &ok)| m & u8::from(ok)).collect();
+        // Judged cells whose path left the image are not movers (each stands for its block).
+        let (gw, gh) = self.ego.grid_size();
+        let stride = self.ego.baseline_stride();
+        let mut moving = movers.moving;
+        for y in (0..gh).step_by(stride) {
+            for x in (0..gw).step_by(stride).filter(|&x| !inside[y * gw + x]) {
+                for row in y..(y + stride).min(gh) {
+                    moving[row * gw + x..row * gw + (x + stride).min(gw)].fill(0);
+                }
+            }
+        }
         // The composed flow is least exact along depth and contrast edges (motion
         // blur, disocclusion): thin lines of "movers" there go; a moving thing is a region.
-        let (gw, gh) = self.ego.grid_size();
         let moving = open_regions(moving, gw, gh, BASELINE_OPENING_CELLS).ok()?;
         Some(Baseline { moving, reference_from_current: movers.reference_from_current, chained, frames })
     }
