@@ -1451,9 +1451,18 @@ fn grow_over_surfaces(mut grid: Vec<u8>, depth_m: &[f32], width: usize, height: 
 }
 
 /// Dilates a 0/1 mask by a disc of `radius` pixels (OpenCV).
+fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
+    morphology(mask, width, height, radius, opencv::imgproc::MORPH_DILATE)
+}
+
 /// `mask` (1 = set) opened by a disc of `radius` cells: what is narrower than the
 /// disc goes, the rest keeps its shape.
 fn open_regions(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
+    morphology(mask, width, height, radius, opencv::imgproc::MORPH_OPEN)
+}
+
+/// OpenCV's morphology `operation` on a 0/1 mask with a disc of `radius`.
+fn morphology(mask: Vec<u8>, width: usize, height: usize, radius: u32, operation: i32) -> Result<Vec<u8>, PerceptionError> {
     use opencv::core::{Mat, Point, Size};
     use opencv::imgproc;
     use opencv::prelude::*;
@@ -1467,30 +1476,7 @@ fn open_regions(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Resu
     imgproc::morphology_ex(
         &src,
         &mut out,
-        imgproc::MORPH_OPEN,
-        &kernel,
-        Point::new(-1, -1),
-        1,
-        opencv::core::BORDER_CONSTANT,
-        imgproc::morphology_default_border_value()?,
-    )?;
-    Ok(out.data_bytes()?.to_vec())
-}
-
-fn dilate(mask: Vec<u8>, width: usize, height: usize, radius: u32) -> Result<Vec<u8>, PerceptionError> {
-    use opencv::core::{Mat, Point, Size};
-    use opencv::imgproc;
-    use opencv::prelude::*;
-    if radius == 0 || !mask.contains(&1) {
-        return Ok(mask);
-    }
-    let src = Mat::new_rows_cols_with_data(height as i32, width as i32, &mask)?;
-    let side = 2 * radius as i32 + 1;
-    let kernel = imgproc::get_structuring_element(imgproc::MORPH_ELLIPSE, Size::new(side, side), Point::new(-1, -1))?;
-    let mut out = Mat::default();
-    imgproc::dilate(
-        &src,
-        &mut out,
+        operation,
         &kernel,
         Point::new(-1, -1),
         1,

@@ -76,6 +76,16 @@ enum Arrangement {
     Mirrored,
 }
 
+impl Arrangement {
+    fn label(self) -> String {
+        match self {
+            Self::AsBuilt => "as built".into(),
+            Self::Later(dt) => format!("{dt} s later"),
+            Self::Mirrored => "mirrored".into(),
+        }
+    }
+}
+
 /// The composite frames of one arrangement and, per frame, the pixels of boards moving then.
 fn scene(frames: &[tum::TumFrame], poses: &[Isometry3<f64>], arrangement: Arrangement) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
     let camera = tum::fr1_camera();
@@ -163,7 +173,8 @@ fn boards_carried_through_the_view() {
             let mean_cover = 100.0 * cover.iter().sum::<f64>() / cover.len() as f64;
             let max_cover = 100.0 * cover.iter().copied().fold(0.0, f64::max);
             arrangements.push(format!(
-                "| {name} | {arrangement:?} | {mean_cover:.0} % / {max_cover:.0} % | {} | {} | {} | {} / {} / {} |",
+                "| {name} | {} | {mean_cover:.0} % / {max_cover:.0} % | {} | {} | {} | {} / {} / {} |",
+                arrangement.label(),
                 ate(&masked.trajectory),
                 ate(&without_baseline.trajectory),
                 ate(&unmasked),
