@@ -163,7 +163,8 @@ impl EgoMotion {
     }
 
     /// Flow samples for a refinement: current-camera points (from `depth_m`) against
-    /// their flow targets in the earlier image, with `information` (1/σ²).
+    /// their flow targets in the earlier image, with `information` (1/σ²); only
+    /// every `stride`-th cell in each direction is looked at (where the flow is).
     fn flow_samples(
         &self,
         flow: &FlowField,
@@ -181,8 +182,9 @@ impl EgoMotion {
         for cy in (0..self.height).step_by(step) {
             for cx in (0..self.width).step_by(step) {
                 let mut best: Option<(f32, usize)> = None;
-                for y in (cy..(cy + step).min(self.height)).step_by(stride) {
-                    for x in (cx..(cx + step).min(self.width)).step_by(stride) {
+                // Only every `stride`-th cell has flow (whatever `sample_step` is).
+                for y in (cy.next_multiple_of(stride)..(cy + step).min(self.height)).step_by(stride) {
+                    for x in (cx.next_multiple_of(stride)..(cx + step).min(self.width)).step_by(stride) {
                         let i = y * self.width + x;
                         if depth_m[i] == 0.0 || exclude.is_some_and(|m| m[i] != 0) {
                             continue;

@@ -764,6 +764,16 @@ mod tests {
             "invalid configuration: session.opencv_threads must be at most 1024, got 2000"
         );
         assert_eq!(err("[session]\nmap_queue = 0\n"), "invalid configuration: session.map_queue must be in 1..=256, got 0");
+        assert!(
+            err("[perception.ego_motion]\nbaseline_frames = 31\n")
+                .contains("perception.ego_motion.baseline_frames must be at most 30, got 31"),
+            "{}",
+            err("[perception.ego_motion]\nbaseline_frames = 31\n")
+        );
+        assert_eq!(
+            ServerConfig::from_toml("[perception.ego_motion]\nbaseline_frames = 0\n").unwrap().perception.ego_motion.baseline_frames,
+            0
+        );
         assert_eq!(
             err("[fleet]\ndefault_fleet = \"a b\"\n"),
             "invalid configuration: fleet.default_fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -"
