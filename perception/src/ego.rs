@@ -63,7 +63,8 @@ type Classified = (Vec<u8>, Vec<f32>);
 pub struct BaselineMovers {
     /// The winning camera motion over the baseline.
     pub reference_from_current: Isometry3<f64>,
-    /// Per flow cell: 1 where the composed flow is not explained by it.
+    /// Per flow cell: 1 where the composed flow is not explained by it (each judged
+    /// cell's value fills its block).
     pub moving: Vec<u8>,
     /// Distinct candidate motions compared, and the flow samples they were refined on.
     pub candidates: usize,
@@ -95,8 +96,9 @@ pub const RECONSIDER_TOLERANCE_M: f64 = 0.001;
 pub const RECONSIDER_TOLERANCE_RAD: f64 = 0.001;
 /// [`EgoMotion::movers_over_baseline`]: a cell whose composed flow lands on a
 /// surface farther from its own depth than this fraction was uncovered during the
-/// baseline (an occlusion, not a mover). A person walking at 1.5 m/s moves 0.3 m in
-/// depth over 6 frames, a fifth of his distance at 1.5 m.
+/// baseline (an occlusion, not a mover). A person walking at 1.5 m/s moves 0.2 m in
+/// depth over 4 frames, an eighth of his distance at 1.5 m; a thing held in front of
+/// a wall is usually twice as near as the wall or more.
 const OCCLUSION_DEPTH_RATIO: f64 = 0.25;
 /// PnP-RANSAC hypothesis: iterations, inlier threshold in flow σ, and confidence.
 const RANSAC_ITERATIONS: i32 = 100;
@@ -430,9 +432,10 @@ impl EgoMotion {
     /// What moved over a longer baseline: `composed` is the flow of `steps` frames
     /// (this frame's pixels to where they were in `reference`, the image `steps`
     /// frames back), read at every [`baseline_stride`](Self::baseline_stride)-th
-    /// cell in each direction; each judged cell stands for its block. One frame's flow cannot tell the camera's motion from that of
-    /// a large textured thing that starts moving (a lateral translation with a
-    /// compensating rotation explains the far background within the flow's noise);
+    /// cell in each direction; each judged cell stands for its block. One frame's
+    /// flow cannot tell the camera's motion from that of a large textured thing that
+    /// starts moving (a lateral translation with a compensating rotation explains
+    /// the far background within the flow's noise);
     /// over several frames the wrong motion's parallax on the background outgrows
     /// the noise. Candidate motions `reference_from_current` are refined on the
     /// composed flow from `starts` (the chained per-frame motions), on the nearer
