@@ -66,9 +66,8 @@ pub struct BaselineMovers {
     /// Per flow cell: 1 where the composed flow is not explained by it (each judged
     /// cell's value fills its block).
     pub moving: Vec<u8>,
-    /// Distinct candidate motions compared, and the flow samples they were refined on.
+    /// Distinct candidate motions compared.
     pub candidates: usize,
-    pub samples: usize,
 }
 
 /// Ego-motion compensation for one camera; caches per-pixel rays of the flow grid.
@@ -577,7 +576,7 @@ impl EgoMotion {
                 }
             }
         }
-        Some(BaselineMovers { reference_from_current, moving, candidates: distinct.len(), samples })
+        Some(BaselineMovers { reference_from_current, moving, candidates: distinct.len() })
     }
 
     /// The baseline judges every `baseline_stride()`-th flow cell in each direction

@@ -632,7 +632,9 @@ impl DynamicMasker {
         // What the baseline needs: the images and the chosen motions of the last frames.
         let keep = self.config.ego_motion.baseline_frames as usize;
         if keep > 1 {
-            self.recent_images.push_back((sequence, small.clone(), self.ego.sample_depth(depth)));
+            // The flow-grid depth compensation sampled from this frame's depth already.
+            let depth_m = ego.as_ref().map_or_else(|| self.ego.sample_depth(depth), |e| e.depth_m.clone());
+            self.recent_images.push_back((sequence, small.clone(), depth_m));
             if let Some(e) = &ego {
                 self.recent_motions.push_back((sequence, e.previous_from_current));
             }
