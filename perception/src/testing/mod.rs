@@ -1,7 +1,8 @@
 //! Test, bench and example support (the `testing` feature): the real model, the
 //! ONNX Runtime library and the real photos from `../shared/models` (see MODELS.md
-//! there), and the composite runs of [`composite_run`].
+//! there), the composite runs of [`composite_run`] and the board scene of [`boards`].
 
+pub mod boards;
 pub mod composite_run;
 
 use std::path::{Path, PathBuf};
