@@ -441,14 +441,36 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [id_a, id_b]) == Some(id_b)).cloned().collect();
     assert!(!to_b.is_empty() && to_b.len() < robots.len(), "this test needs robots for both servers");
 
-    // 150 frames at 10 Hz: 15 s, so the robots still stream when B has started (the
-    // other tests in this file start servers at the same time).
-    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "10", "join");
+    // 150 frames at 5 Hz: 30 s, so the robots still stream when B has started and
+    // taken its robots, with room for a loaded machine (the other tests in this file
+    // start servers at the same time; at 10 Hz a CI run once timed out waiting for B).
+    let (clients, summaries) = spawn_robots(&router_endpoint, &robots, "5", "join");
+    let spawned = Instant::now();
     // Alone, A answers every robot.
     eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, id_a).await.1 == robots).await;
     let b = start(id_b);
     let joined = Instant::now();
-    eventually(Duration::from_secs(10), "B's robots streaming on B", async || robots_on(&b, id_b).await.1 == to_b).await;
+    // Waits like `eventually`, but a timeout says what each server saw, and when.
+    loop {
+        let on_b = robots_on(&b, id_b).await;
+        if on_b.1 == to_b {
+            break;
+        }
+        if joined.elapsed() > Duration::from_secs(10) {
+            let on_a = robots_on(&a, id_a).await;
+            panic!(
+                "timed out waiting for B's robots {to_b:?} streaming on B, {:.1} s after B was ready ({:.1} s after the robots \
+                 started): B holds {:?}, streaming {:?}; A holds {:?}, streaming {:?}",
+                joined.elapsed().as_secs_f64(),
+                spawned.elapsed().as_secs_f64(),
+                on_b.0,
+                on_b.1,
+                on_a.0,
+                on_a.1
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
     eprintln!("the joining server's robots streaming on it {:.0} ms after it was ready", joined.elapsed().as_secs_f64() * 1e3);
     let stay: Vec<String> = robots.iter().filter(|r| !to_b.contains(r)).cloned().collect();
     assert_eq!(robots_on(&a, id_a).await.1, stay, "A streams only the robots it still owns");
