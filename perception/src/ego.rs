@@ -55,6 +55,14 @@ pub struct EgoResult {
     pub depth_m: Vec<f32>,
 }
 
+/// One frame's flow-grid samples: depth in metres (0 when invalid) and texture
+/// (the smaller eigenvalue of the structure tensor) per flow pixel.
+#[derive(Debug, Clone)]
+pub struct FrameSamples {
+    pub depth_m: Vec<f32>,
+    pub texture: Vec<f32>,
+}
+
 /// Per flow cell: the class and the residual (full-size pixels) under one motion.
 type Classified = (Vec<u8>, Vec<f32>);
 
@@ -223,9 +231,27 @@ impl EgoMotion {
         prior: Option<Isometry3<f64>>,
         exclude: Option<&[u8]>,
     ) -> EgoResult {
+        self.compensate_sampled(flow, current, previous, self.frame_samples(current, depth), prior, exclude)
+    }
+
+    /// The frame's flow-grid depth and texture, which [`compensate_sampled`](Self::compensate_sampled)
+    /// and [`movers_over_baseline`](Self::movers_over_baseline) share.
+    pub fn frame_samples(&self, current: &SmallGray, depth: &[u16]) -> FrameSamples {
+        FrameSamples { depth_m: self.sample_depth(depth), texture: min_eigen_texture(current) }
+    }
+
+    /// [`compensate`](Self::compensate) with the frame's samples taken already.
+    pub fn compensate_sampled(
+        &self,
+        flow: &FlowField,
+        current: &SmallGray,
+        previous: &SmallGray,
+        frame: FrameSamples,
+        prior: Option<Isometry3<f64>>,
+        exclude: Option<&[u8]>,
+    ) -> EgoResult {
         debug_assert_eq!((flow.width, flow.height), (self.width, self.height));
-        let depth_m = self.sample_depth(depth);
-        let texture = min_eigen_texture(current);
+        let FrameSamples { depth_m, texture } = frame;
 
         // Refinement: current-camera points against their flow targets in the previous image.
         let information = 1.0 / (self.config.flow_sigma_px * self.config.flow_sigma_px);
@@ -453,17 +479,16 @@ impl EgoMotion {
         steps: usize,
         current: &SmallGray,
         reference: &SmallGray,
-        depth: &[u16],
+        frame: &FrameSamples,
         reference_depth_m: &[f32],
         starts: &[Isometry3<f64>],
         exclude: Option<&[u8]>,
     ) -> Option<BaselineMovers> {
         debug_assert_eq!((composed.width, composed.height), (self.width, self.height));
         let steps_f = steps.max(1) as f64;
-        let depth_m = self.sample_depth(depth);
-        let texture = min_eigen_texture(current);
+        let (depth_m, texture) = (&frame.depth_m, &frame.texture);
         let sigma = self.config.flow_sigma_px * steps_f.sqrt();
-        let correspondences = self.flow_samples(composed, &texture, &depth_m, exclude, 1.0 / (sigma * sigma), VOTE_STRIDE);
+        let correspondences = self.flow_samples(composed, texture, depth_m, exclude, 1.0 / (sigma * sigma), VOTE_STRIDE);
         let samples = correspondences.len();
         if samples < self.config.min_samples {
             return None;
@@ -522,13 +547,13 @@ impl EgoMotion {
         candidates.sort_by_key(|c| std::cmp::Reverse(c.1));
         let mut distinct: Vec<Isometry3<f64>> = Vec::new();
         for &(motion, _) in &candidates {
-            if !distinct.iter().any(|other| self.prediction_gap(&motion, other, &depth_m).is_some_and(|gap| gap < 2.0 * sigma)) {
+            if !distinct.iter().any(|other| self.prediction_gap(&motion, other, depth_m).is_some_and(|gap| gap < 2.0 * sigma)) {
                 distinct.push(motion);
             }
         }
         let mut votes: Vec<(Isometry3<f64>, Classified)> = distinct
             .iter()
-            .map(|motion| (*motion, self.classify(composed, current, reference, &depth_m, motion, steps_f, Cells::VoteGrid, None)))
+            .map(|motion| (*motion, self.classify(composed, current, reference, depth_m, motion, steps_f, Cells::VoteGrid, None)))
             .collect();
         // Each vote cell goes to the candidate that explains it best (when it is
         // static under it): the scene splits into the rigid motions in view, and the
@@ -895,7 +920,16 @@ mod tests {
         );
 
         let out = ego
-            .movers_over_baseline(&composed, steps, &current, &reference, &depth, &reference_depth, &[impostor], None)
+            .movers_over_baseline(
+                &composed,
+                steps,
+                &current,
+                &reference,
+                &ego.frame_samples(&current, &depth),
+                &reference_depth,
+                &[impostor],
+                None,
+            )
             .expect("enough samples");
         let err = out.reference_from_current.inverse() * truth;
         assert!(err.translation.vector.norm() < 1e-3 && err.rotation.angle() < 1e-4, "the camera's motion: {err:?}");

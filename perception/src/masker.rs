@@ -15,7 +15,7 @@ use stillmap_tracking::Camera;
 
 use crate::PerceptionError;
 use crate::config::{PerceptionConfig, PriorDynamicTracking};
-use crate::ego::{CONSISTENT, EgoMotion, EgoResult, RESIDUAL};
+use crate::ego::{CONSISTENT, EgoMotion, EgoResult, FrameSamples, RESIDUAL};
 use crate::flow::{FlowField, SmallGray, farneback};
 use crate::fusion::{Fused, PixelLabel, cell_centres, dynamic_fraction, fuse, grow_over_depth};
 use crate::origins::{KeyframeOrigins, Retraction};
@@ -472,7 +472,9 @@ impl DynamicMasker {
         let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
         times.warp = t.elapsed();
         let t = Instant::now();
-        let baseline = self.baseline_movers(input.sequence, &small, input.depth, predicted, &exclude);
+        // This frame's flow-grid depth and texture, shared by the baseline and the compensation.
+        let frame = self.latest_step(input.sequence).map(|_| self.ego.frame_samples(&small, input.depth));
+        let baseline = frame.as_ref().and_then(|f| self.baseline_movers(input.sequence, &small, f, predicted, &exclude));
         if let Some(b) = &baseline {
             exclude.iter_mut().zip(&b.moving).for_each(|(e, &m)| *e |= m);
         }
@@ -482,8 +484,8 @@ impl DynamicMasker {
         // frame's motion as the prediction (constant velocity), refined on the flow.
         let early = if self.config.ego_motion.before_tracking {
             let t = Instant::now();
-            let ego = self
-                .compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), input.depth, predicted, &exclude)
+            let ego = frame
+                .and_then(|f| self.compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), f, predicted, &exclude))
                 .map(|e| self.with_movers(e, baseline.as_ref()));
             times.ego_motion += t.elapsed();
             ego.map(|ego| {
@@ -622,8 +624,9 @@ impl DynamicMasker {
                 }
             }
             None => {
+                let frame = self.ego.frame_samples(&small, depth);
                 let ego = self
-                    .compensate(sequence, &small, previous.as_ref(), depth, previous_from_current, &exclude)
+                    .compensate(sequence, &small, previous.as_ref(), frame, previous_from_current, &exclude)
                     .map(|e| self.with_movers(e, baseline.as_ref()));
                 times.ego_motion += t.elapsed();
                 (ego, None)
@@ -743,12 +746,12 @@ impl DynamicMasker {
         sequence: u64,
         small: &SmallGray,
         previous: Option<&SmallGray>,
-        depth: &[u16],
+        frame: FrameSamples,
         prior: Option<Isometry3<f64>>,
         exclude: &[u8],
     ) -> Option<EgoResult> {
         match (self.latest_step(sequence), previous) {
-            (Some(step), Some(prev)) => Some(self.ego.compensate(&step.flow, small, prev, depth, prior, Some(exclude))),
+            (Some(step), Some(prev)) => Some(self.ego.compensate_sampled(&step.flow, small, prev, frame, prior, Some(exclude))),
             _ => None,
         }
     }
@@ -760,7 +763,7 @@ impl DynamicMasker {
         &self,
         sequence: u64,
         small: &SmallGray,
-        depth: &[u16],
+        frame: &FrameSamples,
         predicted: Option<Isometry3<f64>>,
         exclude: &[u8],
     ) -> Option<Baseline> {
@@ -791,7 +794,7 @@ impl DynamicMasker {
         let starts: Vec<Isometry3<f64>> = chained.map(|c| c * predicted.unwrap_or_else(Isometry3::identity)).into_iter().collect();
         let chained = chained?;
         let frames = usize::try_from(sequence - reference_sequence).ok()?;
-        let movers = self.ego.movers_over_baseline(&composed, frames, small, reference, depth, reference_depth, &starts, Some(&ignored))?;
+        let movers = self.ego.movers_over_baseline(&composed, frames, small, reference, frame, reference_depth, &starts, Some(&ignored))?;
         // Judged cells whose path left the image are not movers (each stands for its block).
         let (gw, gh) = self.ego.grid_size();
         let stride = self.ego.baseline_stride();
