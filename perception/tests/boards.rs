@@ -17,7 +17,8 @@
 //! docs/people.md quotes,
 //! `cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture boards_carried`;
 //! `trace_one_run` prints one run frame by frame against ground truth (what the
-//! mask caught, the step and drift errors), for finding where a run goes wrong:
+//! mask caught, the step and drift errors, the map points in view of the true pose),
+//! for finding where a run goes wrong:
 //! `STILLMAP_BOARDS="rpy_b later pipeline" cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture trace_one_run`
 //! (clip `rpy` or `rpy_b`; arrangement `built`, `later` or `mirrored`; run
 //! `pipeline`, `no-baseline`, `every-board`, `moving-boards`, `no-mask` or `free`).
@@ -165,7 +166,7 @@ fn trace_one_run() {
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | origin-aligned error (mm)"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | origin-aligned error (mm) | map points in view of the true pose / in the map"
     );
     for (k, f) in composite.iter().enumerate() {
         let (mask, track) = if pipelined {
@@ -201,8 +202,29 @@ fn trace_one_run() {
             Some((d, None)) => (format!("{d:.1}"), "–".into()),
             None => ("–".into(), "–".into()),
         };
+        // The map's points in view of the true pose (carried into the map's frame by
+        // the first frame's alignment): 0 while lost means nothing to relocalize on.
+        let mapped = if pipelined { &pipeline.tracker } else { &tracker };
+        let in_view = first.map_or_else(
+            || "–".to_string(),
+            |(estimate0, truth0)| {
+                let camera_from_map = (estimate0 * truth0.inverse() * world_from_camera).inverse();
+                let camera = mapped.camera();
+                let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+                let n = mapped
+                    .map()
+                    .points
+                    .values()
+                    .filter(|mp| {
+                        let p = camera_from_map * mp.point_in_world;
+                        p.z > 0.0 && camera.project(&p).is_some_and(|q| q.x >= 0.0 && q.y >= 0.0 && q.x < w && q.y < h)
+                    })
+                    .count();
+                format!("{n} / {}", mapped.map().points.len())
+            },
+        );
         println!(
-            "{k} | {:?} | {} | {} | {:.0} % | {:.0} % | {} | {} | {} | {step} | {drift}",
+            "{k} | {:?} | {} | {} | {:.0} % | {:.0} % | {} | {} | {} | {step} | {drift} | {in_view}",
             track.state,
             track.tracked_points,
             u8::from(track.keyframe),
