@@ -17,7 +17,8 @@
 //! docs/people.md quotes,
 //! `cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture boards_carried`;
 //! `trace_one_run` prints one run frame by frame against ground truth (what the
-//! mask caught, the step and drift errors, the map points in view of the true pose),
+//! mask caught, the step and drift errors, the map points in view of the true pose
+//! and on the surface the frame shows there),
 //! for finding where a run goes wrong:
 //! `STILLMAP_BOARDS="rpy_b later pipeline" cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture trace_one_run`
 //! (clip `rpy` or `rpy_b`; arrangement `built`, `later` or `mirrored`; run
@@ -166,7 +167,7 @@ fn trace_one_run() {
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | origin-aligned error (mm) | map points in view of the true pose / in the map"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map"
     );
     for (k, f) in composite.iter().enumerate() {
         let (mask, track) = if pipelined {
@@ -203,24 +204,28 @@ fn trace_one_run() {
             None => ("–".into(), "–".into()),
         };
         // The map's points in view of the true pose (carried into the map's frame by
-        // the first frame's alignment): 0 while lost means nothing to relocalize on.
+        // the first frame's alignment), and of those the ones on the surface the
+        // frame shows there (depth within 5 %; not hidden, not on a board that left):
+        // few while lost means little to relocalize on.
         let mapped = if pipelined { &pipeline.tracker } else { &tracker };
         let in_view = first.map_or_else(
             || "–".to_string(),
             |(estimate0, truth0)| {
                 let camera_from_map = (estimate0 * truth0.inverse() * world_from_camera).inverse();
                 let camera = mapped.camera();
-                let (w, h) = (f64::from(camera.width), f64::from(camera.height));
-                let n = mapped
-                    .map()
-                    .points
-                    .values()
-                    .filter(|mp| {
-                        let p = camera_from_map * mp.point_in_world;
-                        p.z > 0.0 && camera.project(&p).is_some_and(|q| q.x >= 0.0 && q.y >= 0.0 && q.x < w && q.y < h)
-                    })
-                    .count();
-                format!("{n} / {}", mapped.map().points.len())
+                let (w, h) = (camera.width as usize, camera.height as usize);
+                let (mut in_view, mut on_surface) = (0, 0);
+                for mp in mapped.map().points.values() {
+                    let p = camera_from_map * mp.point_in_world;
+                    let Some(pixel) = camera.project(&p).filter(|_| p.z > 0.0).map(|q| camera.distort(&q)) else { continue };
+                    if pixel.x < 0.0 || pixel.y < 0.0 || pixel.x >= w as f64 || pixel.y >= h as f64 {
+                        continue;
+                    }
+                    in_view += 1;
+                    let z = f64::from(f.depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre;
+                    on_surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
+                }
+                format!("{on_surface} / {in_view} / {}", mapped.map().points.len())
             },
         );
         println!(
