@@ -60,6 +60,10 @@ pub struct TrackerConfig {
     /// a failed alignment loses its weight instead of dragging the pose.
     pub dense_prior_sigma_deg: f64,
     pub dense_prior_sigma_m: f64,
+    /// The frame interval (seconds) those σ hold for. A step spanning n such
+    /// intervals (frames dropped, a slower camera) widens them n-fold (n rounded,
+    /// at least 1): the alignment's error grows with the motion it must recover.
+    pub dense_prior_interval_s: f64,
     /// Matches below which the motion-model search is repeated with a wider radius,
     /// then replaced by PnP-RANSAC.
     pub min_motion_matches: usize,
@@ -104,6 +108,9 @@ impl TrackerConfig {
         if !(self.dense_prior_sigma_deg > 0.0 && self.dense_prior_sigma_m > 0.0) {
             return Err("tracking.dense_prior_sigma_deg and tracking.dense_prior_sigma_m must be positive".into());
         }
+        if !(self.dense_prior_interval_s > 0.0 && self.dense_prior_interval_s <= 1.0) {
+            return Err(format!("tracking.dense_prior_interval_s must be in (0, 1], got {}", self.dense_prior_interval_s));
+        }
         if !(self.match_ratio > 0.0 && self.match_ratio <= 1.0) {
             return Err("tracking.match_ratio must be in (0, 1]".into());
         }
@@ -136,6 +143,7 @@ impl Default for TrackerConfig {
             dense_odometry: true,
             dense_prior_sigma_deg: 0.1,
             dense_prior_sigma_m: 0.001,
+            dense_prior_interval_s: 1.0 / 30.0,
             min_motion_matches: 20,
             min_tracked_inliers: 30,
             min_relocalization_inliers: 50,
@@ -146,6 +154,21 @@ impl Default for TrackerConfig {
             ba_window: 6,
             ba_iterations: 8,
             relocalization_candidates: 5,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_validates_and_a_bad_prior_interval_is_named() {
+        assert_eq!(TrackerConfig::default().validate(), Ok(()));
+        for bad in [0.0, -0.1, 1.5, f64::NAN] {
+            let config = TrackerConfig { dense_prior_interval_s: bad, ..TrackerConfig::default() };
+            let err = config.validate().expect_err("rejected");
+            assert!(err.starts_with("tracking.dense_prior_interval_s must be in (0, 1]"), "{bad}: {err}");
         }
     }
 }

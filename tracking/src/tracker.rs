@@ -4,7 +4,7 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, UnitQuaternion};
 
 use crate::TrackingError;
 use crate::ba;
@@ -77,6 +77,10 @@ struct LastFrame {
 
 /// Relocalization: Hamming ratio test for brute-force matches.
 const RELOC_MATCH_RATIO: f32 = 0.75;
+/// The dense alignment starts from the motion model's step only over up to this many
+/// frame intervals: over longer gaps a constant velocity predicts no better than
+/// standing still (the identity start).
+const MAX_GUESS_INTERVALS: f64 = 5.0;
 /// Relocalization: correspondences needed before PnP is tried.
 const RELOC_MIN_MATCHES: usize = 15;
 /// PnP-RANSAC iterations, inlier reprojection threshold (pixels) and confidence.
@@ -121,6 +125,8 @@ pub struct Tracker {
     prior: Option<PosePrior>,
     /// Timestamp of the frame before this one (dense odometry's step starts there).
     previous_timestamp_ns: Option<u64>,
+    /// Frame intervals the last tracked step (`velocity`) spanned.
+    velocity_intervals: f64,
     /// A keyframe made while no motion was known (the first one; one after a failed
     /// dense step with no tracked velocity), whose keypoints a rolling shutter still
     /// distorts: rectified with the next frame's step.
@@ -174,6 +180,7 @@ impl Tracker {
             dense,
             prior: None,
             previous_timestamp_ns: None,
+            velocity_intervals: 1.0,
             unrectified_keyframe: None,
             scales: level_scales(&config),
             camera,
@@ -228,6 +235,27 @@ impl Tracker {
         let mut times = StageTimes::default();
         let t = Instant::now();
         let gray = to_gray(frame.rgb);
+        // Frame intervals (`dense_prior_interval_s`) since the previous frame.
+        let intervals = match self.previous_timestamp_ns {
+            Some(previous_ns) if frame.timestamp_ns > previous_ns => {
+                ((frame.timestamp_ns - previous_ns) as f64 * 1e-9 / self.config.dense_prior_interval_s).round().max(1.0)
+            }
+            _ => 1.0,
+        };
+        // After dropped frames (or from a slower camera) the step is larger than the
+        // alignment's identity start can reach: the motion model's step over those
+        // intervals starts it. At the nominal rate the identity start is kept.
+        let guess = match self.velocity {
+            Some(v) if !self.lost && intervals > 1.0 && intervals <= MAX_GUESS_INTERVALS => {
+                let f = intervals / self.velocity_intervals;
+                let current_from_previous = Isometry3::from_parts(
+                    (v.translation.vector * f).into(),
+                    UnitQuaternion::from_scaled_axis(v.rotation.scaled_axis() * f),
+                );
+                Some(current_from_previous.inverse())
+            }
+            _ => None,
+        };
         // Dense odometry needs only the images: it runs on its own thread while the
         // features are extracted.
         let (feats, step) = std::thread::scope(|scope| {
@@ -235,7 +263,7 @@ impl Tracker {
                 let gray = &gray;
                 std::thread::Builder::new().name("dense-odometry".into()).spawn_scoped(scope, move || {
                     let t = Instant::now();
-                    (dense.push(gray, frame.depth, frame.dynamic_mask), t.elapsed())
+                    (dense.push_from(gray, frame.depth, frame.dynamic_mask, guess), t.elapsed())
                 })
             });
             let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask);
@@ -270,12 +298,13 @@ impl Tracker {
             }
             rectified = true;
         }
-        // current_from_world = current_from_previous · previous_from_world.
+        // current_from_world = current_from_previous · previous_from_world. The σ
+        // widen with the frame intervals the step spans.
         self.prior = match (step, &self.last) {
             (Some(previous_from_current), Some(last)) if !self.lost => Some(PosePrior {
                 camera_from_world: previous_from_current.inverse() * last.camera_from_world,
-                rotation_information: self.config.dense_prior_sigma_deg.to_radians().powi(2).recip(),
-                translation_information: self.config.dense_prior_sigma_m.powi(2).recip(),
+                rotation_information: (intervals * self.config.dense_prior_sigma_deg).to_radians().powi(2).recip(),
+                translation_information: (intervals * self.config.dense_prior_sigma_m).powi(2).recip(),
             }),
             _ => None,
         };
@@ -337,6 +366,7 @@ impl Tracker {
             (Some(last), false) => Some(camera_from_world * last.camera_from_world.inverse()),
             _ => None,
         };
+        self.velocity_intervals = intervals;
         self.lost = false;
         self.frames_since_keyframe += 1;
 

@@ -40,6 +40,8 @@ const FR1_MAX_ATE_M: f64 = 0.015;
 const FR1_MAX_ATE_ORIGIN_DEG: f64 = 1.7;
 const FR1_MAX_RPE_M: f64 = 0.0065;
 const FR1_MAX_RPE_DEG: f64 = 0.5;
+/// ATE bound with frames dropped (`dropped_frames_are_tracked`; measured 1.31 and 1.18 cm).
+const DROPPED_FRAMES_MAX_ATE_M: f64 = 0.02;
 
 /// Good frames tracked before a disturbance.
 const FRAMES_BEFORE_DROPOUT: usize = 20;
@@ -252,6 +254,37 @@ fn fr1_rpy_is_tracked_accurately_and_deterministically() {
     assert_eq!(s.pairs, FR1_RPY_FRAMES);
     assert!(s.ate_m <= FR1_MAX_ATE_M && s.ate_origin_deg <= FR1_MAX_ATE_ORIGIN_DEG, "{s:?}");
     assert!(s.rpe_m <= FR1_MAX_RPE_M && s.rpe_deg <= FR1_MAX_RPE_DEG, "{s:?}");
+}
+
+/// Frames dropped on the way (a saturated server, a slower camera): fr1_rpy fed
+/// every third frame (10 Hz) and with each frame kept at random with probability
+/// 1/2 (a fixed seed) is tracked on every frame fed, within
+/// `DROPPED_FRAMES_MAX_ATE_M`. Measured 1.31 and 1.18 cm (every frame: 0.95 cm);
+/// before the dense alignment started from the motion model's step and its prior
+/// widened with the frame intervals it spans: 11.0 cm with a frame lost, and 3.6 cm
+/// with 9 lost.
+#[test]
+fn dropped_frames_are_tracked() {
+    let clip = Clip::get();
+    let mut state = 12_345u64;
+    let mut kept_at_random = || {
+        state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+        (state >> 33).is_multiple_of(2)
+    };
+    let every_third: Vec<&tum::TumFrame> = clip.frames.iter().step_by(3).collect();
+    let half_at_random: Vec<&tum::TumFrame> = clip.frames.iter().filter(|_| kept_at_random()).collect();
+    for (what, fed) in [("every third frame", every_third), ("half the frames at random", half_at_random)] {
+        let mut tracker = fr1_tracker();
+        let mut est = Vec::new();
+        for f in &fed {
+            let out = track(&mut tracker, f, Feed::Real);
+            let pose = out.world_from_camera.unwrap_or_else(|| panic!("{what}: no pose at {}: {out:?}", f.timestamp_ns));
+            est.push((tum::fr1_pose_time_ns(f.timestamp_ns), pose));
+        }
+        let s = tum::score(&clip.gt, &est);
+        println!("fr1_rpy, {what} ({} frames): ATE {:.2} cm", fed.len(), s.ate_m * 100.0);
+        assert!(s.ate_m <= DROPPED_FRAMES_MAX_ATE_M, "{what}: {s:?}");
+    }
 }
 
 #[test]

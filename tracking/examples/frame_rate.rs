@@ -1,0 +1,63 @@
+//! Tracking when frames are dropped: the public clips (both, or `DIR`) tracked at
+//! every frame (30 Hz), every 2nd, 3rd and 4th (15, 10, 7.5 Hz), and with each
+//! frame kept at random with probability 1/2 (a fixed seed): what a robot streaming
+//! to a saturated server, or a slower camera, gives the tracker. Prints a table:
+//! `cargo run --release -p stillmap-tracking --example frame_rate [DIR]`
+//! (`TRACKING="key = value;…"` overrides the tracker's config).
+
+use std::path::PathBuf;
+
+use stillmap_tracking::testing as tum;
+use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
+
+/// Which frames are fed: every n-th, or each kept at random with probability 1/2.
+#[derive(Clone, Copy)]
+enum Keep {
+    Every(usize),
+    RandomHalf,
+}
+
+fn main() {
+    let dirs: Vec<PathBuf> = match std::env::args().nth(1) {
+        Some(dir) => vec![PathBuf::from(dir)],
+        None => vec![tum::fr1_rpy_dir(), stillmap_dataset::shared::fr1_rpy_b()],
+    };
+    let config: TrackerConfig =
+        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let runs = [
+        ("30 Hz (every frame)", Keep::Every(1)),
+        ("15 Hz (every 2nd)", Keep::Every(2)),
+        ("10 Hz (every 3rd)", Keep::Every(3)),
+        ("7.5 Hz (every 4th)", Keep::Every(4)),
+        ("half, at random", Keep::RandomHalf),
+    ];
+    println!("| clip | frames fed | ATE | frames without a pose |");
+    println!("|---|---|---|---|");
+    for dir in &dirs {
+        let frames = tum::load(dir, usize::MAX);
+        let gt = tum::groundtruth(dir);
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        for (label, keep) in runs {
+            // A 64-bit LCG (Knuth's MMIX constants): the same frames every run.
+            let mut state = 12_345u64;
+            let mut kept_at_random = || {
+                state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+                (state >> 33).is_multiple_of(2)
+            };
+            let fed: Vec<&tum::TumFrame> = match keep {
+                Keep::Every(n) => frames.iter().step_by(n).collect(),
+                Keep::RandomHalf => frames.iter().filter(|_| kept_at_random()).collect(),
+            };
+            let mut tracker = Tracker::new(tum::fr1_camera(), config.clone()).expect("tracker");
+            let mut est = Vec::new();
+            for f in &fed {
+                let input = FrameInput { timestamp_ns: f.timestamp_ns, rgb: &f.rgb, depth: &f.depth, dynamic_mask: None };
+                if let Some(pose) = tracker.track(&input).expect("track").world_from_camera {
+                    est.push((tum::fr1_pose_time_ns(f.timestamp_ns), pose));
+                }
+            }
+            let s = tum::score(&gt, &est);
+            println!("| {name} | {label}: {} | {:.2} cm | {} |", fed.len(), 100.0 * s.ate_m, fed.len() - est.len());
+        }
+    }
+}
