@@ -125,6 +125,7 @@ fn table() {
         let mask = masker
             .prepare(MaskerInput {
                 sequence: k as u64,
+                capture_time_ns: f.timestamp_ns,
                 rgb: &f.rgb,
                 depth: &f.depth,
                 segmentation: None,
@@ -194,6 +195,7 @@ fn benches(c: &mut Criterion) {
             masker
                 .process(MaskerInput {
                     sequence: k,
+                    capture_time_ns: 0,
                     rgb: &f.rgb,
                     depth: &f.depth,
                     segmentation: None,

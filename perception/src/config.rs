@@ -213,6 +213,11 @@ pub struct EgoMotionConfig {
     /// camera-motion estimate, and labelled moving when the per-frame motion
     /// disagrees with the baseline's. 0 or 1: off; at most 30.
     pub baseline_frames: u32,
+    /// The frame interval (seconds) the flow's noise (`flow_sigma_px`,
+    /// `min_residual_px`) holds for. A step spanning n such intervals (frames
+    /// dropped on the way, a slower camera; from the frames' capture times) scales
+    /// both n-fold: Farneback's error grows with the displacement it measures.
+    pub frame_interval_s: f64,
 }
 
 /// How a prior-dynamic instance (a person, say) that does not move is treated by tracking.
@@ -343,6 +348,9 @@ impl PerceptionConfig {
         let e = &self.ego_motion;
         if e.sample_step == 0 {
             return Err("perception.ego_motion.sample_step must be at least 1".into());
+        }
+        if !(e.frame_interval_s > 0.0 && e.frame_interval_s <= 1.0) {
+            return Err(format!("perception.ego_motion.frame_interval_s must be in (0, 1], got {}", e.frame_interval_s));
         }
         if e.baseline_frames > MAX_BASELINE_FRAMES {
             return Err(format!("perception.ego_motion.baseline_frames must be at most {MAX_BASELINE_FRAMES}, got {}", e.baseline_frames));
@@ -487,6 +495,7 @@ impl Default for EgoMotionConfig {
             before_tracking: true,
             remember_moved_frames: 90,
             baseline_frames: 4,
+            frame_interval_s: 1.0 / 30.0,
         }
     }
 }

@@ -231,7 +231,7 @@ impl EgoMotion {
         prior: Option<Isometry3<f64>>,
         exclude: Option<&[u8]>,
     ) -> EgoResult {
-        self.compensate_sampled(flow, current, previous, self.frame_samples(current, depth), prior, exclude)
+        self.compensate_sampled(flow, current, previous, self.frame_samples(current, depth), prior, exclude, 1.0)
     }
 
     /// The frame's flow-grid depth and texture, which [`compensate_sampled`](Self::compensate_sampled)
@@ -240,7 +240,10 @@ impl EgoMotion {
         FrameSamples { depth_m: self.sample_depth(depth), texture: min_eigen_texture(current) }
     }
 
-    /// [`compensate`](Self::compensate) with the frame's samples taken already.
+    /// [`compensate`](Self::compensate) with the frame's samples taken already, for a
+    /// flow step spanning `intervals` frame intervals (`ego_motion.frame_interval_s`;
+    /// 1 at the camera's full rate): the flow's noise scales with them.
+    #[allow(clippy::too_many_arguments)]
     pub fn compensate_sampled(
         &self,
         flow: &FlowField,
@@ -249,12 +252,17 @@ impl EgoMotion {
         frame: FrameSamples,
         prior: Option<Isometry3<f64>>,
         exclude: Option<&[u8]>,
+        intervals: f64,
     ) -> EgoResult {
         debug_assert_eq!((flow.width, flow.height), (self.width, self.height));
         let FrameSamples { depth_m, texture } = frame;
+        let intervals = intervals.max(1.0);
+        let sigma = self.config.flow_sigma_px * intervals;
+        // `classify` composes noise as variances: n intervals' σ, n-fold, is n² steps.
+        let noise_steps = intervals * intervals;
 
         // Refinement: current-camera points against their flow targets in the previous image.
-        let information = 1.0 / (self.config.flow_sigma_px * self.config.flow_sigma_px);
+        let information = 1.0 / (sigma * sigma);
         let correspondences = self.flow_samples(flow, &texture, &depth_m, exclude, information, 1);
         let samples = correspondences.len();
 
@@ -273,7 +281,7 @@ impl EgoMotion {
                 let pairs: Vec<_> = correspondences.iter().map(|(p, m)| (*p, m.ideal)).collect();
                 let params = PnpRansac {
                     iterations: RANSAC_ITERATIONS,
-                    threshold_px: (self.config.flow_sigma_px * RANSAC_THRESHOLD_SIGMAS) as f32,
+                    threshold_px: (sigma * RANSAC_THRESHOLD_SIGMAS) as f32,
                     confidence: RANSAC_CONFIDENCE,
                 };
                 pnp_ransac(&self.camera, &pairs, params).map(|(pose, _)| pose)
@@ -307,7 +315,7 @@ impl EgoMotion {
                     continue;
                 }
                 seen.push(motion);
-                let vote = self.classify(flow, current, previous, &depth_m, &motion, 1.0, Cells::VoteGrid, None);
+                let vote = self.classify(flow, current, previous, &depth_m, &motion, noise_steps, Cells::VoteGrid, None);
                 let moving = moving_count(&vote.0, exclude);
                 if moving < best {
                     (best, previous_from_current, refined, inliers, classified) = (moving, motion, is_refined, n, Some(vote));
@@ -316,8 +324,10 @@ impl EgoMotion {
         }
         // The winner's vote cells are classified already.
         let (class, residual_px) = match classified {
-            Some(vote) => self.classify(flow, current, previous, &depth_m, &previous_from_current, 1.0, Cells::OffVoteGrid, Some(vote)),
-            None => self.classify(flow, current, previous, &depth_m, &previous_from_current, 1.0, Cells::All, None),
+            Some(vote) => {
+                self.classify(flow, current, previous, &depth_m, &previous_from_current, noise_steps, Cells::OffVoteGrid, Some(vote))
+            }
+            None => self.classify(flow, current, previous, &depth_m, &previous_from_current, noise_steps, Cells::All, None),
         };
         let confirmed = candidates.iter().any(|&(_, is_refined, _)| is_refined);
         EgoResult { previous_from_current, refined, confirmed, samples, inliers, class, residual_px, depth_m }
@@ -418,6 +428,8 @@ impl EgoMotion {
     /// full classification under `candidate` is returned only when it leaves
     /// fewer pixels moving. Motions within [`RECONSIDER_TOLERANCE_M`] /
     /// [`RECONSIDER_TOLERANCE_RAD`] of the earlier one are not worth a vote.
+    /// `intervals`: the frame intervals the flow step spans, as in `compensate_sampled`.
+    #[allow(clippy::too_many_arguments)]
     pub fn reconsider(
         &self,
         flow: &FlowField,
@@ -426,7 +438,9 @@ impl EgoMotion {
         earlier: &EgoResult,
         candidate: &Isometry3<f64>,
         exclude: Option<&[u8]>,
+        intervals: f64,
     ) -> Option<EgoResult> {
+        let noise_steps = intervals.max(1.0).powi(2);
         let delta = earlier.previous_from_current.inverse() * candidate;
         if delta.translation.vector.norm() < RECONSIDER_TOLERANCE_M && delta.rotation.angle() < RECONSIDER_TOLERANCE_RAD {
             return None;
@@ -435,12 +449,13 @@ impl EgoMotion {
         if earlier_moving == 0 {
             return None; // nothing moves: no motion can leave fewer pixels moving
         }
-        let vote = self.classify(flow, current, previous, &earlier.depth_m, candidate, 1.0, Cells::VoteGrid, None);
+        let vote = self.classify(flow, current, previous, &earlier.depth_m, candidate, noise_steps, Cells::VoteGrid, None);
         let moving = moving_count(&vote.0, exclude);
         if moving >= earlier_moving {
             return None;
         }
-        let (class, residual_px) = self.classify(flow, current, previous, &earlier.depth_m, candidate, 1.0, Cells::OffVoteGrid, Some(vote));
+        let (class, residual_px) =
+            self.classify(flow, current, previous, &earlier.depth_m, candidate, noise_steps, Cells::OffVoteGrid, Some(vote));
         Some(EgoResult {
             previous_from_current: *candidate,
             refined: false,
@@ -454,9 +469,10 @@ impl EgoMotion {
         })
     }
 
-    /// What moved over a longer baseline: `composed` is the flow of `steps` frames
-    /// (this frame's pixels to where they were in `reference`, the image `steps`
-    /// frames back), read at every [`baseline_stride`](Self::baseline_stride)-th
+    /// What moved over a longer baseline: `composed` is the flow of several frames
+    /// (this frame's pixels to where they were in `reference`, the image that many
+    /// frames back; `noise_steps`: its noise in one frame's flow variances, Σ n² over
+    /// the composed steps, n the frame intervals each spans), read at every [`baseline_stride`](Self::baseline_stride)-th
     /// cell in each direction; each judged cell stands for its block. One frame's
     /// flow cannot tell the camera's motion from that of a large textured thing that
     /// starts moving (a lateral translation with a compensating rotation explains
@@ -476,7 +492,7 @@ impl EgoMotion {
     pub fn movers_over_baseline(
         &self,
         composed: &FlowField,
-        steps: usize,
+        noise_steps: f64,
         current: &SmallGray,
         reference: &SmallGray,
         frame: &FrameSamples,
@@ -485,7 +501,7 @@ impl EgoMotion {
         exclude: Option<&[u8]>,
     ) -> Option<BaselineMovers> {
         debug_assert_eq!((composed.width, composed.height), (self.width, self.height));
-        let steps_f = steps.max(1) as f64;
+        let steps_f = noise_steps.max(1.0);
         let (depth_m, texture) = (&frame.depth_m, &frame.texture);
         let sigma = self.config.flow_sigma_px * steps_f.sqrt();
         let correspondences = self.flow_samples(composed, texture, depth_m, exclude, 1.0 / (sigma * sigma), VOTE_STRIDE);
@@ -804,6 +820,26 @@ mod tests {
 
     /// Labels made under a wrong (predicted) motion are re-decided by the tracked
     /// one only when it differs and leaves fewer pixels moving.
+    /// The patch's 8-pixel independent motion is beyond one frame interval's flow
+    /// noise (3σ = 3 px) and within three intervals' (9 px): a step spanning three
+    /// (frames dropped on the way) does not call it moving.
+    #[test]
+    fn a_step_over_three_frame_intervals_is_judged_with_three_times_the_noise() {
+        let config = EgoMotionConfig { min_samples: 20, ..EgoMotionConfig::default() };
+        let ego = EgoMotion::new(wall_camera(), config, 2);
+        let truth = Isometry3::new(Vector3::new(0.03, -0.01, 0.02), Vector3::new(0.01, -0.02, 0.005));
+        let (flow, current, previous, depth) = wall_with_patch(&ego, &truth);
+        let (w, _) = ego.grid_size();
+        let judged = |intervals: f64| {
+            let out = ego.compensate_sampled(&flow, &current, &previous, ego.frame_samples(&current, &depth), Some(truth), None, intervals);
+            let centre = 55 * w + 75;
+            assert!(inside(75, 55), "the patch's centre");
+            out.class[centre]
+        };
+        assert_eq!(judged(1.0), RESIDUAL);
+        assert_eq!(judged(3.0), CONSISTENT);
+    }
+
     #[test]
     fn reconsider_takes_the_tracked_motion_only_when_it_explains_more() {
         // Priors used as they are, so each result is the classification under its prior.
@@ -819,16 +855,16 @@ mod tests {
 
         // Priors used as they are: nothing on the flow checked them.
         assert!(!under_wrong.confirmed && !under_wrong.refined);
-        let better = ego.reconsider(&flow, &current, &previous, &under_wrong, &truth, None).expect("the tracked motion explains more");
+        let better = ego.reconsider(&flow, &current, &previous, &under_wrong, &truth, None, 1.0).expect("the tracked motion explains more");
         assert!(better.confirmed, "it won the vote on the flow");
         assert_eq!(better.previous_from_current, truth);
         assert_eq!(better.class, under_truth.class);
         assert_eq!(better.residual_px, under_truth.residual_px);
         // Worse, or within the tolerance of the chosen motion: the labels stand.
-        assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &wrong, None).is_none());
+        assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &wrong, None, 1.0).is_none());
         let nudged = truth * Isometry3::new(Vector3::new(RECONSIDER_TOLERANCE_M * 0.5, 0.0, 0.0), Vector3::zeros());
-        assert!(ego.reconsider(&flow, &current, &previous, &under_wrong, &nudged, None).is_some());
-        assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &nudged, None).is_none());
+        assert!(ego.reconsider(&flow, &current, &previous, &under_wrong, &nudged, None, 1.0).is_some());
+        assert!(ego.reconsider(&flow, &current, &previous, &under_truth, &nudged, None, 1.0).is_none());
     }
 
     /// Over a baseline, a near textured board that moved sideways (a fifth of the
@@ -922,7 +958,7 @@ mod tests {
         let out = ego
             .movers_over_baseline(
                 &composed,
-                steps,
+                steps as f64,
                 &current,
                 &reference,
                 &ego.frame_samples(&current, &depth),

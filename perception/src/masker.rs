@@ -36,6 +36,9 @@ pub enum MaskSource {
 /// One frame for the masker.
 pub struct MaskerInput<'a> {
     pub sequence: u64,
+    /// When the frame was captured (nanoseconds; 0: unknown, and a flow step then
+    /// spans as many frame intervals as sequence numbers).
+    pub capture_time_ns: u64,
     /// RGB8, `width × height × 3`.
     pub rgb: &'a [u8],
     /// Raw depth, `width × height`, 0 = no reading.
@@ -90,13 +93,16 @@ pub struct EgoSummary {
 struct FlowStep {
     from: u64,
     to: u64,
+    /// Frame intervals (`ego_motion.frame_interval_s`) the step spans, from the
+    /// capture times (else the sequence numbers): more than one after drops.
+    intervals: f64,
     flow: FlowField,
 }
 
 impl FlowStep {
     /// Frame intervals the step spans (more than one after drops).
-    fn frames(&self) -> u64 {
-        self.to - self.from
+    fn frames(&self) -> f64 {
+        self.intervals
     }
 }
 
@@ -236,8 +242,10 @@ pub struct DynamicMasker {
     flows: VecDeque<FlowStep>,
     carried: Option<Carried>,
     last_ego: Option<EgoResult>,
-    /// Frames (sequence numbers) the last result's motion spans: more than one after drops.
-    last_ego_frames: u64,
+    /// Frame intervals the last result's motion spans: more than one after drops.
+    last_ego_frames: f64,
+    /// The last prepared frame's sequence and capture time (ns, 0: unknown).
+    previous_capture: Option<(u64, u64)>,
     /// The last finished frame's dynamic flow-grid cells (1 = dynamic).
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
@@ -298,7 +306,8 @@ impl DynamicMasker {
             flows: VecDeque::new(),
             carried: None,
             last_ego: None,
-            last_ego_frames: 1,
+            last_ego_frames: 1.0,
+            previous_capture: None,
             dynamic_grid: None,
             pending: None,
             origins,
@@ -401,7 +410,13 @@ impl DynamicMasker {
         let previous = self.previous.take().filter(|(prev_seq, _)| *prev_seq < input.sequence);
         let flow = match &previous {
             Some((prev_seq, prev)) => {
-                Some(FlowStep { from: *prev_seq, to: input.sequence, flow: farneback(&small, prev, &self.config.flow, s)? })
+                let intervals = match self.previous_capture {
+                    Some((q, t)) if q == *prev_seq && t > 0 && input.capture_time_ns > t => {
+                        ((input.capture_time_ns - t) as f64 * 1e-9 / self.config.ego_motion.frame_interval_s).round().max(1.0)
+                    }
+                    _ => (input.sequence - *prev_seq) as f64,
+                };
+                Some(FlowStep { from: *prev_seq, to: input.sequence, intervals, flow: farneback(&small, prev, &self.config.flow, s)? })
             }
             None => None,
         };
@@ -467,8 +482,8 @@ impl DynamicMasker {
         let mut exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
         self.exclude_remembered(&mut exclude, input.sequence, input.depth);
         // Constant velocity over the frames this step spans (more than one after drops).
-        let step_frames = self.latest_step(input.sequence).map_or(1, FlowStep::frames);
-        let factor = step_frames as f64 / self.last_ego_frames.max(1) as f64;
+        let step_frames = self.latest_step(input.sequence).map_or(1.0, FlowStep::frames);
+        let factor = step_frames / self.last_ego_frames.max(1.0);
         let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
         times.warp = t.elapsed();
         let t = Instant::now();
@@ -577,6 +592,7 @@ impl DynamicMasker {
         }
         times.fusion += t.elapsed();
         times.total = started.elapsed();
+        self.previous_capture = Some((input.sequence, input.capture_time_ns));
         self.pending = Some(Pending {
             sequence: input.sequence,
             small,
@@ -613,7 +629,7 @@ impl DynamicMasker {
             Some((early_ego, early_fused, early_cells)) => {
                 let better = match (self.latest_step(sequence), &previous, previous_from_current) {
                     (Some(step), Some(prev), Some(tracked)) => {
-                        self.ego.reconsider(&step.flow, &small, prev, &early_ego, &tracked, Some(&exclude))
+                        self.ego.reconsider(&step.flow, &small, prev, &early_ego, &tracked, Some(&exclude), step.intervals)
                     }
                     _ => None,
                 };
@@ -724,7 +740,7 @@ impl DynamicMasker {
             inliers: e.inliers,
         });
         if ego.is_some() {
-            self.last_ego_frames = self.latest_step(sequence).map_or(1, FlowStep::frames);
+            self.last_ego_frames = self.latest_step(sequence).map_or(1.0, FlowStep::frames);
         }
         self.last_ego = ego;
         times.total += started.elapsed();
@@ -751,7 +767,9 @@ impl DynamicMasker {
         exclude: &[u8],
     ) -> Option<EgoResult> {
         match (self.latest_step(sequence), previous) {
-            (Some(step), Some(prev)) => Some(self.ego.compensate_sampled(&step.flow, small, prev, frame, prior, Some(exclude))),
+            (Some(step), Some(prev)) => {
+                Some(self.ego.compensate_sampled(&step.flow, small, prev, frame, prior, Some(exclude), step.intervals))
+            }
             _ => None,
         }
     }
@@ -793,8 +811,10 @@ impl DynamicMasker {
             .try_fold(Isometry3::identity(), |chain, step| self.recent_motions.iter().find(|(q, _)| *q == step.to).map(|(_, m)| chain * m));
         let starts: Vec<Isometry3<f64>> = chained.map(|c| c * predicted.unwrap_or_else(Isometry3::identity)).into_iter().collect();
         let chained = chained?;
-        let frames = usize::try_from(sequence - reference_sequence).ok()?;
-        let movers = self.ego.movers_over_baseline(&composed, frames, small, reference, frame, reference_depth, &starts, Some(&ignored))?;
+        // The composed flow's noise: each step's, n-fold over its n frame intervals.
+        let noise_steps: f64 = steps.iter().map(|step| step.intervals * step.intervals).sum();
+        let movers =
+            self.ego.movers_over_baseline(&composed, noise_steps, small, reference, frame, reference_depth, &starts, Some(&ignored))?;
         // Judged cells whose path left the image are not movers (each stands for its block).
         let (gw, gh) = self.ego.grid_size();
         let stride = self.ego.baseline_stride();
@@ -809,7 +829,7 @@ impl DynamicMasker {
         // The composed flow is least exact along depth and contrast edges (motion
         // blur, disocclusion): thin lines of "movers" there go; a moving thing is a region.
         let moving = open_regions(moving, gw, gh, BASELINE_OPENING_CELLS).ok()?;
-        Some(Baseline { moving, reference_from_current: movers.reference_from_current, chained, frames })
+        Some(Baseline { moving, reference_from_current: movers.reference_from_current, chained, noise_steps })
     }
 
     /// `ego` with the cells that moved over the baseline marked as residual flow too
@@ -821,7 +841,7 @@ impl DynamicMasker {
     fn with_movers(&self, mut ego: EgoResult, baseline: Option<&Baseline>) -> EgoResult {
         let Some(b) = baseline else { return ego };
         let implied = b.chained * ego.previous_from_current;
-        let noise = self.config.ego_motion.flow_sigma_px * (b.frames as f64).sqrt();
+        let noise = self.config.ego_motion.flow_sigma_px * b.noise_steps.sqrt();
         let disagree = self.ego.prediction_gap(&implied, &b.reference_from_current, &ego.depth_m).is_some_and(|gap| gap > 2.0 * noise);
         if disagree {
             for (c, &m) in ego.class.iter_mut().zip(&b.moving) {
@@ -1381,7 +1401,8 @@ struct Baseline {
     reference_from_current: Isometry3<f64>,
     /// The per-frame motions chosen over the baseline but the last, chained.
     chained: Isometry3<f64>,
-    frames: usize,
+    /// The composed flow's noise in one frame's flow variances (Σ n² over its steps).
+    noise_steps: f64,
 }
 
 /// What moved over the baseline is opened by a disc of this radius (flow cells)
@@ -1588,6 +1609,7 @@ mod tests {
         let step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
             m.prepare(MaskerInput {
                 sequence: k,
+                capture_time_ns: 0,
                 rgb: &rgb,
                 depth: &depth,
                 segmentation: seg.map(|s| (k, s)),

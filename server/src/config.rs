@@ -774,6 +774,12 @@ mod tests {
             ServerConfig::from_toml("[perception.ego_motion]\nbaseline_frames = 0\n").unwrap().perception.ego_motion.baseline_frames,
             0
         );
+        // The frame intervals the flow's and the dense prior's noise hold for.
+        assert!(
+            err("[perception.ego_motion]\nframe_interval_s = 0.0\n")
+                .contains("perception.ego_motion.frame_interval_s must be in (0, 1], got 0")
+        );
+        assert!(err("[tracking]\ndense_prior_interval_s = 2.0\n").contains("tracking.dense_prior_interval_s must be in (0, 1], got 2"));
         assert_eq!(
             err("[fleet]\ndefault_fleet = \"a b\"\n"),
             "invalid configuration: fleet.default_fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -"

@@ -168,8 +168,10 @@ impl MaskedTracking {
         segmentation: Option<(u64, Segmentation)>,
         accel_in_camera: Option<nalgebra::Vector3<f64>>,
     ) -> (Vec<u8>, TrackOutput, MaskOutput) {
-        let tracking_mask =
-            self.masker.prepare(MaskerInput { sequence, rgb, depth, segmentation, motion_prior: None, accel_in_camera }).expect("prepare");
+        let tracking_mask = self
+            .masker
+            .prepare(MaskerInput { sequence, capture_time_ns: timestamp_ns, rgb, depth, segmentation, motion_prior: None, accel_in_camera })
+            .expect("prepare");
         let track = self.tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: Some(&tracking_mask) }).expect("track");
         let motion = match (self.last_pose, track.world_from_camera) {
             (Some(prev), Some(cur)) => Some(prev.inverse() * cur),

@@ -104,6 +104,7 @@ impl SessionPerception {
     pub fn prepare(
         &mut self,
         sequence: u64,
+        capture_time_ns: u64,
         color: &ColorImage,
         depth: &DepthImage,
         accel: Option<nalgebra::Vector3<f64>>,
@@ -133,6 +134,7 @@ impl SessionPerception {
         self.segmentation_time = finished.as_ref().map(|f| f.2);
         let input = MaskerInput {
             sequence,
+            capture_time_ns,
             rgb: &color.data,
             depth: &depth.data,
             segmentation: finished.map(|(k, seg, _)| (k, seg)),

@@ -155,7 +155,7 @@ impl SessionPipeline {
         let Some(tracker) = self.tracker.as_mut() else { return outcome };
         let (color, depth) = (&decoded.color, &decoded.depth);
         let accel = frame.accel_in_camera.map(|a| Vector3::new(a.x, a.y, a.z));
-        let mask = self.perception.as_mut().and_then(|p| p.prepare(frame.sequence, color, depth, accel));
+        let mask = self.perception.as_mut().and_then(|p| p.prepare(frame.sequence, frame.capture_time_ns, color, depth, accel));
         let track = tracker.track(frame.sequence, frame.capture_time_ns, color, depth, mask);
         outcome.stages.extend(track.stages());
         outcome.total += track.times.total;
