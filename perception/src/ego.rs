@@ -818,8 +818,6 @@ mod tests {
         }
     }
 
-    /// Labels made under a wrong (predicted) motion are re-decided by the tracked
-    /// one only when it differs and leaves fewer pixels moving.
     /// The patch's 8-pixel independent motion is beyond one frame interval's flow
     /// noise (3σ = 3 px) and within three intervals' (9 px): a step spanning three
     /// (frames dropped on the way) does not call it moving.
@@ -840,6 +838,8 @@ mod tests {
         assert_eq!(judged(3.0), CONSISTENT);
     }
 
+    /// Labels made under a wrong (predicted) motion are re-decided by the tracked
+    /// one only when it differs and leaves fewer pixels moving.
     #[test]
     fn reconsider_takes_the_tracked_motion_only_when_it_explains_more() {
         // Priors used as they are, so each result is the classification under its prior.
