@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use stillmap_tracking::Camera;
+use stillmap_tracking::geometry::{frame_intervals, scale_motion};
 
 use crate::PerceptionError;
 use crate::config::{PerceptionConfig, PriorDynamicTracking};
@@ -97,13 +98,6 @@ struct FlowStep {
     /// capture times (else the sequence numbers): more than one after drops.
     intervals: f64,
     flow: FlowField,
-}
-
-impl FlowStep {
-    /// Frame intervals the step spans (more than one after drops).
-    fn frames(&self) -> f64 {
-        self.intervals
-    }
 }
 
 struct Carried {
@@ -238,14 +232,13 @@ pub struct DynamicMasker {
     config: PerceptionConfig,
     ego: EgoMotion,
     prior_dynamic: Vec<bool>,
-    previous: Option<(u64, SmallGray)>,
+    /// The last finished frame: sequence, capture time (ns, 0: unknown) and image.
+    previous: Option<(u64, u64, SmallGray)>,
     flows: VecDeque<FlowStep>,
     carried: Option<Carried>,
     last_ego: Option<EgoResult>,
     /// Frame intervals the last result's motion spans: more than one after drops.
     last_ego_frames: f64,
-    /// The last prepared frame's sequence and capture time (ns, 0: unknown).
-    previous_capture: Option<(u64, u64)>,
     /// The last finished frame's dynamic flow-grid cells (1 = dynamic).
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
@@ -271,6 +264,7 @@ pub struct DynamicMasker {
 
 struct Pending {
     sequence: u64,
+    capture_time_ns: u64,
     small: SmallGray,
     previous: Option<SmallGray>,
     /// Flow-grid cells the ego-motion estimate ignores.
@@ -307,7 +301,6 @@ impl DynamicMasker {
             carried: None,
             last_ego: None,
             last_ego_frames: 1.0,
-            previous_capture: None,
             dynamic_grid: None,
             pending: None,
             origins,
@@ -325,7 +318,7 @@ impl DynamicMasker {
     /// The last finished frame is keyframe `id` (the caller's id, as the map knows
     /// it): its pixels are followed from now on (see [`crate::origins`]).
     pub fn note_keyframe(&mut self, id: u64) {
-        if let Some((sequence, _)) = &self.previous {
+        if let Some((sequence, _, _)) = &self.previous {
             let (gw, gh) = self.ego.grid_size();
             self.origins.note(id, *sequence, gw * gh);
         }
@@ -407,15 +400,13 @@ impl DynamicMasker {
 
         let t = Instant::now();
         let small = SmallGray::from_rgb(input.rgb, w, h, s)?;
-        let previous = self.previous.take().filter(|(prev_seq, _)| *prev_seq < input.sequence);
+        let previous = self.previous.take().filter(|(prev_seq, _, _)| *prev_seq < input.sequence);
         let flow = match &previous {
-            Some((prev_seq, prev)) => {
-                let intervals = match self.previous_capture {
-                    Some((q, t)) if q == *prev_seq && t > 0 && input.capture_time_ns > t => {
-                        ((input.capture_time_ns - t) as f64 * 1e-9 / self.config.ego_motion.frame_interval_s).round().max(1.0)
-                    }
-                    _ => (input.sequence - *prev_seq) as f64,
-                };
+            Some((prev_seq, prev_time_ns, prev)) => {
+                let intervals = Some(*prev_time_ns)
+                    .filter(|&t| t > 0)
+                    .and_then(|t| frame_intervals(t, input.capture_time_ns, self.config.ego_motion.frame_interval_s))
+                    .unwrap_or((input.sequence - *prev_seq) as f64);
                 Some(FlowStep { from: *prev_seq, to: input.sequence, intervals, flow: farneback(&small, prev, &self.config.flow, s)? })
             }
             None => None,
@@ -482,9 +473,9 @@ impl DynamicMasker {
         let mut exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
         self.exclude_remembered(&mut exclude, input.sequence, input.depth);
         // Constant velocity over the frames this step spans (more than one after drops).
-        let step_frames = self.latest_step(input.sequence).map_or(1.0, FlowStep::frames);
+        let step_frames = self.latest_step(input.sequence).map_or(1.0, |step| step.intervals);
         let factor = step_frames / self.last_ego_frames.max(1.0);
-        let predicted = self.last_ego.as_ref().map(|e| scaled(&e.previous_from_current, factor));
+        let predicted = self.last_ego.as_ref().map(|e| scale_motion(&e.previous_from_current, factor));
         times.warp = t.elapsed();
         let t = Instant::now();
         // This frame's flow-grid depth and texture, shared by the baseline and the compensation.
@@ -500,7 +491,7 @@ impl DynamicMasker {
         let early = if self.config.ego_motion.before_tracking {
             let t = Instant::now();
             let ego = frame
-                .and_then(|f| self.compensate(input.sequence, &small, previous.as_ref().map(|(_, p)| p), f, predicted, &exclude))
+                .and_then(|f| self.compensate(input.sequence, &small, previous.as_ref().map(|(_, _, p)| p), f, predicted, &exclude))
                 .map(|e| self.with_movers(e, baseline.as_ref()));
             times.ego_motion += t.elapsed();
             ego.map(|ego| {
@@ -592,11 +583,11 @@ impl DynamicMasker {
         }
         times.fusion += t.elapsed();
         times.total = started.elapsed();
-        self.previous_capture = Some((input.sequence, input.capture_time_ns));
         self.pending = Some(Pending {
             sequence: input.sequence,
+            capture_time_ns: input.capture_time_ns,
             small,
-            previous: previous.map(|(_, p)| p),
+            previous: previous.map(|(_, _, p)| p),
             exclude,
             early,
             baseline,
@@ -613,7 +604,9 @@ impl DynamicMasker {
     /// when tracking failed: the flow refines identity then), and fusion into this
     /// frame's labels. `depth` is the frame's, as given to `prepare`.
     pub fn finish(&mut self, depth: &[u16], previous_from_current: Option<Isometry3<f64>>) -> Result<MaskOutput, PerceptionError> {
-        let Some(Pending { sequence, small, previous, exclude, early, baseline, carried_cells, mut times }) = self.pending.take() else {
+        let Some(Pending { sequence, capture_time_ns, small, previous, exclude, early, baseline, carried_cells, mut times }) =
+            self.pending.take()
+        else {
             return Err(PerceptionError::Input("finish called without prepare".into()));
         };
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
@@ -664,11 +657,11 @@ impl DynamicMasker {
                 self.recent_motions.pop_front();
             }
         }
-        self.previous = Some((sequence, small));
+        self.previous = Some((sequence, capture_time_ns, small));
         // The pose chain: broken (a new epoch) when tracking gave no motion.
         self.chain = match (self.chain.take(), previous_from_current) {
             (Some(c), Some(m)) if c.sequence < sequence => {
-                let motion = scaled(&m, 1.0 / (sequence - c.sequence) as f64);
+                let motion = scale_motion(&m, 1.0 / (sequence - c.sequence) as f64);
                 Some(PoseChain { sequence, anchor_from_camera: c.anchor_from_camera * m, motion, ..c })
             }
             _ => {
@@ -740,7 +733,7 @@ impl DynamicMasker {
             inliers: e.inliers,
         });
         if ego.is_some() {
-            self.last_ego_frames = self.latest_step(sequence).map_or(1.0, FlowStep::frames);
+            self.last_ego_frames = self.latest_step(sequence).map_or(1.0, |step| step.intervals);
         }
         self.last_ego = ego;
         times.total += started.elapsed();
@@ -1281,7 +1274,7 @@ impl DynamicMasker {
     fn predicted_pose(&self, now: u64) -> Option<(u32, Isometry3<f64>)> {
         let c = self.chain.as_ref()?;
         let frames = now.checked_sub(c.sequence)?;
-        Some((c.epoch, c.anchor_from_camera * scaled(&c.motion, frames as f64)))
+        Some((c.epoch, c.anchor_from_camera * scale_motion(&c.motion, frames as f64)))
     }
 
     /// Warps a segmentation of frame `k` through the stored flows up to frame `to`;
@@ -1457,15 +1450,6 @@ fn median(values: &mut [f32]) -> Option<f32> {
     Some(*m)
 }
 
-/// A motion scaled along its screw, approximately: the rotation's angle and the
-/// translation both times `factor` (constant velocity over `factor` frame intervals).
-fn scaled(motion: &Isometry3<f64>, factor: f64) -> Isometry3<f64> {
-    if factor == 1.0 {
-        return *motion;
-    }
-    Isometry3::from_parts((motion.translation.vector * factor).into(), motion.rotation.powf(factor))
-}
-
 /// Grows the 0/1 flow-grid mask over the surfaces its cells lie on, at most
 /// `max_steps` cells (see [`grow_over_depth`]).
 fn grow_over_surfaces(mut grid: Vec<u8>, depth_m: &[f32], width: usize, height: usize, max_steps: usize, ratio: f64) -> Vec<u8> {
@@ -1562,11 +1546,11 @@ mod tests {
     #[test]
     fn a_motion_scales_with_the_frames_it_spans() {
         let m = Isometry3::new(Vector3::new(0.01, -0.02, 0.005), Vector3::new(0.0, 0.03, 0.0));
-        let twice = scaled(&m, 2.0);
+        let twice = scale_motion(&m, 2.0);
         assert!((twice.rotation.angle() - 0.06).abs() < 1e-12);
         assert!((twice.translation.vector - Vector3::new(0.02, -0.04, 0.01)).norm() < 1e-12);
-        assert_eq!(scaled(&m, 1.0), m);
-        let half = scaled(&m, 0.5);
+        assert_eq!(scale_motion(&m, 1.0), m);
+        let half = scale_motion(&m, 0.5);
         assert!((half.rotation.angle() - 0.015).abs() < 1e-12);
     }
 

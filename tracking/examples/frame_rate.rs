@@ -38,15 +38,9 @@ fn main() {
         let gt = tum::groundtruth(dir);
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         for (label, keep) in runs {
-            // A 64-bit LCG (Knuth's MMIX constants): the same frames every run.
-            let mut state = 12_345u64;
-            let mut kept_at_random = || {
-                state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-                (state >> 33).is_multiple_of(2)
-            };
             let fed: Vec<&tum::TumFrame> = match keep {
                 Keep::Every(n) => frames.iter().step_by(n).collect(),
-                Keep::RandomHalf => frames.iter().filter(|_| kept_at_random()).collect(),
+                Keep::RandomHalf => tum::half_at_random(&frames),
             };
             let mut tracker = Tracker::new(tum::fr1_camera(), config.clone()).expect("tracker");
             let mut est = Vec::new();

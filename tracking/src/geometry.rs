@@ -197,6 +197,22 @@ pub fn perturb(delta: &Vector6<f64>, camera_from_world: &Isometry3<f64>) -> Isom
     Isometry3::from_parts(Translation3::from(v), UnitQuaternion::from_scaled_axis(omega)) * camera_from_world
 }
 
+/// A motion scaled along its screw, approximately: the rotation's angle and the
+/// translation both times `factor` (constant velocity over `factor` frame intervals).
+pub fn scale_motion(motion: &Isometry3<f64>, factor: f64) -> Isometry3<f64> {
+    if factor == 1.0 {
+        return *motion;
+    }
+    Isometry3::from_parts((motion.translation.vector * factor).into(), motion.rotation.powf(factor))
+}
+
+/// Frame intervals of `interval_s` seconds from capture time `from_ns` to `to_ns`,
+/// rounded and at least one (a camera's jitter stays one interval; dropped frames
+/// make more); `None` unless `to_ns` is later.
+pub fn frame_intervals(from_ns: u64, to_ns: u64, interval_s: f64) -> Option<f64> {
+    (to_ns > from_ns).then(|| ((to_ns - from_ns) as f64 * 1e-9 / interval_s).round().max(1.0))
+}
+
 /// Huber cost of a residual of Mahalanobis norm² `chi2` with threshold `delta2`.
 #[inline]
 pub fn robust_cost(chi2: f64, delta2: f64) -> f64 {
@@ -212,6 +228,16 @@ pub fn huber_weight(chi2: f64, delta2: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frame_intervals_round_jitter_to_one_and_count_dropped_frames() {
+        let interval = 1.0 / 30.0;
+        assert_eq!(frame_intervals(0, 40_000_000, interval), Some(1.0), "40 ms is one interval");
+        assert_eq!(frame_intervals(0, 10_000_000, interval), Some(1.0), "at least one");
+        assert_eq!(frame_intervals(1_000, 1_000 + 100_000_000, interval), Some(3.0), "two frames dropped");
+        assert_eq!(frame_intervals(5, 5, interval), None);
+        assert_eq!(frame_intervals(6, 5, interval), None);
+    }
 
     #[test]
     fn jacobians_match_finite_differences() {

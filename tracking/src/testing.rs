@@ -60,6 +60,19 @@ pub fn fr1_camera_with_readout_from_env() -> Camera {
     }
 }
 
+/// Each item kept with probability 1/2 by a fixed 64-bit LCG (Knuth's MMIX
+/// constants): frames dropped at random, the same ones every run.
+pub fn half_at_random<T>(items: &[T]) -> Vec<&T> {
+    let mut state = 12_345u64;
+    items
+        .iter()
+        .filter(|_| {
+            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            (state >> 33).is_multiple_of(2)
+        })
+        .collect()
+}
+
 /// The first `max_frames` frames of a TUM folder, decoded.
 pub fn load(dir: &Path, max_frames: usize) -> Vec<TumFrame> {
     stillmap_dataset::tum::load_frames(dir, max_frames).unwrap_or_else(|e| panic!("{e}"))

@@ -4,7 +4,7 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, UnitQuaternion};
+use nalgebra::Isometry3;
 
 use crate::TrackingError;
 use crate::ba;
@@ -12,7 +12,7 @@ use crate::camera::Camera;
 use crate::config::TrackerConfig;
 use crate::dense::DenseOdometry;
 use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales, rectify_rolling_shutter};
-use crate::geometry::{Measurement, PnpRansac, pnp_ransac};
+use crate::geometry::{Measurement, PnpRansac, frame_intervals, pnp_ransac, scale_motion};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
 use crate::optimize::{PosePrior, optimize_pose_with_prior};
 
@@ -236,23 +236,16 @@ impl Tracker {
         let t = Instant::now();
         let gray = to_gray(frame.rgb);
         // Frame intervals (`dense_prior_interval_s`) since the previous frame.
-        let intervals = match self.previous_timestamp_ns {
-            Some(previous_ns) if frame.timestamp_ns > previous_ns => {
-                ((frame.timestamp_ns - previous_ns) as f64 * 1e-9 / self.config.dense_prior_interval_s).round().max(1.0)
-            }
-            _ => 1.0,
-        };
+        let intervals = self
+            .previous_timestamp_ns
+            .and_then(|previous_ns| frame_intervals(previous_ns, frame.timestamp_ns, self.config.dense_prior_interval_s))
+            .unwrap_or(1.0);
         // After dropped frames (or from a slower camera) the step is larger than the
         // alignment's identity start can reach: the motion model's step over those
         // intervals starts it. At the nominal rate the identity start is kept.
         let guess = match self.velocity {
             Some(v) if !self.lost && intervals > 1.0 && intervals <= MAX_GUESS_INTERVALS => {
-                let f = intervals / self.velocity_intervals;
-                let current_from_previous = Isometry3::from_parts(
-                    (v.translation.vector * f).into(),
-                    UnitQuaternion::from_scaled_axis(v.rotation.scaled_axis() * f),
-                );
-                Some(current_from_previous.inverse())
+                Some(scale_motion(&v, intervals / self.velocity_intervals).inverse())
             }
             _ => None,
         };

@@ -266,13 +266,8 @@ fn fr1_rpy_is_tracked_accurately_and_deterministically() {
 #[test]
 fn dropped_frames_are_tracked() {
     let clip = Clip::get();
-    let mut state = 12_345u64;
-    let mut kept_at_random = || {
-        state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-        (state >> 33).is_multiple_of(2)
-    };
     let every_third: Vec<&tum::TumFrame> = clip.frames.iter().step_by(3).collect();
-    let half_at_random: Vec<&tum::TumFrame> = clip.frames.iter().filter(|_| kept_at_random()).collect();
+    let half_at_random = tum::half_at_random(&clip.frames);
     for (what, fed) in [("every third frame", every_third), ("half the frames at random", half_at_random)] {
         let mut tracker = fr1_tracker();
         let mut est = Vec::new();
