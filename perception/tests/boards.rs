@@ -33,7 +33,7 @@ use nalgebra::Isometry3;
 use stillmap_perception::composite::interpolate_pose;
 use stillmap_perception::testing::boards::{Arrangement, scene};
 use stillmap_perception::{PerceptionConfig, Segmenter, YoloSegmenter};
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig};
+use stillmap_tracking::{FrameInput, Tracker, TrackerConfig, TrackingState};
 
 /// Ground-truth poses at each frame's exposure time.
 fn exposure_poses(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<Isometry3<f64>> {
@@ -54,12 +54,12 @@ fn boards_carried_through_the_view() {
     let schedule = Schedule::Late { every: 2, delay: 0 };
     let verbose = std::env::var_os("STILLMAP_VERBOSE").is_some();
     let mut table = vec![
-        "| clip | boards cover (mean / max / first frame) | ATE object-free | ATE boards, mask | ATE boards, no mask | frames without a pose (free / mask / no mask) | ATE, exact mask of every board / of the moving boards |".to_string(),
-        "|---|---|---|---|---|---|---|".to_string(),
+        "| clip | boards cover (mean / max / first frame) | ATE object-free | ATE boards, mask | ATE boards, no mask | frames without a pose (free / mask / no mask) | frames coasting (mask) | ATE, exact mask of every board / of the moving boards |".to_string(),
+        "|---|---|---|---|---|---|---|---|".to_string(),
     ];
     let mut arrangements = vec![
-        "| clip | arrangement | boards cover (mean / max) | ATE boards, mask | mask, no baseline | no mask | frames without a pose (mask / no baseline / no mask) | exact mask of every board / of the moving boards |".to_string(),
-        "|---|---|---|---|---|---|---|---|".to_string(),
+        "| clip | arrangement | boards cover (mean / max) | ATE boards, mask | mask, no baseline | no mask | frames without a pose (mask / no baseline / no mask) | frames coasting (mask) | exact mask of every board / of the moving boards |".to_string(),
+        "|---|---|---|---|---|---|---|---|---|".to_string(),
     ];
     for dir in &dirs {
         let frames = tum::load(dir, 150);
@@ -85,7 +85,7 @@ fn boards_carried_through_the_view() {
             let mean_cover = 100.0 * cover.iter().sum::<f64>() / cover.len() as f64;
             let max_cover = 100.0 * cover.iter().copied().fold(0.0, f64::max);
             arrangements.push(format!(
-                "| {name} | {} | {mean_cover:.0} % / {max_cover:.0} % | {} | {} | {} | {} / {} / {} | {} / {} |",
+                "| {name} | {} | {mean_cover:.0} % / {max_cover:.0} % | {} | {} | {} | {} / {} / {} | {} | {} / {} |",
                 arrangement.label(),
                 ate(&masked.trajectory),
                 ate(&without_baseline.trajectory),
@@ -93,12 +93,13 @@ fn boards_carried_through_the_view() {
                 frames.len() - masked.trajectory.len(),
                 frames.len() - without_baseline.trajectory.len(),
                 frames.len() - unmasked.len(),
+                masked.coasting,
                 ate(&exact),
                 ate(&exact_moving),
             ));
             if let Arrangement::AsBuilt = arrangement {
                 table.push(format!(
-                    "| {name} | {mean_cover:.0} % / {max_cover:.0} % / {:.0} % | {} | {} | {} | {} / {} / {} | {} / {} |",
+                    "| {name} | {mean_cover:.0} % / {max_cover:.0} % / {:.0} % | {} | {} | {} | {} / {} / {} | {} | {} / {} |",
                     100.0 * cover[0],
                     ate(&free.trajectory),
                     ate(&masked.trajectory),
@@ -106,6 +107,7 @@ fn boards_carried_through_the_view() {
                     frames.len() - free.trajectory.len(),
                     frames.len() - masked.trajectory.len(),
                     frames.len() - unmasked.len(),
+                    masked.coasting,
                     ate(&exact),
                     ate(&exact_moving),
                 ));
@@ -163,6 +165,7 @@ fn trace_one_run() {
     let mut pipeline = MaskedTracking::with_configs(&names, perception, TrackerConfig::default());
     let mut tracker = Tracker::new(tum::fr1_camera(), TrackerConfig::default()).expect("tracker");
     let mut trajectory = Vec::new();
+    let mut coasting = 0;
     // (estimate, truth) at the first tracked frame and at the previous one.
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
@@ -198,6 +201,7 @@ fn trace_one_run() {
         if let Some(p) = track.world_from_camera {
             trajectory.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
         }
+        coasting += usize::from(track.state == TrackingState::Coasting);
         let (drift, step) = match errors {
             Some((d, Some((m, deg)))) => (format!("{d:.1}"), format!("{m:.1}, {deg:.2}")),
             Some((d, None)) => (format!("{d:.1}"), "–".into()),
@@ -241,5 +245,9 @@ fn trace_one_run() {
         );
     }
     let ate = if trajectory.len() > 2 { format!("{:.2} cm", 100.0 * tum::score(&gt, &trajectory).ate_m) } else { "–".into() };
-    println!("{clip} {} {run}: ATE {ate}, {} frames without a pose", arrangement.label(), frames.len() - trajectory.len());
+    println!(
+        "{clip} {} {run}: ATE {ate}, {} frames without a pose, {coasting} coasting",
+        arrangement.label(),
+        frames.len() - trajectory.len()
+    );
 }

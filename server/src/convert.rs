@@ -55,6 +55,7 @@ pub fn state_of(s: stillmap_tracking::TrackingState) -> TrackingState {
         stillmap_tracking::TrackingState::Tracking => TrackingState::Tracking,
         stillmap_tracking::TrackingState::Lost => TrackingState::Lost,
         stillmap_tracking::TrackingState::Relocalized => TrackingState::Relocalized,
+        stillmap_tracking::TrackingState::Coasting => TrackingState::Coasting,
     }
 }
 

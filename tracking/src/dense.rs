@@ -53,7 +53,12 @@ pub struct DenseOdometry {
     depth_scale: f32,
     depth_range: (f32, f32),
     previous: Option<Ptr<rgbd::OdometryFrame>>,
+    /// The previous frame's reduced depth (metres, NaN where missing or masked).
+    previous_depth: Vec<f32>,
+    /// What the last step explains (see [`agreement`](Self::agreement)).
+    agreement: Option<f64>,
     frames: i32,
+    reduced_k: (f64, f64, f64, f64),
 }
 
 impl DenseOdometry {
@@ -111,7 +116,10 @@ impl DenseOdometry {
             depth_scale: (1.0 / camera.depth_units_per_metre) as f32,
             depth_range: (min_depth_m as f32, max_depth_m as f32),
             previous: None,
+            previous_depth: Vec::new(),
+            agreement: None,
             frames: 0,
+            reduced_k: (camera.fx / s, camera.fy / s, (camera.cx + 0.5) / s - 0.5, (camera.cy + 0.5) / s - 0.5),
         })
     }
 
@@ -159,6 +167,11 @@ impl DenseOdometry {
             ),
             None => (gray, metres, valid),
         };
+        // This frame's depth where it may be used, for the next step's agreement.
+        let depth: Vec<f32> =
+            metres.data_typed::<f32>()?.iter().zip(valid.data_typed::<u8>()?).map(|(&z, &ok)| if ok != 0 { z } else { f32::NAN }).collect();
+        let previous_depth = std::mem::replace(&mut self.previous_depth, depth);
+        self.agreement = None;
         let mut frame = rgbd::OdometryFrame::create(&gray, &metres, &valid, &Mat::default(), self.frames)?;
         self.frames = self.frames.wrapping_add(1);
         self.odometry.prepare_frame_cache(&mut frame, CACHE_ALL)?;
@@ -184,8 +197,57 @@ impl DenseOdometry {
             Translation3::new(m(0, 3)?, m(1, 3)?, m(2, 3)?),
             UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
         );
-        Ok(Some(current_from_previous.inverse()))
+        let previous_from_current = current_from_previous.inverse();
+        self.agreement =
+            depth_agreement(&self.previous_depth, &previous_depth, self.width, self.height, self.reduced_k, &previous_from_current);
+        Ok(Some(previous_from_current))
     }
+
+    /// Of the last step's overlap (this frame's pixels with depth that land on the
+    /// previous frame's pixels with depth), the share whose depth the step predicts
+    /// within the alignment's own correspondence distance (7 cm): how much of the
+    /// scene it explains. `None` before a step or without overlap.
+    pub fn agreement(&self) -> Option<f64> {
+        self.agreement
+    }
+}
+
+/// See [`DenseOdometry::agreement`]; `k` = (fx, fy, cx, cy) at the reduced size.
+fn depth_agreement(
+    current: &[f32],
+    previous: &[f32],
+    width: usize,
+    height: usize,
+    k: (f64, f64, f64, f64),
+    previous_from_current: &Isometry3<f64>,
+) -> Option<f64> {
+    if current.len() != width * height || previous.len() != width * height {
+        return None;
+    }
+    let (fx, fy, cx, cy) = k;
+    let (mut overlap, mut agree) = (0usize, 0usize);
+    for (i, &z) in current.iter().enumerate() {
+        if !z.is_finite() {
+            continue;
+        }
+        let (u, v) = ((i % width) as f64, (i / width) as f64);
+        let z = f64::from(z);
+        let p = previous_from_current * nalgebra::Point3::new((u - cx) / fx * z, (v - cy) / fy * z, z);
+        if p.z <= 0.0 {
+            continue;
+        }
+        let (pu, pv) = ((fx * p.x / p.z + cx).round(), (fy * p.y / p.z + cy).round());
+        if pu < 0.0 || pv < 0.0 || pu >= width as f64 || pv >= height as f64 {
+            continue;
+        }
+        let seen = previous[pv as usize * width + pu as usize];
+        if !seen.is_finite() {
+            continue;
+        }
+        overlap += 1;
+        agree += usize::from((f64::from(seen) - p.z).abs() <= MAX_DEPTH_DIFFERENCE_M);
+    }
+    (overlap > 0).then(|| agree as f64 / overlap as f64)
 }
 
 /// `src` resampled through the undistortion maps; outside the image: `border`.
@@ -234,6 +296,24 @@ mod tests {
     /// Two renders of the synthetic room a few frames of its sway apart: the step
     /// comes back as `previous_from_current`, to a millimetre and a twentieth of a degree.
     #[test]
+    fn agreement_is_the_share_of_the_overlap_whose_depth_the_step_predicts() {
+        // A wall 2 m ahead filling both frames; the left quarter of the previous one
+        // has no depth.
+        let (w, h) = (80, 60);
+        let k = (60.0, 60.0, 39.5, 29.5);
+        let current = vec![2.0f32; w * h];
+        let previous: Vec<f32> = (0..w * h).map(|i| if i % w < w / 4 { f32::NAN } else { 2.0 }).collect();
+        let along_z = |m: f64| Isometry3::translation(0.0, 0.0, m);
+        assert_eq!(depth_agreement(&current, &previous, w, h, k, &Isometry3::identity()), Some(1.0));
+        // 5 cm off is within the 7 cm correspondence distance, 10 cm is not.
+        assert_eq!(depth_agreement(&current, &previous, w, h, k, &along_z(0.05)), Some(1.0));
+        assert_eq!(depth_agreement(&current, &previous, w, h, k, &along_z(0.10)), Some(0.0));
+        // Nothing overlaps: no agreement to judge by.
+        assert_eq!(depth_agreement(&current, &vec![f32::NAN; w * h], w, h, k, &Isometry3::identity()), None);
+        assert_eq!(depth_agreement(&current, &previous, w + 1, h, k, &Isometry3::identity()), None, "sizes must match");
+    }
+
+    #[test]
     fn recovers_the_step_between_two_rendered_frames() {
         let camera = kinect_camera();
         let scene = Scene::room(7);
@@ -247,6 +327,8 @@ mod tests {
         let step = dense.push(&to_gray(&second.rgb), &second.depth, None).expect("push").expect("converged");
         let error = truth.inverse() * step;
         assert!(error.translation.vector.norm() < 1e-3 && error.rotation.angle() < 0.05f64.to_radians(), "{error:?}");
+        let agreement = dense.agreement().expect("an overlap");
+        assert!(agreement >= 0.95, "a right step explains its overlap: {agreement}");
     }
 
     #[test]

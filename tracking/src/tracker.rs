@@ -27,6 +27,9 @@ pub enum TrackingState {
     Lost,
     /// Continuity was broken and the pose was recovered against the map's keyframes.
     Relocalized,
+    /// The features lost the map; dense odometry alone carries the pose from the
+    /// last tracked frame (for up to `coast_s`). Posed, but not to be mapped.
+    Coasting,
 }
 
 /// One RGB-D frame, borrowed.
@@ -127,6 +130,11 @@ pub struct Tracker {
     previous_timestamp_ns: Option<u64>,
     /// Frame intervals the last tracked step (`velocity`) spanned.
     velocity_intervals: f64,
+    /// Capture time of the last frame the features tracked (or relocalized):
+    /// coasting ends `coast_s` after it.
+    last_tracked_ns: Option<u64>,
+    /// The last frame was `Coasting`.
+    coasting: bool,
     /// A keyframe made while no motion was known (the first one; one after a failed
     /// dense step with no tracked velocity), whose keypoints a rolling shutter still
     /// distorts: rectified with the next frame's step.
@@ -181,6 +189,8 @@ impl Tracker {
             prior: None,
             previous_timestamp_ns: None,
             velocity_intervals: 1.0,
+            last_tracked_ns: None,
+            coasting: false,
             unrectified_keyframe: None,
             scales: level_scales(&config),
             camera,
@@ -322,6 +332,7 @@ impl Tracker {
                 self.initialized = true;
                 self.reference_inliers = points.len();
                 self.last = Some(LastFrame { camera_from_world: Isometry3::identity(), points });
+                self.last_tracked_ns = Some(frame.timestamp_ns);
                 out.state = TrackingState::Tracking;
                 out.world_from_camera = Some(Isometry3::identity());
                 out.tracked_points = self.reference_inliers;
@@ -337,14 +348,46 @@ impl Tracker {
         if !self.lost {
             tracked = self.track_with_motion_model(&feats, &index, &mut out.times);
         }
-        if tracked.is_none() {
+        // While coasting, the local map around the coasted pose may be a copy that
+        // keyframes made at wrong poses left: relocalization is tried too, and the
+        // placement with more inliers wins.
+        if tracked.is_none() || self.coasting {
             // Relocalization stands on the map alone.
-            self.prior = None;
-            tracked = self.relocalize(&feats, &index, &gray, &mut out.times);
-            relocalized = tracked.is_some();
+            let prior = self.prior.take();
+            let found = self.relocalize(&feats, &index, &gray, &mut out.times);
+            let inliers = |t: &Option<(Isometry3<f64>, Vec<Option<PointId>>)>| t.as_ref().map_or(0, |(_, m)| m.iter().flatten().count());
+            if inliers(&found) > inliers(&tracked) {
+                (tracked, relocalized) = (found, true);
+            } else {
+                self.prior = prior;
+            }
         }
         let Some((camera_from_world, matches)) = tracked else {
+            // Neither the motion model nor relocalization placed the features: dense
+            // odometry alone carries the pose for up to `coast_s` since the last
+            // tracked frame (current_from_world = current_from_previous ·
+            // previous_from_world). Each coasted frame tries the local map around
+            // its pose, then relocalization, as a lost one would; it makes no
+            // keyframe.
+            if let (Some(previous_from_current), Some(last), Some(tracked_ns)) = (step, self.last.as_mut(), self.last_tracked_ns)
+                && !self.lost
+                && self.config.coast_s > 0.0
+                && (frame.timestamp_ns.saturating_sub(tracked_ns) as f64) * 1e-9 <= self.config.coast_s
+                && self.dense.as_ref().and_then(DenseOdometry::agreement).is_some_and(|a| a >= self.config.coast_min_agreement)
+            {
+                let camera_from_world = previous_from_current.inverse() * last.camera_from_world;
+                self.velocity = Some(camera_from_world * last.camera_from_world.inverse());
+                self.velocity_intervals = intervals;
+                // The last tracked frame's points stay the motion model's candidates.
+                last.camera_from_world = camera_from_world;
+                out.state = TrackingState::Coasting;
+                self.coasting = true;
+                out.world_from_camera = Some(camera_from_world.inverse());
+                out.times.total = start.elapsed();
+                return Ok(out);
+            }
             self.lost = true;
+            self.coasting = false;
             self.last = None;
             self.velocity = None;
             out.times.total = start.elapsed();
@@ -361,6 +404,8 @@ impl Tracker {
         };
         self.velocity_intervals = intervals;
         self.lost = false;
+        self.last_tracked_ns = Some(frame.timestamp_ns);
+        self.coasting = false;
         self.frames_since_keyframe += 1;
 
         let need_keyframe = relocalized
@@ -407,7 +452,13 @@ impl Tracker {
             (None, Some(v)) if self.config.constant_velocity => v * last.camera_from_world,
             _ => last.camera_from_world,
         };
-        let candidates = last.points.clone();
+        let mut candidates = last.points.clone();
+        if self.coasting {
+            // The last tracked frame's points leave the view while coasting: the
+            // local map around the coasted pose is searched too.
+            let known: HashSet<PointId> = candidates.iter().copied().collect();
+            candidates.extend(self.local_points(predicted).into_iter().filter(|id| !known.contains(id)));
+        }
         let mut pose = None;
         for factor in [1.0, WIDE_SEARCH_FACTOR] {
             let t = Instant::now();

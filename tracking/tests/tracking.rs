@@ -1,6 +1,7 @@
 //! End-to-end tracking tests: accuracy on the synthetic room and on the real TUM
 //! fr1_rpy clip (offline, from `shared/data`), determinism, and the edge
-//! cases — frames without depth, a black frame, a sudden jump, bad input sizes and
+//! cases — frames without depth, black frames (coasted on dense odometry, or lost
+//! with coasting off), a sudden jump, bad input sizes and
 //! a dynamic mask. Run with `--nocapture` to see the measured numbers.
 //!
 //! Bounds are what the tracker achieves, with a margin; the measured values are
@@ -45,6 +46,8 @@ const DROPPED_FRAMES_MAX_ATE_M: f64 = 0.02;
 
 /// Good frames tracked before a disturbance.
 const FRAMES_BEFORE_DROPOUT: usize = 20;
+/// Consecutive black frames (real depth) coasted on dense odometry.
+const COASTED_FRAMES: usize = 5;
 /// Consecutive frames with no valid depth in the dropout test.
 const DEPTH_DROPOUT_FRAMES: usize = 3;
 /// Frames compared with ground truth after a recovery (dropout and black frame).
@@ -305,9 +308,9 @@ fn frames_without_depth_or_colour_cannot_start_the_map() {
 
 /// Tracks `FRAMES_BEFORE_DROPOUT` good frames, then `bad` frames fed as `feed`
 /// (each must be lost), then checks relocalization and the frames after it.
-fn lose_and_recover(feed: Feed<'_>, bad: usize, what: &str) {
+fn lose_and_recover(config: TrackerConfig, feed: Feed<'_>, bad: usize, what: &str) {
     let clip = Clip::get();
-    let mut tracker = fr1_tracker();
+    let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
     for f in &clip.frames[..FRAMES_BEFORE_DROPOUT] {
         assert_eq!(track(&mut tracker, f, Feed::Real).state, TrackingState::Tracking);
     }
@@ -328,12 +331,68 @@ fn lose_and_recover(feed: Feed<'_>, bad: usize, what: &str) {
 
 #[test]
 fn depth_dropout_is_lost_then_relocalized() {
-    lose_and_recover(Feed::NoDepth, DEPTH_DROPOUT_FRAMES, "depth dropout");
+    // Without depth dense odometry has nothing to align either: no coasting.
+    lose_and_recover(TrackerConfig::default(), Feed::NoDepth, DEPTH_DROPOUT_FRAMES, "depth dropout");
 }
 
 #[test]
-fn black_frame_is_lost_then_relocalized() {
-    lose_and_recover(Feed::Black, 1, "black frame");
+fn black_frame_is_lost_then_relocalized_when_coasting_is_off() {
+    lose_and_recover(TrackerConfig { coast_s: 0.0, ..TrackerConfig::default() }, Feed::Black, 1, "black frame");
+}
+
+/// Black frames with real depth: the features find nothing, dense odometry aligns
+/// the depth alone. Each frame is `Coasting` with a pose near the truth, makes no
+/// keyframe, and the first real frame after them is tracked again from the local
+/// map around the coasted pose.
+#[test]
+fn black_frames_are_coasted_on_depth_then_tracked() {
+    let clip = Clip::get();
+    let mut tracker = fr1_tracker();
+    for f in &clip.frames[..FRAMES_BEFORE_DROPOUT] {
+        assert_eq!(track(&mut tracker, f, Feed::Real).state, TrackingState::Tracking);
+    }
+    let keyframes = tracker.map().keyframes.len();
+    let resume = FRAMES_BEFORE_DROPOUT + COASTED_FRAMES;
+    let mut worst = (0f64, 0f64);
+    for i in FRAMES_BEFORE_DROPOUT..resume {
+        let out = track(&mut tracker, &clip.frames[i], Feed::Black);
+        assert_eq!((out.state, out.tracked_points, out.keyframe), (TrackingState::Coasting, 0, false), "frame {i}");
+        let (m, deg) = clip.error(0, i, &out.world_from_camera.expect("a coasted pose"));
+        assert!(m <= RECOVERY_MAX_ERROR_M && deg <= RECOVERY_MAX_ERROR_DEG, "frame {i}: {:.1} mm {deg:.2}°", m * 1e3);
+        worst = (worst.0.max(m), worst.1.max(deg));
+    }
+    assert_eq!(tracker.map().keyframes.len(), keyframes, "coasted frames make no keyframe");
+    println!("black frames coasted: at most {:.1} mm {:.2}° from ground truth", worst.0 * 1e3, worst.1);
+    let (m, deg) = track_and_check(&mut tracker, 0, resume..resume + FRAMES_AFTER_RECOVERY, (RECOVERY_MAX_ERROR_M, RECOVERY_MAX_ERROR_DEG));
+    println!("then tracked: at most {:.1} mm {deg:.2}°", m * 1e3);
+}
+
+/// Coasting lasts `coast_s` of capture time from the last tracked frame, then the
+/// tracker is lost (no pose) until relocalization.
+#[test]
+fn coasting_ends_after_coast_s() {
+    const COAST_S: f64 = 0.1;
+    let clip = Clip::get();
+    let mut tracker = Tracker::new(tum::fr1_camera(), TrackerConfig { coast_s: COAST_S, ..TrackerConfig::default() }).expect("tracker");
+    for f in &clip.frames[..FRAMES_BEFORE_DROPOUT] {
+        assert_eq!(track(&mut tracker, f, Feed::Real).state, TrackingState::Tracking);
+    }
+    let tracked_ns = clip.frames[FRAMES_BEFORE_DROPOUT - 1].timestamp_ns;
+    let resume = FRAMES_BEFORE_DROPOUT + 3 * COASTED_FRAMES;
+    let mut states = Vec::new();
+    for i in FRAMES_BEFORE_DROPOUT..resume {
+        let out = track(&mut tracker, &clip.frames[i], Feed::Black);
+        let within = (clip.frames[i].timestamp_ns - tracked_ns) as f64 * 1e-9 <= COAST_S;
+        if within {
+            assert_eq!(out.state, TrackingState::Coasting, "frame {i}");
+            assert!(out.world_from_camera.is_some(), "frame {i}");
+        } else {
+            assert_lost(&out, &format!("frame {i}, {COAST_S} s after the last tracked one"));
+        }
+        states.push(out.state);
+    }
+    assert!(states.contains(&TrackingState::Coasting) && states.contains(&TrackingState::Lost), "{states:?}");
+    assert_eq!(track(&mut tracker, &clip.frames[resume], Feed::Real).state, TrackingState::Relocalized);
 }
 
 #[test]

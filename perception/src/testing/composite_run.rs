@@ -8,7 +8,7 @@ use crate::{DynamicMasker, MaskOutput, MaskSource, MaskerInput, PerceptionConfig
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use stillmap_tracking::features::Extractor;
 use stillmap_tracking::tracker::to_gray;
-use stillmap_tracking::{FrameInput, TrackOutput, Tracker, TrackerConfig};
+use stillmap_tracking::{FrameInput, TrackOutput, Tracker, TrackerConfig, TrackingState};
 
 use stillmap_tracking::testing as tum;
 
@@ -134,6 +134,8 @@ pub struct Scores {
     pub person_frames: usize,
     pub moving_person_frames: usize,
     pub trajectory: Vec<(u64, Isometry3<f64>)>,
+    /// Frames posed by dense odometry alone (`TrackingState::Coasting`).
+    pub coasting: usize,
 }
 
 /// The server's per-frame order: the mask for tracking, tracking with it, then the
@@ -227,6 +229,7 @@ pub fn run_with(
         if let Some(p) = track.world_from_camera {
             s.trajectory.push((tum::fr1_pose_time_ns(f.timestamp_ns), p));
         }
+        s.coasting += usize::from(track.state == TrackingState::Coasting);
         if verbose {
             eprintln!(
                 "track {k:3}: {:?} tracked {} masked {} keyframe {}; dynamic px {} (object {}), regions {} rejected {}, ego {:?}",
