@@ -342,8 +342,7 @@ fn black_frame_is_lost_then_relocalized_when_coasting_is_off() {
 
 /// Black frames with real depth: the features find nothing, dense odometry aligns
 /// the depth alone. Each frame is `Coasting` with a pose near the truth, makes no
-/// keyframe, and the first real frame after them is tracked again from the local
-/// map around the coasted pose.
+/// keyframe, and the real frames after them are placed against the map again.
 #[test]
 fn black_frames_are_coasted_on_depth_then_tracked() {
     let clip = Clip::get();
@@ -363,7 +362,16 @@ fn black_frames_are_coasted_on_depth_then_tracked() {
     }
     assert_eq!(tracker.map().keyframes.len(), keyframes, "coasted frames make no keyframe");
     println!("black frames coasted: at most {:.1} mm {:.2}° from ground truth", worst.0 * 1e3, worst.1);
-    let (m, deg) = track_and_check(&mut tracker, 0, resume..resume + FRAMES_AFTER_RECOVERY, (RECOVERY_MAX_ERROR_M, RECOVERY_MAX_ERROR_DEG));
+    // The first real frame is placed by the local map around the coasted pose or by
+    // relocalization, whichever matches more points (here relocalization: 10.9 mm,
+    // 1.15° from the truth).
+    let out = track(&mut tracker, &clip.frames[resume], Feed::Real);
+    assert!(matches!(out.state, TrackingState::Tracking | TrackingState::Relocalized), "frame {resume}: {:?}", out.state);
+    let (m, deg) = clip.error(0, resume, &out.world_from_camera.expect("pose"));
+    assert!(m <= RECOVERY_MAX_ERROR_M && deg <= RECOVERY_MAX_ERROR_DEG, "frame {resume}: {:.1} mm {deg:.2}°", m * 1e3);
+    println!("frame {resume} {:?}: {:.1} mm {deg:.2}°", out.state, m * 1e3);
+    let (m, deg) =
+        track_and_check(&mut tracker, 0, resume + 1..resume + 1 + FRAMES_AFTER_RECOVERY, (RECOVERY_MAX_ERROR_M, RECOVERY_MAX_ERROR_DEG));
     println!("then tracked: at most {:.1} mm {deg:.2}°", m * 1e3);
 }
 
