@@ -53,11 +53,12 @@ pub struct DenseOdometry {
     depth_scale: f32,
     depth_range: (f32, f32),
     previous: Option<Ptr<rgbd::OdometryFrame>>,
-    /// The previous frame's reduced depth (metres, NaN where missing or masked).
-    previous_depth: Vec<f32>,
+    /// The last pushed frame's reduced depth (metres, NaN where missing or masked).
+    depth: Vec<f32>,
     /// What the last step explains (see [`agreement`](Self::agreement)).
     agreement: Option<f64>,
     frames: i32,
+    /// (fx, fy, cx, cy) at the reduced size.
     reduced_k: (f64, f64, f64, f64),
 }
 
@@ -69,11 +70,9 @@ impl DenseOdometry {
         }
         // Pixel (x, y) of the reduced image covers full-size pixels SCALE·x .. SCALE·x + SCALE − 1.
         let s = SCALE as f64;
-        let reduced = Mat::from_slice_2d(&[
-            [camera.fx / s, 0.0, (camera.cx + 0.5) / s - 0.5],
-            [0.0, camera.fy / s, (camera.cy + 0.5) / s - 0.5],
-            [0.0, 0.0, 1.0],
-        ])?;
+        let reduced_k = (camera.fx / s, camera.fy / s, (camera.cx + 0.5) / s - 0.5, (camera.cy + 0.5) / s - 0.5);
+        let (fx, fy, cx, cy) = reduced_k;
+        let reduced = Mat::from_slice_2d(&[[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])?;
         // The images are reduced first and undistorted at the reduced size (the lens
         // model works on normalised coordinates, so it holds at any scale).
         let undistort = match camera.distortion {
@@ -116,10 +115,10 @@ impl DenseOdometry {
             depth_scale: (1.0 / camera.depth_units_per_metre) as f32,
             depth_range: (min_depth_m as f32, max_depth_m as f32),
             previous: None,
-            previous_depth: Vec::new(),
+            depth: Vec::new(),
             agreement: None,
             frames: 0,
-            reduced_k: (camera.fx / s, camera.fy / s, (camera.cx + 0.5) / s - 0.5, (camera.cy + 0.5) / s - 0.5),
+            reduced_k,
         })
     }
 
@@ -167,10 +166,10 @@ impl DenseOdometry {
             ),
             None => (gray, metres, valid),
         };
-        // This frame's depth where it may be used, for the next step's agreement.
+        // This frame's depth where it may be used, for the step's agreement.
         let depth: Vec<f32> =
             metres.data_typed::<f32>()?.iter().zip(valid.data_typed::<u8>()?).map(|(&z, &ok)| if ok != 0 { z } else { f32::NAN }).collect();
-        let previous_depth = std::mem::replace(&mut self.previous_depth, depth);
+        let previous_depth = std::mem::replace(&mut self.depth, depth);
         self.agreement = None;
         let mut frame = rgbd::OdometryFrame::create(&gray, &metres, &valid, &Mat::default(), self.frames)?;
         self.frames = self.frames.wrapping_add(1);
@@ -198,8 +197,7 @@ impl DenseOdometry {
             UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
         );
         let previous_from_current = current_from_previous.inverse();
-        self.agreement =
-            depth_agreement(&self.previous_depth, &previous_depth, self.width, self.height, self.reduced_k, &previous_from_current);
+        self.agreement = depth_agreement(&self.depth, &previous_depth, self.width, self.height, self.reduced_k, &previous_from_current);
         Ok(Some(previous_from_current))
     }
 
@@ -293,8 +291,6 @@ mod tests {
         assert!(wrong_way.is_none_or(|e| e > 0.01), "started at the inverse step: {wrong_way:?} m off");
     }
 
-    /// Two renders of the synthetic room a few frames of its sway apart: the step
-    /// comes back as `previous_from_current`, to a millimetre and a twentieth of a degree.
     #[test]
     fn agreement_is_the_share_of_the_overlap_whose_depth_the_step_predicts() {
         // A wall 2 m ahead filling both frames; the left quarter of the previous one
@@ -313,6 +309,8 @@ mod tests {
         assert_eq!(depth_agreement(&current, &previous, w + 1, h, k, &Isometry3::identity()), None, "sizes must match");
     }
 
+    /// Two renders of the synthetic room a few frames of its sway apart: the step
+    /// comes back as `previous_from_current`, to a millimetre and a twentieth of a degree.
     #[test]
     fn recovers_the_step_between_two_rendered_frames() {
         let camera = kinect_camera();

@@ -366,9 +366,8 @@ impl Tracker {
             // Neither the motion model nor relocalization placed the features: dense
             // odometry alone carries the pose for up to `coast_s` since the last
             // tracked frame (current_from_world = current_from_previous ·
-            // previous_from_world). Each coasted frame tries the local map around
-            // its pose, then relocalization, as a lost one would; it makes no
-            // keyframe.
+            // previous_from_world). A coasted frame makes no keyframe; the next
+            // one searches the local map around its pose and tries relocalization.
             if let (Some(previous_from_current), Some(last), Some(tracked_ns)) = (step, self.last.as_mut(), self.last_tracked_ns)
                 && !self.lost
                 && self.config.coast_s > 0.0
