@@ -53,10 +53,12 @@ pub struct DenseOdometry {
     depth_scale: f32,
     depth_range: (f32, f32),
     previous: Option<Ptr<rgbd::OdometryFrame>>,
-    /// The last pushed frame's reduced depth (metres, NaN where missing or masked).
+    /// The last pushed frame's reduced depth and the one's before (metres, NaN where
+    /// missing or masked), for [`agreement`](Self::agreement); reused frame to frame.
     depth: Vec<f32>,
-    /// What the last step explains (see [`agreement`](Self::agreement)).
-    agreement: Option<f64>,
+    earlier_depth: Vec<f32>,
+    /// The last push's step (`previous_from_current`), if it gave one.
+    step: Option<Isometry3<f64>>,
     frames: i32,
     /// (fx, fy, cx, cy) at the reduced size.
     reduced_k: (f64, f64, f64, f64),
@@ -116,7 +118,8 @@ impl DenseOdometry {
             depth_range: (min_depth_m as f32, max_depth_m as f32),
             previous: None,
             depth: Vec::new(),
-            agreement: None,
+            earlier_depth: Vec::new(),
+            step: None,
             frames: 0,
             reduced_k,
         })
@@ -167,10 +170,11 @@ impl DenseOdometry {
             None => (gray, metres, valid),
         };
         // This frame's depth where it may be used, for the step's agreement.
-        let depth: Vec<f32> =
-            metres.data_typed::<f32>()?.iter().zip(valid.data_typed::<u8>()?).map(|(&z, &ok)| if ok != 0 { z } else { f32::NAN }).collect();
-        let previous_depth = std::mem::replace(&mut self.depth, depth);
-        self.agreement = None;
+        std::mem::swap(&mut self.depth, &mut self.earlier_depth);
+        self.depth.clear();
+        self.depth
+            .extend(metres.data_typed::<f32>()?.iter().zip(valid.data_typed::<u8>()?).map(|(&z, &ok)| if ok != 0 { z } else { f32::NAN }));
+        self.step = None;
         let mut frame = rgbd::OdometryFrame::create(&gray, &metres, &valid, &Mat::default(), self.frames)?;
         self.frames = self.frames.wrapping_add(1);
         self.odometry.prepare_frame_cache(&mut frame, CACHE_ALL)?;
@@ -196,17 +200,17 @@ impl DenseOdometry {
             Translation3::new(m(0, 3)?, m(1, 3)?, m(2, 3)?),
             UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
         );
-        let previous_from_current = current_from_previous.inverse();
-        self.agreement = depth_agreement(&self.depth, &previous_depth, self.width, self.height, self.reduced_k, &previous_from_current);
-        Ok(Some(previous_from_current))
+        self.step = Some(current_from_previous.inverse());
+        Ok(self.step)
     }
 
     /// Of the last step's overlap (this frame's pixels with depth that land on the
     /// previous frame's pixels with depth), the share whose depth the step predicts
     /// within the alignment's own correspondence distance (7 cm): how much of the
-    /// scene it explains. `None` before a step or without overlap.
+    /// scene it explains. `None` without a step or without overlap. Computed on
+    /// demand (the tracker asks only on a frame it would coast).
     pub fn agreement(&self) -> Option<f64> {
-        self.agreement
+        depth_agreement(&self.depth, &self.earlier_depth, self.width, self.height, self.reduced_k, &self.step?)
     }
 }
 
