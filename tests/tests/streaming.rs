@@ -343,7 +343,14 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     let results = robot.declare_subscriber(keys::results("quiet-bot")).await.expect("subscribe");
     eventually(Duration::from_secs(10), "the server as a Zenoh peer", async || robot.info().peers_zid().await.count() > 0).await;
     // A put before the server's subscription has reached this peer would be lost.
-    let publisher = robot.declare_publisher(keys::frames("quiet-bot")).await.expect("publisher");
+    // Blocking, as the client's publisher: the frame (140 KB) spans three of the
+    // transport's 64 KB batches and its queue holds two, so under load a dropping
+    // put (Zenoh's default) can lose it while waiting for the first to drain.
+    let publisher = robot
+        .declare_publisher(keys::frames("quiet-bot"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .expect("publisher");
     eventually(Duration::from_secs(10), "the server's subscription", async || {
         publisher.matching_status().await.is_ok_and(|m| m.matching())
     })

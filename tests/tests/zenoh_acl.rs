@@ -79,7 +79,11 @@ async fn the_router_keeps_each_robot_on_its_own_keys() {
     // robot's own traffic through).
     let robot_b = open(&from_template(&dir, "robot.json5", &endpoint, "robot-b", "robot-a")).await;
     let own_results = robot_b.declare_subscriber(keys::results("robot-b")).await.expect("subscribe");
-    let own_frames = robot_b.declare_publisher(keys::frames("robot-b")).await.expect("publisher");
+    let own_frames = robot_b
+        .declare_publisher(keys::frames("robot-b"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .expect("publisher");
     eventually(Duration::from_secs(20), "the server's subscription to reach robot B", async || {
         own_frames.matching_status().await.is_ok_and(|m| m.matching())
     })
@@ -92,11 +96,16 @@ async fn the_router_keeps_each_robot_on_its_own_keys() {
     }
 
     // Robot B forges robot A's hello and a frame far ahead of A's sequence, and
-    // listens to A's results: the router drops all of it.
+    // listens to A's results: the router drops all of it. The puts block rather
+    // than drop (the frame spans more batches than the queue holds), so that what
+    // is dropped is dropped by the router, not on the way out of robot B.
     let spy = robot_b.declare_subscriber(keys::results("robot-a")).await.expect("subscribe");
+    let block = zenoh::qos::CongestionControl::Block;
     for _ in 0..3 {
-        let _ = robot_b.put(keys::frames("robot-a"), client_message(pb::client_message::Msg::Hello(tum_hello("robot-a")))).await;
-        let _ = robot_b.put(keys::frames("robot-a"), client_message(pb::client_message::Msg::Frame(tum_frame(u64::MAX, u64::MAX)))).await;
+        let hello = client_message(pb::client_message::Msg::Hello(tum_hello("robot-a")));
+        let _ = robot_b.put(keys::frames("robot-a"), hello).congestion_control(block).await;
+        let frame = client_message(pb::client_message::Msg::Frame(tum_frame(u64::MAX, u64::MAX)));
+        let _ = robot_b.put(keys::frames("robot-a"), frame).congestion_control(block).await;
     }
 
     // Robot A with its own certificate streams through the router.
