@@ -95,6 +95,9 @@ const THUMB_W: usize = 40;
 const THUMB_H: usize = 30;
 /// Factor applied to the motion-model radius for the wider second search.
 const WIDE_SEARCH_FACTOR: f64 = 3.0;
+/// Relocalization replaces a weak motion-model placement (`weak_placement_ratio`)
+/// only when it explains at least this many times as many points.
+const WEAK_REPLACEMENT_FACTOR: usize = 2;
 /// Keyframes created since a point's birth after which it must have ≥ 2 observations.
 const CULL_AFTER_KEYFRAMES: u64 = 3;
 /// Points matched in fewer than this fraction of the frames predicting them are culled.
@@ -348,15 +351,21 @@ impl Tracker {
         if !self.lost {
             tracked = self.track_with_motion_model(&feats, &index, &mut out.times);
         }
+        let inliers = |t: &Option<(Isometry3<f64>, Vec<Option<PointId>>)>| t.as_ref().map_or(0, |(_, m)| m.iter().flatten().count());
+        // A weak placement (`weak_placement_ratio` of the reference keyframe's points)
+        // is checked against relocalization, which must explain at least
+        // WEAK_REPLACEMENT_FACTOR times as many points to replace it: where the two
+        // are close, the motion model (with the dense prior) is the better placement.
+        let weak = tracked.is_some() && (inliers(&tracked) as f64) < self.config.weak_placement_ratio * self.reference_inliers as f64;
         // While coasting, the local map around the coasted pose may be a copy that
         // keyframes made at wrong poses left: relocalization is tried too, and the
         // placement with more inliers wins.
-        if tracked.is_none() || self.coasting {
+        if tracked.is_none() || self.coasting || weak {
             // Relocalization stands on the map alone.
             let prior = self.prior.take();
             let found = self.relocalize(&feats, &index, &gray, &mut out.times);
-            let inliers = |t: &Option<(Isometry3<f64>, Vec<Option<PointId>>)>| t.as_ref().map_or(0, |(_, m)| m.iter().flatten().count());
-            if inliers(&found) > inliers(&tracked) {
+            let factor = if weak && !self.coasting { WEAK_REPLACEMENT_FACTOR } else { 1 };
+            if inliers(&found) > factor * inliers(&tracked) {
                 (tracked, relocalized) = (found, true);
             } else {
                 self.prior = prior;
