@@ -88,7 +88,7 @@ pub struct TrackerConfig {
     pub relocalization_candidates: usize,
     /// A frame the motion model places with fewer inliers than this share of the
     /// reference keyframe's tracked points is relocalized as well, and
-    /// relocalization's placement replaces it when it explains at least twice as
+    /// relocalization's placement replaces it when it explains more than twice as
     /// many points. A weak placement is most often a wrong one: the first step
     /// after a keyframe made without a motion (the first, a relocalized one) has
     /// no velocity to predict from, and at 7.5 Hz (every 4th frame) rpy_b's first

@@ -96,7 +96,7 @@ const THUMB_H: usize = 30;
 /// Factor applied to the motion-model radius for the wider second search.
 const WIDE_SEARCH_FACTOR: f64 = 3.0;
 /// Relocalization replaces a weak motion-model placement (`weak_placement_ratio`)
-/// only when it explains at least this many times as many points.
+/// only when it explains more than this many times as many points.
 const WEAK_REPLACEMENT_FACTOR: usize = 2;
 /// Keyframes created since a point's birth after which it must have ≥ 2 observations.
 const CULL_AFTER_KEYFRAMES: u64 = 3;
@@ -353,7 +353,7 @@ impl Tracker {
         }
         let inliers = |t: &Option<(Isometry3<f64>, Vec<Option<PointId>>)>| t.as_ref().map_or(0, |(_, m)| m.iter().flatten().count());
         // A weak placement (`weak_placement_ratio` of the reference keyframe's points)
-        // is checked against relocalization, which must explain at least
+        // is checked against relocalization, which must explain more than
         // WEAK_REPLACEMENT_FACTOR times as many points to replace it: where the two
         // are close, the motion model (with the dense prior) is the better placement.
         let weak = tracked.is_some() && (inliers(&tracked) as f64) < self.config.weak_placement_ratio * self.reference_inliers as f64;
