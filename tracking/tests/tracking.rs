@@ -294,20 +294,14 @@ fn dropped_frames_are_tracked() {
 #[test]
 fn a_weak_placement_is_replaced_by_relocalization() {
     let dir = stillmap_dataset::shared::fr1_rpy_b();
-    let frames = tum::load(&dir, 5);
-    let gt = tum::groundtruth(&dir);
-    let truth = |f: &tum::TumFrame| {
-        let t = tum::fr1_pose_time_ns(f.timestamp_ns);
-        gt.iter().min_by_key(|(g, _)| g.abs_diff(t)).expect("ground truth").1
-    };
-    // camera 0 from camera 4: the second frame's pose in the map of the first.
-    let step = truth(&frames[0]).inverse() * truth(&frames[4]);
+    let clip = Clip { frames: tum::load(&dir, 5), gt: tum::groundtruth(&dir) };
     let run = |config: TrackerConfig| {
         let mut tracker = Tracker::new(tum::fr1_camera(), config).expect("tracker");
-        assert_eq!(track(&mut tracker, &frames[0], Feed::Real).state, TrackingState::Tracking);
-        let out = track(&mut tracker, &frames[4], Feed::Real);
-        let error = step.inverse() * out.world_from_camera.expect("a pose");
-        (out.state, out.tracked_points, error.translation.vector.norm())
+        assert_eq!(track(&mut tracker, &clip.frames[0], Feed::Real).state, TrackingState::Tracking);
+        let out = track(&mut tracker, &clip.frames[4], Feed::Real);
+        // Frame 4's pose in the map started at frame 0.
+        let (error_m, _) = clip.error(0, 4, &out.world_from_camera.expect("a pose"));
+        (out.state, out.tracked_points, error_m)
     };
     let (state, points, error_m) = run(TrackerConfig::default());
     let (state_off, points_off, error_off_m) = run(TrackerConfig { weak_placement_ratio: 0.0, ..TrackerConfig::default() });
