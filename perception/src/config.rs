@@ -118,7 +118,7 @@ pub struct SegmentationConfig {
     /// A *person* (the class named "person") seen moving is a vertical body at
     /// most this tall (metres) standing where his latest points are: the pixels
     /// whose 3D points fall in that upright cylinder (his points' horizontal
-    /// spread plus 0.05 m, at least 0.3 m and at most 0.45 m in radius) are kept
+    /// spread plus 0.05 m, at least 0.4 m and at most 0.45 m in radius) are kept
     /// out of the map, so legs the detector never saw stay out while he stands. Needs the accelerometer
     /// (`accel_in_camera` on the frames) for the up direction. 0 disables it.
     pub person_height_m: f32,
@@ -240,6 +240,11 @@ pub struct FusionConfig {
     /// An instance moves when at least this fraction of its pixels with a
     /// predicted flow carry residual flow.
     pub instance_moving_fraction: f64,
+    /// Only an instance's pixels within this fraction of its median depth take part
+    /// in that judgement: its mask spills over its outline onto what stands in front
+    /// of it or behind it, and a thing moving there (a board carried in front of a
+    /// monitor) must not make the whole instance move. 0 lets every pixel take part.
+    pub instance_depth_gate: f64,
     /// Flow-only dynamic regions smaller than this (full-size pixels) are noise.
     pub min_region_px: u32,
     /// A flow-only region grows over neighbouring pixels whose depth is within this
@@ -377,6 +382,9 @@ impl PerceptionConfig {
         if !(u.instance_moving_fraction > 0.0 && u.instance_moving_fraction <= 1.0) {
             return Err("perception.fusion.instance_moving_fraction must be in (0, 1]".into());
         }
+        if !(u.instance_depth_gate >= 0.0 && u.instance_depth_gate < 1.0) {
+            return Err(format!("perception.fusion.instance_depth_gate must be in [0, 1), got {}", u.instance_depth_gate));
+        }
         if !(u.region_depth_ratio >= 0.0 && u.region_depth_ratio < 1.0) {
             return Err("perception.fusion.region_depth_ratio must be in [0, 1)".into());
         }
@@ -505,6 +513,7 @@ impl Default for FusionConfig {
         Self {
             neighbourhood_votes: 5,
             instance_moving_fraction: 0.2,
+            instance_depth_gate: 0.15,
             min_region_px: 400,
             region_depth_ratio: 0.05,
             max_region_fraction: 0.5,

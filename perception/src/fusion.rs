@@ -131,9 +131,30 @@ pub fn fuse(
         let max_id = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
         let (mut judged, mut moving_px) = (vec![0usize; max_id + 1], vec![0usize; max_id + 1]);
         if let Some(e) = ego {
-            for (i, (&class, &has_flow)) in e.class.iter().zip(&flow).enumerate() {
+            // Each instance is judged on its own surface: the cells near its median
+            // depth (`instance_depth_gate`). Its mask spills onto what lies in front
+            // of it or behind it at its outline, and a mover there must not make it move.
+            let mut depths: Vec<Vec<f32>> = vec![Vec::new(); max_id + 1];
+            for (i, (&class, &z)) in e.class.iter().zip(&e.depth_m).enumerate() {
                 let id = usize::from(grid_instance(i));
-                if id != 0 && id <= max_id && class != NO_PREDICTION {
+                if id != 0 && id <= max_id && class != NO_PREDICTION && z > 0.0 {
+                    depths[id].push(z);
+                }
+            }
+            let medians: Vec<f32> = depths
+                .iter_mut()
+                .map(|d| {
+                    if d.is_empty() {
+                        return 0.0;
+                    }
+                    let m = d.len() / 2;
+                    *d.select_nth_unstable_by(m, f32::total_cmp).1
+                })
+                .collect();
+            let gate = config.instance_depth_gate as f32;
+            for (i, ((&class, &has_flow), &z)) in e.class.iter().zip(&flow).zip(&e.depth_m).enumerate() {
+                let id = usize::from(grid_instance(i));
+                if id != 0 && id <= max_id && class != NO_PREDICTION && (gate <= 0.0 || (z - medians[id]).abs() <= gate * medians[id]) {
                     judged[id] += 1;
                     moving_px[id] += usize::from(has_flow);
                 }
@@ -480,6 +501,38 @@ mod tests {
         assert_eq!(f.tracking_mask(PriorDynamicTracking::ExcludeWhileMoving).iter().filter(|&&m| m != 0).count(), 0);
         assert_eq!(f.tracking_mask(PriorDynamicTracking::AlwaysExclude).iter().filter(|&&m| m != 0).count(), 40 * 80);
         assert_eq!(f.mapping_mask().iter().filter(|&&m| m != 0).count(), 40 * 80);
+    }
+
+    #[test]
+    fn a_mover_in_front_of_an_instance_does_not_make_it_move() {
+        let (w, h) = (160, 120);
+        let prior = [true, false];
+        // A monitor (not prior-dynamic) at 1.2 m, 40 × 80 pixels; a board carried
+        // 0.8 m away covers its left third and the wall beside it, and the
+        // segmenter's monitor mask spills onto the board.
+        let mut seg = person_box(w, h, 20, 60, 20, 100);
+        seg.instances[0].class_id = 1;
+        seg.instances[0].class_name = "tv".into();
+        let board = |x: usize, y: usize| (4..16).contains(&x) && (8..52).contains(&y);
+        let ego = ego_with(80, 60, board, |x, y| if board(x, y) { 0.8 } else { 1.2 });
+        let gated = FusionConfig { min_region_px: 16, ..FusionConfig::default() };
+        assert_eq!(gated.instance_depth_gate, 0.15);
+        let f = fuse(w, h, 2, Some(&ego), Some(&seg), &prior, &gated);
+        // Judged on its own surface (its 14 × 40 cells at 1.2 m), the monitor is still.
+        assert_eq!(f.instances[0].moving, Some(false));
+        assert_eq!(f.instances[0].moving_fraction, 0.0);
+        // The board is a flow region of its own; the rest of the monitor stays static.
+        assert_eq!(f.flow_regions, 1);
+        assert_eq!(f.labels[50 * w + 24], PixelLabel::Dynamic as u8);
+        assert!((20..100).all(|y| (34..60).all(|x| f.labels[y * w + x] == PixelLabel::Static as u8)));
+        // Every pixel judging, the board's cells carry the monitor: all of it moves.
+        let ungated = FusionConfig { instance_depth_gate: 0.0, ..gated };
+        let f = fuse(w, h, 2, Some(&ego), Some(&seg), &prior, &ungated);
+        assert_eq!(f.instances[0].moving, Some(true));
+        assert_eq!(
+            (20..100).flat_map(|y| (20..60).map(move |x| y * w + x)).filter(|&i| f.labels[i] == PixelLabel::Dynamic as u8).count(),
+            40 * 80
+        );
     }
 
     #[test]

@@ -1410,10 +1410,10 @@ const COAST_DEPTH_GATE: f32 = 0.15;
 /// A body's horizontal margin around its seen points, and its largest radius (metres).
 const BODY_MARGIN_M: f64 = 0.05;
 const MAX_BODY_RADIUS_M: f64 = 0.45;
-/// A body's smallest radius: an adult's shoulders are about 0.45 m wide and his arms
-/// swing beside them, so however little of him was seen (a head at the image's
-/// edge), his body reaches 0.3 m from its axis.
-const MIN_BODY_RADIUS_M: f64 = 0.3;
+/// A body's smallest radius: an adult's shoulders are about 0.45 m wide and his hands
+/// swing and hang beside them, up to about 0.4 m from his axis, so however little of
+/// him was seen (his legs at the image's edge), his body reaches that far.
+const MIN_BODY_RADIUS_M: f64 = 0.4;
 /// How far a body's axis may follow its points per frame (a brisk walk, 1.5 m/s at 30 Hz).
 const BODY_STEP_M_PER_FRAME: f64 = 0.05;
 /// Points a track needs before its body's volume is estimated.
@@ -1758,9 +1758,9 @@ mod tests {
         let up = -Vector3::y();
         let body = Body::around(1, &seen, up, 2.0).expect("a body");
         // 0.4 m of him seen across: 0.2 m from the axis and the margin is less than the
-        // least a body takes. Seen 0.64 m across, his own spread and the margin count.
+        // least a body takes. Seen 0.76 m across, his own spread and the margin count.
         assert_eq!(body.radius_m, MIN_BODY_RADIUS_M);
-        let wide: Vec<[f32; 3]> = seen.iter().map(|p| [p[0] * 1.6, p[1], p[2]]).collect();
+        let wide: Vec<[f32; 3]> = seen.iter().map(|p| [p[0] * 1.9, p[1], p[2]]).collect();
         let radius = Body::around(1, &wide, up, 2.0).expect("a body").radius_m;
         assert!(radius > MIN_BODY_RADIUS_M && radius < MAX_BODY_RADIUS_M, "radius {radius}");
         let pixels = masker.body_pixels(&body, &(1, Isometry3::identity()), &depth, w, h);
@@ -1865,7 +1865,7 @@ mod tests {
         };
         masker.offscreen = vec![person];
         let narrow = labelled_columns(&mut masker, 0);
-        assert_eq!(narrow, 13, "radius 0.3 m, the least a body takes: columns 74..=86");
+        assert_eq!(narrow, 17, "radius 0.4 m, the least a body takes: columns 72..=88");
         // 10 frames unseen: 0.2 m wider on each side (4 columns).
         assert_eq!(labelled_columns(&mut masker, 10), narrow + 2 * 4);
         // 50 frames: at most 0.5 m (10 columns).

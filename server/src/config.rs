@@ -791,6 +791,10 @@ mod tests {
         assert!(err("[fleet]\nagreement_m = -1.0\n").contains("fleet.agreement_m must be in (0, 1]"));
         assert!(err("[fleet]\ngraph_interval_s = -1.0\n").contains("fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600"));
         assert!(err("[fleet]\nplace_sigma_m = 0.0\n").contains("place_sigma_m and place_sigma_deg must be in (0, 10]"));
+        assert!(
+            err("[perception.fusion]\ninstance_depth_gate = 1.0\n")
+                .contains("perception.fusion.instance_depth_gate must be in [0, 1), got 1")
+        );
         assert_eq!(
             err("[perception.fusion]\nretract_keyframes = 1000\n"),
             "invalid configuration: perception.fusion.retract_keyframes must be at most 64, got 1000"

@@ -50,7 +50,10 @@ pub fn composite(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<
 pub fn composite_with(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)], plane: &TexturedPlane) -> Vec<CompositeFrame> {
     let camera = tum::fr1_camera();
     let t0 = frames[0].timestamp_ns;
-    let poses: Vec<Isometry3<f64>> = frames.iter().map(|f| interpolate_pose(gt, f.timestamp_ns).expect("ground truth")).collect();
+    // Drawn from the camera's pose at each image's exposure time, the time its pose is
+    // scored at (at the image's timestamp, 12.5 ms later, the board would shake).
+    let poses: Vec<Isometry3<f64>> =
+        frames.iter().map(|f| interpolate_pose(gt, tum::fr1_pose_time_ns(f.timestamp_ns)).expect("ground truth")).collect();
     let motion = object_motion(&poses);
     frames
         .iter()
