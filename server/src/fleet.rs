@@ -79,6 +79,8 @@ struct Fleet {
     edges: Vec<PlaceEdge>,
     /// A place edge came since the last solve.
     dirty: bool,
+    /// A solve has taken the graph and not handed its corrections back yet.
+    solving: bool,
     last_solve: Option<Instant>,
     last_correction: Option<GraphSolve>,
 }
@@ -140,6 +142,9 @@ pub struct FleetView {
     pub members: Vec<MemberView>,
     pub indexed_keyframes: usize,
     pub last_correction: Option<GraphSolve>,
+    /// A pose-graph solve is due (place edges came since the last one) or running:
+    /// `last_correction` and the members' corrections are about to change.
+    pub pose_graph_pending: bool,
     /// The fused fleet map's counts, when it has one.
     pub map: Option<crate::fleet_map::FleetMapCounts>,
 }
@@ -452,6 +457,7 @@ fn view(name: &str, f: &Fleet) -> FleetView {
             .collect(),
         indexed_keyframes: f.index.len(),
         last_correction: f.last_correction.clone(),
+        pose_graph_pending: f.dirty || f.solving,
         map: None,
     }
 }
@@ -634,16 +640,26 @@ impl Shared {
         }
     }
 
-    /// One solve of fleet `name`'s pose graph: merged sessions' indexed keyframes in
-    /// the fleet frame, odometry edges between a session's consecutive keyframes,
-    /// the place edges; the anchor's first keyframe held. The lock is held only to
-    /// take the graph and to hand the corrections back.
+    /// One solve of fleet `name`'s pose graph (see [`Self::solve_graph`]); the fleet
+    /// says a solve is pending from when it takes the graph until this returns.
     fn solve(&self, name: &str) {
+        self.solve_graph(name);
+        if let Some(f) = lock(&self.fleets).get_mut(name) {
+            f.solving = false;
+        }
+    }
+
+    /// Merged sessions' indexed keyframes in the fleet frame, odometry edges between
+    /// a session's consecutive keyframes, the place edges; the anchor's first
+    /// keyframe held. The lock is held only to take the graph and to hand the
+    /// corrections back.
+    fn solve_graph(&self, name: &str) {
         let c = &self.config;
         let (graph, keys, fixed, counts) = {
             let mut fleets = lock(&self.fleets);
             let Some(f) = fleets.get_mut(name) else { return };
             f.dirty = false;
+            f.solving = true;
             f.last_solve = Some(Instant::now());
             let places = &f.places;
             f.edges.retain(|e| places.contains_key(&e.a) && places.contains_key(&e.b));
@@ -943,8 +959,10 @@ mod tests {
             }
             f.dirty = true;
         }
+        assert!(service.get("lab").expect("fleet").pose_graph_pending, "new edges: a solve is due");
         service.solve_now();
         let view = service.get("lab").expect("fleet");
+        assert!(!view.pose_graph_pending, "solved");
         let solve = view.last_correction.expect("solved");
         assert_eq!((solve.keyframes, solve.odometry_edges, solve.loop_edges, solve.inter_session_edges), (10, 8, 0, 5));
         assert_eq!(solve.moved_keyframes, 5, "B's five keyframes");
@@ -979,9 +997,11 @@ mod tests {
         assert_eq!(fresh.edges.len(), 5);
         assert_eq!(stored_graph(&fresh).corrections, stored.corrections);
         assert_eq!(fresh.last_correction, stored.last_solve);
-        // Nothing new: no solve.
+        // Nothing new: no solve, none pending.
         service.solve_now();
-        assert_eq!(service.get("lab").expect("fleet").last_correction.map(|c| c.solved_unix_ns), Some(solve.solved_unix_ns));
+        let view = service.get("lab").expect("fleet");
+        assert_eq!(view.last_correction.map(|c| c.solved_unix_ns), Some(solve.solved_unix_ns));
+        assert!(!view.pose_graph_pending);
         service.close();
     }
 }

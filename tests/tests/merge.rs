@@ -40,9 +40,9 @@ async fn settled(server: &Server) -> serde_json::Value {
         let (_, all) = server.get_json("/api/v1/fleets").await;
         let (_, fleet) = server.get_json("/api/v1/fleets/lab").await;
         // The pose graph is solved on a timer (`fleet.graph_interval_s`), and a solve
-        // takes seconds in a debug build on a loaded machine: settled also means the
-        // last solve covered every indexed keyframe.
-        let solved_all = fleet["last_correction"]["keyframes"] == fleet["indexed_keyframes"];
+        // takes seconds in a debug build on a loaded machine: settled also means no
+        // solve is due or running, and the last one covered every indexed keyframe.
+        let solved_all = fleet["pose_graph_pending"] == false && fleet["last_correction"]["keyframes"] == fleet["indexed_keyframes"];
         unchanged = if all["place_recognition_backlog"] == 0 && fleet == last && solved_all { unchanged + 1 } else { 0 };
         if unchanged == 3 {
             return fleet;

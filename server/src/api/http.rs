@@ -285,6 +285,8 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
         "sessions": f.members.len(),
         "merged": merged,
         "indexed_keyframes": f.indexed_keyframes,
+        // A pose-graph solve is due or running: the corrections are about to change.
+        "pose_graph_pending": f.pose_graph_pending,
     });
     if detail {
         // The fused fleet map: keyframes held (fused, or waiting for their
