@@ -298,7 +298,7 @@ function renderFleets() {
     const unmerged = f.sessions.filter((m) => !m.merged);
     const robots = merged.map((m, i) => `<span><span class="swatch" style="background:${ROBOT_COLOURS[i % ROBOT_COLOURS.length]}"></span>${escapeHtml(m.robot_id)}${m.fleet_from_session?.anchor ? ' <span class="muted">(anchor)</span>' : ""}</span>`).join("");
     const apart = unmerged.length ? `<div class="muted">not merged yet: ${unmerged.map((m) => escapeHtml(m.robot_id)).join(", ")}</div>` : "";
-    return `<div class="fleet"><h3>${escapeHtml(f.fleet)} <span class="muted">${merged.length} merged · ${f.indexed_keyframes} keyframes indexed</span></h3>
+    return `<div class="fleet"><h3>${escapeHtml(f.fleet)} <span class="muted">${merged.length} merged · ${f.indexed_keyframes} keyframes indexed${f.pose_graph_pending ? " · pose graph update pending" : ""}</span></h3>
       <canvas data-fleet="${escapeHtml(f.fleet)}" width="480" height="320"></canvas><div class="robots">${robots}</div>${apart}</div>`;
   }).join("");
   drawFleets();
