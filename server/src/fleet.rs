@@ -79,8 +79,9 @@ struct Fleet {
     edges: Vec<PlaceEdge>,
     /// A place edge came since the last solve.
     dirty: bool,
-    /// A solve has taken the graph and not handed its corrections back yet.
-    solving: bool,
+    /// Solves that have taken the graph and not handed their corrections back yet
+    /// (the pose-graph thread's, and `solve_now`'s in tests).
+    solving: usize,
     last_solve: Option<Instant>,
     last_correction: Option<GraphSolve>,
 }
@@ -457,7 +458,7 @@ fn view(name: &str, f: &Fleet) -> FleetView {
             .collect(),
         indexed_keyframes: f.index.len(),
         last_correction: f.last_correction.clone(),
-        pose_graph_pending: f.dirty || f.solving,
+        pose_graph_pending: f.dirty || f.solving > 0,
         map: None,
     }
 }
@@ -641,11 +642,15 @@ impl Shared {
     }
 
     /// One solve of fleet `name`'s pose graph (see [`Self::solve_graph`]); the fleet
-    /// says a solve is pending from when it takes the graph until this returns.
+    /// says a solve is pending (`FleetView::pose_graph_pending`) until this returns.
     fn solve(&self, name: &str) {
+        match lock(&self.fleets).get_mut(name) {
+            Some(f) => f.solving += 1,
+            None => return,
+        }
         self.solve_graph(name);
         if let Some(f) = lock(&self.fleets).get_mut(name) {
-            f.solving = false;
+            f.solving = f.solving.saturating_sub(1);
         }
     }
 
@@ -659,7 +664,6 @@ impl Shared {
             let mut fleets = lock(&self.fleets);
             let Some(f) = fleets.get_mut(name) else { return };
             f.dirty = false;
-            f.solving = true;
             f.last_solve = Some(Instant::now());
             let places = &f.places;
             f.edges.retain(|e| places.contains_key(&e.a) && places.contains_key(&e.b));
