@@ -205,6 +205,13 @@ pub struct EgoMotionConfig {
     /// class that moved, then rests, does not vote for the camera's motion when it
     /// is picked up again. Tracking and the map are not affected. 0: off.
     pub remember_moved_frames: u32,
+    /// When more than this share of the flow cells was labelled moving in the
+    /// previous frame, that verdict does not keep them (nor the remembered movers)
+    /// out of this frame's camera-motion estimate; only prior-dynamic instances stay
+    /// out. The estimate assumes most of the view is static: a camera motion
+    /// misjudged at the onset of a mover covering half the view labels the room
+    /// moving, and a room kept out of the estimate cannot win it back. 1: off.
+    pub moving_majority_share: f64,
     /// Movers are also looked for over this many frames (the flows composed):
     /// one frame's flow cannot tell the camera's motion from that of a large
     /// textured thing that starts moving (a sideways step with a compensating turn
@@ -357,6 +364,9 @@ impl PerceptionConfig {
         if !(e.frame_interval_s > 0.0 && e.frame_interval_s <= 1.0) {
             return Err(format!("perception.ego_motion.frame_interval_s must be in (0, 1], got {}", e.frame_interval_s));
         }
+        if !(e.moving_majority_share > 0.0 && e.moving_majority_share <= 1.0) {
+            return Err(format!("perception.ego_motion.moving_majority_share must be in (0, 1], got {}", e.moving_majority_share));
+        }
         if e.baseline_frames > MAX_BASELINE_FRAMES {
             return Err(format!("perception.ego_motion.baseline_frames must be at most {MAX_BASELINE_FRAMES}, got {}", e.baseline_frames));
         }
@@ -502,6 +512,7 @@ impl Default for EgoMotionConfig {
             refine_tracked_motion: true,
             before_tracking: true,
             remember_moved_frames: 90,
+            moving_majority_share: 0.5,
             baseline_frames: 4,
             frame_interval_s: 1.0 / 30.0,
         }

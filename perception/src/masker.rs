@@ -467,11 +467,9 @@ impl DynamicMasker {
         }
         self.carried.take_if(|c| input.sequence - c.source_sequence > max_age || c.at_sequence != input.sequence);
 
-        // What the camera-motion estimate must not listen to: the carried dynamic
-        // cells, prior-dynamic instances, remembered movers at rest, and (below)
-        // what moved over the baseline.
-        let mut exclude = self.exclusion_grid(self.carried.as_ref().map(|c| &c.segmentation), carried_dynamic.as_deref());
-        self.exclude_remembered(&mut exclude, input.sequence, input.depth);
+        // What the camera-motion estimate must not listen to (and, below, what moved
+        // over the baseline).
+        let mut exclude = self.vote_exclusion(carried_dynamic.as_deref(), input.sequence, input.depth);
         // Constant velocity over the frames this step spans (more than one after drops).
         let step_frames = self.latest_step(input.sequence).map_or(1.0, |step| step.intervals);
         let factor = step_frames / self.last_ego_frames.max(1.0);
@@ -1367,6 +1365,23 @@ impl DynamicMasker {
 
     /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
     /// instances and the carried dynamic cells.
+    /// The flow cells the camera-motion estimate of frame `sequence` must not listen
+    /// to: the previous frame's dynamic cells carried here (`carried_dynamic`),
+    /// prior-dynamic instances and remembered movers at rest. When the carried cells
+    /// are more than `ego_motion.moving_majority_share` of the view, that verdict may
+    /// be the camera's own motion misjudged (the estimate assumes most of the view is
+    /// static), and only the prior-dynamic instances stay out.
+    fn vote_exclusion(&self, carried_dynamic: Option<&[u8]>, sequence: u64, depth: &[u16]) -> Vec<u8> {
+        let seg = self.carried.as_ref().map(|c| &c.segmentation);
+        let moving_share = carried_dynamic.map_or(0.0, |d| d.iter().filter(|&&v| v != 0).count() as f64 / d.len().max(1) as f64);
+        if moving_share > self.config.ego_motion.moving_majority_share {
+            return self.exclusion_grid(seg, None);
+        }
+        let mut exclude = self.exclusion_grid(seg, carried_dynamic);
+        self.exclude_remembered(&mut exclude, sequence, depth);
+        exclude
+    }
+
     fn exclusion_grid(&self, seg: Option<&Segmentation>, dynamic: Option<&[u8]>) -> Vec<u8> {
         let dynamic_ids: Vec<bool> = seg.map_or_else(Vec::new, |seg| {
             let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);
@@ -1712,6 +1727,47 @@ mod tests {
         assert!(excluded(&masker, 201, &resting).is_empty(), "another epoch");
         masker.remember_moved(&vec![PixelLabel::Static as u8; w * h], Some(&carried), 201, &resting);
         assert!(masker.moved.is_empty());
+    }
+
+    /// The camera-motion estimate keeps out what the last frame labelled moving and
+    /// the movers remembered at rest, unless that was most of the view
+    /// (`ego_motion.moving_majority_share`): then only prior-dynamic instances stay out.
+    #[test]
+    fn a_verdict_that_most_of_the_view_moves_does_not_keep_it_out_of_the_vote() {
+        let (w, h) = (96usize, 72usize);
+        let mut masker = DynamicMasker::new(pinhole(w, h, 80.0), PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        assert_eq!(masker.config.ego_motion.moving_majority_share, 0.5);
+        let (gw, gh) = masker.ego.grid_size();
+        let depth = vec![2000u16; w * h];
+        // The last frame's moving cells: the left 40 % or 60 % of the columns.
+        let left = |share: f64| -> Vec<u8> { (0..gw * gh).map(|g| u8::from(((g % gw) as f64) < share * gw as f64)).collect() };
+        let (some, most) = (left(0.4), left(0.6));
+        let count = |v: &[u8]| v.iter().filter(|&&e| e != 0).count();
+        assert!(count(&most) * 2 > gw * gh && count(&some) * 2 < gw * gh);
+        assert_eq!(masker.vote_exclusion(Some(&some), 5, &depth), some, "a mover: kept out");
+        assert_eq!(count(&masker.vote_exclusion(Some(&most), 5, &depth)), 0, "most of the view: listened to again");
+        // A prior-dynamic instance stays out either way.
+        let mut seg = Segmentation::empty(w as u32, h as u32);
+        for y in 10..30 {
+            for x in 60..80 {
+                seg.instance_map[y * w + x] = 1;
+            }
+        }
+        seg.instances.push(crate::segment::Instance {
+            id: 1,
+            class_id: 0,
+            class_name: "person".into(),
+            score: 0.9,
+            bbox: [60.0, 10.0, 80.0, 30.0],
+            pixels: 400,
+        });
+        masker.carried = Some(Carried { segmentation: seg, source_sequence: 5, at_sequence: 5, tracks: Vec::new() });
+        let person = count(&masker.exclusion_grid(masker.carried.as_ref().map(|c| &c.segmentation), None));
+        assert!(person > 0);
+        assert_eq!(count(&masker.vote_exclusion(Some(&most), 5, &depth)), person);
+        // 1 turns it off: the verdict is kept whatever its size.
+        masker.config.ego_motion.moving_majority_share = 1.0;
+        assert_eq!(count(&masker.vote_exclusion(Some(&most), 5, &depth)), count(&most) + person);
     }
 
     /// A person the carried mask lost while he stands is still where his points are:

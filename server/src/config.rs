@@ -792,6 +792,10 @@ mod tests {
         assert!(err("[fleet]\ngraph_interval_s = -1.0\n").contains("fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600"));
         assert!(err("[fleet]\nplace_sigma_m = 0.0\n").contains("place_sigma_m and place_sigma_deg must be in (0, 10]"));
         assert!(
+            err("[perception.ego_motion]\nmoving_majority_share = 0.0\n")
+                .contains("perception.ego_motion.moving_majority_share must be in (0, 1], got 0")
+        );
+        assert!(
             err("[perception.fusion]\ninstance_depth_gate = 1.0\n")
                 .contains("perception.fusion.instance_depth_gate must be in [0, 1), got 1")
         );
