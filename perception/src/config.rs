@@ -206,8 +206,9 @@ pub struct EgoMotionConfig {
     /// is picked up again. Tracking and the map are not affected. 0: off.
     pub remember_moved_frames: u32,
     /// When more than this share of the flow cells was labelled moving in the
-    /// previous frame, that verdict does not keep them (nor the remembered movers)
-    /// out of this frame's camera-motion estimate; only prior-dynamic instances stay
+    /// previous frame (carried into this one and dilated, as they are kept out),
+    /// that verdict does not keep them (nor the remembered movers) out of this
+    /// frame's camera-motion estimate; only prior-dynamic instances stay
     /// out. The estimate assumes most of the view is static: a camera motion
     /// misjudged at the onset of a mover covering half the view labels the room
     /// moving, and a room kept out of the estimate cannot win it back. 1: off.

@@ -1524,6 +1524,25 @@ mod tests {
         Camera::pinhole(w as u32, h as u32, f, f, w as f64 / 2.0, h as f64 / 2.0, 1000.0)
     }
 
+    /// A segmentation of one person (instance 1, class 0) over `xs` × `ys`.
+    fn person(w: usize, h: usize, xs: std::ops::Range<usize>, ys: std::ops::Range<usize>) -> Segmentation {
+        let mut seg = Segmentation::empty(w as u32, h as u32);
+        for y in ys.clone() {
+            for x in xs.clone() {
+                seg.instance_map[y * w + x] = 1;
+            }
+        }
+        seg.instances.push(crate::segment::Instance {
+            id: 1,
+            class_id: 0,
+            class_name: "person".into(),
+            score: 0.9,
+            bbox: [xs.start as f32, ys.start as f32, xs.end as f32, ys.end as f32],
+            pixels: (xs.len() * ys.len()) as u32,
+        });
+        seg
+    }
+
     #[test]
     fn growth_follows_the_surface_and_stops_at_depth_edges_holes_and_its_reach() {
         let (w, h) = (12, 5);
@@ -1588,20 +1607,7 @@ mod tests {
             .collect();
         let depth: Vec<u16> = (0..w * h).map(|i| if (30..50).contains(&(i % w)) { 1000 } else { 3000 }).collect();
         // The detection's mask spills 6 columns onto the wall (30..56), rows 10..60.
-        let mut detection = Segmentation::empty(w as u32, h as u32);
-        for y in 10..60 {
-            for x in 30..56 {
-                detection.instance_map[y * w + x] = 1;
-            }
-        }
-        detection.instances.push(crate::segment::Instance {
-            id: 1,
-            class_id: 0,
-            class_name: "person".into(),
-            score: 0.9,
-            bbox: [30.0, 10.0, 56.0, 60.0],
-            pixels: 26 * 50,
-        });
+        let detection = person(w, h, 30..56, 10..60);
         let person_pixels = |m: &DynamicMasker| {
             m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>())
         };
@@ -1747,20 +1753,7 @@ mod tests {
         assert_eq!(masker.vote_exclusion(Some(&some), 5, &depth), some, "a mover: kept out");
         assert_eq!(count(&masker.vote_exclusion(Some(&most), 5, &depth)), 0, "most of the view: listened to again");
         // A prior-dynamic instance stays out either way.
-        let mut seg = Segmentation::empty(w as u32, h as u32);
-        for y in 10..30 {
-            for x in 60..80 {
-                seg.instance_map[y * w + x] = 1;
-            }
-        }
-        seg.instances.push(crate::segment::Instance {
-            id: 1,
-            class_id: 0,
-            class_name: "person".into(),
-            score: 0.9,
-            bbox: [60.0, 10.0, 80.0, 30.0],
-            pixels: 400,
-        });
+        let seg = person(w, h, 60..80, 10..30);
         masker.carried = Some(Carried { segmentation: seg, source_sequence: 5, at_sequence: 5, tracks: Vec::new() });
         let person = count(&masker.exclusion_grid(masker.carried.as_ref().map(|c| &c.segmentation), None));
         assert!(person > 0);
