@@ -21,7 +21,7 @@ use std::path::Path;
 use composite_run::Stage;
 use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
 use nalgebra::{Isometry3, Point3};
-use stillmap_perception::composite::{StopAndGo, TexturedPlane, interpolate_pose, paste};
+use stillmap_perception::composite::{StopAndGo, TexturedPlane, paste};
 use stillmap_perception::{Segmenter, YoloSegmenter};
 
 /// A person's height, and the floor of the TUM freiburg1 room (the motion-capture
@@ -135,11 +135,9 @@ struct Rest {
 fn score_clip(dir: &Path, segmenter: &mut YoloSegmenter) -> Score {
     let frames = tum::load(dir, 150);
     let gt = tum::groundtruth(dir);
-    // The camera's pose at each image's exposure time: the objects are drawn from it
-    // (at the image's timestamp, 12.5 ms later, a standing person would shake against
-    // the room), and keyframes are fused at it.
-    let poses: Vec<Isometry3<f64>> =
-        frames.iter().map(|f| interpolate_pose(&gt, tum::fr1_pose_time_ns(f.timestamp_ns)).expect("ground truth")).collect();
+    // The camera's pose at each image's exposure time: the objects are drawn from it,
+    // and keyframes are fused at it.
+    let poses = composite_run::exposure_poses(&frames, &gt);
     let camera = tum::fr1_camera();
     let actors = actors(&poses);
     let t0 = frames[0].timestamp_ns;

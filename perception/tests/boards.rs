@@ -28,17 +28,11 @@ use stillmap_perception::testing as support;
 use stillmap_perception::testing::composite_run;
 use stillmap_tracking::testing as tum;
 
-use composite_run::{CompositeFrame, MaskedTracking, Schedule};
+use composite_run::{CompositeFrame, MaskedTracking, Schedule, exposure_poses};
 use nalgebra::Isometry3;
-use stillmap_perception::composite::interpolate_pose;
 use stillmap_perception::testing::boards::{Arrangement, scene};
 use stillmap_perception::{PerceptionConfig, Segmenter, YoloSegmenter};
 use stillmap_tracking::{FrameInput, Tracker, TrackerConfig, TrackingState};
-
-/// Ground-truth poses at each frame's exposure time.
-fn exposure_poses(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<Isometry3<f64>> {
-    frames.iter().map(|f| interpolate_pose(gt, tum::fr1_pose_time_ns(f.timestamp_ns)).expect("ground truth")).collect()
-}
 
 fn no_baseline() -> PerceptionConfig {
     let mut p = PerceptionConfig::default();

@@ -41,6 +41,13 @@ pub fn board() -> TexturedPlane {
     TexturedPlane::noise(3, 256, 256, 0.24, 0.20)
 }
 
+/// The ground-truth camera pose at each frame's exposure time, the time its pose is
+/// scored at (at the image's timestamp, 12.5 ms later, a drawn object would shake
+/// against the room).
+pub fn exposure_poses(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<Isometry3<f64>> {
+    frames.iter().map(|f| interpolate_pose(gt, tum::fr1_pose_time_ns(f.timestamp_ns)).expect("ground truth")).collect()
+}
+
 /// The real clip with the board pasted consistently with the ground-truth poses.
 pub fn composite(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<CompositeFrame> {
     composite_with(frames, gt, &board())
@@ -50,10 +57,7 @@ pub fn composite(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)]) -> Vec<
 pub fn composite_with(frames: &[tum::TumFrame], gt: &[(u64, Isometry3<f64>)], plane: &TexturedPlane) -> Vec<CompositeFrame> {
     let camera = tum::fr1_camera();
     let t0 = frames[0].timestamp_ns;
-    // Drawn from the camera's pose at each image's exposure time, the time its pose is
-    // scored at (at the image's timestamp, 12.5 ms later, the board would shake).
-    let poses: Vec<Isometry3<f64>> =
-        frames.iter().map(|f| interpolate_pose(gt, tum::fr1_pose_time_ns(f.timestamp_ns)).expect("ground truth")).collect();
+    let poses = exposure_poses(frames, gt);
     let motion = object_motion(&poses);
     frames
         .iter()
