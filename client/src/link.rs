@@ -94,8 +94,15 @@ fn is_transient(code: Code) -> bool {
     matches!(code, Code::Unavailable | Code::Unknown | Code::Cancelled | Code::Internal | Code::DeadlineExceeded)
 }
 
+/// A frame over gRPC (the robot connects to the server it is given: nothing to place).
 fn frame_message(frame: pb::Frame) -> pb::ClientMessage {
-    pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)) }
+    pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)), fleet: String::new() }
+}
+
+/// A message over Zenoh, with the fleet the servers place the robot by (its
+/// hello's: every robot of a fleet on one server; none: placed by the robot id).
+fn zenoh_message(msg: ClientMsg, hello: &pb::Hello) -> Vec<u8> {
+    pb::ClientMessage { msg: Some(msg), fleet: hello.fleet.clone() }.encode_to_vec()
 }
 
 pub fn start_grpc(hello: pb::Hello, options: GrpcOptions) -> Link {
@@ -139,7 +146,7 @@ async fn connect_once(
     let mut client = IngestClient::new(channel);
     let (out, out_rx) = mpsc::channel(LINK_BUFFER);
     let hello = pb::Hello { resume_session_id: session_id.to_string(), resume_secret: resume_secret.to_string(), ..hello.clone() };
-    out.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) })
+    out.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)), fleet: String::new() })
         .await
         .map_err(|_| Broke::Transient("outbound stream closed".into()))?;
     let mut inbound = client.stream(ReceiverStream::new(out_rx)).await.map_err(classify)?.into_inner();
@@ -294,7 +301,7 @@ async fn run_zenoh(
     let subscriber = session.declare_subscriber(keys::results(&robot)).await.map_err(zerr("subscribe"))?;
     let publisher =
         session.declare_publisher(keys::frames(&robot)).congestion_control(CongestionControl::Block).await.map_err(zerr("publisher"))?;
-    let hello_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(hello.clone())) }.encode_to_vec();
+    let hello_bytes = zenoh_message(ClientMsg::Hello(hello.clone()), &hello);
     // Servers on one Zenoh network place each robot on one of them; when one leaves,
     // its robots belong to another. Every server leaving is heard here (where the
     // router lets the robot see the servers' tokens), and the robot says hello again
@@ -326,7 +333,7 @@ async fn run_zenoh(
             frame = frames_rx.recv(), if !input_done => match frame {
                 Some(frame) => {
                     let sequence = frame.sequence;
-                    publisher.put(frame_message(frame).encode_to_vec()).await.map_err(zerr("put frame"))?;
+                    publisher.put(zenoh_message(ClientMsg::Frame(frame), &hello)).await.map_err(zerr("put frame"))?;
                     in_flight.push_back(sequence);
                 }
                 None => input_done = true,
@@ -446,7 +453,7 @@ async fn rejoin(
     let ZenohEnds { publisher, subscriber, hello, events, timeout } = link;
     let resume =
         pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..(*hello).clone() };
-    let resume_bytes = pb::ClientMessage { msg: Some(ClientMsg::Hello(resume)) }.encode_to_vec();
+    let resume_bytes = zenoh_message(ClientMsg::Hello(resume), hello);
     let (again, meanwhile) = zenoh_hello(publisher, subscriber, &resume_bytes, *timeout).await?;
     for r in meanwhile {
         in_flight.retain(|&q| q != r.sequence);

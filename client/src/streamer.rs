@@ -340,7 +340,9 @@ pub async fn stream(
             _ = tokio::time::sleep_until(next_send), if can_send => {
                 let Some(enc) = pending.take() else { continue };
                 let Some(tx) = frames.as_ref() else { continue };
-                let size = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(enc.frame.clone())) }.encoded_len() as u64;
+                // As the Zenoh link sends it, with the fleet (over gRPC a few bytes less).
+                let message = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(enc.frame.clone())), fleet: options.fleet.clone() };
+                let size = message.encoded_len() as u64;
                 if max_message_bytes.is_some_and(|m| size > m) {
                     summary.frames_too_large += 1;
                     progress.inc(1);

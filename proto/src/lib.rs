@@ -108,21 +108,44 @@ pub fn validate_robot_id(robot_id: &str) -> Result<(), String> {
     validate_name("robot_id", robot_id)
 }
 
-/// Which of the live servers `servers` a robot belongs to: rendezvous (highest
-/// random weight) hashing, the weight of a server SipHash-2-4 (fixed zero key: the
-/// same on every machine and release) of `server_id`, a separator and `robot_id`.
+/// What a robot on Zenoh is placed by ([`placement_owner`]): its fleet when its
+/// messages name one (`ClientMessage.fleet`), so that every robot of a fleet is
+/// served by one server and shares its fleet map; else its robot id. Fleet keys
+/// are `fleet:<name>`: `:` is in no robot id, so a fleet never shares a key with a robot.
+pub fn placement_key<'a>(robot_id: &'a str, fleet: &str) -> std::borrow::Cow<'a, str> {
+    if fleet.is_empty() { robot_id.into() } else { format!("fleet:{fleet}").into() }
+}
+
+/// The `fleet` of an encoded `ClientMessage`, read without decoding the rest: the
+/// hello or frame it carries is skipped (prost advances past unknown fields
+/// without copying them), so a server can place every message it hears, its
+/// own robots' or not, at the cost of reading a few bytes.
+pub fn client_message_fleet(payload: &[u8]) -> Result<String, prost::DecodeError> {
+    /// `ClientMessage` with only its `fleet` field.
+    #[derive(Clone, PartialEq, prost::Message)]
+    struct FleetOnly {
+        #[prost(string, tag = "3")]
+        fleet: String,
+    }
+    <FleetOnly as prost::Message>::decode(payload).map(|m| m.fleet)
+}
+
+/// Which of the live servers `servers` a robot belongs to, by its
+/// [`placement_key`]: rendezvous (highest random weight) hashing, the weight of a
+/// server SipHash-2-4 (fixed zero key: the same on every machine and release) of
+/// `server_id`, a separator and the key.
 /// Every server computes it alone from the set of live servers it sees: one owner
-/// per robot without any coordination, and when a server joins or leaves only the
+/// per key without any coordination, and when a server joins or leaves only the
 /// robots whose owner it is (or becomes) move. Ties go to the smaller id. `None`
 /// when `servers` is empty.
-pub fn placement_owner<'a>(robot_id: &str, servers: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
+pub fn placement_owner<'a>(key: &str, servers: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
     servers.into_iter().max_by(|a, b| {
         let weight = |s: &str| {
             use std::hash::Hasher as _;
             let mut h = siphasher::sip::SipHasher24::new();
             h.write(s.as_bytes());
             h.write(&[0xff]);
-            h.write(robot_id.as_bytes());
+            h.write(key.as_bytes());
             h.finish()
         };
         weight(a).cmp(&weight(b)).then_with(|| b.cmp(a))
@@ -192,6 +215,39 @@ mod tests {
             }
         }
         assert_eq!(placement_owner("r", std::iter::empty::<&str>()), None);
+    }
+
+    /// Robots of a named fleet share one owner; robots without a fleet are placed
+    /// by their ids as before; a fleet's key is no robot's.
+    #[test]
+    fn a_named_fleet_is_placed_as_one() {
+        let servers = ["a", "b", "c"];
+        let fleet: Vec<&str> = (0..50)
+            .map(|i| format!("robot-{i}"))
+            .map(|r| placement_owner(&placement_key(&r, "warehouse"), servers).expect("owner"))
+            .collect();
+        assert!(fleet.iter().all(|o| *o == fleet[0]), "one fleet on {fleet:?}");
+        assert_eq!(placement_key("robot-1", ""), "robot-1");
+        assert_eq!(placement_key("robot-1", "warehouse"), "fleet:warehouse");
+        assert!(validate_robot_id(&placement_key("robot-1", "warehouse")).is_err());
+        // Unnamed robots still spread.
+        let spread: std::collections::BTreeSet<&str> =
+            (0..50).map(|i| format!("robot-{i}")).map(|r| placement_owner(&placement_key(&r, ""), servers).expect("owner")).collect();
+        assert_eq!(spread.len(), 3);
+    }
+
+    /// The fleet is read from a message whatever it carries, and a message without
+    /// one (an older client) reads as empty.
+    #[test]
+    fn the_fleet_is_read_without_decoding_the_frame() {
+        use prost::Message as _;
+        let frame = pb::Frame { sequence: 7, depth: vec![1u8; 100_000].into(), ..Default::default() };
+        let with = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(frame.clone())), fleet: "warehouse".into() };
+        assert_eq!(client_message_fleet(&with.encode_to_vec()), Ok("warehouse".into()));
+        let hello = pb::Hello { robot_id: "r".into(), fleet: "warehouse".into(), ..Default::default() };
+        let without = pb::ClientMessage { msg: Some(pb::client_message::Msg::Hello(hello)), fleet: String::new() };
+        assert_eq!(client_message_fleet(&without.encode_to_vec()), Ok(String::new()));
+        assert!(client_message_fleet(&[0x1a, 0x05, b'a']).is_err(), "truncated");
     }
 
     #[test]

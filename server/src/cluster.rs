@@ -7,7 +7,9 @@
 //!
 //! **Placement.** The same tokens tell each server which servers are live
 //! ([`Membership`]); a robot on Zenoh belongs to one of them by rendezvous hashing
-//! on its id (`stillmap_proto::placement_owner`), and only that server answers it
+//! on its fleet when its messages name one (every robot of a fleet on one server,
+//! with one fleet map), else on its id (`stillmap_proto::placement_key`,
+//! `placement_owner`), and only that server answers it
 //! (`ingest/zenoh.rs`). No coordination: every server computes the same owner from
 //! the same live set. When a server leaves (its token withdrawn) its robots'
 //! frames reach their new owner, which tells them to say hello again; when one
@@ -60,10 +62,11 @@ impl Membership {
         &self.own
     }
 
-    /// Whether robot `robot_id` belongs to this server among the live ones.
-    pub fn owns(&self, robot_id: &str) -> bool {
+    /// Whether the robots placed by `key` (`stillmap_proto::placement_key`: a
+    /// robot's fleet, else its id) belong to this server among the live ones.
+    pub fn owns(&self, key: &str) -> bool {
         let live = lock(&self.live);
-        stillmap_proto::placement_owner(robot_id, live.iter().map(String::as_str)) == Some(self.own.as_str())
+        stillmap_proto::placement_owner(key, live.iter().map(String::as_str)) == Some(self.own.as_str())
     }
 
     /// The live servers, by id.

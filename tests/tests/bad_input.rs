@@ -28,7 +28,7 @@ impl Stream {
     }
 
     async fn send(&self, msg: ClientMsg) {
-        self.tx.send(pb::ClientMessage { msg: Some(msg) }).await.expect("send");
+        self.tx.send(pb::ClientMessage { msg: Some(msg), fleet: String::new() }).await.expect("send");
     }
 
     async fn next(&mut self) -> Result<pb::ServerMessage, tonic::Status> {

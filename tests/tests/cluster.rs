@@ -4,8 +4,9 @@
 //! (their process id: the servers this test started) and their load; a server
 //! killed with `kill -9` disappears from the liveliness view, and comes back when
 //! it restarts. Robots on Zenoh are placed on one server each (rendezvous hashing
-//! over the live servers), either server answers for any session (forwarded over
-//! Zenoh), and a killed server's robots land on the other one.
+//! over the live servers, on their fleet when they name one: a fleet's robots on
+//! one server), either server answers for any session (forwarded over Zenoh), and
+//! a killed server's robots land on the other one.
 
 use std::collections::BTreeMap;
 use std::process::{Command, Stdio};
@@ -148,6 +149,17 @@ impl Drop for Robots {
 /// Starts one robot process per id, streaming the public clip through the router at
 /// `rate_hz`; returns them with the files their summaries go to.
 fn spawn_robots(router: &str, robots: &[String], rate_hz: &str, tag: &str) -> (Robots, Vec<(String, std::path::PathBuf)>) {
+    spawn_robots_with(router, robots, rate_hz, tag, &[])
+}
+
+/// [`spawn_robots`] with more client arguments (`--fleet`).
+fn spawn_robots_with(
+    router: &str,
+    robots: &[String],
+    rate_hz: &str,
+    tag: &str,
+    extra: &[&str],
+) -> (Robots, Vec<(String, std::path::PathBuf)>) {
     let tum = format!("tum:{}", tum_dir().display());
     let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("{tag}-{r}.json")))).collect();
     let children = summaries
@@ -157,6 +169,7 @@ fn spawn_robots(router: &str, robots: &[String], rate_hz: &str, tag: &str) -> (R
                 .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", router])
                 .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", rate_hz, "--quiet", "--summary-json"])
                 .arg(summary)
+                .args(extra)
                 .env("STILLMAP_LOG", "error")
                 .stdout(Stdio::null())
                 .stderr(Stdio::inherit())
@@ -425,6 +438,45 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
     eprintln!("B's robots streaming on A {:.0} ms after kill -9", killed.elapsed().as_secs_f64() * 1e3);
 
     check_robots(clients, &summaries, &on_b);
+}
+
+/// The robots of a named fleet are placed by the fleet, on one server, whose fleet
+/// then holds all of them (one fleet map), though their ids alone would have split
+/// them; a robot without a fleet is still placed by its id.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_named_fleets_robots_are_placed_on_one_server() {
+    let Pair { router, _zenoh, a, b, robots, on_a, on_b } = Pair::start(&[]).await;
+    assert!(!on_a.is_empty() && !on_b.is_empty(), "this test needs robot ids that would split");
+    let fleet = "warehouse";
+    let owner = stillmap_proto::placement_owner(&stillmap_proto::placement_key("robot-0", fleet), [ID_A, ID_B]).expect("owner");
+    let (holder, other, other_id) = if owner == ID_A { (&a, &b, ID_B) } else { (&b, &a, ID_A) };
+    // A robot without a fleet that its id places on the other server.
+    let loner = (9..100)
+        .map(|i| format!("robot-{i}"))
+        .find(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(other_id))
+        .expect("a robot id for the other server");
+
+    let (mut clients, mut summaries) = spawn_robots_with(&router, &robots, "15", "fleet", &["--fleet", fleet]);
+    let (mut loner_client, loner_summary) = spawn_robots(&router, std::slice::from_ref(&loner), "15", "fleet");
+    clients.0.append(&mut loner_client.0);
+    summaries.extend(loner_summary);
+
+    eventually(Duration::from_secs(10), "the fleet's robots streaming on one server, the other robot on the other", async || {
+        robots_on(holder, owner).await.1 == robots && robots_on(holder, other_id).await.1 == std::slice::from_ref(&loner)
+    })
+    .await;
+    assert_eq!(robots_on(other, owner).await.0, robots, "a fleet robot opened a session on the other server");
+    assert_eq!(robots_on(other, other_id).await.0, std::slice::from_ref(&loner), "a fleet robot opened a session on the other server");
+    // The holder's fleet has every robot; the other server has never heard of it.
+    let (status, detail) = holder.get_json(&format!("/api/v1/fleets/{fleet}")).await;
+    assert_eq!(status, 200, "{detail}");
+    let mut members: Vec<String> =
+        detail["sessions"].as_array().expect("members").iter().map(|m| m["robot_id"].as_str().unwrap_or_default().to_string()).collect();
+    members.sort();
+    assert_eq!(members, robots);
+    assert_eq!(other.get_json(&format!("/api/v1/fleets/{fleet}")).await.0, 404);
+
+    check_robots(clients, &summaries, &[]);
 }
 
 /// A server joining mid-stream takes the robots placement now gives it: they are

@@ -139,7 +139,7 @@ async fn a_server_whose_postgres_refuses_writes_serves_and_stops() {
 async fn hello(server: &Server, hello: pb::Hello) -> Result<pb::SessionAccepted, tonic::Status> {
     let mut client = IngestClient::connect(server.grpc_url()).await.expect("connect");
     let (tx, rx) = tokio::sync::mpsc::channel(4);
-    tx.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }).await.expect("queue the hello");
+    tx.send(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)), fleet: String::new() }).await.expect("queue the hello");
     let mut stream = client.stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
     match stream.message().await? {
         Some(pb::ServerMessage { msg: Some(Msg::Accepted(a)) }) => Ok(a),

@@ -355,7 +355,7 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
         publisher.matching_status().await.is_ok_and(|m| m.matching())
     })
     .await;
-    let frame = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(tum_frame(10, 1_000_000_000))) };
+    let frame = pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(tum_frame(10, 1_000_000_000))), fleet: String::new() };
     publisher.put(frame.encode_to_vec()).await.expect("put frame");
     let answer = tokio::time::timeout(Duration::from_secs(10), results.recv_async()).await.expect("an answer").expect("sample");
     let answer = pb::ServerMessage::decode(answer.payload().to_bytes().as_ref()).expect("server message");

@@ -36,7 +36,7 @@ async fn open(config: &Path) -> zenoh::Session {
 }
 
 fn client_message(msg: pb::client_message::Msg) -> Vec<u8> {
-    pb::ClientMessage { msg: Some(msg) }.encode_to_vec()
+    pb::ClientMessage { msg: Some(msg), fleet: String::new() }.encode_to_vec()
 }
 
 #[tokio::test(flavor = "multi_thread")]

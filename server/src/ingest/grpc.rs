@@ -59,12 +59,12 @@ async fn serve_stream(
     let metrics = registry.metrics().clone();
     let hello = match inbound.message().await.map_err(|s| oversized_as_resource_exhausted(s, &metrics))? {
         None => return Ok(()),
-        Some(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)) }) => hello,
-        Some(pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)) }) => {
+        Some(pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)), .. }) => hello,
+        Some(pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)), .. }) => {
             metrics.rejected("no_hello");
             return Err(frame_before_hello(frame.sequence));
         }
-        Some(pb::ClientMessage { msg: None }) => {
+        Some(pb::ClientMessage { msg: None, .. }) => {
             metrics.rejected("malformed");
             return Err(Status::invalid_argument("empty client message: expected a hello"));
         }

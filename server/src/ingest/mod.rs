@@ -84,9 +84,19 @@ pub fn parse_zenoh_message(robot: &str, payload: &[u8], max_message_bytes: usize
         Ok(m) => m,
         Err(e) => return reject(Some("malformed"), Status::invalid_argument(format!("undecodable message: {e}"))),
     };
+    if !message.fleet.is_empty()
+        && let Err(problem) = stillmap_proto::validate_fleet(&message.fleet)
+    {
+        return reject(Some("malformed"), Status::invalid_argument(format!("message placed by a bad fleet: {problem}")));
+    }
     match message.msg {
         Some(ClientMsg::Hello(hello)) if hello.robot_id != robot => {
             let message = format!("hello for robot {:?} published on the key of robot {robot:?}", hello.robot_id);
+            reject(None, Status::invalid_argument(message))
+        }
+        // The message's fleet placed it (an older client sends none: placed by its id).
+        Some(ClientMsg::Hello(hello)) if !message.fleet.is_empty() && hello.fleet != message.fleet => {
+            let message = format!("hello for fleet {:?} in a message placed by fleet {:?}", hello.fleet, message.fleet);
             reject(None, Status::invalid_argument(message))
         }
         Some(ClientMsg::Hello(hello)) => Ok(ZenohMessage::Hello(hello)),
@@ -101,7 +111,7 @@ mod tests {
     use tonic::Code;
 
     fn encoded(msg: Option<ClientMsg>) -> Vec<u8> {
-        pb::ClientMessage { msg }.encode_to_vec()
+        pb::ClientMessage { msg, fleet: String::new() }.encode_to_vec()
     }
 
     fn rejection(r: Result<ZenohMessage, ZenohRejection>) -> (Option<&'static str>, Code, String) {
@@ -129,6 +139,34 @@ mod tests {
         assert_eq!(
             rejection(parse_zenoh_message("r1", &encoded(None), 1000)),
             (Some("malformed"), Code::InvalidArgument, "empty client message".into())
+        );
+    }
+
+    /// A hello must name the fleet its message was placed by; one from a client
+    /// that places nothing (no fleet on the message) is taken as it is.
+    #[test]
+    fn a_hello_names_the_fleet_it_was_placed_by() {
+        let message = |hello_fleet: &str, placed_by: &str| {
+            let hello = pb::Hello { robot_id: "r1".into(), fleet: hello_fleet.into(), ..Default::default() };
+            pb::ClientMessage { msg: Some(ClientMsg::Hello(hello)), fleet: placed_by.into() }.encode_to_vec()
+        };
+        assert!(matches!(parse_zenoh_message("r1", &message("a", "a"), 1000), Ok(ZenohMessage::Hello(h)) if h.fleet == "a"));
+        assert!(matches!(parse_zenoh_message("r1", &message("a", ""), 1000), Ok(ZenohMessage::Hello(h)) if h.fleet == "a"));
+        assert_eq!(
+            rejection(parse_zenoh_message("r1", &message("a", "b"), 1000)),
+            (None, Code::InvalidArgument, "hello for fleet \"a\" in a message placed by fleet \"b\"".into())
+        );
+        assert_eq!(
+            rejection(parse_zenoh_message("r1", &message("", "b"), 1000)),
+            (None, Code::InvalidArgument, "hello for fleet \"\" in a message placed by fleet \"b\"".into())
+        );
+        assert_eq!(
+            rejection(parse_zenoh_message("r1", &message("a b", "a b"), 1000)),
+            (
+                Some("malformed"),
+                Code::InvalidArgument,
+                "message placed by a bad fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -".into()
+            )
         );
     }
 }

@@ -116,10 +116,10 @@ pub async fn serve(
     loop {
         let sample = tokio::select! {
             s = subscriber.recv_async() => match s { Ok(s) => s, Err(_) => break },
-            Some((robot, hello, sink, result)) = opened_rx.recv() => {
+            Some((robot, placement, hello, sink, result)) = opened_rx.recv() => {
                 opening.remove(&robot);
                 // Placement may have moved the robot meanwhile: its new owner answers it.
-                if membership.owns(&robot) {
+                if membership.owns(&placement) {
                     answer_open(&mut links, robot, hello, sink, result, max_message_bytes, registry.metrics()).await;
                 } else if let Ok(opened) = result {
                     opened.session.detach(&sink);
@@ -146,7 +146,9 @@ pub async fn serve(
         let Some(robot) = keys::robot_of_frames_key(sample.key_expr().as_str()).map(str::to_owned) else {
             continue;
         };
-        if !membership.owns(&robot) {
+        let payload = sample.payload().to_bytes();
+        let placement = placement_of(&robot, &payload, max_message_bytes);
+        if !membership.owns(&placement) {
             // Another server's robot: its owner answers. One that was ours moved
             // (a server joined): its session is left, disconnected.
             if let Some(link) = links.remove(&robot) {
@@ -155,7 +157,6 @@ pub async fn serve(
             }
             continue;
         }
-        let payload = sample.payload().to_bytes();
         let metrics = registry.metrics();
         let reply = |links: &HashMap<String, Link>, status: Status| {
             let z = zenoh.clone();
@@ -226,7 +227,7 @@ pub async fn serve(
                     let (registry, opened_tx) = (registry.clone(), opened_tx.clone());
                     tokio::task::spawn_blocking(move || {
                         let result = registry.open(&hello, Transport::Zenoh, sink.clone());
-                        let _ = opened_tx.blocking_send((robot, hello, sink, result));
+                        let _ = opened_tx.blocking_send((robot, placement, hello, sink, result));
                     });
                     continue;
                 }
@@ -259,8 +260,22 @@ const OPENS_IN_FLIGHT: usize = 16;
 /// connect and statement timeouts are 5 s and 30 s) no longer holds its robot's hellos.
 const OPEN_GIVE_UP: Duration = Duration::from_secs(60);
 
-/// A hello's open done off the loop: the robot, its hello, its results sink, the outcome.
-type OpenedHello = (String, pb::Hello, ResultSink, Result<crate::session::Opened, crate::session::BadHello>);
+/// A hello's open done off the loop: the robot, what it was placed by, its hello,
+/// its results sink, the outcome.
+type OpenedHello = (String, String, pb::Hello, ResultSink, Result<crate::session::Opened, crate::session::BadHello>);
+
+/// What a message of `robot` is placed by among the servers
+/// (`stillmap_proto::placement_key`): the fleet it names, else the robot id. A
+/// message too large or undecodable, or naming a fleet that is no valid name, is
+/// placed by the robot id; its owner refuses it.
+fn placement_of(robot: &str, payload: &[u8], max_message_bytes: usize) -> String {
+    let fleet = (payload.len() <= max_message_bytes)
+        .then(|| stillmap_proto::client_message_fleet(payload).ok())
+        .flatten()
+        .filter(|fleet| stillmap_proto::validate_fleet(fleet).is_ok())
+        .unwrap_or_default();
+    stillmap_proto::placement_key(robot, &fleet).into_owned()
+}
 
 /// Answers a hello with its open's outcome: the accept and the robot's link, or the refusal.
 async fn answer_open(
