@@ -323,3 +323,24 @@ fn spawn_publisher(zenoh: zenoh::Session, key: String, buffer: usize) -> ResultS
     });
     tx
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn message(fleet: &str) -> Vec<u8> {
+        let frame = pb::Frame { sequence: 3, depth: vec![7u8; 1000].into(), ..Default::default() };
+        pb::ClientMessage { msg: Some(pb::client_message::Msg::Frame(frame)), fleet: fleet.into() }.encode_to_vec()
+    }
+
+    /// A message is placed by the fleet it names, else by its robot; one the owner
+    /// will refuse (too large, undecodable, a fleet that is no name) by its robot.
+    #[test]
+    fn a_message_is_placed_by_its_fleet_else_by_its_robot() {
+        assert_eq!(placement_of("r1", &message("warehouse"), 10_000), "fleet:warehouse");
+        assert_eq!(placement_of("r1", &message(""), 10_000), "r1");
+        assert_eq!(placement_of("r1", &message("warehouse"), 100), "r1", "oversized");
+        assert_eq!(placement_of("r1", &message("ware house"), 10_000), "r1", "not a name");
+        assert_eq!(placement_of("r1", &[0xff, 0xff], 10_000), "r1", "undecodable");
+    }
+}
