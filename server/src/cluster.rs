@@ -260,6 +260,11 @@ fn named_session(path: &str) -> Option<&str> {
     rest.split('/').next().filter(|id| !id.is_empty())
 }
 
+/// The fleet a forwarded path is about (`/api/v1/fleets/<fleet>…`).
+fn named_fleet(path: &str) -> Option<&str> {
+    path.strip_prefix("/api/v1/fleets/")?.split('/').next().filter(|name| !name.is_empty())
+}
+
 /// Asks the other live servers for what this one does not hold.
 pub struct Forwarder {
     pub zenoh: zenoh::Session,
@@ -434,7 +439,7 @@ async fn merged_sessions(forwarder: &Forwarder, request: Forwarded, local: Respo
     response
 }
 
-/// HTTP middleware: a GET on a session or a map that this server answers 404 is
+/// HTTP middleware: a GET on a session, a map or a fleet that this server answers 404 is
 /// asked of the other live servers; their answer, if one holds it, is returned.
 /// `GET /api/v1/sessions` lists every live server's sessions.
 pub async fn forward_unknown(
@@ -461,9 +466,12 @@ pub async fn forward_unknown(
     }
 }
 
-/// The paths forwarded between servers: a session's or a map's.
+/// The paths forwarded between servers: a session's, a map's or a fleet's (a
+/// named fleet's robots are placed on one server: any server answers for it).
 fn forwardable_path(path: &str) -> bool {
-    path.starts_with("/api/v1/sessions/") || (path.starts_with("/api/v1/maps/") && path != "/api/v1/maps/import")
+    path.starts_with("/api/v1/sessions/")
+        || (path.starts_with("/api/v1/maps/") && path != "/api/v1/maps/import")
+        || path.starts_with("/api/v1/fleets/")
 }
 
 /// Forwarded queries answered at once; more wait.
@@ -472,7 +480,7 @@ const MAX_FORWARDED_AT_ONCE: usize = 16;
 pub const FORWARDED_ANSWER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// Answers the GETs other servers forward here with this server's HTTP API `app`,
-/// until `shutdown` fires: only a session's or a map's paths and the sessions list,
+/// until `shutdown` fires: only a session's, a map's or a fleet's paths and the sessions list,
 /// at most [`MAX_FORWARDED_AT_ONCE`] at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
 pub async fn answer_forwarded(
     zenoh: zenoh::Session,
@@ -493,7 +501,11 @@ pub async fn answer_forwarded(
                 let _ = query.reply_err(format!("{path} is not forwarded between servers")).await;
                 return;
             }
-            let held = named_session(path).is_none_or(|id| registry.info(id).is_some());
+            let held = match (named_session(path), named_fleet(path)) {
+                (Some(id), _) => registry.info(id).is_some(),
+                (None, Some(fleet)) => registry.fleets().is_some_and(|f| f.get(fleet).is_some()),
+                (None, None) => true,
+            };
             let mut request = Request::get(&forwarded.path_and_query).header(FORWARDED_HEADER, "1");
             if let Some(auth) = &forwarded.authorization {
                 request = request.header(header::AUTHORIZATION, auth);
@@ -620,6 +632,12 @@ mod tests {
         assert_eq!(named_session("/api/v1/maps/r-6b1-1/tiles/0/0/0.png"), Some("r-6b1-1"));
         assert_eq!(named_session("/api/v1/sessions/"), None);
         assert_eq!(named_session("/api/v1/sessions"), None, "the list: every server holds it");
+        assert_eq!(named_fleet("/api/v1/fleets/warehouse/tiles/0/0/0.png"), Some("warehouse"));
+        assert_eq!(named_fleet("/api/v1/fleets/warehouse"), Some("warehouse"));
+        assert_eq!(named_fleet("/api/v1/fleets/"), None);
+        assert_eq!(named_fleet("/api/v1/fleets"), None, "the list is each server's own");
+        assert_eq!(named_fleet("/api/v1/sessions/warehouse"), None);
+        assert!(forwardable_path("/api/v1/fleets/warehouse/cloud.ply") && !forwardable_path("/api/v1/fleets"));
     }
 
     #[test]

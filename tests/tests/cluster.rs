@@ -442,7 +442,8 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
 
 /// The robots of a named fleet are placed by the fleet, on one server, whose fleet
 /// then holds all of them (one fleet map), though their ids alone would have split
-/// them; a robot without a fleet is still placed by its id.
+/// them; the other server answers for the fleet (forwarded); a robot without a
+/// fleet is still placed by its id.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_named_fleets_robots_are_placed_on_one_server() {
     let Pair { router, _zenoh, a, b, robots, on_a, on_b } = Pair::start(&[]).await;
@@ -474,7 +475,11 @@ async fn a_named_fleets_robots_are_placed_on_one_server() {
         detail["sessions"].as_array().expect("members").iter().map(|m| m["robot_id"].as_str().unwrap_or_default().to_string()).collect();
     members.sort();
     assert_eq!(members, robots);
-    assert_eq!(other.get_json(&format!("/api/v1/fleets/{fleet}")).await.0, 404);
+    // The other server holds none of it, and answers for it all the same (forwarded to the holder).
+    let (status, forwarded) = other.get_json(&format!("/api/v1/fleets/{fleet}")).await;
+    assert_eq!(status, 200, "{forwarded}");
+    assert_eq!(forwarded["sessions"].as_array().map(Vec::len), Some(robots.len()), "{forwarded}");
+    assert_eq!(other.get_json("/api/v1/fleets/nowhere").await.0, 404, "a fleet no server holds");
 
     check_robots(clients, &summaries, &[]);
 }
