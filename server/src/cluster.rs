@@ -408,12 +408,13 @@ impl crate::api::query::Remote for Forwarder {
     }
 }
 
-/// The sessions list of every live server (`GET /api/v1/sessions`): this server's,
-/// then the others', each entry with the `server_id` holding it.
-async fn merged_sessions(forwarder: &Forwarder, request: Forwarded, local: Response) -> Response {
+/// A list of every live server (`list_key` "sessions": `GET /api/v1/sessions`;
+/// "fleets": `GET /api/v1/fleets`): this server's, then the others', each entry
+/// with the `server_id` holding it; a fleet's name once.
+async fn merged_list(forwarder: &Forwarder, request: Forwarded, local: Response, list_key: &str) -> Response {
     let (parts, body) = local.into_parts();
     let Ok(bytes) = axum::body::to_bytes(body, MAX_FORWARDED_BYTES).await else {
-        return (StatusCode::INTERNAL_SERVER_ERROR, "sessions list too large").into_response();
+        return (StatusCode::INTERNAL_SERVER_ERROR, format!("{list_key} list too large")).into_response();
     };
     let Ok(mut list) = serde_json::from_slice::<serde_json::Value>(&bytes) else {
         return Response::from_parts(parts, Body::from(bytes));
@@ -425,15 +426,21 @@ async fn merged_sessions(forwarder: &Forwarder, request: Forwarded, local: Respo
             }
         }
     };
-    let mut all: Vec<serde_json::Value> = list["sessions"].as_array().cloned().unwrap_or_default();
+    let mut all: Vec<serde_json::Value> = list[list_key].as_array().cloned().unwrap_or_default();
     tag(&mut all, &forwarder.membership.own);
     for (server, body) in forwarder.gather(&request).await {
         let Ok(theirs) = serde_json::from_slice::<serde_json::Value>(&body) else { continue };
-        let mut sessions = theirs["sessions"].as_array().cloned().unwrap_or_default();
-        tag(&mut sessions, &server);
-        all.extend(sessions);
+        let mut items = theirs[list_key].as_array().cloned().unwrap_or_default();
+        tag(&mut items, &server);
+        if list_key == "fleets" {
+            // A fleet's paths are answered by the server that holds it, this one
+            // first: a name listed here already (the default fleet, split by robot
+            // ids) is not listed again.
+            items.retain(|f| !all.iter().any(|a| a["fleet"] == f["fleet"]));
+        }
+        all.extend(items);
     }
-    list["sessions"] = serde_json::Value::Array(all);
+    list[list_key] = serde_json::Value::Array(all);
     let mut response = axum::Json(list).into_response();
     *response.status_mut() = parts.status;
     response
@@ -441,7 +448,9 @@ async fn merged_sessions(forwarder: &Forwarder, request: Forwarded, local: Respo
 
 /// HTTP middleware: a GET on a session, a map or a fleet that this server answers 404 is
 /// asked of the other live servers; their answer, if one holds it, is returned.
-/// `GET /api/v1/sessions` lists every live server's sessions.
+/// `GET /api/v1/sessions` lists every live server's sessions, `GET /api/v1/fleets`
+/// every live server's fleets (a name once, this server's first), each tagged
+/// with the `server_id` holding it.
 pub async fn forward_unknown(
     axum::extract::State(forwarder): axum::extract::State<Arc<Forwarder>>,
     request: axum::extract::Request,
@@ -449,9 +458,9 @@ pub async fn forward_unknown(
 ) -> Response {
     let path = request.uri().path();
     let first_hand = request.method() == axum::http::Method::GET && !request.headers().contains_key(FORWARDED_HEADER);
-    let list = first_hand && path == "/api/v1/sessions";
+    let list = (first_hand && LISTS.contains(&path)).then(|| if path == "/api/v1/fleets" { "fleets" } else { "sessions" });
     let forwardable = first_hand && forwardable_path(path);
-    let forwarded = (list || forwardable).then(|| Forwarded {
+    let forwarded = (list.is_some() || forwardable).then(|| Forwarded {
         path_and_query: request.uri().path_and_query().map_or_else(|| path.to_string(), ToString::to_string),
         authorization: request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).map(str::to_owned),
     });
@@ -459,12 +468,15 @@ pub async fn forward_unknown(
     // A 404 of a matched route passed its token check here; the fallback's did not.
     let unknown_here =
         response.status() == StatusCode::NOT_FOUND && response.extensions().get::<crate::api::http::NoSuchEndpoint>().is_none();
-    match forwarded {
-        Some(f) if list && response.status() == StatusCode::OK => merged_sessions(&forwarder, f, response).await,
-        Some(f) if !list && unknown_here => forwarder.forward(&f).await.unwrap_or(response),
+    match (forwarded, list) {
+        (Some(f), Some(key)) if response.status() == StatusCode::OK => merged_list(&forwarder, f, response, key).await,
+        (Some(f), None) if unknown_here => forwarder.forward(&f).await.unwrap_or(response),
         _ => response,
     }
 }
+
+/// The lists merged over the servers.
+const LISTS: [&str; 2] = ["/api/v1/sessions", "/api/v1/fleets"];
 
 /// The paths forwarded between servers: a session's, a map's or a fleet's (a
 /// named fleet's robots are placed on one server: any server answers for it).
@@ -480,7 +492,7 @@ const MAX_FORWARDED_AT_ONCE: usize = 16;
 pub const FORWARDED_ANSWER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// Answers the GETs other servers forward here with this server's HTTP API `app`,
-/// until `shutdown` fires: only a session's, a map's or a fleet's paths and the sessions list,
+/// until `shutdown` fires: only a session's, a map's or a fleet's paths and the lists,
 /// at most [`MAX_FORWARDED_AT_ONCE`] at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
 pub async fn answer_forwarded(
     zenoh: zenoh::Session,
@@ -497,7 +509,7 @@ pub async fn answer_forwarded(
                 return;
             };
             let path = forwarded.path_and_query.split('?').next().unwrap_or_default();
-            if !(forwardable_path(path) || path == "/api/v1/sessions") {
+            if !(forwardable_path(path) || LISTS.contains(&path)) {
                 let _ = query.reply_err(format!("{path} is not forwarded between servers")).await;
                 return;
             }

@@ -480,6 +480,12 @@ async fn a_named_fleets_robots_are_placed_on_one_server() {
     assert_eq!(status, 200, "{forwarded}");
     assert_eq!(forwarded["sessions"].as_array().map(Vec::len), Some(robots.len()), "{forwarded}");
     assert_eq!(other.get_json("/api/v1/fleets/nowhere").await.0, 404, "a fleet no server holds");
+    // Its fleets list has the fleet too, with the server that holds it (a dashboard there shows it).
+    let (status, list) = other.get_json("/api/v1/fleets").await;
+    assert_eq!(status, 200, "{list}");
+    let listed: Vec<&serde_json::Value> = list["fleets"].as_array().expect("fleets").iter().filter(|f| f["fleet"] == fleet).collect();
+    assert_eq!(listed.len(), 1, "{list}");
+    assert_eq!((listed[0]["server_id"].as_str(), listed[0]["sessions"].as_u64()), (Some(owner), Some(4)), "{list}");
 
     check_robots(clients, &summaries, &[]);
 }
