@@ -647,7 +647,7 @@ mod tests {
         assert_eq!(named_fleet("/api/v1/fleets/warehouse/tiles/0/0/0.png"), Some("warehouse"));
         assert_eq!(named_fleet("/api/v1/fleets/warehouse"), Some("warehouse"));
         assert_eq!(named_fleet("/api/v1/fleets/"), None);
-        assert_eq!(named_fleet("/api/v1/fleets"), None, "the list is each server's own");
+        assert_eq!(named_fleet("/api/v1/fleets"), None, "the list: merged, not forwarded");
         assert_eq!(named_fleet("/api/v1/sessions/warehouse"), None);
         assert!(forwardable_path("/api/v1/fleets/warehouse/cloud.ply") && !forwardable_path("/api/v1/fleets"));
     }

@@ -457,8 +457,10 @@ async fn a_named_fleets_robots_are_placed_on_one_server() {
         .find(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(other_id))
         .expect("a robot id for the other server");
 
-    let (mut clients, mut summaries) = spawn_robots_with(&router, &robots, "15", "fleet", &["--fleet", fleet]);
-    let (mut loner_client, loner_summary) = spawn_robots(&router, std::slice::from_ref(&loner), "15", "fleet");
+    // 150 frames at 8 Hz: 19 s of streaming, time to see every robot streaming (as
+    // in the placement test above).
+    let (mut clients, mut summaries) = spawn_robots_with(&router, &robots, "8", "fleet", &["--fleet", fleet]);
+    let (mut loner_client, loner_summary) = spawn_robots(&router, std::slice::from_ref(&loner), "8", "fleet");
     clients.0.append(&mut loner_client.0);
     summaries.extend(loner_summary);
 
