@@ -1363,8 +1363,6 @@ impl DynamicMasker {
         }
     }
 
-    /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
-    /// instances and the carried dynamic cells.
     /// The flow cells the camera-motion estimate of frame `sequence` must not listen
     /// to: the previous frame's dynamic cells carried here (`carried_dynamic`),
     /// prior-dynamic instances and remembered movers at rest. When the carried cells
@@ -1382,6 +1380,8 @@ impl DynamicMasker {
         exclude
     }
 
+    /// Flow-grid cells kept out of the ego-motion estimate: prior-dynamic
+    /// instances and the carried dynamic cells.
     fn exclusion_grid(&self, seg: Option<&Segmentation>, dynamic: Option<&[u8]>) -> Vec<u8> {
         let dynamic_ids: Vec<bool> = seg.map_or_else(Vec::new, |seg| {
             let max = seg.instances.iter().map(|i| usize::from(i.id)).max().unwrap_or(0);

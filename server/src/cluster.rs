@@ -458,7 +458,7 @@ pub async fn forward_unknown(
 ) -> Response {
     let path = request.uri().path();
     let first_hand = request.method() == axum::http::Method::GET && !request.headers().contains_key(FORWARDED_HEADER);
-    let list = (first_hand && LISTS.contains(&path)).then(|| if path == "/api/v1/fleets" { "fleets" } else { "sessions" });
+    let list = LISTS.iter().find(|(p, _)| first_hand && *p == path).map(|&(_, key)| key);
     let forwardable = first_hand && forwardable_path(path);
     let forwarded = (list.is_some() || forwardable).then(|| Forwarded {
         path_and_query: request.uri().path_and_query().map_or_else(|| path.to_string(), ToString::to_string),
@@ -475,8 +475,8 @@ pub async fn forward_unknown(
     }
 }
 
-/// The lists merged over the servers.
-const LISTS: [&str; 2] = ["/api/v1/sessions", "/api/v1/fleets"];
+/// The lists merged over the servers: the path, and the key of its JSON array.
+const LISTS: [(&str, &str); 2] = [("/api/v1/sessions", "sessions"), ("/api/v1/fleets", "fleets")];
 
 /// The paths forwarded between servers: a session's, a map's or a fleet's (a
 /// named fleet's robots are placed on one server: any server answers for it).
@@ -509,7 +509,7 @@ pub async fn answer_forwarded(
                 return;
             };
             let path = forwarded.path_and_query.split('?').next().unwrap_or_default();
-            if !(forwardable_path(path) || LISTS.contains(&path)) {
+            if !(forwardable_path(path) || LISTS.iter().any(|(p, _)| *p == path)) {
                 let _ = query.reply_err(format!("{path} is not forwarded between servers")).await;
                 return;
             }
