@@ -2,11 +2,14 @@
 //! and a gRPC pose subscriber need from sessions another server holds.
 //!
 //! Every server publishes, on its own keys, every pose of the sessions it holds
-//! (`stillmap-cluster/servers/<id>/poses`, a `FleetPose` each) and its dashboard
+//! (`stillmap-cluster/servers/<id>/poses`, a `RelayedPose` each: the pose in the
+//! session's world and, once the session is merged into its fleet, in the
+//! fleet's frame) and its dashboard
 //! sessions list every 500 ms (`…/<id>/sessions`, JSON), but only while some
 //! other server subscribes (Zenoh's matching status): a server subscribes to the
 //! others' keys only while it has a local consumer (a dashboard viewer, a
-//! `SubscribePoses` of a session held elsewhere). Puts drop under congestion,
+//! `SubscribePoses` of a session or a `SubscribeFleetPoses` of a fleet held
+//! elsewhere). Puts drop under congestion,
 //! and received poses go to a bounded broadcast whose laggards skip: a slow
 //! viewer or server never holds a robot's frames. A server's own keys are never
 //! read back; a list older than [`SESSIONS_STALE`], or of a server no longer
@@ -44,6 +47,7 @@ pub struct Relay {
     /// Local consumers of the other servers' live data.
     interest: Arc<AtomicUsize>,
     poses: broadcast::Sender<FleetPose>,
+    fleet_poses: broadcast::Sender<RemoteFleetPose>,
     sessions: std::sync::Mutex<HashMap<String, (Instant, Vec<serde_json::Value>)>>,
 }
 
@@ -63,6 +67,7 @@ impl Relay {
             membership,
             interest: Arc::default(),
             poses: broadcast::channel(REMOTE_POSES_BUFFER).0,
+            fleet_poses: broadcast::channel(REMOTE_POSES_BUFFER).0,
             sessions: std::sync::Mutex::default(),
         })
     }
@@ -81,15 +86,23 @@ impl Relay {
         lock(&self.sessions).insert(server.to_string(), (Instant::now(), sessions));
     }
 
-    /// A pose received from another server.
+    /// A pose received from another server: to the session's followers, and to
+    /// its fleet's when it was given in the fleet's frame.
     fn received_pose(&self, server: &str, payload: &[u8]) {
-        match pb::FleetPose::decode(payload) {
-            Ok(p) => {
-                if let Some(pose) = p.pose {
-                    let _ = self.poses.send((Arc::from(p.session_id.as_str()), pose));
-                }
+        let p = match pb::RelayedPose::decode(payload) {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::warn!(server, "a relayed pose that does not decode: {e}");
+                return;
             }
-            Err(e) => tracing::warn!(server, "a relayed pose that does not decode: {e}"),
+        };
+        if let Some(pose) = p.pose {
+            let _ = self.poses.send((Arc::from(p.session_id.as_str()), pose));
+        }
+        if let Some(pose) = p.pose_in_fleet.filter(|_| !p.fleet.is_empty()) {
+            let _ = self
+                .fleet_poses
+                .send((Arc::from(p.fleet.as_str()), pb::FleetPose { session_id: p.session_id, robot_id: p.robot_id, pose: Some(pose) }));
         }
     }
 }
@@ -116,6 +129,25 @@ impl crate::api::RemoteLive for Relay {
     fn subscribe_poses(&self) -> broadcast::Receiver<FleetPose> {
         self.poses.subscribe()
     }
+
+    fn subscribe_fleet_poses(&self) -> broadcast::Receiver<RemoteFleetPose> {
+        self.fleet_poses.subscribe()
+    }
+}
+
+/// A pose of another server's session in its fleet's frame: (fleet, pose).
+pub type RemoteFleetPose = (Arc<str>, pb::FleetPose);
+
+/// What this server relays of one of its sessions' poses: the session's robot and
+/// fleet, and the pose in the fleet's frame when the session is merged into it.
+fn relayed_pose(registry: &Registry, session_id: &Arc<str>, pose: pb::PoseStamped) -> pb::RelayedPose {
+    let (robot_id, fleet) = registry.get(session_id).map(|s| (s.robot_id.clone(), s.fleet_name.clone())).unwrap_or_default();
+    let pose_in_fleet = registry
+        .fleets()
+        .filter(|_| !fleet.is_empty())
+        .and_then(|fleets| fleets.fleet_transform(&fleet, session_id))
+        .map(|to_fleet| crate::convert::pose_in(&pose, &to_fleet.at(pose.capture_time_ns)));
+    pb::RelayedPose { session_id: session_id.to_string(), robot_id, pose: Some(pose), fleet, pose_in_fleet }
 }
 
 /// What a received sample is, from its key: the publishing server and the kind.
@@ -212,7 +244,7 @@ pub async fn run(
             received = local.recv() => match received {
                 Ok((id, pose)) => {
                     if poses_watched {
-                        let message = pb::FleetPose { session_id: id.to_string(), robot_id: String::new(), pose: Some(pose) };
+                        let message = relayed_pose(&registry, &id, pose);
                         if let Err(e) = poses_out.put(message.encode_to_vec()).await {
                             tracing::debug!("pose not published to the other servers: {e}");
                         }
@@ -240,6 +272,36 @@ mod tests {
         assert_eq!(relayed("stillmap/robot/poses", "a"), None);
         assert_eq!(keys::server_poses("b"), "stillmap-cluster/servers/b/poses");
         assert_eq!(keys::server_sessions("b"), "stillmap-cluster/servers/b/sessions");
+    }
+
+    /// A relayed pose reaches its session's followers, and its fleet's once it was
+    /// given in the fleet's frame; an older server's `FleetPose` still reaches the
+    /// session's.
+    #[test]
+    fn a_relayed_pose_reaches_its_session_and_its_fleet() {
+        let relay = Relay::new(Membership::new("a"));
+        let (mut poses, mut fleet) = (relay.poses.subscribe(), relay.fleet_poses.subscribe());
+        let in_world = pb::PoseStamped { sequence: 3, capture_time_ns: 7, ..Default::default() };
+        let at = |x: f64| pb::Pose { translation: Some(pb::Vector3 { x, y: 0.0, z: 0.0 }), rotation: None };
+        let in_fleet = pb::PoseStamped { world_from_camera: Some(at(2.0)), ..in_world };
+        let relayed = |fleet: &str, pose_in_fleet: Option<pb::PoseStamped>| {
+            pb::RelayedPose { session_id: "s1".into(), robot_id: "r1".into(), pose: Some(in_world), fleet: fleet.into(), pose_in_fleet }
+                .encode_to_vec()
+        };
+        relay.received_pose("b", &relayed("warehouse", Some(in_fleet)));
+        assert_eq!(poses.try_recv().ok(), Some((Arc::from("s1"), in_world)));
+        let expected = pb::FleetPose { session_id: "s1".into(), robot_id: "r1".into(), pose: Some(in_fleet) };
+        assert_eq!(fleet.try_recv().ok(), Some((Arc::from("warehouse"), expected)));
+        // Not merged into its fleet yet, or no fleet named: the session's followers only.
+        relay.received_pose("b", &relayed("warehouse", None));
+        relay.received_pose("b", &relayed("", Some(in_fleet)));
+        let older = pb::FleetPose { session_id: "s1".into(), robot_id: String::new(), pose: Some(in_world) };
+        relay.received_pose("b", &older.encode_to_vec());
+        relay.received_pose("b", b"\xff\xff not a pose");
+        for _ in 0..3 {
+            assert_eq!(poses.try_recv().ok(), Some((Arc::from("s1"), in_world)));
+        }
+        assert!(poses.try_recv().is_err() && fleet.try_recv().is_err(), "nothing more, and nothing for the fleet");
     }
 
     /// A list is tagged with its server, and left out once stale or its server gone.

@@ -489,6 +489,49 @@ async fn a_named_fleets_robots_are_placed_on_one_server() {
     assert_eq!(listed.len(), 1, "{list}");
     assert_eq!((listed[0]["server_id"].as_str(), listed[0]["sessions"].as_u64()), (Some(owner), Some(4)), "{list}");
 
+    // gRPC: the other server answers the fleet's poses (forwarded to the holder) and
+    // streams them in the fleet's frame (relayed from the holder).
+    let mut member_ids: Vec<String> =
+        detail["sessions"].as_array().expect("members").iter().map(|m| m["session_id"].as_str().unwrap_or_default().to_string()).collect();
+    member_ids.sort();
+    let fleet_ref = pb::FleetRef { fleet: fleet.into() };
+    let (mut here, mut there) =
+        (QueryClient::connect(holder.grpc_url()).await.expect("connect"), QueryClient::connect(other.grpc_url()).await.expect("connect"));
+    let mut own = here.subscribe_fleet_poses(fleet_ref.clone()).await.expect("subscribe on the holder").into_inner();
+    let mut relayed = there.subscribe_fleet_poses(fleet_ref.clone()).await.expect("subscribe on the other server").into_inner();
+    let forwarded = there.get_fleet_poses(fleet_ref.clone()).await.expect("fleet poses from the other server").into_inner();
+    let mut answered: Vec<String> =
+        forwarded.poses.iter().map(|p| p.session_id.clone()).chain(forwarded.unmerged_session_ids.iter().cloned()).collect();
+    answered.sort();
+    assert_eq!(answered, member_ids, "every member, posed or not yet merged: {forwarded:?}");
+    assert!(!forwarded.poses.is_empty(), "the session anchoring the fleet has a pose in its frame");
+    for nowhere in [
+        there.get_fleet_poses(pb::FleetRef { fleet: "nowhere".into() }).await.map(|_| ()),
+        there.subscribe_fleet_poses(pb::FleetRef { fleet: "nowhere".into() }).await.map(|_| ()),
+    ] {
+        assert_eq!(nowhere.expect_err("a fleet no server holds").code(), tonic::Code::NotFound);
+    }
+    // A relayed pose is the holder's own for the same session and frame (a pose-graph
+    // solve between the two may move one: the test waits for a pair that agrees).
+    let mut seen = std::collections::HashMap::new();
+    let agreed = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            tokio::select! {
+                Ok(Some(p)) = own.message() => { seen.insert((p.session_id.clone(), p.pose.map(|x| x.sequence)), p); }
+                Ok(Some(p)) = relayed.message() => {
+                    assert!(member_ids.contains(&p.session_id), "a relayed pose of a member: {p:?}");
+                    if seen.get(&(p.session_id.clone(), p.pose.map(|x| x.sequence))) == Some(&p) {
+                        return p;
+                    }
+                }
+                else => panic!("both fleet pose streams ended"),
+            }
+        }
+    })
+    .await
+    .expect("a relayed fleet pose equal to the holder's own in time");
+    assert!(agreed.pose.and_then(|p| p.world_from_camera).is_some() && !agreed.robot_id.is_empty(), "{agreed:?}");
+
     check_robots(clients, &summaries, &[]);
 }
 

@@ -23,4 +23,7 @@ pub trait RemoteLive: Send + Sync {
     fn sessions(&self) -> Vec<serde_json::Value>;
     /// Every new pose of the other servers' sessions while watched.
     fn subscribe_poses(&self) -> tokio::sync::broadcast::Receiver<crate::session::FleetPose>;
+    /// Every new pose, in its fleet's frame, of the other servers' sessions merged
+    /// into a fleet, while watched.
+    fn subscribe_fleet_poses(&self) -> tokio::sync::broadcast::Receiver<crate::relay::RemoteFleetPose>;
 }

@@ -1,7 +1,8 @@
 //! gRPC queries: the `Query` service (sessions, poses, trajectories, map products)
-//! over the registry. In a cluster, the unary queries about a session this server
-//! does not hold are asked of the other servers ([`Remote`]), and the sessions
-//! list is every server's.
+//! over the registry. In a cluster, the unary queries about a session or a fleet
+//! this server does not hold are asked of the other servers ([`Remote`]), the
+//! sessions list is every server's, and the subscriptions follow the other
+//! servers' live poses (`RemoteLive`).
 
 use std::pin::Pin;
 use std::sync::Arc;
@@ -17,11 +18,11 @@ use crate::session::{Registry, Session};
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
-/// The queries other servers answer for sessions this one does not hold
+/// The queries other servers answer for sessions and fleets this one does not hold
 /// (`cluster::Forwarder` on Zenoh). `GetMapCloud`'s chunks come back together
-/// (length-delimited), and are streamed from here; `SubscribePoses` follows the
-/// other servers' live poses instead (`RemoteLive`).
-pub const FORWARDED_METHODS: [&str; 5] = ["ListSessions", "GetLatestPose", "GetTrajectory", "GetMapTile", "GetMapCloud"];
+/// (length-delimited), and are streamed from here; `SubscribePoses` and
+/// `SubscribeFleetPoses` follow the other servers' live poses instead (`RemoteLive`).
+pub const FORWARDED_METHODS: [&str; 6] = ["ListSessions", "GetLatestPose", "GetTrajectory", "GetMapTile", "GetMapCloud", "GetFleetPoses"];
 
 /// The other servers of a cluster, asked what this one does not hold.
 #[tonic::async_trait]
@@ -62,22 +63,43 @@ impl QueryService {
         id: &str,
         request: &Request<Q>,
     ) -> Result<Response<R>, Status> {
-        let bytes = self.forwarded_bytes(method, id, request).await?;
+        self.forwarded_else(method, request, || Self::unknown(id)).await
+    }
+
+    /// `request`, about something this server does not hold, asked of the other
+    /// servers; `missing` when none holds it.
+    async fn forwarded_else<Q: prost::Message, R: prost::Message + Default>(
+        &self,
+        method: &'static str,
+        request: &Request<Q>,
+        missing: impl FnOnce() -> Status,
+    ) -> Result<Response<R>, Status> {
+        let bytes = self.forwarded_bytes(method, request, missing).await?;
         R::decode(bytes.as_slice()).map(Response::new).map_err(|e| Status::internal(format!("another server's answer: {e}")))
     }
 
-    /// The encoded answer of the server holding session `id` to `request`.
-    async fn forwarded_bytes<Q: prost::Message>(&self, method: &'static str, id: &str, request: &Request<Q>) -> Result<Vec<u8>, Status> {
-        let Some(remote) = &self.remote else { return Err(Self::unknown(id)) };
+    /// The encoded answer of the server holding what `request` is about; `missing`
+    /// when none holds it.
+    async fn forwarded_bytes<Q: prost::Message>(
+        &self,
+        method: &'static str,
+        request: &Request<Q>,
+        missing: impl FnOnce() -> Status,
+    ) -> Result<Vec<u8>, Status> {
+        let Some(remote) = &self.remote else { return Err(missing()) };
         match remote.call(method, request.get_ref().encode_to_vec(), authorization(request)).await {
             Some(answer) => answer,
-            None => Err(Self::unknown(id)),
+            None => Err(missing()),
         }
     }
 
     /// Whether this server holds what a forwarded query (`method`, `request` its
-    /// encoded message) is about: the session it names (the sessions list: always).
+    /// encoded message) is about: the session or fleet it names (the sessions list:
+    /// always).
     pub fn holds(&self, method: &str, request: &[u8]) -> bool {
+        if method == "GetFleetPoses" {
+            return pb::FleetRef::decode(request).is_ok_and(|r| self.fleet(&r.fleet).is_ok());
+        }
         let session_id = match method {
             "GetLatestPose" => pb::SessionRef::decode(request).map(|r| r.session_id),
             "GetTrajectory" => pb::TrajectoryRequest::decode(request).map(|r| r.session_id),
@@ -102,6 +124,7 @@ impl QueryService {
             "GetLatestPose" => self.get_latest_pose(decode(request)?).await.map(|r| encoded_of(&r)),
             "GetTrajectory" => self.get_trajectory(decode(request)?).await.map(|r| encoded_of(&r)),
             "GetMapTile" => self.get_map_tile(decode(request)?).await.map(|r| encoded_of(&r)),
+            "GetFleetPoses" => self.get_fleet_poses(decode(request)?).await.map(|r| encoded_of(&r)),
             "GetMapCloud" => {
                 // Every chunk, length-delimited, in one answer.
                 let mut chunks = self.get_map_cloud(decode(request)?).await?.into_inner();
@@ -133,7 +156,14 @@ impl Query for QueryService {
     type SubscribeFleetPosesStream = BoxStream<pb::FleetPose>;
 
     async fn get_fleet_poses(&self, request: Request<pb::FleetRef>) -> Result<Response<pb::FleetPoses>, Status> {
-        let (fleets, fleet) = self.fleet(&request.get_ref().fleet)?;
+        let (fleets, fleet) = match self.fleet(&request.get_ref().fleet) {
+            Ok(held) => held,
+            // Held by another server (a named fleet's robots are all on one), or by none.
+            Err(missing) if missing.code() == tonic::Code::NotFound => {
+                return self.forwarded_else("GetFleetPoses", &request, || missing).await;
+            }
+            Err(refused) => return Err(refused),
+        };
         let mut out = pb::FleetPoses::default();
         for m in &fleet.members {
             let Some(to_fleet) = fleets.fleet_transform(&fleet.name, &m.session_id) else {
@@ -154,7 +184,23 @@ impl Query for QueryService {
     }
 
     async fn subscribe_fleet_poses(&self, request: Request<pb::FleetRef>) -> Result<Response<Self::SubscribeFleetPosesStream>, Status> {
-        let (fleets, fleet) = self.fleet(&request.get_ref().fleet)?;
+        let (fleets, fleet) = match (self.fleet(&request.get_ref().fleet), &self.remote_live) {
+            (Ok(held), _) => held,
+            // Held by another server: its poses in the fleet's frame come over Zenoh
+            // (relay.rs), from the holder's next tick on, once some server holds it.
+            (Err(missing), Some(live)) if missing.code() == tonic::Code::NotFound => {
+                let watching = live.watch();
+                let poses = live.subscribe_fleet_poses();
+                self.forwarded_else::<_, pb::FleetPoses>("GetFleetPoses", &request, || missing).await?;
+                let name = request.into_inner().fleet;
+                let stream = BroadcastStream::new(poses).filter_map(move |r| {
+                    let _counted = &watching;
+                    r.ok().filter(|(fleet, _)| **fleet == *name).map(|(_, pose)| Ok(pose))
+                });
+                return Ok(Response::new(Box::pin(stream)));
+            }
+            (Err(refused), _) => return Err(refused),
+        };
         let registry = self.registry.clone();
         let name = fleet.name;
         // A lagging subscriber skips poses rather than holding the pipeline.
@@ -252,7 +298,7 @@ impl Query for QueryService {
     async fn get_map_cloud(&self, request: Request<pb::MapCloudRequest>) -> Result<Response<Self::GetMapCloudStream>, Status> {
         if self.registry.get(&request.get_ref().session_id).is_none() {
             let id = request.get_ref().session_id.clone();
-            let answer = self.forwarded_bytes("GetMapCloud", &id, &request).await?;
+            let answer = self.forwarded_bytes("GetMapCloud", &request, || Self::unknown(&id)).await?;
             let (mut rest, mut chunks) = (answer.as_slice(), Vec::new());
             while !rest.is_empty() {
                 let chunk = pb::MapCloudChunk::decode_length_delimited(&mut rest)
