@@ -260,6 +260,16 @@ async fn run_grpc(
                     Ok(Some(_)) => {}
                     Ok(None) if input_done && unacked.is_empty() => return Ok(()),
                     Ok(None) => break Broke::Transient("server ended the stream early".into()),
+                    // The server gave the session up (a resumed session not found again
+                    // in its stored world): stream on in a new session, resending what
+                    // was not answered.
+                    Err(status) if status.code() == Code::Aborted => {
+                        tracing::warn!("{}: streaming on in a new session", status.message());
+                        session_id.clear();
+                        resume_secret.clear();
+                        let _ = events.send(LinkEvent::Reconnected(0)).await;
+                        break Broke::Transient(format!("{}: {}", status.code(), status.message()));
+                    }
                     Err(status) => break classify(status),
                 },
             }
@@ -368,6 +378,16 @@ async fn run_zenoh(
                         tracing::warn!("{}: saying hello again", e.message);
                         accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
                     }
+                    // The server gave the session up (a resumed session not found again
+                    // in its stored world): a new session. The same status answers the
+                    // frames that were on their way to it: those name a session already
+                    // left, and are passed over.
+                    Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::Aborted => {
+                        if names_session(&e.message, &accepted.session_id) {
+                            tracing::warn!("{}: streaming on in a new session", e.message);
+                            accepted = rejoin(&ends, &pb::SessionAccepted::default(), &mut in_flight, &mut moves).await?;
+                        }
+                    }
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
                         return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
                     }
@@ -440,7 +460,8 @@ struct ZenohEnds<'a> {
 }
 
 /// Says hello again asking for `accepted`'s session back (a server left, or one that
-/// does not know this robot answered it). Its own server, still there, resumes it and
+/// does not know this robot answered it; an `accepted` without a session id: a new
+/// session, the server gave the last one up). Its own server, still there, resumes it and
 /// nothing is lost; a new owner opens a new session, and what was in flight is
 /// reported lost. Results that arrive meanwhile are passed on.
 #[cfg(feature = "zenoh")]
@@ -488,6 +509,13 @@ async fn rejoin(
     Ok(again)
 }
 
+/// Whether a server's message names session `id` (as a word: `robot-1` is not
+/// named by a message about `robot-10`).
+#[cfg(feature = "zenoh")]
+fn names_session(message: &str, id: &str) -> bool {
+    !id.is_empty() && message.split(|c: char| !(c.is_ascii_alphanumeric() || c == '-' || c == '_')).any(|word| word == id)
+}
+
 /// How often the hello is repeated until a server accepts it.
 #[cfg(feature = "zenoh")]
 const HELLO_RETRY: Duration = Duration::from_millis(500);
@@ -499,8 +527,8 @@ const MAX_ZENOH_MOVES: u32 = 16;
 /// Publishes the hello every [`HELLO_RETRY`] until a server accepts it; returns the
 /// acceptance and the results that came in meanwhile (frames in flight when a
 /// session is resumed). Replies to frames sent before it (`FAILED_PRECONDITION`: a
-/// server that does not know this robot yet) are passed over; any other error ends
-/// the wait.
+/// server that does not know this robot yet; `ABORTED`: the session the server gave
+/// up) are passed over; any other error ends the wait.
 #[cfg(feature = "zenoh")]
 async fn zenoh_hello(
     publisher: &zenoh::pubsub::Publisher<'_>,
@@ -522,7 +550,10 @@ async fn zenoh_hello(
                     match pb::ServerMessage::decode(s.payload().to_bytes().as_ref()) {
                         Ok(pb::ServerMessage { msg: Some(Msg::Accepted(a)) }) => return Ok((a, results)),
                         Ok(pb::ServerMessage { msg: Some(Msg::Result(r)) }) => results.push(r),
-                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::FailedPrecondition => {}
+                        // Replies to frames sent before it: a server that does not know
+                        // this robot yet, or the session the server gave up.
+                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) })
+                            if matches!(Code::from_i32(e.code), Code::FailedPrecondition | Code::Aborted) => {}
                         Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
                             return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
                         }
@@ -535,5 +566,21 @@ async fn zenoh_hello(
         if tokio::time::Instant::now() > deadline {
             return Err(ClientError::Connect(format!("the server did not accept the hello within {timeout:?}")));
         }
+    }
+}
+
+#[cfg(all(test, feature = "zenoh"))]
+mod tests {
+    use super::*;
+
+    /// An ABORTED starts a new session only when it names the robot's session as a
+    /// word: the late replies about a session already left do not.
+    #[test]
+    fn a_message_names_a_session_as_a_word() {
+        let message = "session robot-1-6b2a-3 was not found again in its stored world within session.resume_find_s: open a new session";
+        assert!(names_session(message, "robot-1-6b2a-3"));
+        assert!(!names_session(message, "robot-1-6b2a"), "a prefix is another session");
+        assert!(!names_session(message, "robot-1-6b2a-30"));
+        assert!(!names_session(message, ""), "no session yet");
     }
 }

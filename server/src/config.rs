@@ -442,6 +442,13 @@ pub struct SessionConfig {
     /// session, as after a restart). Default 300 s; 0 = only under the `limits`.
     /// Without a store nothing is evicted (it would be lost).
     pub idle_evict_s: f64,
+    /// A session resumed from the shared storage (`store.replica_url`: its server
+    /// left) whose new tracker is not found among its stored keyframes within this
+    /// many seconds of frames (capture time) is given up: its stream ends with
+    /// ABORTED, and the robot opens a new session in a world of its own. Until then
+    /// its frames are LOST without a pose. Default 10 s; 0 = wait for as long as
+    /// the robot streams.
+    pub resume_find_s: f64,
 }
 
 /// Overload policy of a session's frame queue. Every dropped frame is counted in
@@ -509,6 +516,7 @@ impl Default for SessionConfig {
             max_sequence_jump: 1_000_000,
             max_capture_gap_s: 86_400.0,
             idle_evict_s: 300.0,
+            resume_find_s: 10.0,
         }
     }
 }
@@ -664,6 +672,12 @@ impl ServerConfig {
                 self.session.idle_evict_s
             ));
         }
+        if !(self.session.resume_find_s >= 0.0 && self.session.resume_find_s <= MAX_IDLE_DISCONNECT_S) {
+            return bad(format!(
+                "session.resume_find_s must be 0 (wait as long as the robot streams) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}",
+                self.session.resume_find_s
+            ));
+        }
         if self.tls.cert_path.is_empty() != self.tls.key_path.is_empty()
             || (self.tls.cert_path.is_empty() && !self.tls.client_ca_path.is_empty())
         {
@@ -742,6 +756,12 @@ mod tests {
             "invalid configuration: zenoh.idle_disconnect_s must be 0 (never) or a positive number of seconds up to 86400, got -1"
         );
         assert!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 1e300\n").is_err(), "would overflow a Duration");
+        let err = ServerConfig::from_toml("[session]\nresume_find_s = -1.0\n").unwrap_err().to_string();
+        assert_eq!(
+            err,
+            "invalid configuration: session.resume_find_s must be 0 (wait as long as the robot streams) or a number of seconds up to 86400, got -1"
+        );
+        assert!(ServerConfig::from_toml("[session]\nresume_find_s = nan\n").is_err());
         let err = ServerConfig::from_toml("[auth]\ntokens = [\"a\", \" b\"]\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: auth.tokens[1] has leading or trailing whitespace");
         assert_eq!(ServerConfig::from_toml("[zenoh]\nidle_disconnect_s = 0.0\n").unwrap().zenoh.idle_disconnect_s, 0.0);

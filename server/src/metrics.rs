@@ -130,7 +130,11 @@ impl Default for Metrics {
             frame_cpu_over_budget.clone(),
         );
         let sessions_ended = Family::<Labels, Counter>::default();
-        registry.register("sessions_ended", "Session streams the server ended by a limit (frame_cpu_ms)", sessions_ended.clone());
+        registry.register(
+            "sessions_ended",
+            "Session streams the server ended: by a limit (frame_cpu_ms), or a resumed session not found again (resume_find_s)",
+            sessions_ended.clone(),
+        );
         let sessions_refused = Family::<Labels, Counter>::default();
         registry.register(
             "sessions_refused",

@@ -107,6 +107,9 @@ pub struct Session {
     connected: AtomicBool,
     queue: FrameQueue,
     sink: Mutex<Option<ResultSink>>,
+    /// Why the stream was ended (a limit, a resume given up): frames that still
+    /// arrive are refused with the same status.
+    ended: Mutex<Option<(tonic::Code, String)>>,
     last_received_sequence: Mutex<Option<u64>>,
     /// Frames received in a row whose sequence jumped past the order window.
     received_jumps: Mutex<crate::pipeline::decode::JumpCount>,
@@ -209,9 +212,10 @@ impl Lane for Session {
                 return;
             }
             let Some(work) = self.queue.try_pop() else { break };
-            // Frames still queued when a limit ended the stream are not run.
+            // Frames still queued when the stream was ended (a limit, a resume given
+            // up) are not run.
             let work = match work {
-                Work::Frame(q) if self.cpu_budget.ended() => {
+                Work::Frame(q) if lock(&self.ended).is_some() => {
                     Work::Dropped { sequence: q.frame.sequence, capture_time_ns: q.frame.capture_time_ns }
                 }
                 work => work,
@@ -235,7 +239,14 @@ impl Lane for Session {
                         pipeline.map_job_refused(&job);
                     }
                     let result = self.account(&outcome);
-                    if let Some(status) = over_budget {
+                    let abandoned = outcome.track.as_ref().is_some_and(|t| t.resume_abandoned).then(|| {
+                        self.metrics.session_ended("resume_find_s");
+                        tonic::Status::aborted(format!(
+                            "session {} was not found again in its stored world within session.resume_find_s: open a new session",
+                            self.id
+                        ))
+                    });
+                    if let Some(status) = over_budget.or(abandoned) {
                         self.deliver(result);
                         self.end_stream(status);
                         return;
@@ -279,10 +290,6 @@ struct CpuBudget {
 }
 
 impl CpuBudget {
-    fn ended(&self) -> bool {
-        self.ended.load(Ordering::Relaxed)
-    }
-
     fn new(limits: &LimitsConfig, metrics: Arc<Metrics>) -> Self {
         let per_frame = (limits.frame_cpu_ms > 0.0).then(|| Duration::from_secs_f64(limits.frame_cpu_ms / 1e3));
         Self { per_frame, strikes: limits.frame_cpu_strikes.max(1), over_in_row: AtomicU32::new(0), ended: AtomicBool::new(false), metrics }
@@ -321,11 +328,21 @@ impl Session {
     /// takes no more frames, the connection hears why.
     fn end_stream(&self, status: tonic::Status) {
         tracing::warn!(session = %self.id, "stream ended: {}", status.message());
+        *lock(&self.ended) = Some((status.code(), status.message().to_string()));
         self.queue.close();
         if let Some(sink) = lock(&self.sink).clone()
             && sink.try_send(Err(status)).is_err()
         {
             tracing::warn!(session = %self.id, "the connection's buffer is full: it hears of the end from its next frame (session closed)");
+        }
+    }
+
+    /// The status refusing a frame that `push` could not queue: why the stream was
+    /// ended, when it was, else the queue's own.
+    pub fn refusal_of(&self, e: QueueError) -> tonic::Status {
+        match lock(&self.ended).as_ref() {
+            Some((code, message)) => tonic::Status::new(*code, message.clone()),
+            None => crate::ingest::queue_status(e),
         }
     }
 
@@ -1448,7 +1465,12 @@ impl Registry {
             .map(|(p, w)| (w, p))
             .collect();
         let next_keyframe_id = s.keyframes.iter().map(|k| k.id + 1).max().unwrap_or(0).max(s.meta.keyframes);
-        let anchor = crate::pipeline::track::ResumeAnchor { keyframes, verify: stillmap_places::VerifyConfig::default(), next_keyframe_id };
+        let anchor = crate::pipeline::track::ResumeAnchor {
+            keyframes,
+            verify: stillmap_places::VerifyConfig::default(),
+            next_keyframe_id,
+            find_within_s: self.config.resume_find_s,
+        };
         if let Some(f) = &self.fleets {
             f.join(&fleet_name, id, &hello.robot_id);
         }
@@ -1630,6 +1652,7 @@ impl Registry {
             connected: AtomicBool::new(false),
             queue: p.queue,
             sink: Mutex::new(None),
+            ended: Mutex::new(None),
             last_received_sequence: Mutex::new(p.last_received_sequence),
             received_jumps: Mutex::default(),
             cpu_budget: CpuBudget::new(&self.limits, self.metrics.clone()),

@@ -586,6 +586,122 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     check_robots(clients, &summaries, &to_b);
 }
 
+/// A copy of the public clip (named like it, so the client takes its calibration)
+/// whose frames from `from` on are mirrored left to right: a place no stored keyframe
+/// of the clip shows, in which tracking works as in any room.
+fn clip_mirrored_from(from: usize) -> std::path::PathBuf {
+    use stillmap_proto::codec::{self, ColorImage, DepthImage};
+    let source = tum_dir();
+    let dir = tempfile_path("mirrored").join(source.file_name().expect("the clip's folder name"));
+    for sub in ["rgb", "depth"] {
+        std::fs::create_dir_all(dir.join(sub)).expect("clip folders");
+    }
+    for list in ["rgb.txt", "depth.txt", "accelerometer.txt"] {
+        std::fs::copy(source.join(list), dir.join(list)).expect("copy a list");
+    }
+    let (w, h) = (640usize, 480usize);
+    let mirror = |data: &mut [u16]| data.chunks_exact_mut(w).for_each(<[u16]>::reverse);
+    for (i, files) in stillmap_dataset::tum::read_sequence(&source).expect("the clip").iter().enumerate() {
+        let [rgb_to, depth_to] = [&files.rgb, &files.depth].map(|f| dir.join(f.strip_prefix(&source).expect("inside the clip")));
+        if i < from {
+            std::os::unix::fs::symlink(&files.rgb, rgb_to).expect("link a colour image");
+            std::os::unix::fs::symlink(&files.depth, depth_to).expect("link a depth image");
+            continue;
+        }
+        let frame = files.decode(w as u32, h as u32).expect("decode a frame");
+        let rgb: Vec<u8> = frame.rgb.chunks_exact(w * 3).flat_map(|row| row.chunks_exact(3).rev().flatten().copied()).collect();
+        let mut depth = frame.depth;
+        mirror(&mut depth);
+        let colour = codec::encode_png_rgb(&ColorImage { width: w as u32, height: h as u32, data: rgb }).expect("encode colour");
+        let depth = codec::encode_depth(pb::DepthEncoding::Png16, &DepthImage { width: w as u32, height: h as u32, data: depth })
+            .expect("encode depth");
+        std::fs::write(rgb_to, colour).expect("write colour");
+        std::fs::write(depth_to, depth).expect("write depth");
+    }
+    dir
+}
+
+/// A resumed session that is never found again in its stored world is given up
+/// (`session.resume_find_s`): the robot, told ABORTED, streams on in a new session of
+/// its own on the same server, and the given-up session keeps what its first server
+/// committed. The robot's frames turn into a mirrored room (no stored keyframe
+/// shows it) before its server is killed with `kill -9`.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_resumed_session_never_found_again_is_given_up_for_a_new_one() {
+    let pg = Postgres::start();
+    let config = tempfile_path("resume-find.toml");
+    std::fs::write(&config, "[session]\nresume_find_s = 1.0\n").expect("config");
+    let config = config.to_str().expect("utf-8 path").to_string();
+    let Pair { router, _zenoh, a, mut b, robots, on_b, .. } = Pair::start(&["--replica-url", &pg.url(), "--config", &config]).await;
+    let robot = on_b.first().expect("a robot placed on B").clone();
+    assert!(robots.contains(&robot));
+    // 150 frames at 15 Hz, mirrored from frame 30 (2 s in): B tracks and commits the
+    // first 30, then is LOST in the mirrored room until it is killed 4 s in.
+    let clip = clip_mirrored_from(30);
+    let summary = tempfile_path("given-up.json");
+    let mut client = Command::new(bin("stillmap-client"))
+        .args(["stream", "--source", &format!("tum:{}", clip.display()), "--transport", "zenoh", "--zenoh-connect", &router])
+        .args(["--zenoh-mode", "client", "--robot-id", &robot, "--rate", "15", "--quiet", "--summary-json"])
+        .arg(&summary)
+        .env("STILLMAP_LOG", "error")
+        .stdout(Stdio::null())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("spawn robot");
+    eventually(Duration::from_secs(10), "the robot streaming on B", async || robots_on(&a, ID_B).await.1 == [robot.clone()]).await;
+    let (_, list) = a.get_json("/api/v1/sessions").await;
+    let held =
+        list["sessions"].as_array().expect("sessions").iter().find(|s| s["robot_id"] == *robot).expect("its session on B")["session_id"]
+            .as_str()
+            .expect("id")
+            .to_string();
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    b.kill9();
+    let committed = pg.query(&format!("SELECT sequence FROM stillmap_poses WHERE session_id = '{held}' ORDER BY sequence")).len();
+    let status = client.wait().expect("robot exit");
+    assert!(status.success(), "the robot failed: {status}");
+    let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&summary).expect("summary")).expect("summary JSON");
+    let _ = std::fs::remove_file(&summary);
+    let _ = std::fs::remove_dir_all(clip.parent().expect("the copy's folder"));
+
+    // The robot's last session is a new one on A, tracked in its own world.
+    let now = s["session_id"].as_str().expect("the robot's last session").to_string();
+    assert_ne!(now, held, "a new session after the resumed one was given up: {s}");
+    // Answered (frames still queued for the given-up session are answered DROPPED),
+    // or counted lost in flight.
+    let count = |key: &str| s[key].as_u64().unwrap_or_else(|| panic!("{key} in {s}"));
+    let answered = count("frames_acknowledged") + count("frames_dropped") + count("frames_unanswered");
+    assert_eq!((count("frames_sent"), answered), (150, 150), "every frame answered or counted lost: {s}");
+    assert_eq!(s["reconnects"], 2, "moved once, then a new session: {s}");
+    let (_, list) = a.get_json("/api/v1/sessions").await;
+    let mut theirs: Vec<(String, String)> = list["sessions"]
+        .as_array()
+        .expect("sessions")
+        .iter()
+        .filter(|s| s["robot_id"] == *robot)
+        .map(|s| (s["session_id"].as_str().unwrap_or_default().to_string(), s["server_id"].as_str().unwrap_or_default().to_string()))
+        .collect();
+    theirs.sort();
+    let mut expected = vec![(held.clone(), ID_A.to_string()), (now.clone(), ID_A.to_string())];
+    expected.sort();
+    assert_eq!(theirs, expected, "the given-up session and the new one, both on A");
+    let poses = |id: String| {
+        let a = &a;
+        async move {
+            let (_, t) = a.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+            t["poses"].as_array().map_or(0, Vec::len)
+        }
+    };
+    // Nothing was added to the given-up session on A: it was never found.
+    assert_eq!(poses(held.clone()).await, committed, "the given-up session holds what B committed");
+    assert!(committed > 0, "B committed poses before it died");
+    let new_poses = poses(now.clone()).await;
+    eprintln!("{robot}: {committed} poses committed by B; given up on A; {new_poses} poses in its new session {now}");
+    assert!(new_poses >= 20, "the new session tracks: {new_poses} poses");
+    let metrics = a.get_text("/metrics").await;
+    assert!(metrics.contains("stillmap_sessions_ended_total{limit=\"resume_find_s\"} 1"), "{metrics}");
+}
+
 /// The ATE (metres, SE(3)-aligned like `evo_ape`) of a served TUM trajectory against
 /// the public clip's ground truth.
 fn ate_m(trajectory_tum: &str) -> f64 {

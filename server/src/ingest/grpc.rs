@@ -10,7 +10,7 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::{accepted_message, frame_before_hello, queue_status, refusal};
+use super::{accepted_message, frame_before_hello, refusal};
 use crate::session::{Registry, ResultSink, Session, Transport};
 
 pub struct IngestService {
@@ -106,7 +106,7 @@ async fn read_frames(
         let len = message.encoded_len();
         match message.msg {
             Some(ClientMsg::Frame(frame)) => {
-                session.push(frame, len).map_err(queue_status)?;
+                session.push(frame, len).map_err(|e| session.refusal_of(e))?;
             }
             Some(ClientMsg::Hello(_)) => {
                 metrics.rejected("malformed");

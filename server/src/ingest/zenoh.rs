@@ -15,7 +15,7 @@ use tokio::sync::mpsc;
 use tonic::Status;
 use zenoh::qos::CongestionControl;
 
-use super::{ZenohMessage, ZenohRejection, accepted_message, frame_before_hello, parse_zenoh_message, queue_status, refusal};
+use super::{ZenohMessage, ZenohRejection, accepted_message, frame_before_hello, parse_zenoh_message, refusal};
 use crate::ServerError;
 use crate::config::ZenohConfig;
 use crate::session::{Registry, ResultSink, Session, Transport};
@@ -243,7 +243,7 @@ pub async fn serve(
                 link.seen();
                 link.restored = false;
                 if let Err(e) = link.session.push(frame, payload.len()) {
-                    let _ = link.sink.send(Err(queue_status(e))).await;
+                    let _ = link.sink.send(Err(link.session.refusal_of(e))).await;
                 }
             }
         }

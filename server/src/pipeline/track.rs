@@ -24,6 +24,9 @@ pub struct TrackOutcome {
     pub masked_features: u32,
     /// The keyframe this frame became, if it did.
     pub new_keyframe: Option<u64>,
+    /// A resumed session not found in its stored world within
+    /// `ResumeAnchor::find_within_s`: the session is to be given up.
+    pub resume_abandoned: bool,
     /// `previous_from_current` between the last two frames, when both were tracked.
     pub previous_from_current: Option<Isometry3<f64>>,
     pub times: StageTimes,
@@ -52,6 +55,9 @@ pub struct ResumeAnchor {
     pub verify: stillmap_places::VerifyConfig,
     /// The session's next keyframe id (its stored ones are not reused).
     pub next_keyframe_id: u64,
+    /// Seconds of frames (capture time) to be found in; 0 = no limit
+    /// (`session.resume_find_s`).
+    pub find_within_s: f64,
 }
 
 /// One session's tracker.
@@ -69,6 +75,8 @@ pub struct SessionTracker {
     /// The session's keyframe ids are the tracker's plus this (a resumed session's
     /// go on from its stored ones).
     keyframe_id_offset: u64,
+    /// Capture time of the first frame tracked while not yet found.
+    resume_since_ns: Option<u64>,
 }
 
 impl SessionTracker {
@@ -80,6 +88,7 @@ impl SessionTracker {
             world_from_tracker: Isometry3::identity(),
             resume: None,
             keyframe_id_offset: 0,
+            resume_since_ns: None,
         })
     }
 
@@ -95,6 +104,14 @@ impl SessionTracker {
     /// session is being found).
     pub fn placed(&self) -> bool {
         self.resume.is_none()
+    }
+
+    /// Whether a resumed session still not found at `capture_time_ns` has run past
+    /// its time to be found (counted from its first frame here).
+    fn resume_overdue(&mut self, capture_time_ns: u64) -> bool {
+        let Some(anchor) = &self.resume else { return false };
+        let since = *self.resume_since_ns.get_or_insert(capture_time_ns);
+        anchor.find_within_s > 0.0 && capture_time_ns.saturating_sub(since) as f64 * 1e-9 > anchor.find_within_s
     }
 
     /// Tries to find the tracker's keyframe `id` among the anchor's keyframes;
@@ -152,6 +169,7 @@ impl SessionTracker {
                     features: 0,
                     masked_features: 0,
                     new_keyframe: None,
+                    resume_abandoned: self.resume_overdue(capture_time_ns),
                     previous_from_current: None,
                     times: StageTimes::default(),
                 };
@@ -174,6 +192,7 @@ impl SessionTracker {
                 features: out.tracked_points as u32,
                 masked_features: out.masked_features as u32,
                 new_keyframe: None,
+                resume_abandoned: self.resume_overdue(capture_time_ns),
                 previous_from_current,
                 times: out.times,
             };
@@ -186,6 +205,7 @@ impl SessionTracker {
             features: out.tracked_points as u32,
             masked_features: out.masked_features as u32,
             new_keyframe,
+            resume_abandoned: false,
             previous_from_current,
             times: out.times,
         }
@@ -281,6 +301,47 @@ mod tests {
         assert!(angle > 0.17 && angle < 0.18, "{angle}");
         assert!(weighted_mean(&[]).is_none());
         assert!(weighted_mean(&[(a, 0.0)]).is_none());
+    }
+
+    /// A resumed session not found in its stored world is given up once its frames
+    /// span more than `find_within_s` of capture time, counted from its first frame
+    /// here; with no limit, or never resumed, it never is.
+    #[test]
+    fn a_resumed_session_not_found_in_time_is_given_up() {
+        let camera = pb::CameraInfo {
+            width: 160,
+            height: 120,
+            fx: 150.0,
+            fy: 150.0,
+            cx: 80.0,
+            cy: 60.0,
+            depth_units_per_metre: 1000.0,
+            ..Default::default()
+        };
+        let color = ColorImage { width: 160, height: 120, data: vec![7; 160 * 120 * 3] };
+        let depth = DepthImage { width: 160, height: 120, data: vec![1000; 160 * 120] };
+        let tracker = |find_within_s: Option<f64>| {
+            let mut t = SessionTracker::new(&camera, &TrackerConfig::default()).expect("tracker");
+            if let Some(find_within_s) = find_within_s {
+                t.resume_in(ResumeAnchor { keyframes: vec![], verify: Default::default(), next_keyframe_id: 5, find_within_s });
+            }
+            t
+        };
+        let abandoned = |t: &mut SessionTracker, sequence: u64, seconds: f64| {
+            let out = t.track(sequence, (seconds * 1e9) as u64, &color, &depth, None);
+            assert_eq!((out.state, out.world_from_camera), (TrackingState::Lost, None), "nothing reported while not found");
+            out.resume_abandoned
+        };
+        let mut resumed = tracker(Some(2.0));
+        assert!(!abandoned(&mut resumed, 1, 100.0), "its first frame here starts the clock");
+        assert!(!abandoned(&mut resumed, 2, 102.0), "2 s: still within");
+        assert!(abandoned(&mut resumed, 3, 102.1));
+        let mut patient = tracker(Some(0.0));
+        assert!(!abandoned(&mut patient, 1, 100.0) && !abandoned(&mut patient, 2, 500.0), "0: no limit");
+        let mut fresh = tracker(None);
+        let out = fresh.track(1, 0, &color, &depth, None);
+        let later = fresh.track(2, 400_000_000_000, &color, &depth, None);
+        assert!(!out.resume_abandoned && !later.resume_abandoned, "a session never resumed is never given up");
     }
 
     /// Only poses within 5 cm and 2° of one another agree; a lone outlier is left out.
