@@ -515,7 +515,7 @@ pub async fn answer_forwarded(
             }
             let held = match (named_session(path), named_fleet(path)) {
                 (Some(id), _) => registry.info(id).is_some(),
-                (None, Some(fleet)) => registry.fleets().is_some_and(|f| f.get(fleet).is_some()),
+                (None, Some(fleet)) => registry.fleets().is_some_and(|f| f.holds(fleet)),
                 (None, None) => true,
             };
             let mut request = Request::get(&forwarded.path_and_query).header(FORWARDED_HEADER, "1");

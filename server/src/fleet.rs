@@ -344,6 +344,11 @@ impl FleetService {
         all.into_iter().map(|v| self.with_map(v)).collect()
     }
 
+    /// Whether this server holds fleet `name` (what a forwarded query about it asks).
+    pub fn holds(&self, name: &str) -> bool {
+        lock(&self.shared.fleets).contains_key(name)
+    }
+
     pub fn get(&self, name: &str) -> Option<FleetView> {
         let v = lock(&self.shared.fleets).get(name).map(|f| view(name, f))?;
         Some(self.with_map(v))

@@ -284,15 +284,13 @@ struct CpuBudget {
     per_frame: Option<Duration>,
     strikes: u32,
     over_in_row: AtomicU32,
-    /// The last strike came: the stream was ended.
-    ended: AtomicBool,
     metrics: Arc<Metrics>,
 }
 
 impl CpuBudget {
     fn new(limits: &LimitsConfig, metrics: Arc<Metrics>) -> Self {
         let per_frame = (limits.frame_cpu_ms > 0.0).then(|| Duration::from_secs_f64(limits.frame_cpu_ms / 1e3));
-        Self { per_frame, strikes: limits.frame_cpu_strikes.max(1), over_in_row: AtomicU32::new(0), ended: AtomicBool::new(false), metrics }
+        Self { per_frame, strikes: limits.frame_cpu_strikes.max(1), over_in_row: AtomicU32::new(0), metrics }
     }
 
     /// Counts a frame that took `cpu`: the status ending the stream when it was
@@ -312,7 +310,9 @@ impl CpuBudget {
             "frame over limits.frame_cpu_ms = {}",
             budget.as_secs_f64() * 1e3
         );
-        (in_row >= self.strikes && !self.ended.swap(true, Ordering::Relaxed)).then(|| {
+        // The stream ends at the last strike; the frames after it are not run
+        // (`Session::ended`), so this fires once.
+        (in_row >= self.strikes).then(|| {
             self.metrics.session_ended("frame_cpu_ms");
             tonic::Status::resource_exhausted(format!(
                 "{in_row} frames in a row took more than limits.frame_cpu_ms = {} ms of CPU each (frame {sequence}: {:.0} ms): the session takes no more frames",

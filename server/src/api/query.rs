@@ -98,7 +98,7 @@ impl QueryService {
     /// always).
     pub fn holds(&self, method: &str, request: &[u8]) -> bool {
         if method == "GetFleetPoses" {
-            return pb::FleetRef::decode(request).is_ok_and(|r| self.fleet(&r.fleet).is_ok());
+            return pb::FleetRef::decode(request).is_ok_and(|r| self.registry.fleets().is_some_and(|f| f.holds(&r.fleet)));
         }
         let session_id = match method {
             "GetLatestPose" => pb::SessionRef::decode(request).map(|r| r.session_id),
