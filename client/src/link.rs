@@ -33,7 +33,9 @@ pub enum LinkEvent {
 /// Reconnection and keepalive settings of the gRPC link.
 #[derive(Debug, Clone)]
 pub struct GrpcOptions {
-    pub endpoint: String,
+    /// The servers to ask where to stream (`Ingest.Place`), in turn from the last
+    /// that answered; at least one.
+    pub servers: Vec<String>,
     /// TLS to the server (an https:// endpoint), `None`: plain.
     pub tls: Option<ClientTls>,
     pub keepalive: Duration,
@@ -94,7 +96,7 @@ fn is_transient(code: Code) -> bool {
     matches!(code, Code::Unavailable | Code::Unknown | Code::Cancelled | Code::Internal | Code::DeadlineExceeded)
 }
 
-/// A frame over gRPC (the robot connects to the server it is given: nothing to place).
+/// A frame over gRPC (the robot is placed by asking, `Ingest.Place`, not by its messages).
 fn frame_message(frame: pb::Frame) -> pb::ClientMessage {
     pb::ClientMessage { msg: Some(ClientMsg::Frame(frame)), fleet: String::new() }
 }
@@ -135,14 +137,13 @@ struct Connected {
     accepted: pb::SessionAccepted,
 }
 
-/// Connects, sends the hello (resuming `session_id` when set) and waits for the accept.
-async fn connect_once(
-    endpoint: &tonic::transport::Endpoint,
-    hello: &pb::Hello,
-    session_id: &str,
-    resume_secret: &str,
-) -> Result<Connected, Broke> {
-    let channel = endpoint.connect().await.map_err(|e| Broke::Transient(e.to_string()))?;
+/// Connects to `to` (or streams on the connection it already is), sends the hello
+/// (resuming `session_id` when set) and waits for the accept.
+async fn connect_once(to: Target, hello: &pb::Hello, session_id: &str, resume_secret: &str) -> Result<Connected, Broke> {
+    let channel = match to {
+        Target::Open(channel) => channel,
+        Target::Dial(endpoint) => endpoint.connect().await.map_err(|e| Broke::Transient(e.to_string()))?,
+    };
     let mut client = IngestClient::new(channel);
     let (out, out_rx) = mpsc::channel(LINK_BUFFER);
     let hello = pb::Hello { resume_session_id: session_id.to_string(), resume_secret: resume_secret.to_string(), ..hello.clone() };
@@ -157,22 +158,83 @@ async fn connect_once(
     }
 }
 
+/// A server address as an endpoint with the link's TLS, timeouts and keepalive.
+fn grpc_endpoint(address: &str, options: &GrpcOptions) -> Result<tonic::transport::Endpoint, ClientError> {
+    let mut endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+        .map_err(|e| ClientError::Usage(format!("bad server address {address:?}: {e}")))?;
+    if let Some(tls) = &options.tls {
+        endpoint = endpoint.tls_config(tls.config()).map_err(|e| ClientError::Usage(format!("TLS to {address}: {e}")))?;
+    }
+    Ok(endpoint
+        .connect_timeout(options.connect_timeout)
+        .http2_keep_alive_interval(options.keepalive)
+        .keep_alive_timeout(options.keepalive * 2)
+        .keep_alive_while_idle(true))
+}
+
+/// Where a stream goes: a server to dial, or the connection to the server asked.
+enum Target {
+    Dial(Box<tonic::transport::Endpoint>),
+    Open(tonic::transport::Channel),
+}
+
+/// Where to stream: asks the servers in turn, from `*next`, where this robot
+/// belongs (`Ingest.Place`), and returns the address to stream to and how: the
+/// owner's advertised address, or the server asked (on the connection the question
+/// went over) when the answer names none or the server predates `Place`. `*next`
+/// becomes the server that answered. Transient when none answered.
+async fn placed(
+    seeds: &[(String, tonic::transport::Endpoint)],
+    next: &mut usize,
+    hello: &pb::Hello,
+    options: &GrpcOptions,
+) -> Result<(String, Target), Broke> {
+    let mut why = Vec::new();
+    for i in 0..seeds.len() {
+        let at = (*next + i) % seeds.len();
+        let (address, endpoint) = &seeds[at];
+        let channel = match endpoint.connect().await {
+            Ok(channel) => channel,
+            Err(e) => {
+                why.push(format!("{address}: {e}"));
+                continue;
+            }
+        };
+        let asked = IngestClient::new(channel.clone()).place(hello.clone()).await;
+        let placement = match asked {
+            Ok(p) => p.into_inner(),
+            Err(status) if status.code() == Code::Unimplemented => pb::Placement::default(),
+            Err(status) if is_transient(status.code()) => {
+                why.push(format!("{address}: {}: {}", status.code(), status.message()));
+                continue;
+            }
+            Err(status) => return Err(classify(status)),
+        };
+        *next = at;
+        if placement.grpc_address.is_empty() || placement.grpc_address == *address {
+            return Ok((address.clone(), Target::Open(channel)));
+        }
+        tracing::info!("{address} places this robot on {} ({})", placement.server_id, placement.grpc_address);
+        return match grpc_endpoint(&placement.grpc_address, options) {
+            Ok(e) => Ok((placement.grpc_address, Target::Dial(Box::new(e)))),
+            Err(e) => Err(Broke::Fatal(ClientError::Protocol(format!("{address} placed this robot at an unusable address: {e}")))),
+        };
+    }
+    Err(Broke::Transient(format!("no server said where to stream ({})", why.join("; "))))
+}
+
 async fn run_grpc(
     hello: pb::Hello,
     options: GrpcOptions,
     mut frames_rx: mpsc::Receiver<pb::Frame>,
     events: mpsc::Sender<LinkEvent>,
 ) -> Result<(), ClientError> {
-    let mut endpoint = tonic::transport::Endpoint::from_shared(options.endpoint.clone())
-        .map_err(|e| ClientError::Usage(format!("bad server address {:?}: {e}", options.endpoint)))?;
-    if let Some(tls) = &options.tls {
-        endpoint = endpoint.tls_config(tls.config()).map_err(|e| ClientError::Usage(format!("TLS to {}: {e}", options.endpoint)))?;
+    if options.servers.is_empty() {
+        return Err(ClientError::Usage("no gRPC server given (--server)".into()));
     }
-    let endpoint = endpoint
-        .connect_timeout(options.connect_timeout)
-        .http2_keep_alive_interval(options.keepalive)
-        .keep_alive_timeout(options.keepalive * 2)
-        .keep_alive_while_idle(true);
+    let seeds = options.servers.iter().map(|a| Ok((a.clone(), grpc_endpoint(a, &options)?))).collect::<Result<Vec<_>, ClientError>>()?;
+    let mut next_seed = 0;
+    let mut at = seeds[0].0.clone();
     // Frames sent whose result has not come back: resent after a reconnect.
     let mut unacked: VecDeque<pb::Frame> = VecDeque::new();
     let mut session_id = String::new();
@@ -183,17 +245,28 @@ async fn run_grpc(
     loop {
         if failures > 0 {
             if failures > options.max_attempts {
-                return Err(ClientError::Connect(format!("gave up on {} after {} attempts", options.endpoint, options.max_attempts)));
+                return Err(ClientError::Connect(format!(
+                    "gave up on {} after {} attempts",
+                    options.servers.join(", "),
+                    options.max_attempts
+                )));
             }
             tokio::time::sleep(backoff).await;
             backoff = (backoff * 2).min(options.max_backoff);
         }
-        let Connected { out, mut inbound, accepted } = match connect_once(&endpoint, &hello, &session_id, &resume_secret).await {
+        let attempt = match placed(&seeds, &mut next_seed, &hello, &options).await {
+            Ok((address, target)) => {
+                at = address;
+                connect_once(target, &hello, &session_id, &resume_secret).await
+            }
+            Err(broke) => Err(broke),
+        };
+        let Connected { out, mut inbound, accepted } = match attempt {
             Ok(c) => c,
             Err(Broke::Fatal(e)) => return Err(e),
             Err(Broke::Transient(why)) => {
                 failures += 1;
-                tracing::warn!("connecting to {} failed ({why}); attempt {failures}", options.endpoint);
+                tracing::warn!("connecting to {at} failed ({why}); attempt {failures}");
                 continue;
             }
         };
@@ -278,7 +351,7 @@ async fn run_grpc(
             Broke::Fatal(e) => return Err(e),
             Broke::Transient(why) => {
                 failures += 1;
-                tracing::warn!("stream to {} broke ({why}); reconnecting", options.endpoint);
+                tracing::warn!("stream to {at} broke ({why}); reconnecting");
             }
         }
     }

@@ -69,9 +69,11 @@ enum RelationArg {
 /// Where the server is (`stream` and `fleet`).
 #[derive(clap::Args)]
 struct EndpointArgs {
-    /// gRPC server address.
-    #[arg(long, env = "STILLMAP_SERVER", default_value = "http://127.0.0.1:50051")]
-    server: String,
+    /// gRPC server address; several, comma-separated, for servers on one Zenoh
+    /// network: the robot asks them in turn where it belongs (Ingest.Place) and
+    /// streams there, and asks again when that server goes.
+    #[arg(long, env = "STILLMAP_SERVER", value_delimiter = ',', default_value = "http://127.0.0.1:50051")]
+    server: Vec<String>,
     /// Zenoh endpoints to connect to (the server's, or a router's).
     #[arg(long, env = "STILLMAP_ZENOH_CONNECT", value_delimiter = ',', default_value = "tcp/127.0.0.1:7447")]
     zenoh_connect: Vec<String>,
@@ -479,7 +481,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 TransportArg::Grpc => {
                     let grpc = GrpcOptions {
                         tls: endpoints.tls()?,
-                        endpoint: endpoints.server,
+                        servers: endpoints.server,
                         keepalive: Duration::from_secs(10),
                         connect_timeout: timeout,
                         initial_backoff: Duration::from_millis(100),
@@ -552,7 +554,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 },
                 grpc: GrpcOptions {
                     tls: endpoints.tls()?,
-                    endpoint: endpoints.server.clone(),
+                    servers: endpoints.server.clone(),
                     keepalive: Duration::from_secs(10),
                     connect_timeout: timeout,
                     initial_backoff: Duration::from_millis(100),

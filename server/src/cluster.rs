@@ -69,6 +69,12 @@ impl Membership {
         stillmap_proto::placement_owner(key, live.iter().map(String::as_str)) == Some(self.own.as_str())
     }
 
+    /// The server robots placed by `key` belong to among the live ones.
+    pub fn owner(&self, key: &str) -> String {
+        let live = lock(&self.live);
+        stillmap_proto::placement_owner(key, live.iter().map(String::as_str)).unwrap_or(&self.own).to_string()
+    }
+
     /// The live servers, by id.
     pub fn servers(&self) -> Vec<String> {
         lock(&self.live).iter().cloned().collect()
@@ -96,6 +102,8 @@ pub struct ServerStatus {
     /// The addresses the server's gRPC and HTTP ports are bound to.
     pub grpc: String,
     pub http: String,
+    /// Where robots reach its gRPC port (`grpc.advertise`; empty: robots are not sent here).
+    pub grpc_advertised: String,
     pub started_unix_ns: u64,
     /// Sessions in memory (live, and stored ones a query brought back), and the limit.
     pub sessions_in_memory: usize,
@@ -112,6 +120,7 @@ pub struct Identity {
     pub host: String,
     pub grpc: SocketAddr,
     pub http: SocketAddr,
+    pub grpc_advertised: String,
     pub started_unix_ns: u64,
     pub max_sessions: usize,
 }
@@ -126,6 +135,7 @@ impl Identity {
             pid: std::process::id(),
             grpc: self.grpc.to_string(),
             http: self.http.to_string(),
+            grpc_advertised: self.grpc_advertised.clone(),
             started_unix_ns: self.started_unix_ns,
             sessions_in_memory: sessions.len(),
             max_sessions: self.max_sessions,
@@ -230,6 +240,52 @@ pub async fn announce(
     drop(servers);
     drop(queryable);
     Ok(())
+}
+
+/// Answers `Ingest.Place`: the robot's owner among the live servers (as Zenoh
+/// robots are placed) and the gRPC address it advertises, read from its status.
+pub struct Placer {
+    pub zenoh: zenoh::Session,
+    pub membership: Arc<Membership>,
+    /// This server's `grpc.advertise`.
+    pub advertised: String,
+    pub timeout: std::time::Duration,
+}
+
+impl Placer {
+    /// The `grpc_advertised` of server `id`'s status; `None` when it did not answer.
+    async fn advertised_by(&self, id: &str) -> Option<String> {
+        let replies = self.zenoh.get(keys::server_status(id)).timeout(self.timeout).await.ok()?;
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result()
+                && let Ok(status) = serde_json::from_slice::<serde_json::Value>(&sample.payload().to_bytes())
+            {
+                // A server of a version before Place advertises nothing.
+                return Some(status["grpc_advertised"].as_str().unwrap_or_default().to_string());
+            }
+        }
+        None
+    }
+}
+
+#[tonic::async_trait]
+impl crate::ingest::grpc::Placement for Placer {
+    async fn place(&self, key: &str) -> Result<stillmap_proto::pb::Placement, tonic::Status> {
+        let owner = self.membership.owner(key);
+        let here = || stillmap_proto::pb::Placement { server_id: self.membership.own.clone(), grpc_address: self.advertised.clone() };
+        if owner == self.membership.own {
+            return Ok(here());
+        }
+        match self.advertised_by(&owner).await {
+            // The owner cannot be reached by robots: stream here, as without a cluster.
+            Some(address) if address.is_empty() => Ok(here()),
+            Some(address) => Ok(stillmap_proto::pb::Placement { server_id: owner, grpc_address: address }),
+            None => Err(tonic::Status::unavailable(format!(
+                "server {owner}, where this robot belongs, did not answer within {:.0} s (it may have just left): ask again",
+                self.timeout.as_secs_f64()
+            ))),
+        }
+    }
 }
 
 /// Marks a request one server forwarded to another (never forwarded again).

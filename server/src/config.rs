@@ -310,6 +310,12 @@ pub struct GrpcConfig {
     pub keepalive_interval_s: u64,
     /// Seconds to wait for a keepalive answer before dropping the connection.
     pub keepalive_timeout_s: u64,
+    /// The address robots reach this server's gRPC port at (`http://host:port`, or
+    /// `https://` with TLS), for servers on one Zenoh network: `Ingest.Place` sends a
+    /// robot that belongs here (placement by fleet, else robot id) to it, whichever
+    /// server the robot asked. Empty (default): robots are not sent here; a robot
+    /// that asks streams to the server it asked, as without a cluster.
+    pub advertise: String,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -464,7 +470,13 @@ pub enum OverloadPolicy {
 
 impl Default for GrpcConfig {
     fn default() -> Self {
-        Self { listen: "127.0.0.1:50051".into(), max_message_bytes: 8 * 1024 * 1024, keepalive_interval_s: 10, keepalive_timeout_s: 20 }
+        Self {
+            listen: "127.0.0.1:50051".into(),
+            max_message_bytes: 8 * 1024 * 1024,
+            keepalive_interval_s: 10,
+            keepalive_timeout_s: 20,
+            advertise: String::new(),
+        }
     }
 }
 
@@ -717,8 +729,26 @@ impl ServerConfig {
         if !self.zenoh.server_id.is_empty() {
             stillmap_proto::validate_server_id(&self.zenoh.server_id).map_err(|e| ServerError::Config(format!("zenoh.{e}")))?;
         }
+        if !self.grpc.advertise.is_empty() {
+            validate_advertised(&self.grpc.advertise).map_err(|e| ServerError::Config(format!("grpc.advertise: {e}")))?;
+        }
         Ok(())
     }
+}
+
+/// An advertised gRPC address: `http://` or `https://`, a host, a port, nothing else.
+fn validate_advertised(address: &str) -> Result<(), String> {
+    let uri: axum::http::Uri = address.parse().map_err(|e| format!("{address:?} is not an address: {e}"))?;
+    if !matches!(uri.scheme_str(), Some("http" | "https")) {
+        return Err(format!("{address:?} must start with http:// or https://"));
+    }
+    if uri.host().is_none_or(str::is_empty) || uri.port_u16().is_none() {
+        return Err(format!("{address:?} must name a host and a port (http://host:50051)"));
+    }
+    if uri.path_and_query().is_some_and(|p| p.as_str() != "/") {
+        return Err(format!("{address:?} must be only a scheme, a host and a port"));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -768,6 +798,25 @@ mod tests {
         let err = ServerConfig::from_toml("[http]\npose_event_interval_ms = 0\n").unwrap_err().to_string();
         assert_eq!(err, "invalid configuration: http.pose_event_interval_ms must be within 20..=5000, got 0");
         assert_eq!(ServerConfig::from_toml("[http]\npose_event_interval_ms = 20\n").unwrap().http.pose_event_interval_ms, 20);
+    }
+
+    /// `grpc.advertise` is what robots are told to dial: a scheme, a host and a port.
+    #[test]
+    fn the_advertised_grpc_address_is_checked() {
+        let ok = |a: &str| ServerConfig::from_toml(&format!("[grpc]\nadvertise = \"{a}\"\n")).map(|c| c.grpc.advertise);
+        assert_eq!(ok("http://stillmap-0.stillmap:50051").unwrap(), "http://stillmap-0.stillmap:50051");
+        assert_eq!(ok("https://10.0.0.7:443").unwrap(), "https://10.0.0.7:443");
+        let err = |a: &str| ok(a).unwrap_err().to_string();
+        assert_eq!(
+            err("stillmap-0:50051"),
+            "invalid configuration: grpc.advertise: \"stillmap-0:50051\" must start with http:// or https://"
+        );
+        assert_eq!(
+            err("http://stillmap-0"),
+            "invalid configuration: grpc.advertise: \"http://stillmap-0\" must name a host and a port (http://host:50051)"
+        );
+        assert_eq!(err("http://h:1/x"), "invalid configuration: grpc.advertise: \"http://h:1/x\" must be only a scheme, a host and a port");
+        assert!(err("http://a b:1").starts_with("invalid configuration: grpc.advertise: \"http://a b:1\" is not an address"));
     }
 
     /// Pool sizes, queues and the segmentation batcher's limits are checked at start-up.

@@ -69,6 +69,11 @@ const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
 #[cfg(feature = "zenoh")]
 const FORWARD_TIMEOUT: Duration = Duration::from_secs(cluster::FORWARDED_ANSWER_TIMEOUT.as_secs() + 5);
 
+/// How long `Ingest.Place` waits for the owner's status (its advertised address):
+/// a robot waits that long before asking again when the owner has just died.
+#[cfg(feature = "zenoh")]
+const PLACE_TIMEOUT: Duration = Duration::from_secs(2);
+
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
     #[error("invalid configuration: {0}")]
@@ -293,6 +298,7 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             host,
             grpc: bound_grpc,
             http: bound_http,
+            grpc_advertised: config.grpc.advertise.clone(),
             started_unix_ns: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64),
             max_sessions: config.limits.max_sessions,
         };
@@ -319,7 +325,20 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     }
 
     let max = config.grpc.max_message_bytes;
+    // In a cluster, robots that ask are sent to the server they belong to (cluster.rs).
+    #[cfg(feature = "zenoh")]
+    let placement = zenoh_task.as_ref().map(|(z, _, _, forwarder, _, _)| {
+        Arc::new(cluster::Placer {
+            zenoh: z.clone(),
+            membership: forwarder.membership.clone(),
+            advertised: config.grpc.advertise.clone(),
+            timeout: PLACE_TIMEOUT,
+        }) as Arc<dyn ingest::grpc::Placement>
+    });
+    #[cfg(not(feature = "zenoh"))]
+    let placement = None;
     let ingest = IngestServer::new(ingest::grpc::IngestService {
+        placement,
         registry: registry.clone(),
         auth: auth.clone(),
         rate_limits: rate_limits.clone(),

@@ -20,6 +20,10 @@ struct Args {
     /// HTTP listen address [default: 127.0.0.1:8080].
     #[arg(long, env = "STILLMAP_HTTP_LISTEN")]
     http_listen: Option<String>,
+    /// Where robots reach this server's gRPC port (http://host:port), for servers
+    /// on one Zenoh network: robots that belong here are sent to it [default: none].
+    #[arg(long, env = "STILLMAP_GRPC_ADVERTISE")]
+    grpc_advertise: Option<String>,
     /// Zenoh listen endpoint, repeatable [default: tcp/127.0.0.1:7447].
     #[arg(long, env = "STILLMAP_ZENOH_LISTEN", value_delimiter = ',')]
     zenoh_listen: Vec<String>,
@@ -105,6 +109,9 @@ fn effective_config(args: &Args) -> anyhow::Result<ServerConfig> {
     };
     if let Some(v) = &args.grpc_listen {
         c.grpc.listen = v.clone();
+    }
+    if let Some(v) = &args.grpc_advertise {
+        c.grpc.advertise = v.clone();
     }
     if let Some(v) = &args.http_listen {
         c.http.listen = v.clone();

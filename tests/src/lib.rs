@@ -70,22 +70,31 @@ const SERVER_START_ATTEMPTS: usize = 3;
 
 impl Server {
     pub fn start(extra: &[&str]) -> Self {
+        Self::start_with(extra, false)
+    }
+
+    /// [`start`](Self::start), the server advertising its gRPC address to robots
+    /// (`--grpc-advertise http://<its gRPC address>`) when `advertise`.
+    pub fn start_with(extra: &[&str], advertise: bool) -> Self {
         for _ in 1..SERVER_START_ATTEMPTS {
-            if let Some(server) = Self::try_start(extra) {
+            if let Some(server) = Self::try_start(extra, advertise) {
                 return server;
             }
         }
-        Self::try_start(extra).expect("server exited before its ready line (its stderr is above)")
+        Self::try_start(extra, advertise).expect("server exited before its ready line (its stderr is above)")
     }
 
     /// `None` when the server exited before printing its ready line.
-    fn try_start(extra: &[&str]) -> Option<Self> {
+    fn try_start(extra: &[&str], advertise: bool) -> Option<Self> {
         let (grpc, http, zenoh) =
             (format!("127.0.0.1:{}", free_port()), format!("127.0.0.1:{}", free_port()), format!("tcp/127.0.0.1:{}", free_port()));
         // The real segmentation model from ../shared/models, unless a test says otherwise.
         let model = model_path();
         let mut command = Command::new(bin("stillmap-server"));
         command.args(["--grpc-listen", &grpc, "--http-listen", &http, "--zenoh-listen", &zenoh]);
+        if advertise {
+            command.args(["--grpc-advertise", &format!("http://{grpc}")]);
+        }
         if !extra.contains(&"--model") && !extra.contains(&"--no-perception") {
             command.args(["--model", model.to_str().expect("utf-8 path")]);
         }

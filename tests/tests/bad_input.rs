@@ -77,6 +77,33 @@ async fn bad_hello_is_invalid_argument() {
     assert_eq!((status.code(), status.message()), (Code::InvalidArgument, "bad hello: hello has no camera info"));
 }
 
+/// `Ingest.Place` on a server alone: every robot belongs to it, at the address it
+/// advertises; a bad robot id or fleet name is INVALID_ARGUMENT by name, and the
+/// token is checked as a hello's.
+#[tokio::test(flavor = "multi_thread")]
+async fn place_answers_the_servers_own_address_and_names_bad_input() {
+    let server = Server::start_with(&["--no-perception", "--auth-token", "fleet-secret-1"], true);
+    let mut client = IngestClient::connect(server.grpc_url()).await.expect("connect");
+    let hello = |robot_id: &str, fleet: &str, token: &str| pb::Hello {
+        robot_id: robot_id.into(),
+        fleet: fleet.into(),
+        auth_token: token.into(),
+        ..Default::default()
+    };
+    let placed = client.place(hello("r1", "warehouse", "fleet-secret-1")).await.expect("placed").into_inner();
+    assert_eq!(placed.grpc_address, format!("http://{}", server.grpc));
+    let port = server.grpc.rsplit(':').next().expect("port");
+    assert!(placed.server_id.ends_with(&format!("-{port}")), "the default server id <host>-<port>: {}", placed.server_id);
+    for (robot, fleet, token, code, message) in [
+        ("a b", "", "fleet-secret-1", Code::InvalidArgument, "robot_id \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -"),
+        ("r1", "x/y", "fleet-secret-1", Code::InvalidArgument, "fleet \"x/y\" contains '/'; allowed are A-Z a-z 0-9 _ -"),
+        ("r1", "", "wrong", Code::Unauthenticated, "unknown auth token"),
+    ] {
+        let status = client.place(hello(robot, fleet, token)).await.expect_err("refused");
+        assert_eq!((status.code(), status.message()), (code, message), "{robot} {fleet} {token}");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn bad_frames_are_rejected_by_name_and_the_session_goes_on() {
     let server = Server::start(&[]);

@@ -293,12 +293,17 @@ struct Pair {
 
 impl Pair {
     async fn start(extra: &[&str]) -> Self {
+        Self::start_with(extra, false).await
+    }
+
+    /// [`start`](Self::start), each server advertising its gRPC address when `advertise`.
+    async fn start_with(extra: &[&str], advertise: bool) -> Self {
         let router = format!("tcp/127.0.0.1:{}", free_port());
         let router_session = open("router", ("listen/endpoints", &router)).await;
         let start = |id: &str| {
             let mut args = vec!["--no-perception", "--zenoh-connect", &router, "--server-id", id];
             args.extend_from_slice(extra);
-            Server::start(&args)
+            Server::start_with(&args, advertise)
         };
         let (a, b) = (start(ID_A), start(ID_B));
         let tool = open("client", ("connect/endpoints", &router)).await;
@@ -801,5 +806,73 @@ async fn a_killed_servers_robots_resume_their_sessions_from_the_shared_storage()
             .to_string();
         let ate = ate_m(&a.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await);
         eprintln!("{robot}: undisturbed on A, ATE {:.2} cm", ate * 100.0);
+    }
+}
+
+/// gRPC robots given both servers ask where they belong (`Ingest.Place`): the
+/// robots of a named fleet stream to the one server placement by fleet gives them,
+/// whichever server they list first. When that server is killed with `kill -9` they
+/// ask again, stream to the other server and resume their own sessions there from
+/// the shared storage (the same session ids); every frame is answered or counted
+/// lost. Without an advertised address a server places robots on itself.
+#[tokio::test(flavor = "multi_thread")]
+async fn grpc_robots_ask_where_they_belong_and_resume_on_the_other_server_when_theirs_is_killed() {
+    let pg = Postgres::start();
+    let Pair { router: _, _zenoh, a, b, .. } = Pair::start_with(&["--replica-url", &pg.url()], true).await;
+    let fleet = "warehouse";
+    let owner_id = stillmap_proto::placement_owner(&stillmap_proto::placement_key("robot-0", fleet), [ID_A, ID_B]).expect("owner");
+    let (mut owner, other, other_id) = if owner_id == ID_A { (a, b, ID_B) } else { (b, a, ID_A) };
+    let robots = ["robot-0".to_string(), "robot-1".to_string()];
+    // One robot lists the owner first, the other the server that is not.
+    let (first, second) = (format!("http://{}", owner.grpc), format!("http://{}", other.grpc));
+    let lists = [format!("{second},{first}"), format!("{first},{second}")];
+    let tum = format!("tum:{}", tum_dir().display());
+    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("grpc-placed-{r}.json")))).collect();
+    let clients = Robots(
+        summaries
+            .iter()
+            .zip(&lists)
+            .map(|((robot, summary), servers)| {
+                Command::new(bin("stillmap-client"))
+                    .args(["stream", "--source", &tum, "--transport", "grpc", "--server", servers, "--fleet", fleet])
+                    .args(["--robot-id", robot, "--rate", "15", "--quiet", "--summary-json"])
+                    .arg(summary)
+                    .env("STILLMAP_LOG", "error")
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::inherit())
+                    .spawn()
+                    .expect("spawn robot")
+            })
+            .collect(),
+    );
+    eventually(Duration::from_secs(10), "both robots streaming on their fleet's server", async || {
+        robots_on(&other, owner_id).await.1 == robots
+    })
+    .await;
+    assert!(robots_on(&other, other_id).await.0.is_empty(), "a robot opened a session on the server it asked");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let (_, list) = other.get_json("/api/v1/sessions").await;
+    let held: BTreeMap<String, String> = list["sessions"]
+        .as_array()
+        .expect("sessions")
+        .iter()
+        .map(|s| (s["robot_id"].as_str().expect("robot").to_string(), s["session_id"].as_str().expect("id").to_string()))
+        .collect();
+    assert_eq!(held.keys().cloned().collect::<Vec<_>>(), robots);
+    owner.kill9();
+    let killed = Instant::now();
+    eventually(Duration::from_secs(10), "both robots streaming on the other server", async || {
+        robots_on(&other, other_id).await.1 == robots
+    })
+    .await;
+    eprintln!("the robots streaming on {other_id} {:.0} ms after kill -9", killed.elapsed().as_secs_f64() * 1e3);
+    check_robots(clients, &summaries, &robots);
+    let (_, list) = other.get_json("/api/v1/sessions").await;
+    for (robot, id) in &held {
+        let theirs: Vec<&serde_json::Value> =
+            list["sessions"].as_array().expect("sessions").iter().filter(|s| s["robot_id"] == **robot).collect();
+        assert_eq!(theirs.len(), 1, "{robot}: one session, resumed: {theirs:?}");
+        assert_eq!(theirs[0]["session_id"].as_str(), Some(id.as_str()), "{robot}: its own session, resumed");
+        assert_eq!(theirs[0]["server_id"], other_id, "{robot}");
     }
 }

@@ -181,6 +181,15 @@ fn check_server(objects: &BTreeMap<(String, String), Value>) -> Value {
     let router_service = find(objects, "Service", "zenoh-router");
     let router_port = router_service["spec"]["ports"][0]["port"].as_u64().expect("router port");
     assert_eq!(env["STILLMAP_SERVER_ID"], "fieldRef:metadata.name", "the pod's stable name");
+    // Robots that ask where to stream are sent to the pod by its name on the
+    // StatefulSet's headless Service; Kubernetes expands only variables defined
+    // before the one that names them.
+    let headless = str_at(&set["spec"], &["serviceName"]);
+    assert_eq!(str_at(find(objects, "Service", headless), &["spec", "clusterIP"]), "None");
+    assert_eq!(env["STILLMAP_GRPC_ADVERTISE"], format!("http://$(STILLMAP_SERVER_ID).{headless}:{}", ports["grpc"]));
+    let names: Vec<&str> = container["env"].as_sequence().expect("env").iter().map(|e| str_at(e, &["name"])).collect();
+    let position = |n: &str| names.iter().position(|x| *x == n).expect("env var");
+    assert!(position("STILLMAP_SERVER_ID") < position("STILLMAP_GRPC_ADVERTISE"), "defined before it is named");
     assert_eq!(env["STILLMAP_ZENOH_CONNECT"], format!("tcp/{}:{router_port}", str_at(router_service, &["metadata", "name"])));
     let router = find(objects, "Deployment", "zenoh-router");
     let router_volume = &router["spec"]["template"]["spec"]["volumes"][0];
@@ -264,7 +273,9 @@ fn the_dockerfile_uses_the_install_script_and_its_packaging_step_works() {
     // The image's defaults are what the pod sets.
     let container = check_server(&objects(&unrendered_base()));
     for (key, value) in env_of(&container) {
-        if ["STILLMAP_ZENOH_CONNECT", "STILLMAP_TOKEN_FILE", "STILLMAP_SERVER_ID", "STILLMAP_REPLICA_URL"].contains(&key.as_str()) {
+        if ["STILLMAP_ZENOH_CONNECT", "STILLMAP_TOKEN_FILE", "STILLMAP_SERVER_ID", "STILLMAP_GRPC_ADVERTISE", "STILLMAP_REPLICA_URL"]
+            .contains(&key.as_str())
+        {
             continue; // set by the deployment, not the image
         }
         assert!(dockerfile.contains(&format!("{key}={value}")), "the Dockerfile's {key} is not {value}");
@@ -316,6 +327,16 @@ fn the_compose_file_connects_two_servers_to_the_router() {
             let p = p.as_str().expect("port mapping");
             assert!(host_ports.insert(p.split(':').next().expect("host port").to_string()), "host port of {p} used twice");
         }
+        // Robots asking where to stream are sent to the host port published for its gRPC port.
+        let grpc_port = s["ports"]
+            .as_sequence()
+            .expect("ports")
+            .iter()
+            .filter_map(Value::as_str)
+            .find_map(|p| p.strip_suffix(":50051"))
+            .expect("the gRPC port published");
+        let advertised = env["STILLMAP_GRPC_ADVERTISE"].as_str().expect("advertised gRPC address");
+        assert_eq!(advertised, format!("http://${{STILLMAP_HOST:-127.0.0.1}}:{grpc_port}"), "{name}");
         let store = s["volumes"][0].as_str().expect("store volume");
         assert!(store.ends_with(":/var/lib/stillmap") && stores.insert(store.to_string()), "{store}");
     }

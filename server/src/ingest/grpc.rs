@@ -13,7 +13,17 @@ use tonic::{Request, Response, Status, Streaming};
 use super::{accepted_message, frame_before_hello, refusal};
 use crate::session::{Registry, ResultSink, Session, Transport};
 
+/// Where robots stream among servers (`cluster::Placer` on Zenoh).
+#[tonic::async_trait]
+pub trait Placement: Send + Sync {
+    /// The server robots placed by `key` (`stillmap_proto::placement_key`) belong
+    /// to among the live ones, and its advertised gRPC address (empty: stream here).
+    async fn place(&self, key: &str) -> Result<pb::Placement, Status>;
+}
+
 pub struct IngestService {
+    /// Servers on one Zenoh network (none: a single server, robots stream here).
+    pub placement: Option<Arc<dyn Placement>>,
     pub registry: Arc<Registry>,
     pub auth: Arc<crate::auth::AuthHandle>,
     pub rate_limits: Arc<crate::ratelimit::RateLimits>,
@@ -26,6 +36,25 @@ type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'stati
 #[tonic::async_trait]
 impl Ingest for IngestService {
     type StreamStream = BoxStream<pb::ServerMessage>;
+
+    async fn place(&self, request: Request<pb::Hello>) -> Result<Response<pb::Placement>, Status> {
+        // The first step of a stream: counted with the hellos.
+        let client = request.remote_addr().map_or_else(|| "an unknown address".to_string(), |a| a.ip().to_string());
+        if let Err(message) = self.rate_limits.hello(&client) {
+            self.registry.metrics().rejected("rate_limited");
+            return Err(Status::resource_exhausted(message));
+        }
+        let hello = request.into_inner();
+        stillmap_proto::validate_robot_id(&hello.robot_id).map_err(Status::invalid_argument)?;
+        if !hello.fleet.is_empty() {
+            stillmap_proto::validate_fleet(&hello.fleet).map_err(Status::invalid_argument)?;
+        }
+        self.auth.get().check_hello(&hello).inspect_err(|_| self.registry.metrics().rejected("unauthenticated"))?;
+        match &self.placement {
+            None => Ok(Response::new(pb::Placement::default())),
+            Some(p) => p.place(&stillmap_proto::placement_key(&hello.robot_id, &hello.fleet)).await.map(Response::new),
+        }
+    }
 
     async fn stream(&self, request: Request<Streaming<pb::ClientMessage>>) -> Result<Response<Self::StreamStream>, Status> {
         // Every stream opens with a hello: counted per peer address.
