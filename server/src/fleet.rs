@@ -158,6 +158,8 @@ struct Shared {
     detector: MergeDetector,
     store: Option<Arc<Store>>,
     fleets: Mutex<HashMap<String, Fleet>>,
+    /// Panics caught in the fleet's threads are counted here.
+    metrics: Arc<crate::metrics::Metrics>,
 }
 
 /// The fleets and the place-recognition thread.
@@ -185,7 +187,12 @@ pub enum FleetError {
 
 impl FleetService {
     /// Loads the vocabulary and starts the place-recognition, pose-graph and fleet-map threads.
-    pub fn start(config: &FleetConfig, mapping: &MappingConfig, store: Option<Arc<Store>>) -> Result<Arc<Self>, FleetError> {
+    pub fn start(
+        config: &FleetConfig,
+        mapping: &MappingConfig,
+        store: Option<Arc<Store>>,
+        metrics: Arc<crate::metrics::Metrics>,
+    ) -> Result<Arc<Self>, FleetError> {
         let vocabulary = if config.vocabulary_path.is_empty() {
             Vocabulary::shipped()
         } else {
@@ -201,7 +208,15 @@ impl FleetService {
             window: config.refine_support.max(config.consistent_matches),
         };
         let detector = MergeDetector::new(merge).map_err(|e| FleetError::Config(e.to_string()))?;
-        let shared = Arc::new(Shared { config: config.clone(), vocabulary, verify, detector, store, fleets: Mutex::default() });
+        let shared = Arc::new(Shared {
+            config: config.clone(),
+            vocabulary,
+            verify,
+            detector,
+            store,
+            fleets: Mutex::default(),
+            metrics: metrics.clone(),
+        });
         let (tx, rx) = std::sync::mpsc::sync_channel::<FleetJob>(config.queue);
         let worker_shared = shared.clone();
         let backlog = Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -210,7 +225,11 @@ impl FleetService {
             .name("places".into())
             .spawn(move || {
                 for job in rx {
-                    worker_shared.process(job);
+                    let session = job.session_id.clone();
+                    if let Err(panic) = crate::pool::caught(|| worker_shared.process(job)) {
+                        worker_shared.metrics.panicked("places");
+                        tracing::error!(session, "place recognition panicked on a keyframe (a bug; the keyframe is left out): {panic}");
+                    }
                     worker_backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
                 }
             })
@@ -242,6 +261,7 @@ impl FleetService {
                 nice: config.nice,
             },
             Arc::new(move |fleet: &str, session: &str| maps_shared.transform(fleet, session)),
+            metrics,
         )
         .map_err(FleetError::Thread)?;
         Ok(Arc::new(Self {
@@ -653,7 +673,10 @@ impl Shared {
             Some(f) => f.solving += 1,
             None => return,
         }
-        self.solve_graph(name);
+        if let Err(panic) = crate::pool::caught(|| self.solve_graph(name)) {
+            self.metrics.panicked("pose_graph");
+            tracing::error!(fleet = name, "the pose graph solve panicked (a bug; the fleet keeps its last corrections): {panic}");
+        }
         if let Some(f) = lock(&self.fleets).get_mut(name) {
             f.solving = f.solving.saturating_sub(1);
         }
@@ -942,7 +965,7 @@ mod tests {
     #[test]
     fn the_graph_moves_a_misplaced_session_onto_its_matches() {
         let config = FleetConfig { graph_interval_s: 60.0, ..FleetConfig::default() };
-        let service = FleetService::start(&config, &MappingConfig::default(), None).expect("started");
+        let service = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
         let wrong =
             Isometry3::from_parts(Translation3::new(0.05, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians()));
         let truth = |i: u64| {

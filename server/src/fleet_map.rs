@@ -146,13 +146,17 @@ pub struct FleetMaps {
 pub type TransformOf = Arc<dyn Fn(&str, &str) -> Option<FleetTransform> + Send + Sync>;
 
 impl FleetMaps {
-    pub fn start(config: FleetMapConfig, transform_of: TransformOf) -> std::io::Result<Self> {
+    pub fn start(config: FleetMapConfig, transform_of: TransformOf, metrics: Arc<crate::metrics::Metrics>) -> std::io::Result<Self> {
         let (tx, rx) = std::sync::mpsc::sync_channel::<FleetMapJob>(config.queue.max(1));
         let states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>> = Arc::default();
         let worker_states = states.clone();
         let worker = std::thread::Builder::new().name("fleet-map".into()).spawn(move || {
             crate::lower_this_thread(config.nice, "fleet-map");
-            run(&config, &rx, &worker_states, &transform_of)
+            // A panic (a bug) costs the job it was on, not the thread.
+            while let Err(panic) = crate::pool::caught(|| run(&config, &rx, &worker_states, &transform_of)) {
+                metrics.panicked("fleet_map");
+                tracing::error!("the fleet map panicked (a bug; the keyframe it was fusing is left out): {panic}");
+            }
         })?;
         Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)) })
     }
@@ -385,6 +389,7 @@ mod tests {
         let maps = FleetMaps::start(
             FleetMapConfig { mapping: MappingConfig::default(), queue: 4, max_keyframes: 10, refuse_per_pass: 8, nice: 0 },
             Arc::new(move |_: &str, session: &str| lock(&shared).get(session).cloned()),
+            Arc::default(),
         )
         .expect("started");
         let wait = |done: &dyn Fn(FleetMapCounts) -> bool| {

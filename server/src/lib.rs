@@ -234,7 +234,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             "fleet.enabled needs mapping.enabled: place recognition looks at the keyframes the map lane commits, so no session will merge"
         );
     }
-    let fleets = if config.fleet.enabled { Some(fleet::FleetService::start(&config.fleet, &config.mapping, store.clone())?) } else { None };
+    let fleets = if config.fleet.enabled {
+        Some(fleet::FleetService::start(&config.fleet, &config.mapping, store.clone(), metrics.clone())?)
+    } else {
+        None
+    };
     if let Some(f) = &fleets {
         f.restore(&stored);
     }

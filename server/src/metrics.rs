@@ -45,6 +45,7 @@ pub struct Metrics {
     sessions_refused: Family<Labels, Counter>,
     frame_cpu_over_budget: Counter,
     sessions_ended: Family<Labels, Counter>,
+    panics: Family<Labels, Counter>,
 }
 
 impl Default for Metrics {
@@ -132,8 +133,14 @@ impl Default for Metrics {
         let sessions_ended = Family::<Labels, Counter>::default();
         registry.register(
             "sessions_ended",
-            "Session streams the server ended: by a limit (frame_cpu_ms), or a resumed session not found again (resume_find_s)",
+            "Session streams the server ended: by a limit (frame_cpu_ms), a resumed session not found again (resume_find_s), or a panic on one of its frames (panic)",
             sessions_ended.clone(),
+        );
+        let panics = Family::<Labels, Counter>::default();
+        registry.register(
+            "panics",
+            "Panics caught (server bugs), by where: a session's frame (its stream ended), its map job, the fleet's place recognition or pose graph (the job dropped)",
+            panics.clone(),
         );
         let sessions_refused = Family::<Labels, Counter>::default();
         registry.register(
@@ -167,6 +174,7 @@ impl Default for Metrics {
             sessions_refused,
             frame_cpu_over_budget,
             sessions_ended,
+            panics,
         }
     }
 }
@@ -248,6 +256,10 @@ impl Metrics {
     }
     pub fn session_ended(&self, limit: &str) {
         self.sessions_ended.get_or_create(&one("limit", limit)).inc();
+    }
+    /// A panic caught in `stage` (`pipeline`, `map`, `places`, `pose_graph`).
+    pub fn panicked(&self, stage: &str) {
+        self.panics.get_or_create(&one("stage", stage)).inc();
     }
     pub fn session_refused(&self, limit: &str) {
         self.sessions_refused.get_or_create(&one("limit", limit)).inc();

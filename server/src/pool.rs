@@ -23,6 +23,24 @@ pub trait Lane: Send + Sync + 'static {
     fn has_work(&self) -> bool;
     /// Set while the lane is on the ready list or running; owned by the pool.
     fn scheduled(&self) -> &AtomicBool;
+    /// A slice panicked (a bug: `panic` is its message). The pool thread carries on
+    /// with other lanes; the lane decides what becomes of its own work.
+    fn failed(&self, panic: &str);
+}
+
+/// What a caught panic says (its `&str` or `String` payload).
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".to_string())
+}
+
+/// Runs `f`, catching a panic as its message: a bug in one robot's work must not
+/// take a shared thread (a pool's, the fleet's) with it.
+pub fn caught<T>(f: impl FnOnce() -> T) -> Result<T, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|p| panic_message(&*p))
 }
 
 #[derive(Default)]
@@ -96,7 +114,10 @@ fn worker(shared: &Shared) {
                 state = crate::wait(&shared.wake, state, None);
             }
         };
-        lane.run_slice();
+        if let Err(panic) = caught(|| lane.run_slice()) {
+            tracing::error!("a pool thread caught a panic (a bug): {panic}");
+            lane.failed(&panic);
+        }
         // Work added while the slice ran found the flag set and did not schedule:
         // clear it, then look again.
         lane.scheduled().store(false, Ordering::SeqCst);
@@ -143,6 +164,57 @@ mod tests {
         fn scheduled(&self) -> &AtomicBool {
             &self.scheduled
         }
+        fn failed(&self, _: &str) {
+            unreachable!("a Numbers lane never panics")
+        }
+    }
+
+    /// A lane whose first item panics; it records the panic and runs the rest.
+    #[derive(Default)]
+    struct PanicsOnce {
+        waiting: Mutex<VecDeque<u32>>,
+        ran: Mutex<Vec<u32>>,
+        failures: Mutex<Vec<String>>,
+        scheduled: AtomicBool,
+    }
+
+    impl Lane for PanicsOnce {
+        fn run_slice(&self) {
+            let Some(n) = lock(&self.waiting).pop_front() else { return };
+            if n == 0 {
+                panic!("item {n} is a bug");
+            }
+            lock(&self.ran).push(n);
+        }
+        fn has_work(&self) -> bool {
+            !lock(&self.waiting).is_empty()
+        }
+        fn scheduled(&self) -> &AtomicBool {
+            &self.scheduled
+        }
+        fn failed(&self, panic: &str) {
+            lock(&self.failures).push(panic.to_string());
+        }
+    }
+
+    /// A slice that panics is the lane's to handle (`failed`, with the message); the
+    /// pool's only thread survives it and runs that lane's remaining work and
+    /// another lane's.
+    #[test]
+    fn a_panicking_slice_is_reported_to_its_lane_and_the_thread_carries_on() {
+        let pool = Pool::new("test-pool", 1).expect("pool");
+        let panicking: Arc<PanicsOnce> = Arc::default();
+        lock(&panicking.waiting).extend(0..3);
+        let other: Arc<Numbers> = Arc::default();
+        lock(&other.waiting).extend(0..5);
+        pool.schedule(panicking.clone());
+        pool.schedule(other.clone());
+        pool.close();
+        assert_eq!(*lock(&panicking.failures), ["item 0 is a bug"]);
+        assert_eq!(*lock(&panicking.ran), [1, 2]);
+        assert_eq!(*lock(&other.ran), [0, 1, 2, 3, 4]);
+        assert_eq!(caught(|| std::panic::panic_any(7_u8)), Err::<(), _>("a panic without a message".to_string()));
+        assert_eq!(caught(|| panic!("{}", String::from("owned"))), Err::<(), _>("owned".to_string()));
     }
 
     /// Many lanes fed from several threads on a pool of 2: every item runs once,

@@ -199,6 +199,12 @@ impl Lane for MapLane {
     fn scheduled(&self) -> &AtomicBool {
         &self.scheduled
     }
+    /// The keyframe is not in the map; the session's frames go on.
+    fn failed(&self, panic: &str) {
+        let Some(session) = self.session.upgrade() else { return };
+        session.metrics.panicked("map");
+        tracing::error!(session = %session.id, "a map job panicked (a bug; its keyframe is not in the map): {panic}");
+    }
 }
 
 impl Lane for Session {
@@ -262,6 +268,19 @@ impl Lane for Session {
     }
     fn scheduled(&self) -> &AtomicBool {
         &self.scheduled
+    }
+    /// A frame panicked the pipeline: its state may be half-way through that frame,
+    /// so it is dropped and the stream ended (ABORTED, which the client answers with
+    /// a new session); the frames still queued are answered DROPPED. What the session
+    /// committed stays.
+    fn failed(&self, panic: &str) {
+        *lock(&self.worker) = None;
+        self.metrics.panicked("pipeline");
+        self.metrics.session_ended("panic");
+        self.end_stream(tonic::Status::aborted(format!(
+            "session {} failed on a frame (a server bug: {panic}): open a new session",
+            self.id
+        )));
     }
 }
 
@@ -1756,6 +1775,26 @@ mod tests {
         }
     }
 
+    /// A frame that panicked the pipeline (the pool reports it to the session's
+    /// lane) ends the stream with ABORTED naming the session, which the client
+    /// answers with a new session; later frames get the same status; it is counted.
+    #[test]
+    fn a_panic_on_a_frame_ends_the_stream_for_a_new_session() {
+        let registry = registry_with(None, SessionConfig::default(), LimitsConfig::default());
+        let (sink, mut rx) = mpsc::channel(4);
+        let session = registry.open(&hello("r"), Transport::Grpc, sink).expect("open").session;
+        Lane::failed(&*session, "index out of bounds");
+        let expected = format!("session {} failed on a frame (a server bug: index out of bounds): open a new session", session.id);
+        let ended = rx.try_recv().expect("the connection hears of it").expect_err("the stream ends");
+        assert_eq!((ended.code(), ended.message()), (tonic::Code::Aborted, expected.as_str()));
+        let refused = session.push(pb::Frame { sequence: 1, ..Default::default() }, 10).expect_err("no more frames");
+        let status = session.refusal_of(refused);
+        assert_eq!((status.code(), status.message()), (tonic::Code::Aborted, expected.as_str()));
+        let rendered = registry.metrics().render();
+        assert!(rendered.contains("stillmap_panics_total{stage=\"pipeline\"} 1"), "{rendered}");
+        assert!(rendered.contains("stillmap_sessions_ended_total{limit=\"panic\"} 1"), "{rendered}");
+    }
+
     /// A disconnected session leaves memory after session.idle_evict_s; the list
     /// still shows it, a query brings it back read-only, and a resume of it gets a
     /// new session.
@@ -1824,6 +1863,7 @@ mod tests {
             &crate::config::FleetConfig { max_fleets: 2, ..Default::default() },
             &stillmap_mapping::MappingConfig::default(),
             None,
+            Arc::default(),
         )
         .expect("fleet service");
         let registry = registry_with(None, SessionConfig::default(), LimitsConfig::default()).with_fleets(Some(fleets.clone()));
