@@ -630,23 +630,44 @@ fn clip_mirrored_from(from: usize) -> std::path::PathBuf {
 /// (`session.resume_find_s`): the robot, told ABORTED, streams on in a new session of
 /// its own on the same server, and the given-up session keeps what its first server
 /// committed. The robot's frames turn into a mirrored room (no stored keyframe
-/// shows it) before its server is killed with `kill -9`.
+/// shows it) before its server is killed with `kill -9`. On Zenoh.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_resumed_session_never_found_again_is_given_up_for_a_new_one() {
+    given_up_for_a_new_one("zenoh").await;
+}
+
+/// The same on gRPC: the robot, given both servers, is placed on B (`Ingest.Place`),
+/// asks again when B dies and resumes on A, and opens a new session there when A
+/// gives the resumed one up.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_grpc_robots_resumed_session_never_found_again_is_given_up_for_a_new_one() {
+    given_up_for_a_new_one("grpc").await;
+}
+
+async fn given_up_for_a_new_one(transport: &str) {
     let pg = Postgres::start();
     let config = tempfile_path("resume-find.toml");
     std::fs::write(&config, "[session]\nresume_find_s = 1.0\n").expect("config");
     let config = config.to_str().expect("utf-8 path").to_string();
-    let Pair { router, _zenoh, a, mut b, robots, on_b, .. } = Pair::start(&["--replica-url", &pg.url(), "--config", &config]).await;
+    let grpc = transport == "grpc";
+    let Pair { router, _zenoh, a, mut b, robots, on_b, .. } =
+        Pair::start_with(&["--replica-url", &pg.url(), "--config", &config], grpc).await;
     let robot = on_b.first().expect("a robot placed on B").clone();
     assert!(robots.contains(&robot));
     // 150 frames at 15 Hz, mirrored from frame 30 (2 s in): B tracks and commits the
     // first 30, then is LOST in the mirrored room until it is killed 4 s in.
     let clip = clip_mirrored_from(30);
     let summary = tempfile_path("given-up.json");
+    let reach: Vec<String> = if grpc {
+        // A first: the robot streams where it is placed, not where it asks.
+        vec!["--server".into(), format!("http://{},http://{}", a.grpc, b.grpc)]
+    } else {
+        ["--zenoh-connect", &router, "--zenoh-mode", "client"].map(String::from).to_vec()
+    };
     let mut client = Command::new(bin("stillmap-client"))
-        .args(["stream", "--source", &format!("tum:{}", clip.display()), "--transport", "zenoh", "--zenoh-connect", &router])
-        .args(["--zenoh-mode", "client", "--robot-id", &robot, "--rate", "15", "--quiet", "--summary-json"])
+        .args(["stream", "--source", &format!("tum:{}", clip.display()), "--transport", transport])
+        .args(&reach)
+        .args(["--robot-id", &robot, "--rate", "15", "--quiet", "--summary-json"])
         .arg(&summary)
         .env("STILLMAP_LOG", "error")
         .stdout(Stdio::null())
