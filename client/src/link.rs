@@ -456,7 +456,7 @@ async fn run_zenoh(
                     // frames that were on their way to it: those name a session already
                     // left, and are passed over.
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::Aborted => {
-                        if names_session(&e.message, &accepted.session_id) {
+                        if about_session(&e, &accepted.session_id) {
                             tracing::warn!("{}: streaming on in a new session", e.message);
                             accepted = rejoin(&ends, &pb::SessionAccepted::default(), &mut in_flight, &mut moves).await?;
                         }
@@ -582,6 +582,13 @@ async fn rejoin(
     Ok(again)
 }
 
+/// Whether a status is about session `id`: its `session_id`, or for a server that
+/// sends none (before it was in the contract), the id as a word of its message.
+#[cfg(feature = "zenoh")]
+fn about_session(status: &pb::RpcStatus, id: &str) -> bool {
+    if status.session_id.is_empty() { names_session(&status.message, id) } else { !id.is_empty() && status.session_id == id }
+}
+
 /// Whether a server's message names session `id` (as a word: `robot-1` is not
 /// named by a message about `robot-10`).
 #[cfg(feature = "zenoh")]
@@ -655,5 +662,20 @@ mod tests {
         assert!(!names_session(message, "robot-1-6b2a"), "a prefix is another session");
         assert!(!names_session(message, "robot-1-6b2a-30"));
         assert!(!names_session(message, ""), "no session yet");
+    }
+
+    /// A status that names its session (`session_id`) is judged by it alone; one
+    /// from a server that sends none, by its message.
+    #[test]
+    fn a_status_is_about_the_session_it_names() {
+        let status = |session_id: &str, message: &str| pb::RpcStatus {
+            code: Code::Aborted as i32,
+            message: message.into(),
+            session_id: session_id.into(),
+        };
+        assert!(about_session(&status("r-1a-2", "given up"), "r-1a-2"));
+        assert!(!about_session(&status("r-1a-1", "session r-1a-2 given up"), "r-1a-2"), "the field, not the text");
+        assert!(!about_session(&status("r-1a-2", "given up"), ""), "no session yet");
+        assert!(about_session(&status("", "session r-1a-2 given up"), "r-1a-2"), "an older server: the text");
     }
 }

@@ -87,7 +87,7 @@ impl From<&FrameOutcome> for pb::FrameResult {
         };
         if let Some(r) = &o.rejection {
             result.status = FrameStatus::Rejected as i32;
-            result.error = Some(pb::RpcStatus { code: r.code as i32, message: r.message.clone() });
+            result.error = Some(pb::RpcStatus { code: r.code as i32, message: r.message.clone(), ..Default::default() });
             result.latency = latency;
             return result;
         }

@@ -167,7 +167,7 @@ pub async fn serve(
                     Some(sink) => {
                         let _ = sink.send(Err(status)).await;
                     }
-                    None => publish(&z, &key, &error_message(status)).await,
+                    None => publish(&z, &key, &error_message(status, "")).await,
                 }
             }
         };
@@ -302,8 +302,29 @@ async fn answer_open(
     }
 }
 
-fn error_message(status: Status) -> pb::ServerMessage {
-    pb::ServerMessage { msg: Some(Msg::Error(pb::RpcStatus { code: status.code() as i32, message: status.message().to_string() })) }
+/// A status as a message; `session_id`: the session it is about (empty: none yet).
+fn error_message(status: Status, session_id: &str) -> pb::ServerMessage {
+    pb::ServerMessage {
+        msg: Some(Msg::Error(pb::RpcStatus {
+            code: status.code() as i32,
+            message: status.message().to_string(),
+            session_id: session_id.to_string(),
+        })),
+    }
+}
+
+/// What a hello's publisher sends for `item`: a status names the session accepted on
+/// that hello (`session`, set when the accept goes out).
+fn outgoing(item: Result<pb::ServerMessage, Status>, session: &mut String) -> pb::ServerMessage {
+    match item {
+        Ok(message) => {
+            if let Some(Msg::Accepted(accepted)) = &message.msg {
+                session.clone_from(&accepted.session_id);
+            }
+            message
+        }
+        Err(status) => error_message(status, session),
+    }
 }
 
 async fn publish(zenoh: &zenoh::Session, key: &str, message: &pb::ServerMessage) {
@@ -316,9 +337,9 @@ async fn publish(zenoh: &zenoh::Session, key: &str, message: &pb::ServerMessage)
 fn spawn_publisher(zenoh: zenoh::Session, key: String, buffer: usize) -> ResultSink {
     let (tx, mut rx) = mpsc::channel::<Result<pb::ServerMessage, Status>>(buffer);
     tokio::spawn(async move {
+        let mut session = String::new();
         while let Some(item) = rx.recv().await {
-            let message = item.unwrap_or_else(error_message);
-            publish(&zenoh, &key, &message).await;
+            publish(&zenoh, &key, &outgoing(item, &mut session)).await;
         }
     });
     tx
@@ -327,6 +348,24 @@ fn spawn_publisher(zenoh: zenoh::Session, key: String, buffer: usize) -> ResultS
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A status the publisher sends names the session its hello was accepted as;
+    /// before the accept, none.
+    #[test]
+    fn a_published_status_names_the_session_of_its_hello() {
+        let mut session = String::new();
+        let status = |m: &pb::ServerMessage| match &m.msg {
+            Some(Msg::Error(e)) => (tonic::Code::from_i32(e.code), e.session_id.clone()),
+            other => panic!("not a status: {other:?}"),
+        };
+        let early = outgoing(Err(Status::failed_precondition("no hello yet")), &mut session);
+        assert_eq!(status(&early), (tonic::Code::FailedPrecondition, String::new()));
+        let accepted =
+            pb::ServerMessage { msg: Some(Msg::Accepted(pb::SessionAccepted { session_id: "r-1a-1".into(), ..Default::default() })) };
+        assert_eq!(outgoing(Ok(accepted.clone()), &mut session), accepted);
+        let ended = outgoing(Err(Status::aborted("given up")), &mut session);
+        assert_eq!(status(&ended), (tonic::Code::Aborted, "r-1a-1".to_string()));
+    }
 
     fn message(fleet: &str) -> Vec<u8> {
         let frame = pb::Frame { sequence: 3, depth: vec![7u8; 1000].into(), ..Default::default() };
