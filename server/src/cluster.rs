@@ -50,11 +50,22 @@ use crate::session::Registry;
 pub struct Membership {
     own: String,
     live: Mutex<BTreeSet<String>>,
+    /// Counts the changes of `live`.
+    changes: tokio::sync::watch::Sender<u64>,
 }
 
 impl Membership {
     pub fn new(own: &str) -> Arc<Self> {
-        Arc::new(Self { own: own.to_string(), live: Mutex::new(BTreeSet::from([own.to_string()])) })
+        Arc::new(Self {
+            own: own.to_string(),
+            live: Mutex::new(BTreeSet::from([own.to_string()])),
+            changes: tokio::sync::watch::Sender::new(0),
+        })
+    }
+
+    /// Hears of every change of the live servers.
+    pub fn changes(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.changes.subscribe()
     }
 
     /// This server's id.
@@ -88,6 +99,7 @@ impl Membership {
         let changed = if alive { live.insert(id.to_string()) } else { live.remove(id) };
         if changed {
             tracing::info!(server = id, live = live.len(), "{}", if alive { "server joined" } else { "server left" });
+            self.changes.send_modify(|n| *n += 1);
         }
     }
 }

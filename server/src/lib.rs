@@ -69,6 +69,43 @@ const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
 #[cfg(feature = "zenoh")]
 const FORWARD_TIMEOUT: Duration = Duration::from_secs(cluster::FORWARDED_ANSWER_TIMEOUT.as_secs() + 5);
 
+/// Stored sessions that another live server wrote last (they went on there while this
+/// server was away) are left out of this server's listing, so that queries about
+/// them reach the live copy instead of this older one: checked at start-up and
+/// whenever a server joins or leaves (one query of the shared storage each time),
+/// until shutdown. A writer that is not live (a server gone, or this one under an
+/// earlier id) leaves the copy here.
+#[cfg(feature = "zenoh")]
+async fn leave_moved_sessions(
+    registry: Arc<Registry>,
+    replica: Arc<replica::Replica>,
+    membership: Arc<cluster::Membership>,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) {
+    let mut changes = membership.changes();
+    loop {
+        let ids = registry.dormant_ids();
+        if !ids.is_empty() {
+            let r = replica.clone();
+            match tokio::task::spawn_blocking(move || r.writers(&ids)).await {
+                Ok(Ok(writers)) => {
+                    let (own, live) = (membership.own().to_string(), membership.servers());
+                    let moved = registry.leave_moved(|id| writers.get(id).filter(|w| **w != own && live.contains(w)).cloned());
+                    if !moved.is_empty() {
+                        tracing::info!(sessions = moved.len(), "stored sessions that went on on other servers are theirs now");
+                    }
+                }
+                Ok(Err(e)) => tracing::warn!("stored sessions not checked against the shared storage (they stay listed here): {e}"),
+                Err(e) => tracing::warn!("stored sessions not checked against the shared storage: {e}"),
+            }
+        }
+        tokio::select! {
+            changed = changes.changed() => if changed.is_err() { return },
+            _ = shutdown.changed() => return,
+        }
+    }
+}
+
 /// How long `Ingest.Place` waits for the owner's status (its advertised address):
 /// a robot waits that long before asking again when the owner has just died.
 #[cfg(feature = "zenoh")]
@@ -295,6 +332,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         registry.set_live_elsewhere(Arc::new(move |id: &str| id != own && live.servers().iter().any(|s| s == id)));
         // Announced, and the other servers known, before any robot is answered.
         let token = cluster::join(&z, &membership).await?;
+        if let Some(r) = &replica {
+            tokio::spawn(leave_moved_sessions(registry.clone(), r.clone(), membership.clone(), shutdown.clone()));
+        }
         let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));
         let forwarder = Arc::new(cluster::Forwarder { zenoh: z.clone(), membership: membership.clone(), timeout: FORWARD_TIMEOUT });
         let identity = cluster::Identity {

@@ -203,6 +203,23 @@ impl Replica {
             .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
     }
 
+    /// The server that last wrote each of `ids` that PostgreSQL holds, on a thread and
+    /// a connection of its own.
+    pub fn writers(&self, ids: &[String]) -> Result<std::collections::HashMap<String, String>, ReplicaError> {
+        let (config, ids) = (self.config.clone(), ids.to_vec());
+        std::thread::Builder::new()
+            .name("replica-writers".into())
+            .spawn(move || {
+                let read = |e: postgres::Error| ReplicaError::Read(describe(&e));
+                let mut client = config.connect(postgres::NoTls).map_err(read)?;
+                let rows = client.query("SELECT id, server_id FROM stillmap_sessions WHERE id = ANY($1)", &[&ids]).map_err(read)?;
+                Ok(rows.iter().map(|r| (r.get::<_, String>(0), r.get::<_, String>(1))).collect())
+            })
+            .map_err(ReplicaError::Thread)?
+            .join()
+            .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
+    }
+
     /// Takes session `id` over from server `writer`, its last writer, in one
     /// statement: true when this server writes it from now on, false when another
     /// server took it first (two servers never resume one session).

@@ -1372,6 +1372,25 @@ impl Registry {
         }
     }
 
+    /// The ids of the stored sessions not in memory.
+    pub fn dormant_ids(&self) -> Vec<String> {
+        read(&self.dormant).keys().cloned().collect()
+    }
+
+    /// Leaves out of this server's listing the stored sessions that `holder_of` says
+    /// another server holds now (a session that moved on while this server was away:
+    /// this copy is older), so that queries about them go to that server. Returns
+    /// the ids left out.
+    pub fn leave_moved(&self, holder_of: impl Fn(&str) -> Option<String>) -> Vec<String> {
+        let mut dormant = write(&self.dormant);
+        let moved: Vec<(String, String)> = dormant.keys().filter_map(|id| holder_of(id).map(|h| (id.clone(), h))).collect();
+        for (id, holder) in &moved {
+            dormant.remove(id);
+            tracing::info!(session = %id, holder = %holder, "stored here, but it went on on another server: queries about it go there");
+        }
+        moved.into_iter().map(|(id, _)| id).collect()
+    }
+
     /// The fleet a session of fleet `named` belongs to (the default one for none).
     fn fleet_for(&self, named: &str) -> String {
         match &self.fleets {

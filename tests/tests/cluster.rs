@@ -897,3 +897,57 @@ async fn grpc_robots_ask_where_they_belong_and_resume_on_the_other_server_when_t
         assert_eq!(theirs[0]["server_id"], other_id, "{robot}");
     }
 }
+
+/// A server that comes back after its robot's session went on on another server
+/// (`kill -9`, the robot resumed on the other from the shared storage) answers for
+/// that session from where it went, not from its own older copy: the copy is left
+/// out of its listing, and queries about the session reach the server holding it.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_server_back_after_its_robots_session_went_on_elsewhere_answers_from_there() {
+    let pg = Postgres::start();
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let router_session = open("router", ("listen/endpoints", &router)).await;
+    let store_b = tempfile_path("back-b.redb");
+    let store_b = store_b.to_str().expect("utf-8 path").to_string();
+    let common = ["--no-perception", "--zenoh-connect", &router, "--replica-url", &pg.url()];
+    let a = Server::start(&[&common[..], &["--server-id", ID_A][..]].concat());
+    let b_args = [&common[..], &["--server-id", ID_B, "--store", &store_b][..]].concat();
+    let mut b = Server::start(&b_args);
+    let tool = open("client", ("connect/endpoints", &router)).await;
+    let both = async || statuses(&tool).await.values().filter(|v| v["servers"] == serde_json::json!([ID_A, ID_B])).count() == 2;
+    eventually(Duration::from_secs(10), "both servers seeing both", both).await;
+    let robot = (0..16)
+        .map(|i| format!("robot-{i}"))
+        .find(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(ID_B))
+        .expect("a robot placed on B");
+    let (clients, summaries) = spawn_robots(&router, std::slice::from_ref(&robot), "15", "back");
+    eventually(Duration::from_secs(10), "the robot streaming on B", async || robots_on(&a, ID_B).await.1 == [robot.clone()]).await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    b.kill9();
+    check_robots(clients, &summaries, std::slice::from_ref(&robot));
+    let (_, list) = a.get_json("/api/v1/sessions").await;
+    let id = list["sessions"].as_array().expect("sessions").iter().find(|s| s["robot_id"] == *robot).expect("its session")["session_id"]
+        .as_str()
+        .expect("id")
+        .to_string();
+    let path = format!("/api/v1/sessions/{id}/trajectory?format=tum");
+    let on_a = a.get_text(&path).await;
+    let poses = |text: &str| text.lines().filter(|l| !l.starts_with('#')).count();
+    // B back, on its own store (which holds the session up to B's death).
+    drop(b);
+    let b = Server::start(&b_args);
+    eventually(Duration::from_secs(10), "both servers seeing both again", async || {
+        statuses(&tool).await.values().filter(|v| v["servers"] == serde_json::json!([ID_A, ID_B])).count() == 2
+    })
+    .await;
+    let on_b = b.get_text(&path).await;
+    eprintln!("{robot}: session {id}, {} poses on A; B back answers {} poses", poses(&on_a), poses(&on_b));
+    assert_eq!(on_b, on_a, "B answers with A's trajectory, not its own older copy");
+    let (_, list) = b.get_json("/api/v1/sessions").await;
+    let listed: Vec<&serde_json::Value> =
+        list["sessions"].as_array().expect("sessions").iter().filter(|s| s["session_id"] == *id).collect();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(listed[0]["server_id"], ID_A);
+    drop((b, router_session));
+    let _ = std::fs::remove_file(&store_b);
+}
