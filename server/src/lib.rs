@@ -367,6 +367,9 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     if config.zenoh.enabled {
         tracing::warn!("zenoh.enabled is set but this build has no zenoh feature; serving gRPC only");
     }
+    if !config.grpc.advertise.is_empty() && !(cfg!(feature = "zenoh") && config.zenoh.enabled) {
+        tracing::warn!("grpc.advertise is set, but without Zenoh there are no other servers: robots that ask stream here");
+    }
 
     let max = config.grpc.max_message_bytes;
     // In a cluster, robots that ask are sent to the server they belong to (cluster.rs).
