@@ -45,6 +45,7 @@ demo: build
 lint: deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
+	$(CARGO) clippy -p stillmap-server --no-default-features -- -D warnings  # the server without Zenoh (the fuzz targets build it so)
 
 test: build lint
 	$(CARGO) test --workspace --no-fail-fast

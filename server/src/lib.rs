@@ -367,7 +367,8 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     if config.zenoh.enabled {
         tracing::warn!("zenoh.enabled is set but this build has no zenoh feature; serving gRPC only");
     }
-    if !config.grpc.advertise.is_empty() && !(cfg!(feature = "zenoh") && config.zenoh.enabled) {
+    let clustered = cfg!(feature = "zenoh") && config.zenoh.enabled;
+    if !config.grpc.advertise.is_empty() && !clustered {
         tracing::warn!("grpc.advertise is set, but without Zenoh there are no other servers: robots that ask stream here");
     }
 

@@ -135,8 +135,7 @@ impl crate::api::RemoteLive for Relay {
     }
 }
 
-/// A pose of another server's session in its fleet's frame: (fleet, pose).
-pub type RemoteFleetPose = (Arc<str>, pb::FleetPose);
+pub use crate::api::RemoteFleetPose;
 
 /// What this server relays of one of its sessions' poses: the session's robot and
 /// fleet, and the pose in the fleet's frame when the session is merged into it.

@@ -25,5 +25,8 @@ pub trait RemoteLive: Send + Sync {
     fn subscribe_poses(&self) -> tokio::sync::broadcast::Receiver<crate::session::FleetPose>;
     /// Every new pose, in its fleet's frame, of the other servers' sessions merged
     /// into a fleet, while watched.
-    fn subscribe_fleet_poses(&self) -> tokio::sync::broadcast::Receiver<crate::relay::RemoteFleetPose>;
+    fn subscribe_fleet_poses(&self) -> tokio::sync::broadcast::Receiver<RemoteFleetPose>;
 }
+
+/// A pose of another server's session in its fleet's frame: (fleet, pose).
+pub type RemoteFleetPose = (std::sync::Arc<str>, stillmap_proto::pb::FleetPose);
