@@ -46,6 +46,7 @@ lint: deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
 	$(CARGO) clippy -p stillmap-server --no-default-features -- -D warnings  # the server without Zenoh (the fuzz targets build it so)
+	$(CARGO) clippy -p stillmap-client --no-default-features -- -D warnings  # a robot's client without Zenoh and OpenNI2
 
 test: build lint
 	$(CARGO) test --workspace --no-fail-fast

@@ -103,6 +103,7 @@ fn frame_message(frame: pb::Frame) -> pb::ClientMessage {
 
 /// A message over Zenoh, with the fleet the servers place the robot by (its
 /// hello's: every robot of a fleet on one server; none: placed by the robot id).
+#[cfg(feature = "zenoh")]
 fn zenoh_message(msg: ClientMsg, hello: &pb::Hello) -> Vec<u8> {
     pb::ClientMessage { msg: Some(msg), fleet: hello.fleet.clone() }.encode_to_vec()
 }
