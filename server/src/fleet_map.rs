@@ -156,6 +156,8 @@ impl FleetMaps {
             while let Err(panic) = crate::pool::caught(|| run(&config, &rx, &worker_states, &transform_of)) {
                 metrics.panicked("fleet_map");
                 tracing::error!("the fleet map panicked (a bug; the keyframe it was fusing is left out): {panic}");
+                // One that recurs on every pass is logged once a second at most.
+                std::thread::sleep(PASS_INTERVAL * 4);
             }
         })?;
         Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)) })

@@ -199,11 +199,12 @@ impl Lane for MapLane {
     fn scheduled(&self) -> &AtomicBool {
         &self.scheduled
     }
-    /// The keyframe is not in the map; the session's frames go on.
+    /// The job is dropped (its keyframe may be partly fused); the session's frames
+    /// and later keyframes go on.
     fn failed(&self, panic: &str) {
         let Some(session) = self.session.upgrade() else { return };
         session.metrics.panicked("map");
-        tracing::error!(session = %session.id, "a map job panicked (a bug; its keyframe is not in the map): {panic}");
+        tracing::error!(session = %session.id, "a map job panicked (a bug; its keyframe may be partly in the map): {panic}");
     }
 }
 
