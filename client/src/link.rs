@@ -22,6 +22,8 @@ use crate::ClientError;
 /// What a link reports to the streamer.
 #[derive(Debug)]
 pub enum LinkEvent {
+    /// The gRPC server the next accept comes from (where the robot was placed).
+    Streaming(String),
     Accepted(pb::SessionAccepted),
     Result(pb::FrameResult),
     /// The connection broke and was re-established (attempt number).
@@ -288,6 +290,7 @@ async fn run_grpc(
         }
         session_id = accepted.session_id.clone();
         resume_secret = accepted.resume_secret.clone();
+        let _ = events.send(LinkEvent::Streaming(at.clone())).await;
         let _ = events.send(LinkEvent::Accepted(accepted)).await;
         for f in &unacked {
             if out.send(frame_message(f.clone())).await.is_err() {

@@ -98,6 +98,8 @@ pub struct ReturnedPose {
 pub struct Summary {
     pub transport: String,
     pub session_id: String,
+    /// The gRPC server the robot streamed to last (where it was placed); empty on Zenoh.
+    pub server: String,
     pub frames_sent: u64,
     /// Results with status OK.
     pub frames_acknowledged: u64,
@@ -272,6 +274,7 @@ pub async fn stream(
         tokio::select! {
             event = events.recv() => match event {
                 None => break,
+                Some(LinkEvent::Streaming(server)) => summary.server = server,
                 Some(LinkEvent::Accepted(a)) => {
                     summary.session_id = a.session_id;
                     max_message_bytes = Some(a.max_message_bytes);
@@ -387,7 +390,7 @@ impl Summary {
     /// The human-readable report printed at the end of a run.
     pub fn report(&self) -> String {
         let mut s = format!(
-            "stillmap-client summary ({} session {})\n\
+            "stillmap-client summary ({} session {}{})\n\
              frames: sent {} | acknowledged {} | dropped {} | rejected {} | too large {} | unanswered {}\n\
              depth: {} bit-exact, {} mismatched | results out of order: {} | reconnects: {}\n\
              bytes: {} ({:.0} per frame) | {:.1} frames/s | {:.2} Mbit/s ({:.2} Mbit/s at {:.0} Hz)\n\
@@ -395,6 +398,7 @@ impl Summary {
              segmentation age: p50 {:.0}, p95 {:.0} frames | {} frames without one",
             self.transport,
             self.session_id,
+            if self.server.is_empty() { String::new() } else { format!(" on {}", self.server) },
             self.frames_sent,
             self.frames_acknowledged,
             self.frames_dropped,

@@ -114,6 +114,7 @@ async fn a_session_the_server_gives_up_is_followed_by_a_new_one() {
     let mut answered = Vec::new();
     while let Some(event) = tokio::time::timeout(Duration::from_secs(20), link.events.recv()).await.expect("events in time") {
         match event {
+            LinkEvent::Streaming(_) => {}
             LinkEvent::Accepted(a) => seen.push(format!("accepted {}", a.session_id)),
             LinkEvent::Reconnected(n) => seen.push(format!("reconnected {n}")),
             LinkEvent::Unanswered(lost) => seen.push(format!("unanswered {lost:?}")),
@@ -139,6 +140,7 @@ async fn a_robot_streams_where_the_server_it_asks_places_it() {
     let owner = Fake::default();
     let (owner_hellos, owner_answered) = (owner.hellos.clone(), owner.answered.clone());
     let owner_address = format!("http://{}", serve(owner).await);
+    let owner_address_told = owner_address.clone();
     let asked = Fake { placement: Some(pb::Placement { server_id: "owner".into(), grpc_address: owner_address }), ..Fake::default() };
     let (asked_places, asked_hellos) = (asked.places.clone(), asked.hellos.clone());
     let asked_address = serve(asked).await;
@@ -152,14 +154,17 @@ async fn a_robot_streams_where_the_server_it_asks_places_it() {
         link.frames.send(pb::Frame { sequence, capture_time_ns: sequence * 1000, ..Default::default() }).await.expect("frame");
     }
     drop(link.frames);
-    let mut answered = Vec::new();
+    let (mut answered, mut streaming) = (Vec::new(), Vec::new());
     while let Some(event) = tokio::time::timeout(Duration::from_secs(20), link.events.recv()).await.expect("events in time") {
-        if let LinkEvent::Result(r) = event {
-            answered.push(r.sequence);
+        match event {
+            LinkEvent::Result(r) => answered.push(r.sequence),
+            LinkEvent::Streaming(server) => streaming.push(server),
+            _ => {}
         }
     }
     link.task.await.expect("link task").expect("the link finishes");
     assert_eq!(answered, [1, 2, 3]);
+    assert_eq!(streaming, [owner_address_told], "the link says where it streams");
     let places: Vec<(String, String)> =
         asked_places.lock().expect("places").iter().map(|h| (h.robot_id.clone(), h.fleet.clone())).collect();
     assert_eq!(places, [("r1".to_string(), "warehouse".to_string())], "asked once, with the robot and its fleet");

@@ -191,12 +191,14 @@ fn spawn_robots_with(
 }
 
 /// Waits for every robot to succeed; checks every frame was answered or counted lost,
-/// and that the robots in `moved` moved once and the others lost nothing.
-fn check_robots(mut robots: Robots, summaries: &[(String, std::path::PathBuf)], moved: &[String]) {
+/// and that the robots in `moved` moved once and the others lost nothing. Returns
+/// each robot's summary.
+fn check_robots(mut robots: Robots, summaries: &[(String, std::path::PathBuf)], moved: &[String]) -> Vec<(String, serde_json::Value)> {
     for c in &mut robots.0 {
         let status = c.wait().expect("robot exit");
         assert!(status.success(), "a robot failed: {status}");
     }
+    let mut all = Vec::new();
     for (robot, path) in summaries {
         let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).expect("summary")).expect("summary JSON");
         let _ = std::fs::remove_file(path);
@@ -211,7 +213,9 @@ fn check_robots(mut robots: Robots, summaries: &[(String, std::path::PathBuf)], 
         } else {
             assert_eq!((s["reconnects"].as_u64(), lost), (Some(0), 0), "{robot} stayed, undisturbed");
         }
+        all.push((robot.clone(), s));
     }
+    all
 }
 
 /// The robot ids of the sessions server `id` holds, and of those streaming now, from
@@ -903,7 +907,10 @@ async fn grpc_robots_ask_where_they_belong_and_resume_on_the_other_server_when_t
     })
     .await;
     eprintln!("the robots streaming on {other_id} {:.0} ms after kill -9", killed.elapsed().as_secs_f64() * 1e3);
-    check_robots(clients, &summaries, &robots);
+    // Each robot's summary names where it streamed last.
+    for (robot, s) in check_robots(clients, &summaries, &robots) {
+        assert_eq!(s["server"], format!("http://{}", other.grpc), "{robot}: streamed last on the other server");
+    }
     let (_, list) = other.get_json("/api/v1/sessions").await;
     for (robot, id) in &held {
         let theirs: Vec<&serde_json::Value> =
