@@ -195,29 +195,21 @@ impl Replica {
     pub fn load(&self, id: &str, robot_id: &str, resume_secret: &str, keyframes: usize) -> Result<ReplicaSession, ReplicaError> {
         let (config, id, robot_id, secret) = (self.config.clone(), id.to_string(), robot_id.to_string(), secret_hash(resume_secret));
         let presented = !resume_secret.is_empty();
-        std::thread::Builder::new()
-            .name("replica-read".into())
-            .spawn(move || read_session(&config, &id, &robot_id, presented.then_some(secret.as_slice()), keyframes))
-            .map_err(ReplicaError::Thread)?
-            .join()
-            .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
+        on_own_thread("replica-read", "reading", move || {
+            read_session(&config, &id, &robot_id, presented.then_some(secret.as_slice()), keyframes)
+        })
     }
 
     /// The server that last wrote each of `ids` that PostgreSQL holds, on a thread and
     /// a connection of its own.
     pub fn writers(&self, ids: &[String]) -> Result<std::collections::HashMap<String, String>, ReplicaError> {
         let (config, ids) = (self.config.clone(), ids.to_vec());
-        std::thread::Builder::new()
-            .name("replica-writers".into())
-            .spawn(move || {
-                let read = |e: postgres::Error| ReplicaError::Read(describe(&e));
-                let mut client = config.connect(postgres::NoTls).map_err(read)?;
-                let rows = client.query("SELECT id, server_id FROM stillmap_sessions WHERE id = ANY($1)", &[&ids]).map_err(read)?;
-                Ok(rows.iter().map(|r| (r.get::<_, String>(0), r.get::<_, String>(1))).collect())
-            })
-            .map_err(ReplicaError::Thread)?
-            .join()
-            .map_err(|_| ReplicaError::Read("the reading thread panicked".into()))?
+        on_own_thread("replica-writers", "reading", move || {
+            let read = |e: postgres::Error| ReplicaError::Read(describe(&e));
+            let mut client = config.connect(postgres::NoTls).map_err(read)?;
+            let rows = client.query("SELECT id, server_id FROM stillmap_sessions WHERE id = ANY($1)", &[&ids]).map_err(read)?;
+            Ok(rows.iter().map(|r| (r.get::<_, String>(0), r.get::<_, String>(1))).collect())
+        })
     }
 
     /// Takes session `id` over from server `writer`, its last writer, in one
@@ -225,18 +217,13 @@ impl Replica {
     /// server took it first (two servers never resume one session).
     pub fn claim(&self, id: &str, writer: &str) -> Result<bool, ReplicaError> {
         let (config, id, writer, me) = (self.config.clone(), id.to_string(), writer.to_string(), crate::lock(&self.server_id).clone());
-        std::thread::Builder::new()
-            .name("replica-claim".into())
-            .spawn(move || {
-                let mut client = config.connect(postgres::NoTls).map_err(|e| ReplicaError::Read(describe(&e)))?;
-                let n = client
-                    .execute("UPDATE stillmap_sessions SET server_id = $1 WHERE id = $2 AND server_id = $3", &[&me, &id, &writer])
-                    .map_err(|e| ReplicaError::Read(describe(&e)))?;
-                Ok(n == 1)
-            })
-            .map_err(ReplicaError::Thread)?
-            .join()
-            .map_err(|_| ReplicaError::Read("the claiming thread panicked".into()))?
+        on_own_thread("replica-claim", "claiming", move || {
+            let mut client = config.connect(postgres::NoTls).map_err(|e| ReplicaError::Read(describe(&e)))?;
+            let n = client
+                .execute("UPDATE stillmap_sessions SET server_id = $1 WHERE id = $2 AND server_id = $3", &[&me, &id, &writer])
+                .map_err(|e| ReplicaError::Read(describe(&e)))?;
+            Ok(n == 1)
+        })
     }
 
     /// Sends `hash` (its resume secret's) with every later commit of session `session_id`.
@@ -363,6 +350,21 @@ fn copy(
             }
         }
     }
+}
+
+/// Runs `f` on a thread named `name` (a connection of its own, off the caller's
+/// runtime) and waits for it; a panic there is a read error naming `doing`.
+fn on_own_thread<T: Send + 'static>(
+    name: &str,
+    doing: &str,
+    f: impl FnOnce() -> Result<T, ReplicaError> + Send + 'static,
+) -> Result<T, ReplicaError> {
+    std::thread::Builder::new()
+        .name(name.into())
+        .spawn(f)
+        .map_err(ReplicaError::Thread)?
+        .join()
+        .map_err(|_| ReplicaError::Read(format!("the {doing} thread panicked")))?
 }
 
 /// Session `id` as PostgreSQL holds it.

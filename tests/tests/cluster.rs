@@ -218,6 +218,32 @@ fn check_robots(mut robots: Robots, summaries: &[(String, std::path::PathBuf)], 
     all
 }
 
+/// The session of each robot (robot id → session id) in the sessions list of
+/// `server` (every live server's), only those server `held_by` holds when given.
+async fn sessions_held(server: &Server, held_by: Option<&str>) -> BTreeMap<String, String> {
+    let (_, list) = server.get_json("/api/v1/sessions").await;
+    list["sessions"]
+        .as_array()
+        .expect("sessions")
+        .iter()
+        .filter(|s| held_by.is_none_or(|id| s["server_id"] == id))
+        .map(|s| (s["robot_id"].as_str().expect("robot").to_string(), s["session_id"].as_str().expect("id").to_string()))
+        .collect()
+}
+
+/// Each robot of `held` (robot id → session id) has one session in `server`'s list,
+/// that same one (resumed, not a new one), held by server `holder`.
+async fn assert_resumed_on(server: &Server, holder: &str, held: &BTreeMap<String, String>) {
+    let (_, list) = server.get_json("/api/v1/sessions").await;
+    for (robot, id) in held {
+        let theirs: Vec<&serde_json::Value> =
+            list["sessions"].as_array().expect("sessions").iter().filter(|s| s["robot_id"] == **robot).collect();
+        assert_eq!(theirs.len(), 1, "{robot}: one session, resumed: {theirs:?}");
+        assert_eq!(theirs[0]["session_id"].as_str(), Some(id.as_str()), "{robot}: its own session, resumed");
+        assert_eq!(theirs[0]["server_id"], holder, "{robot}");
+    }
+}
+
 /// The robot ids of the sessions server `id` holds, and of those streaming now, from
 /// the sessions list of `server` (every live server's sessions, each with its
 /// `server_id`).
@@ -693,12 +719,7 @@ async fn given_up_for_a_new_one(transport: &str) {
         .spawn()
         .expect("spawn robot");
     eventually(Duration::from_secs(10), "the robot streaming on B", async || robots_on(&a, ID_B).await.1 == [robot.clone()]).await;
-    let (_, list) = a.get_json("/api/v1/sessions").await;
-    let held =
-        list["sessions"].as_array().expect("sessions").iter().find(|s| s["robot_id"] == *robot).expect("its session on B")["session_id"]
-            .as_str()
-            .expect("id")
-            .to_string();
+    let held = sessions_held(&a, Some(ID_B)).await.remove(&robot).expect("its session on B");
     tokio::time::sleep(Duration::from_secs(4)).await;
     b.kill9();
     let committed = pg.query(&format!("SELECT sequence FROM stillmap_poses WHERE session_id = '{held}' ORDER BY sequence")).len();
@@ -784,14 +805,7 @@ async fn a_killed_servers_robots_resume_their_sessions_from_the_shared_storage()
     .await;
     // B commits a keyframe or two per second; then kill -9.
     tokio::time::sleep(Duration::from_secs(3)).await;
-    let (_, list) = a.get_json("/api/v1/sessions").await;
-    let held: BTreeMap<String, String> = list["sessions"]
-        .as_array()
-        .expect("sessions")
-        .iter()
-        .filter(|s| s["server_id"] == id_b)
-        .map(|s| (s["robot_id"].as_str().expect("robot").to_string(), s["session_id"].as_str().expect("id").to_string()))
-        .collect();
+    let held = sessions_held(&a, Some(id_b)).await;
     assert_eq!(held.keys().cloned().collect::<Vec<_>>(), on_b);
     b.kill9();
     let killed = Instant::now();
@@ -808,13 +822,8 @@ async fn a_killed_servers_robots_resume_their_sessions_from_the_shared_storage()
     check_robots(clients, &summaries, &on_b);
 
     // The same sessions, now on A, their trajectories whole and in one world.
-    let (_, list) = a.get_json("/api/v1/sessions").await;
+    assert_resumed_on(&a, id_a, &held).await;
     for (robot, id) in &held {
-        let theirs: Vec<&serde_json::Value> =
-            list["sessions"].as_array().expect("sessions").iter().filter(|s| s["robot_id"] == **robot).collect();
-        assert_eq!(theirs.len(), 1, "{robot}: one session, resumed: {theirs:?}");
-        assert_eq!(theirs[0]["session_id"].as_str(), Some(id.as_str()), "{robot}");
-        assert_eq!(theirs[0]["server_id"], id_a, "{robot}");
         let text = a.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await;
         let poses = text.lines().filter(|l| !l.starts_with('#')).count();
         let ate = ate_m(&text);
@@ -838,12 +847,9 @@ async fn a_killed_servers_robots_resume_their_sessions_from_the_shared_storage()
         // stayed 0.93 cm; a robot not found in its own world would be metres off.
         assert!(ate <= 0.035, "{robot}: ATE {ate} m: found again in its own world");
     }
+    let sessions = sessions_held(&a, None).await;
     for robot in &on_a {
-        let (_, list) = a.get_json("/api/v1/sessions").await;
-        let id = list["sessions"].as_array().expect("sessions").iter().find(|s| s["robot_id"] == **robot).expect("session")["session_id"]
-            .as_str()
-            .expect("id")
-            .to_string();
+        let id = sessions.get(robot).expect("session");
         let ate = ate_m(&a.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await);
         eprintln!("{robot}: undisturbed on A, ATE {:.2} cm", ate * 100.0);
     }
@@ -892,13 +898,7 @@ async fn grpc_robots_ask_where_they_belong_and_resume_on_the_other_server_when_t
     .await;
     assert!(robots_on(&other, other_id).await.0.is_empty(), "a robot opened a session on the server it asked");
     tokio::time::sleep(Duration::from_secs(3)).await;
-    let (_, list) = other.get_json("/api/v1/sessions").await;
-    let held: BTreeMap<String, String> = list["sessions"]
-        .as_array()
-        .expect("sessions")
-        .iter()
-        .map(|s| (s["robot_id"].as_str().expect("robot").to_string(), s["session_id"].as_str().expect("id").to_string()))
-        .collect();
+    let held = sessions_held(&other, None).await;
     assert_eq!(held.keys().cloned().collect::<Vec<_>>(), robots);
     owner.kill9();
     let killed = Instant::now();
@@ -911,14 +911,7 @@ async fn grpc_robots_ask_where_they_belong_and_resume_on_the_other_server_when_t
     for (robot, s) in check_robots(clients, &summaries, &robots) {
         assert_eq!(s["server"], format!("http://{}", other.grpc), "{robot}: streamed last on the other server");
     }
-    let (_, list) = other.get_json("/api/v1/sessions").await;
-    for (robot, id) in &held {
-        let theirs: Vec<&serde_json::Value> =
-            list["sessions"].as_array().expect("sessions").iter().filter(|s| s["robot_id"] == **robot).collect();
-        assert_eq!(theirs.len(), 1, "{robot}: one session, resumed: {theirs:?}");
-        assert_eq!(theirs[0]["session_id"].as_str(), Some(id.as_str()), "{robot}: its own session, resumed");
-        assert_eq!(theirs[0]["server_id"], other_id, "{robot}");
-    }
+    assert_resumed_on(&other, other_id, &held).await;
 }
 
 /// A server that comes back after its robot's session went on on another server
@@ -949,11 +942,7 @@ async fn a_server_back_after_its_robots_session_went_on_elsewhere_answers_from_t
     tokio::time::sleep(Duration::from_secs(3)).await;
     b.kill9();
     check_robots(clients, &summaries, std::slice::from_ref(&robot));
-    let (_, list) = a.get_json("/api/v1/sessions").await;
-    let id = list["sessions"].as_array().expect("sessions").iter().find(|s| s["robot_id"] == *robot).expect("its session")["session_id"]
-        .as_str()
-        .expect("id")
-        .to_string();
+    let id = sessions_held(&a, None).await.remove(&robot).expect("its session");
     let path = format!("/api/v1/sessions/{id}/trajectory?format=tum");
     let on_a = a.get_text(&path).await;
     let poses = |text: &str| text.lines().filter(|l| !l.starts_with('#')).count();

@@ -33,17 +33,24 @@ pub struct IngestService {
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
+impl IngestService {
+    /// Counts a hello from the request's peer address; RESOURCE_EXHAUSTED over the limit.
+    fn count_hello<T>(&self, request: &Request<T>) -> Result<(), Status> {
+        let client = request.remote_addr().map_or_else(|| "an unknown address".to_string(), |a| a.ip().to_string());
+        self.rate_limits.hello(&client).map_err(|message| {
+            self.registry.metrics().rejected("rate_limited");
+            Status::resource_exhausted(message)
+        })
+    }
+}
+
 #[tonic::async_trait]
 impl Ingest for IngestService {
     type StreamStream = BoxStream<pb::ServerMessage>;
 
     async fn place(&self, request: Request<pb::Hello>) -> Result<Response<pb::Placement>, Status> {
         // The first step of a stream: counted with the hellos.
-        let client = request.remote_addr().map_or_else(|| "an unknown address".to_string(), |a| a.ip().to_string());
-        if let Err(message) = self.rate_limits.hello(&client) {
-            self.registry.metrics().rejected("rate_limited");
-            return Err(Status::resource_exhausted(message));
-        }
+        self.count_hello(&request)?;
         let hello = request.into_inner();
         stillmap_proto::validate_robot_id(&hello.robot_id).map_err(Status::invalid_argument)?;
         if !hello.fleet.is_empty() {
@@ -57,12 +64,8 @@ impl Ingest for IngestService {
     }
 
     async fn stream(&self, request: Request<Streaming<pb::ClientMessage>>) -> Result<Response<Self::StreamStream>, Status> {
-        // Every stream opens with a hello: counted per peer address.
-        let client = request.remote_addr().map_or_else(|| "an unknown address".to_string(), |a| a.ip().to_string());
-        if let Err(message) = self.rate_limits.hello(&client) {
-            self.registry.metrics().rejected("rate_limited");
-            return Err(Status::resource_exhausted(message));
-        }
+        // Every stream opens with a hello.
+        self.count_hello(&request)?;
         let inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(self.result_buffer);
         let registry = self.registry.clone();
