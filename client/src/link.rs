@@ -612,7 +612,8 @@ const MAX_ZENOH_MOVES: u32 = 16;
 /// acceptance and the results that came in meanwhile (frames in flight when a
 /// session is resumed). Replies to frames sent before it (`FAILED_PRECONDITION`: a
 /// server that does not know this robot yet; `ABORTED`: the session the server gave
-/// up) are passed over; any other error ends the wait.
+/// up) are passed over, an `UNAVAILABLE` (try again) waits for the next retry; any
+/// other error ends the wait.
 #[cfg(feature = "zenoh")]
 async fn zenoh_hello(
     publisher: &zenoh::pubsub::Publisher<'_>,
@@ -638,6 +639,12 @@ async fn zenoh_hello(
                         // this robot yet, or the session the server gave up.
                         Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) })
                             if matches!(Code::from_i32(e.code), Code::FailedPrecondition | Code::Aborted) => {}
+                        // Not now: the session is being handed over from the server
+                        // the robot was on, or resumed by another server. The hello
+                        // is said again at the next retry, until the timeout.
+                        Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::Unavailable => {
+                            tracing::info!("{}", e.message);
+                        }
                         Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
                             return Err(ClientError::Server { code: Code::from_i32(e.code), message: e.message });
                         }

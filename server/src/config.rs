@@ -216,6 +216,8 @@ const MAX_FLEET_QUEUE: usize = 4096;
 
 /// Largest `zenoh.idle_disconnect_s`: a day.
 const MAX_IDLE_DISCONNECT_S: f64 = 86_400.0;
+/// Longest `session.handover_wait_s`: a robot keeps saying hello for about 10 s.
+const MAX_HANDOVER_WAIT_S: f64 = 60.0;
 
 /// Who may do what (see [`crate::auth`]): tokens with scopes. None configured
 /// anywhere (the default): everything is open, for a server on a trusted network.
@@ -455,6 +457,15 @@ pub struct SessionConfig {
     /// its frames are LOST without a pose. Default 10 s; 0 = wait for as long as
     /// the robot streams.
     pub resume_find_s: f64,
+    /// On Zenoh with shared storage (`store.replica_url`): when a server joins and
+    /// takes a robot, the server the robot was on hands its session over (once the
+    /// robot's last frames there are answered and committed) and the new owner
+    /// resumes it, the same session in the same world; the new owner answers the
+    /// robot's resume UNAVAILABLE (it says hello again) for at most this many
+    /// seconds, then opens a new session instead. The server handing over tries
+    /// for as long. Default 5 s; 0 = no handover (a robot taken by a joining server
+    /// gets a new session). At most 60 s.
+    pub handover_wait_s: f64,
 }
 
 /// Overload policy of a session's frame queue. Every dropped frame is counted in
@@ -529,6 +540,7 @@ impl Default for SessionConfig {
             max_capture_gap_s: 86_400.0,
             idle_evict_s: 300.0,
             resume_find_s: 10.0,
+            handover_wait_s: 5.0,
         }
     }
 }
@@ -688,6 +700,12 @@ impl ServerConfig {
             return bad(format!(
                 "session.resume_find_s must be 0 (wait as long as the robot streams) or a number of seconds up to {MAX_IDLE_DISCONNECT_S}, got {}",
                 self.session.resume_find_s
+            ));
+        }
+        if !(self.session.handover_wait_s >= 0.0 && self.session.handover_wait_s <= MAX_HANDOVER_WAIT_S) {
+            return bad(format!(
+                "session.handover_wait_s must be 0 (no handover) or a number of seconds up to {MAX_HANDOVER_WAIT_S}, got {}",
+                self.session.handover_wait_s
             ));
         }
         if self.tls.cert_path.is_empty() != self.tls.key_path.is_empty()

@@ -72,8 +72,9 @@ const FORWARD_TIMEOUT: Duration = Duration::from_secs(cluster::FORWARDED_ANSWER_
 /// Stored sessions that another live server wrote last (they went on there while this
 /// server was away) are left out of this server's listing, so that queries about
 /// them reach the live copy instead of this older one: checked at start-up and
-/// whenever a server joins or leaves (one query of the shared storage each time),
-/// until shutdown. A writer that is not live (a server gone, or this one under an
+/// whenever a server joins or leaves, and a few times in the seconds after this
+/// server hands a session over (one query of the shared storage each time), until
+/// shutdown. A writer that is not live (a server gone, or this one under an
 /// earlier id) leaves the copy here.
 #[cfg(feature = "zenoh")]
 async fn leave_moved_sessions(
@@ -101,6 +102,9 @@ async fn leave_moved_sessions(
         }
         tokio::select! {
             changed = changes.changed() => if changed.is_err() { return },
+            // A session this server handed over: its copy here leaves the listing
+            // once the new owner writes it.
+            () = registry.handed_over().notified() => {}
             _ = shutdown.changed() => return,
         }
     }

@@ -41,6 +41,7 @@ pub struct Metrics {
     replica: crate::replica::ReplicaCounters,
     sessions_resident: Gauge,
     sessions_evicted: Counter,
+    sessions_handed_over: Counter,
     sessions_loaded: Counter,
     sessions_refused: Family<Labels, Counter>,
     frame_cpu_over_budget: Counter,
@@ -122,6 +123,12 @@ impl Default for Metrics {
             "Sessions that left memory (idle, or to make room); the store keeps them",
             sessions_evicted.clone(),
         );
+        let sessions_handed_over = Counter::default();
+        registry.register(
+            "sessions_handed_over",
+            "Sessions handed over to the server a joining server's placement gave their robot (it resumes them)",
+            sessions_handed_over.clone(),
+        );
         let sessions_loaded = Counter::default();
         registry.register("sessions_loaded", "Stored sessions brought back into memory by a query", sessions_loaded.clone());
         let frame_cpu_over_budget = Counter::default();
@@ -170,6 +177,7 @@ impl Default for Metrics {
             replica,
             sessions_resident,
             sessions_evicted,
+            sessions_handed_over,
             sessions_loaded,
             sessions_refused,
             frame_cpu_over_budget,
@@ -245,6 +253,10 @@ impl Metrics {
     pub fn resident_delta(&self, delta: i64) {
         self.sessions_resident.inc_by(delta);
     }
+    pub fn session_handed_over(&self) {
+        self.sessions_handed_over.inc();
+    }
+
     pub fn session_evicted(&self) {
         self.sessions_evicted.inc();
     }

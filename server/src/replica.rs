@@ -42,6 +42,15 @@ pub struct ReplicaCommit {
     pub resume_secret_sha256: Option<Vec<u8>>,
 }
 
+impl ReplicaJob {
+    fn session_id(&self) -> &str {
+        match self {
+            Self::Commit(c) => &c.session_id,
+            Self::Release(id) => id,
+        }
+    }
+}
+
 impl ReplicaCommit {
     /// Bytes this commit copies.
     pub fn bytes(&self) -> usize {
@@ -51,6 +60,16 @@ impl ReplicaCommit {
             + self.keyframes.iter().map(|(_, k)| k.len()).sum::<usize>()
             + self.blocks.iter().map(|(_, b)| b.len()).sum::<usize>()
     }
+}
+
+/// What the copy thread does next, in the order it was handed over.
+#[derive(Debug)]
+enum ReplicaJob {
+    Commit(ReplicaCommit),
+    /// Session `id` left this server for another (its robot was placed there): its
+    /// row names no writer from now on, so the new owner may take it over. Queued
+    /// behind the session's last commits.
+    Release(String),
 }
 
 /// The replica's counters (registered in `/metrics`).
@@ -130,7 +149,7 @@ pub fn secret_hash(secret: &str) -> Vec<u8> {
 pub struct Replica {
     /// Where PostgreSQL is (sessions are read back with connections of their own).
     config: postgres::Config,
-    jobs: std::sync::Mutex<Option<SyncSender<ReplicaCommit>>>,
+    jobs: std::sync::Mutex<Option<SyncSender<ReplicaJob>>>,
     counters: ReplicaCounters,
     /// Told when the thread has finished (it is never joined: a stuck connection
     /// must not hold the server's shutdown).
@@ -254,13 +273,31 @@ impl Replica {
             }
         }
         let Some(tx) = crate::lock(&self.jobs).clone() else { return };
-        match tx.try_send(commit) {
+        match tx.try_send(ReplicaJob::Commit(commit)) {
             Ok(()) => {}
             Err(TrySendError::Full(c)) => {
                 self.counters.dropped.inc();
-                tracing::warn!(session = %c.session_id, "replica queue full (store.replica_queue): this commit is not copied to PostgreSQL");
+                tracing::warn!(session = %c.session_id(), "replica queue full (store.replica_queue): this commit is not copied to PostgreSQL");
             }
             Err(TrySendError::Disconnected(_)) => {}
+        }
+    }
+
+    /// Lets another server take session `id` over: once the commits queued before
+    /// it are copied, its row names no writer (`server_id = ''`, where it still
+    /// names this server), and a server resuming it claims it from there. Call it
+    /// after the session's last commit (it left memory). False when it cannot be
+    /// queued (the queue full, or the replica closing): the session stays this
+    /// server's, and a robot resuming it elsewhere gets a new session.
+    pub fn release(&self, id: &str) -> bool {
+        let Some(tx) = crate::lock(&self.jobs).clone() else { return false };
+        match tx.try_send(ReplicaJob::Release(id.to_string())) {
+            Ok(()) => true,
+            Err(TrySendError::Full(_)) => {
+                tracing::warn!(session = id, "replica queue full (store.replica_queue): the session is not handed over");
+                false
+            }
+            Err(TrySendError::Disconnected(_)) => false,
         }
     }
 
@@ -289,7 +326,7 @@ fn pause(wait: Duration, closing: &AtomicBool) {
 fn copy(
     config: postgres::Config,
     server_id: &std::sync::Mutex<String>,
-    rx: Receiver<ReplicaCommit>,
+    rx: Receiver<ReplicaJob>,
     counters: &ReplicaCounters,
     closing: &AtomicBool,
 ) {
@@ -299,7 +336,7 @@ fn copy(
         counters.dropped.inc_by(left);
         tracing::warn!(left, "replica: PostgreSQL fails at shutdown; these commits are not copied");
     };
-    for commit in rx.iter() {
+    for job in rx.iter() {
         let mut refused = 0;
         loop {
             if client.is_none() {
@@ -322,11 +359,19 @@ fn copy(
             let Some(c) = client.as_mut() else { continue };
             let started = Instant::now();
             let server = crate::lock(server_id).clone();
-            match write(c, &server, &commit) {
+            let written = match &job {
+                ReplicaJob::Commit(commit) => write(c, &server, commit),
+                ReplicaJob::Release(id) => {
+                    c.execute("UPDATE stillmap_sessions SET server_id = '' WHERE id = $1 AND server_id = $2", &[id, &server]).map(|_| ())
+                }
+            };
+            match written {
                 Ok(()) => {
-                    counters.commits.inc();
-                    counters.bytes.inc_by(commit.bytes() as u64);
-                    counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
+                    if let ReplicaJob::Commit(commit) = &job {
+                        counters.commits.inc();
+                        counters.bytes.inc_by(commit.bytes() as u64);
+                        counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
+                    }
                     wait = Duration::from_secs(1);
                     break;
                 }
@@ -336,13 +381,13 @@ fn copy(
                     refused += u32::from(e.as_db_error().is_some());
                     if refused >= REFUSED_ATTEMPTS {
                         counters.dropped.inc();
-                        tracing::error!(session = %commit.session_id, "replica: PostgreSQL refuses this commit ({}); left out", describe(&e));
+                        tracing::error!(session = %job.session_id(), "replica: PostgreSQL refuses this commit ({}); left out", describe(&e));
                         break;
                     }
                     if closing.load(Ordering::SeqCst) {
                         return give_up(1 + rx.try_iter().count() as u64);
                     }
-                    tracing::warn!(session = %commit.session_id, "replica: commit not written ({}); again in {} s", describe(&e), wait.as_secs());
+                    tracing::warn!(session = %job.session_id(), "replica: commit not written ({}); again in {} s", describe(&e), wait.as_secs());
                     client = None;
                     pause(wait, closing);
                     wait = (wait * 2).min(MAX_RETRY_WAIT);

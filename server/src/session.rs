@@ -923,6 +923,12 @@ pub struct Registry {
     /// Whether a server id is another live server of the cluster (set on Zenoh):
     /// its sessions are not resumed from the shared storage here.
     live_elsewhere: RwLock<Option<LiveElsewhere>>,
+    /// Sessions whose resume waits for their live writer to hand them over, and
+    /// since when (at most [`MAX_HANDOVER_WAITS`]).
+    handover_waits: Mutex<HashMap<String, Instant>>,
+    /// Told a few seconds after this server handed a session over, so that its
+    /// stored copy leaves the listing once the new owner has taken it.
+    handed_over: tokio::sync::Notify,
     /// Distinguishes session ids of different server runs, and of servers started
     /// in the same second: the start time (seconds, hex) and 32 random bits.
     epoch: String,
@@ -954,6 +960,9 @@ pub type LiveElsewhere = Arc<dyn Fn(&str) -> bool + Send + Sync>;
 /// A session resumed from the shared storage is found again among this many of its
 /// newest stored keyframes.
 const RESUME_KEYFRAMES: usize = 8;
+/// Sessions whose resume may wait for a handover at once (a bound on the map
+/// the hellos fill); beyond it a resume does not wait.
+const MAX_HANDOVER_WAITS: usize = 4096;
 
 /// The result of a hello.
 pub struct Opened {
@@ -998,6 +1007,8 @@ impl Registry {
             next_id: AtomicU64::new(1),
             admission: Mutex::new(()),
             live_elsewhere: RwLock::new(None),
+            handover_waits: Mutex::default(),
+            handed_over: tokio::sync::Notify::new(),
             epoch,
         }
     }
@@ -1214,7 +1225,7 @@ impl Registry {
         stillmap_proto::validate_robot_id(&hello.robot_id).map_err(BadHello::Invalid)?;
         // Another server's session (it left the cluster), read from the shared
         // storage before the admission lock: a slow read holds no other hello.
-        let from_replica = self.read_from_replica(hello)?;
+        let from_replica = self.read_from_replica(hello, transport)?;
         let _admission = lock(&self.admission);
         if !hello.resume_session_id.is_empty()
             && let Some(session) = self.resident(&hello.resume_session_id).filter(|s| !s.archived && !s.queue.is_closed())
@@ -1400,13 +1411,69 @@ impl Registry {
         }
     }
 
+    /// Whether a resume of session `id`, which a live server still writes, should
+    /// wait for that server's handover: for `session.handover_wait_s` from the
+    /// first such hello.
+    fn awaits_handover(&self, id: &str) -> bool {
+        let wait = std::time::Duration::from_secs_f64(self.config.handover_wait_s);
+        let mut waits = lock(&self.handover_waits);
+        waits.retain(|_, since| since.elapsed() < wait * 2);
+        if waits.len() >= MAX_HANDOVER_WAITS && !waits.contains_key(id) {
+            return false;
+        }
+        waits.entry(id.to_string()).or_insert_with(Instant::now).elapsed() < wait
+    }
+
+    /// Hands live session `id` over to the server its robot was placed on (a server
+    /// joined): once its robot is gone, its frames answered and everything
+    /// committed, it leaves memory (as an idle session does) and the shared storage
+    /// names no writer for it, so the new owner resumes it. Tries for up to
+    /// `session.handover_wait_s`; gives up when the robot comes back. Blocks: call
+    /// it off the runtime. True when it was handed over.
+    pub fn hand_over(&self, id: &str) -> bool {
+        let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).filter(|_| self.config.handover_wait_s > 0.0) else {
+            return false;
+        };
+        let Some(s) = self.resident(id).filter(|s| !s.archived) else { return false };
+        let until = Instant::now() + std::time::Duration::from_secs_f64(self.config.handover_wait_s);
+        loop {
+            if s.is_connected() {
+                return false;
+            }
+            let left = {
+                let _admission = lock(&self.admission);
+                self.try_evict(&s)
+            };
+            if left {
+                let released = replica.release(id);
+                if released {
+                    self.metrics.session_handed_over();
+                    tracing::info!(session = id, "session handed over to the server its robot was placed on");
+                }
+                return released;
+            }
+            if Instant::now() >= until {
+                tracing::warn!(session = id, "session not handed over within session.handover_wait_s (frames or commits still pending)");
+                return false;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    }
+
+    /// Told a few seconds after each handover (see [`hand_over`](Self::hand_over)).
+    pub fn handed_over(&self) -> &tokio::sync::Notify {
+        &self.handed_over
+    }
+
     /// The session a hello resumes, from the shared storage, when this server does
     /// not hold it and no live server does (that one would go on writing it): its
     /// description, trajectory and map as the storage holds them (its last committed
     /// keyframe), or this server's own stored copy when that is at least as long
     /// (true: it must be copied into this server's store). `None`: no such session
     /// there (or the storage cannot be read: logged), so the robot gets a new one.
-    fn read_from_replica(&self, hello: &pb::Hello) -> Result<Option<(StoredSession, bool)>, BadHello> {
+    /// A Zenoh robot's session that a live server still writes is waited for
+    /// (`UNAVAILABLE`) while that server may hand it over.
+    fn read_from_replica(&self, hello: &pb::Hello, transport: Transport) -> Result<Option<(StoredSession, bool)>, BadHello> {
         let id = hello.resume_session_id.as_str();
         let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).filter(|_| self.reads_replica(hello)) else {
             return Ok(None);
@@ -1421,9 +1488,18 @@ impl Registry {
             }
         };
         if read(&self.live_elsewhere).as_ref().is_some_and(|live| live(&writer)) {
-            tracing::warn!(session = id, server = %writer, "the session's server is still live: a new session instead");
+            // A server joined and took this Zenoh robot from `writer`, which hands
+            // the session over once its last frames are answered and committed.
+            // (A gRPC robot moves only when its stream breaks: not handed over.)
+            if transport == Transport::Zenoh && self.awaits_handover(id) {
+                return Err(BadHello::Unavailable(format!(
+                    "session {id} is still on server {writer}, which hands it over to this one: say hello again"
+                )));
+            }
+            tracing::warn!(session = id, server = %writer, "the session's server is still live and did not hand it over: a new session instead");
             return Ok(None);
         }
+        lock(&self.handover_waits).remove(id);
         // Taken over in PostgreSQL first: one server wins a race to resume it.
         match replica.claim(id, &writer) {
             Ok(true) => {}
@@ -1873,6 +1949,24 @@ mod tests {
         assert!(status.message().contains("fleet \"a b\" contains ' '"), "{}", status.message());
         let status = message(validate_new_hello(&pb::Hello { camera: None, ..hello("r1") }, u64::MAX));
         assert!(status.message().contains("hello has no camera info"), "{}", status.message());
+    }
+
+    /// A resume that waits for a live server's handover waits for
+    /// `session.handover_wait_s` from its first hello, then no more (a new session);
+    /// each session is timed on its own, and 0 never waits. Without a replica there
+    /// is nothing to hand over.
+    #[test]
+    fn a_resume_waits_for_a_handover_only_so_long() {
+        let wait = SessionConfig { handover_wait_s: 0.2, ..SessionConfig::default() };
+        let registry = registry_with(None, wait, LimitsConfig::default());
+        assert!(registry.awaits_handover("s-1"), "the first hello waits");
+        assert!(registry.awaits_handover("s-1"), "and the next ones, within the wait");
+        std::thread::sleep(std::time::Duration::from_millis(250));
+        assert!(registry.awaits_handover("s-2"), "another session is timed on its own");
+        assert!(!registry.awaits_handover("s-1"), "past the wait: a new session instead");
+        let never = registry_with(None, SessionConfig { handover_wait_s: 0.0, ..SessionConfig::default() }, LimitsConfig::default());
+        assert!(!never.awaits_handover("s-1"));
+        assert!(!registry.hand_over("s-1"), "no store, no replica: nothing handed over");
     }
 
     /// A hello naming a fleet beyond `fleet.max_fleets` is refused by name and counted;

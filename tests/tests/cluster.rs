@@ -234,14 +234,23 @@ async fn sessions_held(server: &Server, held_by: Option<&str>) -> BTreeMap<Strin
 /// Each robot of `held` (robot id → session id) has one session in `server`'s list,
 /// that same one (resumed, not a new one), held by server `holder`.
 async fn assert_resumed_on(server: &Server, holder: &str, held: &BTreeMap<String, String>) {
+    if let Err(why) = resumed_on(server, holder, held).await {
+        panic!("{why}");
+    }
+}
+
+/// [`assert_resumed_on`]'s check: what differs, if anything.
+async fn resumed_on(server: &Server, holder: &str, held: &BTreeMap<String, String>) -> Result<(), String> {
     let (_, list) = server.get_json("/api/v1/sessions").await;
     for (robot, id) in held {
         let theirs: Vec<&serde_json::Value> =
             list["sessions"].as_array().expect("sessions").iter().filter(|s| s["robot_id"] == **robot).collect();
-        assert_eq!(theirs.len(), 1, "{robot}: one session, resumed: {theirs:?}");
-        assert_eq!(theirs[0]["session_id"].as_str(), Some(id.as_str()), "{robot}: its own session, resumed");
-        assert_eq!(theirs[0]["server_id"], holder, "{robot}");
+        let (session, server_id) = (theirs.first().map(|s| &s["session_id"]), theirs.first().map(|s| &s["server_id"]));
+        if theirs.len() != 1 || session.and_then(|s| s.as_str()) != Some(id.as_str()) || server_id.is_none_or(|s| *s != holder) {
+            return Err(format!("{robot}: one session, its own ({id}), resumed on {holder}; listed: {theirs:?}"));
+        }
     }
+    Ok(())
 }
 
 /// The robot ids of the sessions server `id` holds, and of those streaming now, from
@@ -632,6 +641,70 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     assert_eq!(robots_on(&a, id_a).await.1, stay, "A streams only the robots it still owns");
 
     check_robots(clients, &summaries, &to_b);
+}
+
+/// With shared storage, a joining server takes the robots placement now gives it
+/// and they go on in their own sessions: the server they were on hands each one over
+/// once its last frames there are answered and committed, and the joining server
+/// resumes it (the same session id, its poses from both servers in one trajectory,
+/// in one world). Every frame is answered or counted lost, the robots that stay
+/// are undisturbed, and the first server's copy of a handed-over session leaves
+/// its listing.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_joining_server_resumes_the_sessions_of_the_robots_it_takes() {
+    let _turn = scenario_turn().await;
+    let pg = Postgres::start();
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let _router = open("router", ("listen/endpoints", &router)).await;
+    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router, "--server-id", id, "--replica-url", &pg.url()]);
+    let a = start(ID_A);
+    let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
+    let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(ID_B)).cloned().collect();
+    assert!(!to_b.is_empty() && to_b.len() < robots.len(), "this test needs robots for both servers");
+    // 30 s of frames (5 Hz), as in the join test: room for B's start on a loaded machine.
+    let (clients, summaries) = spawn_robots(&router, &robots, "5", "handover");
+    eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, ID_A).await.1 == robots).await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let held: BTreeMap<String, String> = sessions_held(&a, Some(ID_A)).await.into_iter().filter(|(r, _)| to_b.contains(r)).collect();
+    assert_eq!(held.keys().cloned().collect::<Vec<_>>(), to_b);
+    let sequences = async |server: &Server, id: &str| -> Vec<u64> {
+        let (_, t) = server.get_json(&format!("/api/v1/sessions/{id}/trajectory")).await;
+        t["poses"].as_array().expect("poses").iter().map(|p| p["sequence"].as_u64().expect("sequence")).collect()
+    };
+    let mut before = BTreeMap::new();
+    for (robot, id) in &held {
+        before.insert(robot.clone(), sequences(&a, id).await);
+    }
+    let b = start(ID_B);
+    let joined = Instant::now();
+    eventually(Duration::from_secs(20), "B's robots streaming on B", async || robots_on(&b, ID_B).await.1 == to_b).await;
+    eprintln!("B's robots streaming on B {:.0} ms after B was ready", joined.elapsed().as_secs_f64() * 1e3);
+    check_robots(clients, &summaries, &to_b);
+
+    // The same sessions, on B, and A's copies out of the list (A checks again a
+    // few seconds after each handover).
+    eventually(Duration::from_secs(20), "the handed-over sessions listed once, on B", async || {
+        resumed_on(&a, ID_B, &held).await.is_ok() && resumed_on(&b, ID_B, &held).await.is_ok()
+    })
+    .await;
+    for (robot, id) in &held {
+        let on_b = sequences(&b, id).await;
+        let ate = ate_m(&b.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await);
+        let from_a = &before[robot];
+        eprintln!(
+            "{robot}: session {id} handed over: {} poses on A when B started, {} in all, ATE {:.2} cm over the whole clip",
+            from_a.len(),
+            on_b.len(),
+            ate * 100.0
+        );
+        assert!(!from_a.is_empty() && on_b.starts_with(from_a), "{robot}: A's poses come first, unchanged");
+        assert!(on_b.windows(2).all(|w| w[0] < w[1]), "{robot}: one trajectory, in order");
+        assert!(on_b.len() >= from_a.len() + 20, "{robot}: {} poses after B started", on_b.len() - from_a.len());
+        // As after a kill: one verification's error carried on, not another world.
+        assert!(ate <= 0.035, "{robot}: ATE {ate} m: found again in its own world");
+        let writer = pg.query(&format!("SELECT server_id FROM stillmap_sessions WHERE id = '{id}'"));
+        assert_eq!(writer.first().map(|r| r.get::<_, String>(0)).as_deref(), Some(ID_B), "{robot}: B writes it now");
+    }
 }
 
 /// A copy of the public clip (named like it, so the client takes its calibration)
