@@ -184,14 +184,16 @@ enum Target {
 /// Where to stream: asks the servers in turn, from `*next`, where this robot
 /// belongs (`Ingest.Place`), and returns the address to stream to and how: the
 /// owner's advertised address, or the server asked (on the connection the question
-/// went over) when the answer names none or the server predates `Place`. `*next`
-/// becomes the server that answered. Transient when none answered.
+/// went over) when the answer names none or the server predates `Place`, and
+/// whether a server answered (the robot follows placement: it asks again on every
+/// reconnect, so a server may send it elsewhere). `*next` becomes the server that
+/// answered. Transient when none answered.
 async fn placed(
     seeds: &[(String, tonic::transport::Endpoint)],
     next: &mut usize,
     hello: &pb::Hello,
     options: &GrpcOptions,
-) -> Result<(String, Target), Broke> {
+) -> Result<(String, Target, bool), Broke> {
     let mut why = Vec::new();
     for i in 0..seeds.len() {
         let at = (*next + i) % seeds.len();
@@ -204,9 +206,9 @@ async fn placed(
             }
         };
         let asked = IngestClient::new(channel.clone()).place(hello.clone()).await;
-        let placement = match asked {
-            Ok(p) => p.into_inner(),
-            Err(status) if status.code() == Code::Unimplemented => pb::Placement::default(),
+        let (placement, follows) = match asked {
+            Ok(p) => (p.into_inner(), true),
+            Err(status) if status.code() == Code::Unimplemented => (pb::Placement::default(), false),
             Err(status) if is_transient(status.code()) => {
                 why.push(format!("{address}: {}: {}", status.code(), status.message()));
                 continue;
@@ -215,11 +217,11 @@ async fn placed(
         };
         *next = at;
         if placement.grpc_address.is_empty() || placement.grpc_address == *address {
-            return Ok((address.clone(), Target::Open(channel)));
+            return Ok((address.clone(), Target::Open(channel), follows));
         }
         tracing::info!("{address} places this robot on {} ({})", placement.server_id, placement.grpc_address);
         return match grpc_endpoint(&placement.grpc_address, options) {
-            Ok(e) => Ok((placement.grpc_address, Target::Dial(Box::new(e)))),
+            Ok(e) => Ok((placement.grpc_address, Target::Dial(Box::new(e)), follows)),
             Err(e) => Err(Broke::Fatal(ClientError::Protocol(format!("{address} placed this robot at an unusable address: {e}")))),
         };
     }
@@ -258,8 +260,9 @@ async fn run_grpc(
             backoff = (backoff * 2).min(options.max_backoff);
         }
         let attempt = match placed(&seeds, &mut next_seed, &hello, &options).await {
-            Ok((address, target)) => {
+            Ok((address, target, follows)) => {
                 at = address;
+                let hello = pb::Hello { follows_placement: follows, ..hello.clone() };
                 connect_once(target, &hello, &session_id, &resume_secret).await
             }
             Err(broke) => Err(broke),

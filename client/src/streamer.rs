@@ -248,6 +248,8 @@ pub async fn stream(
         client_version: concat!("stillmap-client ", env!("CARGO_PKG_VERSION")).into(),
         fleet: options.fleet.clone(),
         resume_secret: String::new(),
+        // Set by the gRPC link when a server answers where it belongs.
+        follows_placement: false,
     };
     let Link { frames, mut events, task } = connect(hello);
     let mut frames = Some(frames);

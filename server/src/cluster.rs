@@ -298,6 +298,14 @@ impl crate::ingest::grpc::Placement for Placer {
             ))),
         }
     }
+
+    fn changes(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.membership.changes()
+    }
+
+    fn here(&self) -> &str {
+        self.membership.own()
+    }
 }
 
 /// Marks a request one server forwarded to another (never forwarded again).

@@ -457,8 +457,9 @@ pub struct SessionConfig {
     /// its frames are LOST without a pose. Default 10 s; 0 = wait for as long as
     /// the robot streams.
     pub resume_find_s: f64,
-    /// On Zenoh with shared storage (`store.replica_url`): when a server joins and
-    /// takes a robot, the server the robot was on hands its session over (once the
+    /// With shared storage (`store.replica_url`), for Zenoh robots and gRPC robots
+    /// that ask where they belong (`Ingest.Place`): when a server joins and takes a
+    /// robot, the server the robot was on hands its session over (once the
     /// robot's last frames there are answered and committed) and the new owner
     /// resumes it, the same session in the same world; the new owner answers the
     /// robot's resume UNAVAILABLE (it says hello again) for at most this many

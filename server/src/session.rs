@@ -1471,8 +1471,9 @@ impl Registry {
     /// keyframe), or this server's own stored copy when that is at least as long
     /// (true: it must be copied into this server's store). `None`: no such session
     /// there (or the storage cannot be read: logged), so the robot gets a new one.
-    /// A Zenoh robot's session that a live server still writes is waited for
-    /// (`UNAVAILABLE`) while that server may hand it over.
+    /// The session of a Zenoh robot, or of a gRPC robot that follows placement,
+    /// that a live server still writes is waited for (`UNAVAILABLE`) while that
+    /// server may hand it over.
     fn read_from_replica(&self, hello: &pb::Hello, transport: Transport) -> Result<Option<(StoredSession, bool)>, BadHello> {
         let id = hello.resume_session_id.as_str();
         let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).filter(|_| self.reads_replica(hello)) else {
@@ -1488,10 +1489,11 @@ impl Registry {
             }
         };
         if read(&self.live_elsewhere).as_ref().is_some_and(|live| live(&writer)) {
-            // A server joined and took this Zenoh robot from `writer`, which hands
-            // the session over once its last frames are answered and committed.
-            // (A gRPC robot moves only when its stream breaks: not handed over.)
-            if transport == Transport::Zenoh && self.awaits_handover(id) {
+            // A server joined and took this robot from `writer`, which hands the
+            // session over once its last frames are answered and committed: a Zenoh
+            // robot, or a gRPC robot that follows placement (`Ingest.Place`). Other
+            // gRPC robots move only when their stream breaks: not handed over.
+            if (transport == Transport::Zenoh || hello.follows_placement) && self.awaits_handover(id) {
                 return Err(BadHello::Unavailable(format!(
                     "session {id} is still on server {writer}, which hands it over to this one: say hello again"
                 )));

@@ -707,6 +707,64 @@ async fn a_joining_server_resumes_the_sessions_of_the_robots_it_takes() {
     }
 }
 
+/// gRPC robots that ask where they belong (`Ingest.Place`) move too when a server
+/// joins: the server they stream to ends the stream of each robot the joining
+/// server now owns (UNAVAILABLE), hands its session over, and the robot, asking
+/// again, is placed on the joining server and resumes its own session there. The
+/// robots know only the first server's address; the others stream on undisturbed.
+#[tokio::test(flavor = "multi_thread")]
+async fn grpc_robots_that_ask_where_they_belong_move_with_their_sessions_when_a_server_joins() {
+    let _turn = scenario_turn().await;
+    let pg = Postgres::start();
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let _router = open("router", ("listen/endpoints", &router)).await;
+    let start = |id: &str| {
+        Server::start_with(&["--no-perception", "--zenoh-connect", &router, "--server-id", id, "--replica-url", &pg.url()], true)
+    };
+    let a = start(ID_A);
+    let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
+    let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(ID_B)).cloned().collect();
+    let tum = format!("tum:{}", tum_dir().display());
+    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("grpc-join-{r}.json")))).collect();
+    let clients = Robots(
+        summaries
+            .iter()
+            .map(|(robot, summary)| {
+                Command::new(bin("stillmap-client"))
+                    .args(["stream", "--source", &tum, "--transport", "grpc", "--server", &a.grpc_url()])
+                    .args(["--robot-id", robot, "--rate", "5", "--quiet", "--summary-json"])
+                    .arg(summary)
+                    .env("STILLMAP_LOG", "error")
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::inherit())
+                    .spawn()
+                    .expect("spawn robot")
+            })
+            .collect(),
+    );
+    eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, ID_A).await.1 == robots).await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let held: BTreeMap<String, String> = sessions_held(&a, Some(ID_A)).await.into_iter().filter(|(r, _)| to_b.contains(r)).collect();
+    assert_eq!(held.keys().cloned().collect::<Vec<_>>(), to_b);
+    let b = start(ID_B);
+    let joined = Instant::now();
+    eventually(Duration::from_secs(20), "B's robots streaming on B", async || robots_on(&b, ID_B).await.1 == to_b).await;
+    eprintln!("B's gRPC robots streaming on B {:.0} ms after B was ready", joined.elapsed().as_secs_f64() * 1e3);
+    for (robot, s) in check_robots(clients, &summaries, &to_b) {
+        let expected = if to_b.contains(&robot) { b.grpc_url() } else { a.grpc_url() };
+        assert_eq!(s["server"], expected, "{robot}: streamed last where it belongs");
+    }
+    eventually(Duration::from_secs(20), "the handed-over sessions listed once, on B", async || {
+        resumed_on(&a, ID_B, &held).await.is_ok() && resumed_on(&b, ID_B, &held).await.is_ok()
+    })
+    .await;
+    for (robot, id) in &held {
+        let ate = ate_m(&b.get_text(&format!("/api/v1/sessions/{id}/trajectory?format=tum")).await);
+        eprintln!("{robot}: session {id} resumed on B, ATE {:.2} cm over the whole clip", ate * 100.0);
+        assert!(ate <= 0.035, "{robot}: ATE {ate} m: found again in its own world");
+    }
+}
+
 /// A copy of the public clip (named like it, so the client takes its calibration)
 /// whose frames from `from` on are mirrored left to right: a place no stored keyframe
 /// of the clip shows, in which tracking works as in any room.

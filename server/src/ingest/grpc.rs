@@ -19,7 +19,46 @@ pub trait Placement: Send + Sync {
     /// The server robots placed by `key` (`stillmap_proto::placement_key`) belong
     /// to among the live ones, and its advertised gRPC address (empty: stream here).
     async fn place(&self, key: &str) -> Result<pb::Placement, Status>;
+    /// Hears of every change of the live servers.
+    fn changes(&self) -> tokio::sync::watch::Receiver<u64>;
+    /// This server's id (a placement naming it: stream here).
+    fn here(&self) -> &str;
 }
+
+/// Resolves when a robot that follows placement (`Hello.follows_placement`) and
+/// streams here belongs to another server that robots can reach (a server joined),
+/// with that server's placement; never without a cluster or for other robots.
+async fn moved_away(placement: Option<Arc<dyn Placement>>, hello: &pb::Hello) -> pb::Placement {
+    let Some(placement) = placement.filter(|_| hello.follows_placement) else { return std::future::pending().await };
+    let key = stillmap_proto::placement_key(&hello.robot_id, &hello.fleet);
+    let mut changes = placement.changes();
+    let mut ask_again = false;
+    loop {
+        // A server that has just joined may not answer its status yet: asked again
+        // shortly, not only at the next change.
+        let changed = if ask_again {
+            tokio::select! {
+                changed = changes.changed() => changed,
+                () = tokio::time::sleep(MOVED_ASK_AGAIN) => Ok(()),
+            }
+        } else {
+            changes.changed().await
+        };
+        if changed.is_err() {
+            return std::future::pending().await;
+        }
+        // Only an owner with an address robots can reach takes the robot (an empty
+        // one: stream here, as Place answers).
+        match placement.place(&key).await {
+            Ok(p) if !p.grpc_address.is_empty() && placement.here() != p.server_id => return p,
+            Ok(_) => ask_again = false,
+            Err(_) => ask_again = true,
+        }
+    }
+}
+
+/// How soon a robot's placement is asked again when its owner did not answer.
+const MOVED_ASK_AGAIN: std::time::Duration = std::time::Duration::from_secs(1);
 
 pub struct IngestService {
     /// Servers on one Zenoh network (none: a single server, robots stream here).
@@ -71,8 +110,9 @@ impl Ingest for IngestService {
         let registry = self.registry.clone();
         let auth = self.auth.clone();
         let max = self.max_message_bytes;
+        let placement = self.placement.clone();
         tokio::spawn(async move {
-            if let Err(status) = serve_stream(inbound, registry, &auth, tx.clone(), max).await {
+            if let Err(status) = serve_stream(inbound, registry, &auth, placement, tx.clone(), max).await {
                 let _ = tx.send(Err(status)).await;
             }
         });
@@ -85,6 +125,7 @@ async fn serve_stream(
     mut inbound: Streaming<pb::ClientMessage>,
     registry: Arc<Registry>,
     auth: &crate::auth::AuthHandle,
+    placement: Option<Arc<dyn Placement>>,
     sink: ResultSink,
     max_message_bytes: usize,
 ) -> Result<(), Status> {
@@ -114,12 +155,27 @@ async fn serve_stream(
     .map_err(|e| refusal(&e, &metrics))?;
     let session = opened.session.clone();
     sink.send(Ok(accepted_message(&opened, max_message_bytes))).await.map_err(|_| Status::cancelled("client went away"))?;
-    let outcome = read_frames(&mut inbound, &session, &metrics).await;
+    // A robot that follows placement and now belongs to another server (one joined)
+    // is sent there: its stream ends, and its session is handed over.
+    let (outcome, moved) = tokio::select! {
+        outcome = read_frames(&mut inbound, &session, &metrics) => (outcome, false),
+        to = moved_away(placement, &hello) => {
+            tracing::info!(session = %session.id, robot = hello.robot_id, server = to.server_id, "robot placed on another server: sent there");
+            let message = format!(
+                "robot {} belongs to server {} now (a server joined): ask where to stream (Ingest.Place) and resume session {} there",
+                hello.robot_id, to.server_id, session.id
+            );
+            (Err(Status::unavailable(message)), true)
+        }
+    };
     if outcome.is_ok() {
         // The client finished sending: answer everything it sent before closing.
         session.drained().await;
     }
     session.detach(&sink);
+    if moved {
+        super::hand_over(registry, session.id.clone());
+    }
     outcome
 }
 

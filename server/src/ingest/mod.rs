@@ -7,12 +7,15 @@ pub mod grpc;
 pub mod zenoh;
 
 use prost::Message;
+use std::sync::Arc;
+use std::time::Duration;
+
 use stillmap_proto::pb::{self, client_message::Msg as ClientMsg, server_message::Msg};
 use tonic::Status;
 
 use crate::metrics::Metrics;
 use crate::queue::QueueError;
-use crate::session::{BadHello, Opened};
+use crate::session::{BadHello, Opened, Registry};
 
 /// Status for a frame that arrived before any hello.
 pub fn frame_before_hello(sequence: u64) -> Status {
@@ -103,6 +106,29 @@ pub fn parse_zenoh_message(robot: &str, payload: &[u8], max_message_bytes: usize
         Some(ClientMsg::Frame(frame)) => Ok(ZenohMessage::Frame(frame)),
         None => reject(Some("malformed"), Status::invalid_argument("empty client message")),
     }
+}
+
+/// After a handover, when the stored copy here is checked against the shared
+/// storage again (the new owner resumes the session within a second or two when
+/// its robot streams on; a later check finds one that took longer).
+const HANDED_OVER_CHECKS: [Duration; 3] = [Duration::from_secs(2), Duration::from_secs(5), Duration::from_secs(15)];
+
+/// Hands session `id` over off the runtime ([`Registry::hand_over`]); then has the
+/// stored copy here checked again, so that it leaves this server's listing once the
+/// new owner holds it.
+pub(crate) fn hand_over(registry: Arc<Registry>, id: String) {
+    tokio::spawn(async move {
+        let r = registry.clone();
+        if !matches!(tokio::task::spawn_blocking(move || r.hand_over(&id)).await, Ok(true)) {
+            return;
+        }
+        let mut waited = Duration::ZERO;
+        for at in HANDED_OVER_CHECKS {
+            tokio::time::sleep(at - waited).await;
+            waited = at;
+            registry.handed_over().notify_one();
+        }
+    });
 }
 
 #[cfg(test)]

@@ -156,7 +156,7 @@ pub async fn serve(
             if let Some(link) = links.remove(&robot) {
                 link.session.detach(&link.sink);
                 tracing::info!(session = %link.session.id, robot, "robot placed on another server: let go");
-                hand_over(registry.clone(), link.session.id.clone());
+                super::hand_over(registry.clone(), link.session.id.clone());
             }
             continue;
         }
@@ -281,29 +281,6 @@ fn placement_of(robot: &str, payload: &[u8], max_message_bytes: usize) -> String
 }
 
 /// Answers a hello with its open's outcome: the accept and the robot's link, or the refusal.
-/// After a handover, when the stored copy here is checked against the shared
-/// storage again (the new owner resumes the session within a second or two when
-/// its robot streams on; a later check finds one that took longer).
-const HANDED_OVER_CHECKS: [Duration; 3] = [Duration::from_secs(2), Duration::from_secs(5), Duration::from_secs(15)];
-
-/// Hands session `id` over off the runtime ([`Registry::hand_over`]); then has the
-/// stored copy here checked again, so that it leaves this server's listing once the
-/// new owner holds it.
-fn hand_over(registry: Arc<Registry>, id: String) {
-    tokio::spawn(async move {
-        let r = registry.clone();
-        if !matches!(tokio::task::spawn_blocking(move || r.hand_over(&id)).await, Ok(true)) {
-            return;
-        }
-        let mut waited = Duration::ZERO;
-        for at in HANDED_OVER_CHECKS {
-            tokio::time::sleep(at - waited).await;
-            waited = at;
-            registry.handed_over().notify_one();
-        }
-    });
-}
-
 async fn answer_open(
     links: &mut HashMap<String, Link>,
     robot: String,
