@@ -42,15 +42,6 @@ pub struct ReplicaCommit {
     pub resume_secret_sha256: Option<Vec<u8>>,
 }
 
-impl ReplicaJob {
-    fn session_id(&self) -> &str {
-        match self {
-            Self::Commit(c) => &c.session_id,
-            Self::Release(id) => id,
-        }
-    }
-}
-
 impl ReplicaCommit {
     /// Bytes this commit copies.
     pub fn bytes(&self) -> usize {
@@ -70,6 +61,15 @@ enum ReplicaJob {
     /// row names no writer from now on, so the new owner may take it over. Queued
     /// behind the session's last commits.
     Release(String),
+}
+
+impl ReplicaJob {
+    fn session_id(&self) -> &str {
+        match self {
+            Self::Commit(c) => &c.session_id,
+            Self::Release(id) => id,
+        }
+    }
 }
 
 /// The replica's counters (registered in `/metrics`).
