@@ -209,16 +209,19 @@ pub async fn join(zenoh: &zenoh::Session, membership: &Membership) -> Result<zen
 /// How long [`join`] waits for the live servers' tokens.
 const JOIN_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// Follows the other servers' tokens into `membership` and answers status queries
-/// until `shutdown` fires.
-pub async fn announce(
-    zenoh: zenoh::Session,
-    registry: Arc<Registry>,
-    identity: Identity,
-    membership: Arc<Membership>,
-    mut shutdown: tokio::sync::watch::Receiver<bool>,
-) -> Result<(), ServerError> {
-    let status_key = keys::server_status(&identity.server_id);
+/// The status queryable and the subscriber to the servers' tokens, declared
+/// before [`join`] declares this server's token: a server that sees the token
+/// finds the status answering (queries wait in the queryable's channel until
+/// [`announce`] runs), and tokens already there reach the membership.
+pub struct Announcement {
+    status_key: String,
+    queryable: zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>,
+    servers: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+}
+
+/// Declares [`Announcement`] for server `server_id`.
+pub async fn declare_announcement(zenoh: &zenoh::Session, server_id: &str) -> Result<Announcement, ServerError> {
+    let status_key = keys::server_status(server_id);
     let queryable = zenoh.declare_queryable(&status_key).await.map_err(|e| ServerError::Zenoh(format!("queryable {status_key}: {e}")))?;
     let servers = zenoh
         .liveliness()
@@ -226,6 +229,19 @@ pub async fn announce(
         .history(true)
         .await
         .map_err(|e| ServerError::Zenoh(format!("liveliness subscriber {}: {e}", keys::ALL_SERVERS)))?;
+    Ok(Announcement { status_key, queryable, servers })
+}
+
+/// Follows the other servers' tokens into `membership` and answers status queries
+/// until `shutdown` fires.
+pub async fn announce(
+    announcement: Announcement,
+    registry: Arc<Registry>,
+    identity: Identity,
+    membership: Arc<Membership>,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), ServerError> {
+    let Announcement { status_key, queryable, servers } = announcement;
     loop {
         let query = tokio::select! {
             q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },

@@ -334,13 +334,6 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         // A session another live server last wrote is its own: not resumed here.
         let (live, own) = (membership.clone(), server_id.clone());
         registry.set_live_elsewhere(Arc::new(move |id: &str| id != own && live.servers().iter().any(|s| s == id)));
-        // Announced, and the other servers known, before any robot is answered.
-        let token = cluster::join(&z, &membership).await?;
-        if let Some(r) = &replica {
-            tokio::spawn(leave_moved_sessions(registry.clone(), r.clone(), membership.clone(), shutdown.clone()));
-        }
-        let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));
-        let forwarder = Arc::new(cluster::Forwarder { zenoh: z.clone(), membership: membership.clone(), timeout: FORWARD_TIMEOUT });
         let identity = cluster::Identity {
             server_id: server_id.clone(),
             host,
@@ -350,14 +343,26 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
             started_unix_ns: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64),
             max_sessions: config.limits.max_sessions,
         };
+        // The status answers, and the other servers' tokens are followed, from
+        // before this server's token appears (a server that sees it may ask at
+        // once); announced, and the other servers known, before any robot is answered.
+        let announcement = cluster::declare_announcement(&z, &server_id).await?;
+        let announcement = tokio::spawn(cluster::announce(announcement, registry.clone(), identity, membership.clone(), shutdown.clone()));
+        let token = cluster::join(&z, &membership).await?;
+        if let Some(r) = &replica {
+            tokio::spawn(leave_moved_sessions(registry.clone(), r.clone(), membership.clone(), shutdown.clone()));
+        }
+        let task = tokio::spawn(ingest::zenoh::serve(z.clone(), registry.clone(), settings, membership.clone(), shutdown.clone()));
+        let forwarder = Arc::new(cluster::Forwarder { zenoh: z.clone(), membership: membership.clone(), timeout: FORWARD_TIMEOUT });
         let live = relay::Relay::new(membership.clone());
         remote_live = Some(live.clone());
         let relaying = relay::run(z.clone(), live, registry.clone(), shutdown.clone());
-        let announcement = cluster::announce(z.clone(), registry.clone(), identity, membership, shutdown.clone());
         let announce = tokio::spawn(async move {
             let (announced, relayed) = tokio::join!(announcement, relaying);
-            if let Err(e) = announced {
-                tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}");
+            match announced {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => tracing::error!("not announced to other servers and fleet tools on Zenoh: {e}"),
+                Err(e) => tracing::error!("the announcement to other servers stopped: {e}"),
             }
             if let Err(e) = relayed {
                 tracing::error!("not sharing live data with the other servers: {e}");
