@@ -315,6 +315,35 @@ impl FleetService {
         self.shared.member(f, fleet, session_id, robot_id);
     }
 
+    /// Registers a session resumed from another server with the frame it had in
+    /// its fleet there (`carried`): kept when it is in this fleet's frame here (the
+    /// same lineage), or when the fleet has no frame here yet (it then takes that
+    /// lineage, and a new session here is merged into it rather than anchoring
+    /// it); otherwise the session joins as a new one and place recognition merges
+    /// it. Returns whether the carried frame was kept.
+    pub fn join_carried(&self, fleet: &str, session_id: &str, robot_id: &str, carried: Option<FleetFrame>) -> bool {
+        let mut fleets = lock(&self.shared.fleets);
+        let f = fleets.entry(fleet.to_string()).or_default();
+        if f.members.iter().any(|m| m.session_id == session_id) {
+            return false;
+        }
+        let Some(mut frame) = carried.filter(|fr| fr.fleet == fleet) else {
+            self.shared.member(f, fleet, session_id, robot_id);
+            return false;
+        };
+        frame.lineage = frame.lineage_of(session_id);
+        let here = lineage(f);
+        if !here.is_empty() && here != frame.lineage {
+            tracing::info!(fleet, session = session_id, "resumed with a merge in another frame of its fleet: merged again here");
+            self.shared.member(f, fleet, session_id, robot_id);
+            return false;
+        }
+        self.shared.persist(session_id, &frame);
+        tracing::info!(fleet, session = session_id, anchor = frame.anchor, "resumed with its merge in its fleet's frame");
+        f.members.push(self.shared.new_member(session_id, robot_id, Some(frame)));
+        true
+    }
+
     /// Rebuilds the fleets from the store: sessions in the order they started,
     /// their merges, and the keyframes of merged sessions in the index.
     pub fn restore(&self, stored: &[SessionHead]) {
@@ -517,7 +546,9 @@ impl Shared {
         if let Some(m) = f.members.iter().position(|m| m.session_id == session_id) {
             return m;
         }
-        let anchor = !f.members.iter().any(|m| m.frame.as_ref().is_some_and(|fr| fr.anchor));
+        // A fleet with a frame has its anchor, here or where a resumed session's
+        // merge came from (`join_carried`).
+        let anchor = !f.members.iter().any(|m| m.frame.is_some());
         let frame = anchor.then(|| FleetFrame {
             fleet: fleet.to_string(),
             fleet_from_session: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
@@ -527,6 +558,7 @@ impl Shared {
             merged_unix_ns: now_ns(),
             first_merged_unix_ns: now_ns(),
             merged_after_ns: 0,
+            lineage: session_id.to_string(),
         });
         if let Some(frame) = &frame {
             self.persist(session_id, frame);
@@ -824,6 +856,7 @@ impl Shared {
         if f.members[t].frame.as_ref().is_some_and(|fr| fr.support >= merged.support) {
             return; // no more support than the merge already has
         }
+        let fleet_lineage = lineage(f);
         let member = &mut f.members[t];
         let now = now_ns();
         let (first_merged_unix_ns, merged_after_ns) = match &member.frame {
@@ -839,6 +872,7 @@ impl Shared {
             merged_unix_ns: now,
             first_merged_unix_ns,
             merged_after_ns,
+            lineage: fleet_lineage,
         };
         self.persist(&member.session_id, &frame);
         tracing::info!(
@@ -938,6 +972,11 @@ pub fn isometry(p: &[f64; 7]) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::new(p[0], p[1], p[2]), UnitQuaternion::from_quaternion(Quaternion::new(p[6], p[3], p[4], p[5])))
 }
 
+/// The anchor whose world fleet `f`'s frame is (empty: no frame yet).
+fn lineage(f: &Fleet) -> String {
+    f.members.iter().filter_map(|m| m.frame.as_ref().map(|fr| fr.lineage_of(&m.session_id))).find(|l| !l.is_empty()).unwrap_or_default()
+}
+
 fn now_ns() -> u64 {
     SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
 }
@@ -956,6 +995,7 @@ mod tests {
             merged_unix_ns: 1,
             first_merged_unix_ns: 1,
             merged_after_ns: 0,
+            lineage: "a".into(),
         }
     }
 
@@ -1034,6 +1074,39 @@ mod tests {
         let view = service.get("lab").expect("fleet");
         assert_eq!(view.last_correction.map(|c| c.solved_unix_ns), Some(solve.solved_unix_ns));
         assert!(!view.pose_graph_pending);
+        service.close();
+    }
+
+    /// A session resumed from another server keeps its merge when its fleet has no
+    /// frame here or the same one (lineage); a new session then merges into that
+    /// frame instead of anchoring another; a merge in another frame is dropped (the
+    /// session merges again), as is a frame of another fleet.
+    #[test]
+    fn a_resumed_session_keeps_its_merge_only_in_the_same_frame() {
+        let service = FleetService::start(&FleetConfig::default(), &MappingConfig::default(), None, Arc::default()).expect("started");
+        let moved = Isometry3::from_parts(Translation3::new(1.0, 2.0, 0.0), UnitQuaternion::identity());
+        let carried = |anchor: bool, lineage: &str| FleetFrame { lineage: lineage.into(), ..frame(anchor, &moved) };
+        let frame_of = |fleet: &str, session: &str| {
+            service.get(fleet).and_then(|v| v.members.into_iter().find(|m| m.session_id == session)).and_then(|m| m.frame)
+        };
+        // A merged session of A's fleet "lab" (anchored by "a0" on A) comes first here.
+        assert!(service.join_carried("lab", "b1", "robot-b", Some(carried(false, "a0"))));
+        assert_eq!(frame_of("lab", "b1").map(|f| (f.fleet_from_session, f.anchor)), Some((pose7(&moved), false)));
+        // Its anchor follows, in the same frame; an anchor written before lineages
+        // were recorded counts as its own.
+        assert!(service.join_carried("lab", "a0", "robot-a", Some(carried(true, ""))));
+        assert_eq!(frame_of("lab", "a0").map(|f| f.lineage), Some("a0".to_string()));
+        // A new session here does not anchor another frame: it waits to be merged.
+        service.join("lab", "c1", "robot-c");
+        assert_eq!(frame_of("lab", "c1"), None);
+        // A merge in another frame of the fleet is dropped, and so is another fleet's.
+        assert!(!service.join_carried("lab", "d1", "robot-d", Some(carried(false, "elsewhere"))));
+        assert_eq!(frame_of("lab", "d1"), None);
+        assert!(!service.join_carried("lab", "e1", "robot-e", Some(FleetFrame { fleet: "other".into(), ..carried(false, "a0") })));
+        assert_eq!(frame_of("lab", "e1"), None);
+        // Without a carried frame, a fleet's first session anchors it, as a new one does.
+        assert!(!service.join_carried("yard", "y1", "robot-y", None));
+        assert_eq!(frame_of("yard", "y1").map(|f| (f.anchor, f.lineage)), Some((true, "y1".to_string())));
         service.close();
     }
 }

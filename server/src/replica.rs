@@ -40,6 +40,9 @@ pub struct ReplicaCommit {
     /// SHA-256 of the session's resume secret, with its first commit (a robot
     /// presents the secret to resume the session on another server).
     pub resume_secret_sha256: Option<Vec<u8>>,
+    /// The session's frame in its fleet (`FleetFrame`, JSON), when it has one: a
+    /// server resuming the session brings its merge along.
+    pub fleet_frame: Option<Vec<u8>>,
 }
 
 impl ReplicaCommit {
@@ -61,13 +64,15 @@ enum ReplicaJob {
     /// row names no writer from now on, so the new owner may take it over. Queued
     /// behind the session's last commits.
     Release(String),
+    /// Session `id`'s frame in its fleet changed (JSON), while this server writes it.
+    FleetFrame(String, Vec<u8>),
 }
 
 impl ReplicaJob {
     fn session_id(&self) -> &str {
         match self {
             Self::Commit(c) => &c.session_id,
-            Self::Release(id) => id,
+            Self::Release(id) | Self::FleetFrame(id, _) => id,
         }
     }
 }
@@ -94,6 +99,7 @@ CREATE TABLE IF NOT EXISTS stillmap_sessions (
     updated timestamptz NOT NULL DEFAULT now()
 );
 ALTER TABLE stillmap_sessions ADD COLUMN IF NOT EXISTS resume_secret_sha256 bytea;
+ALTER TABLE stillmap_sessions ADD COLUMN IF NOT EXISTS fleet_frame jsonb;
 CREATE TABLE IF NOT EXISTS stillmap_poses (
     session_id text NOT NULL,
     sequence bigint NOT NULL,
@@ -136,7 +142,9 @@ pub enum ReplicaSession {
     /// It holds it, for another robot or with another resume secret (nothing more is read).
     Refused(String),
     /// It holds it, last written by the server `server_id`.
-    Found { session: Box<crate::store::StoredSession>, server_id: String },
+    /// Its frame in its fleet comes along when it has one (an unreadable one is
+    /// left out, logged).
+    Found { session: Box<crate::store::StoredSession>, server_id: String, fleet_frame: Option<crate::store::FleetFrame> },
 }
 
 /// SHA-256 of a resume secret, as the shared storage keeps it.
@@ -162,6 +170,8 @@ pub struct Replica {
     /// Each session's resume-secret hash, sent with every commit of it (a commit
     /// left out must not leave the session impossible to resume).
     secrets: std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>,
+    /// Each session's fleet frame (JSON), sent with every commit of it, as the secrets.
+    fleet_frames: std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>,
 }
 
 /// Longest wait for a connection, and for one statement (a stalled peer must not
@@ -203,8 +213,8 @@ impl Replica {
             })
             .map_err(ReplicaError::Thread)?;
         let done = std::sync::Mutex::new(done_rx);
-        let secrets = std::sync::Mutex::default();
-        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, secrets }))
+        let (secrets, fleet_frames) = (std::sync::Mutex::default(), std::sync::Mutex::default());
+        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, secrets, fleet_frames }))
     }
 
     /// Reads session `id` back from PostgreSQL (its newest `keyframes` records) for
@@ -254,6 +264,17 @@ impl Replica {
     /// (PostgreSQL has it).
     pub fn forget(&self, session_id: &str) {
         crate::lock(&self.secrets).remove(session_id);
+        crate::lock(&self.fleet_frames).remove(session_id);
+    }
+
+    /// Copies session `session_id`'s frame in its fleet (`FleetFrame` as JSON) now,
+    /// where PostgreSQL already holds the session, and with every later commit of it.
+    pub fn fleet_frame(&self, session_id: &str, json: Vec<u8>) {
+        crate::lock(&self.fleet_frames).insert(session_id.to_string(), json.clone());
+        let Some(tx) = crate::lock(&self.jobs).clone() else { return };
+        if let Err(TrySendError::Full(_)) = tx.try_send(ReplicaJob::FleetFrame(session_id.to_string(), json)) {
+            tracing::warn!(session = session_id, "replica queue full (store.replica_queue): the fleet frame goes with the next commit");
+        }
     }
 
     /// Names the server in the rows it writes from now on (`stillmap_sessions.server_id`).
@@ -271,6 +292,9 @@ impl Replica {
                 }
                 None => commit.resume_secret_sha256 = secrets.get(&commit.session_id).cloned(),
             }
+        }
+        if commit.fleet_frame.is_none() {
+            commit.fleet_frame = crate::lock(&self.fleet_frames).get(&commit.session_id).cloned();
         }
         let Some(tx) = crate::lock(&self.jobs).clone() else { return };
         match tx.try_send(ReplicaJob::Commit(commit)) {
@@ -364,6 +388,14 @@ fn copy(
                 ReplicaJob::Release(id) => {
                     c.execute("UPDATE stillmap_sessions SET server_id = '' WHERE id = $1 AND server_id = $2", &[id, &server]).map(|_| ())
                 }
+                ReplicaJob::FleetFrame(id, json) => {
+                    let json = std::str::from_utf8(json).unwrap_or("null");
+                    c.execute(
+                        "UPDATE stillmap_sessions SET fleet_frame = $3::text::jsonb WHERE id = $1 AND server_id = $2",
+                        &[id, &server, &json],
+                    )
+                    .map(|_| ())
+                }
             };
             match written {
                 Ok(()) => {
@@ -426,7 +458,10 @@ fn read_session(
     let corrupt = |what: &str, e: &dyn std::fmt::Display| ReplicaError::Corrupt(format!("session {id} {what}: {e}"));
     let mut client = config.connect(postgres::NoTls).map_err(read)?;
     let Some(row) = client
-        .query_opt("SELECT meta::text, camera, resume_secret_sha256, server_id FROM stillmap_sessions WHERE id = $1", &[&id])
+        .query_opt(
+            "SELECT meta::text, camera, resume_secret_sha256, server_id, fleet_frame::text FROM stillmap_sessions WHERE id = $1",
+            &[&id],
+        )
         .map_err(read)?
     else {
         return Ok(ReplicaSession::Absent);
@@ -444,6 +479,13 @@ fn read_session(
     let camera: Option<Vec<u8>> = row.get(1);
     let camera = pb_camera(camera.as_deref()).map_err(|e| corrupt("camera", &e))?;
     let server_id: String = row.get(3);
+    let fleet_frame = row.get::<_, Option<&str>>(4).and_then(|json| {
+        serde_json::from_str::<crate::store::FleetFrame>(json)
+            .inspect_err(|e| {
+                tracing::warn!(session = id, "its fleet frame in the shared storage is unreadable (merged again instead): {e}")
+            })
+            .ok()
+    });
     let mut poses = Vec::new();
     for r in client.query("SELECT pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
         poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(0)).map_err(|e| corrupt("pose", &e))?);
@@ -463,7 +505,7 @@ fn read_session(
         blocks.push((key, decode_block(r.get::<_, &[u8]>(3)).map_err(|e| corrupt("map block", &e))?));
     }
     let session = Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks });
-    Ok(ReplicaSession::Found { session, server_id })
+    Ok(ReplicaSession::Found { session, server_id, fleet_frame })
 }
 
 fn pb_camera(bytes: Option<&[u8]>) -> Result<stillmap_proto::pb::CameraInfo, String> {
@@ -484,12 +526,15 @@ fn describe(e: &postgres::Error) -> String {
 fn write(client: &mut postgres::Client, server_id: &str, c: &ReplicaCommit) -> Result<(), postgres::Error> {
     let mut tx = client.transaction()?;
     let meta = std::str::from_utf8(&c.meta_json).unwrap_or("{}");
+    let fleet_frame = c.fleet_frame.as_deref().and_then(|f| std::str::from_utf8(f).ok());
     tx.execute(
-        "INSERT INTO stillmap_sessions (id, server_id, meta, camera, resume_secret_sha256) VALUES ($1, $2, $3::text::jsonb, $4, $5)
+        "INSERT INTO stillmap_sessions (id, server_id, meta, camera, resume_secret_sha256, fleet_frame)
+             VALUES ($1, $2, $3::text::jsonb, $4, $5, $6::text::jsonb)
          ON CONFLICT (id) DO UPDATE SET server_id = $2, meta = $3::text::jsonb,
              camera = COALESCE($4, stillmap_sessions.camera),
-             resume_secret_sha256 = COALESCE($5, stillmap_sessions.resume_secret_sha256), updated = now()",
-        &[&c.session_id, &server_id, &meta, &c.camera, &c.resume_secret_sha256],
+             resume_secret_sha256 = COALESCE($5, stillmap_sessions.resume_secret_sha256),
+             fleet_frame = COALESCE($6::text::jsonb, stillmap_sessions.fleet_frame), updated = now()",
+        &[&c.session_id, &server_id, &meta, &c.camera, &c.resume_secret_sha256, &fleet_frame],
     )?;
     // One statement per table, the rows as arrays (one round trip each).
     if !c.poses.is_empty() {
@@ -552,6 +597,7 @@ mod tests {
             keyframes: vec![(1, vec![0; 100])],
             blocks: vec![([0, 0, 0], vec![0; 1000])],
             resume_secret_sha256: None,
+            fleet_frame: None,
         };
         assert_eq!(c.bytes(), 2 + 3 + 10 + 100 + 1000);
     }

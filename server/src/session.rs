@@ -960,6 +960,10 @@ pub type LiveElsewhere = Arc<dyn Fn(&str) -> bool + Send + Sync>;
 /// A session resumed from the shared storage is found again among this many of its
 /// newest stored keyframes.
 const RESUME_KEYFRAMES: usize = 8;
+/// A session read from the shared storage: it, whether it must be copied into
+/// this server's store, and its frame in its fleet there.
+type FromReplica = (StoredSession, bool, Option<crate::store::FleetFrame>);
+
 /// Sessions whose resume may wait for a handover at once (a bound on the map
 /// the hellos fill); beyond it a resume does not wait.
 const MAX_HANDOVER_WAITS: usize = 4096;
@@ -1243,9 +1247,9 @@ impl Registry {
             session.attach(sink);
             return Ok(Opened { session, resumed: true, restored: false });
         }
-        if let Some((stored, copy)) = from_replica
+        if let Some((stored, copy, fleet_frame)) = from_replica
             && self.resident(&stored.id).is_none()
-            && let Some(opened) = self.resume_stored(stored, copy, hello, transport, sink.clone())?
+            && let Some(opened) = self.resume_stored(stored, copy, fleet_frame, hello, transport, sink.clone())?
         {
             return Ok(opened);
         }
@@ -1474,13 +1478,13 @@ impl Registry {
     /// The session of a Zenoh robot, or of a gRPC robot that follows placement,
     /// that a live server still writes is waited for (`UNAVAILABLE`) while that
     /// server may hand it over.
-    fn read_from_replica(&self, hello: &pb::Hello, transport: Transport) -> Result<Option<(StoredSession, bool)>, BadHello> {
+    fn read_from_replica(&self, hello: &pb::Hello, transport: Transport) -> Result<Option<FromReplica>, BadHello> {
         let id = hello.resume_session_id.as_str();
         let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).filter(|_| self.reads_replica(hello)) else {
             return Ok(None);
         };
-        let (s, writer) = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
-            Ok(crate::replica::ReplicaSession::Found { session, server_id }) => (*session, server_id),
+        let ((s, fleet_frame), writer) = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
+            Ok(crate::replica::ReplicaSession::Found { session, server_id, fleet_frame }) => ((*session, fleet_frame), server_id),
             Ok(crate::replica::ReplicaSession::Absent) => return Ok(None),
             Ok(crate::replica::ReplicaSession::Refused(why)) => return Err(BadHello::Unauthenticated(why)),
             Err(e) => {
@@ -1515,9 +1519,9 @@ impl Registry {
             && let Ok(Some(local)) = store.load(id)
             && local.poses.len() >= s.poses.len()
         {
-            return Ok(Some((local, false)));
+            return Ok(Some((local, false, fleet_frame)));
         }
-        Ok(Some((s, true)))
+        Ok(Some((s, true, fleet_frame)))
     }
 
     /// A session another server held, live on this one: copied into this server's
@@ -1528,6 +1532,7 @@ impl Registry {
         &self,
         s: StoredSession,
         copy: bool,
+        fleet_frame: Option<crate::store::FleetFrame>,
         hello: &pb::Hello,
         transport: Transport,
         sink: ResultSink,
@@ -1589,7 +1594,7 @@ impl Registry {
             find_within_s: self.config.resume_find_s,
         };
         if let Some(f) = &self.fleets {
-            f.join(&fleet_name, id, &hello.robot_id);
+            f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame);
         }
         let map = self.restored_map(&s);
         let counters = Counters::default();

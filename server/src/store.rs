@@ -88,6 +88,20 @@ pub struct FleetFrame {
     pub first_merged_unix_ns: u64,
     #[serde(default)]
     pub merged_after_ns: u64,
+    /// The session whose world the fleet frame is (its anchor, on whichever server
+    /// anchored it): two frames with the same lineage are in one frame, so a session
+    /// resumed on another server brings its merge along (empty: written before it
+    /// was recorded; an anchor's own id then).
+    #[serde(default)]
+    pub lineage: String,
+}
+
+impl FleetFrame {
+    /// The anchor whose world this frame is in (see [`lineage`](Self::lineage)):
+    /// `session_id`'s own when it is the anchor and nothing else is recorded.
+    pub fn lineage_of(&self, session_id: &str) -> String {
+        if self.lineage.is_empty() && self.anchor { session_id.to_string() } else { self.lineage.clone() }
+    }
 }
 
 /// A fleet's pose graph as its last solve left it: the place edges (so a solve
@@ -471,6 +485,12 @@ impl Store {
 
     /// Records a session's frame in its fleet (its anchoring or its merge).
     pub fn put_fleet_frame(&self, id: &str, frame: &FleetFrame) -> Result<(), StoreError> {
+        // The shared storage carries it to a server that resumes the session.
+        if let Some(replica) = &self.replica
+            && let Ok(json) = serde_json::to_vec(frame)
+        {
+            replica.fleet_frame(id, json);
+        }
         self.put_json(FLEET_FRAMES, id, frame)
     }
 
@@ -542,6 +562,7 @@ impl Store {
                 keyframes: c.keyframes.iter().map(|k| (k.id, k.to_bytes())).collect(),
                 blocks,
                 resume_secret_sha256: None,
+                fleet_frame: None,
             });
         }
         Ok(())
@@ -921,6 +942,7 @@ mod tests {
             merged_unix_ns: 7,
             first_merged_unix_ns: 5,
             merged_after_ns: 200_000_000,
+            lineage: "s0".into(),
         };
         store.put_fleet_frame("s1", &frame).unwrap();
         assert_eq!(store.fleet_frames().unwrap().get("s1"), Some(&frame));

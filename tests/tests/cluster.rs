@@ -707,6 +707,45 @@ async fn a_joining_server_resumes_the_sessions_of_the_robots_it_takes() {
     }
 }
 
+/// A named fleet that a joining server takes keeps its frame: its sessions are
+/// handed over with their merges (the shared storage carries each session's frame
+/// in its fleet), so on the new server the fleet has the same anchor and its
+/// sessions are merged from the start, not merged again.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
+    let _turn = scenario_turn().await;
+    let pg = Postgres::start();
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let _router = open("router", ("listen/endpoints", &router)).await;
+    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router, "--server-id", id, "--replica-url", &pg.url()]);
+    let a = start(ID_A);
+    let fleet = (0..32)
+        .map(|i| format!("fleet-{i}"))
+        .find(|f| stillmap_proto::placement_owner(&stillmap_proto::placement_key("robot-0", f), [ID_A, ID_B]) == Some(ID_B))
+        .expect("a fleet placed on B");
+    let robots = ["robot-0".to_string(), "robot-1".to_string()];
+    let (clients, summaries) = spawn_robots_with(&router, &robots, "5", "fleet-join", &["--fleet", &fleet]);
+    let path = format!("/api/v1/fleets/{fleet}");
+    let merged = |v: &serde_json::Value| v["merged"] == 2;
+    eventually(Duration::from_secs(20), "both sessions merged in their fleet on A", async || merged(&a.get_json(&path).await.1)).await;
+    let on_a = a.get_json(&path).await.1;
+    let anchor = on_a["anchor_session_id"].as_str().expect("an anchor").to_string();
+    let b = start(ID_B);
+    let b_started_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_nanos() as u64;
+    eventually(Duration::from_secs(20), "the fleet's robots streaming on B", async || robots_on(&b, ID_B).await.1 == robots).await;
+    check_robots(clients, &summaries, &robots);
+    let on_b = b.get_json(&path).await.1;
+    assert_eq!(on_b["anchor_session_id"].as_str(), Some(anchor.as_str()), "the same anchor: {on_b}");
+    assert_eq!(on_b["merged"], 2, "{on_b}");
+    for s in on_b["sessions"].as_array().expect("sessions") {
+        let frame = &s["fleet_from_session"];
+        assert_eq!(frame["lineage"].as_str(), Some(anchor.as_str()), "{s}");
+        let first_merged = frame["first_merged_unix_ns"].as_u64().expect("merged");
+        assert!(first_merged < b_started_ns, "merged on A, carried, not merged again on B: {s}");
+    }
+    eprintln!("fleet {fleet}: anchored by {anchor} on A, the same frame on B");
+}
+
 /// gRPC robots that ask where they belong (`Ingest.Place`) move too when a server
 /// joins: the server they stream to ends the stream of each robot the joining
 /// server now owns (UNAVAILABLE), hands its session over, and the robot, asking

@@ -307,6 +307,8 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
                         "merged_unix_ns": fr.merged_unix_ns,
                         "first_merged_unix_ns": fr.first_merged_unix_ns,
                         "merged_after_s": fr.merged_after_ns as f64 * 1e-9,
+                        // The anchor whose world the frame is (on whichever server it anchored).
+                        "lineage": fr.lineage_of(&m.session_id),
                     })
                 });
                 // The pose graph's correction of its latest keyframe (poses are
