@@ -170,14 +170,35 @@ fn spawn_robots_with(
     tag: &str,
     extra: &[&str],
 ) -> (Robots, Vec<(String, std::path::PathBuf)>) {
+    let zenoh =
+        |r: &String| (r.clone(), ["--transport", "zenoh", "--zenoh-connect", router, "--zenoh-mode", "client"].map(String::from).to_vec());
+    spawn_robots_reaching(&robots.iter().map(zenoh).collect::<Vec<_>>(), rate_hz, tag, extra)
+}
+
+/// gRPC robots, each given its own `--server` list (robot id, addresses).
+fn spawn_grpc_robots(robots: &[(String, String)], rate_hz: &str, tag: &str, extra: &[&str]) -> (Robots, Vec<(String, std::path::PathBuf)>) {
+    let grpc = |(r, servers): &(String, String)| (r.clone(), vec!["--transport".into(), "grpc".into(), "--server".into(), servers.clone()]);
+    spawn_robots_reaching(&robots.iter().map(grpc).collect::<Vec<_>>(), rate_hz, tag, extra)
+}
+
+/// Robots streaming the public clip at `rate_hz`, each reaching the servers as
+/// its arguments say (robot id, transport arguments), with more client arguments.
+fn spawn_robots_reaching(
+    robots: &[(String, Vec<String>)],
+    rate_hz: &str,
+    tag: &str,
+    extra: &[&str],
+) -> (Robots, Vec<(String, std::path::PathBuf)>) {
     let tum = format!("tum:{}", tum_dir().display());
-    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("{tag}-{r}.json")))).collect();
+    let summaries: Vec<_> = robots.iter().map(|(r, _)| (r.clone(), tempfile_path(&format!("{tag}-{r}.json")))).collect();
     let children = summaries
         .iter()
-        .map(|(robot, summary)| {
+        .zip(robots)
+        .map(|((robot, summary), (_, reach))| {
             Command::new(bin("stillmap-client"))
-                .args(["stream", "--source", &tum, "--transport", "zenoh", "--zenoh-connect", router])
-                .args(["--zenoh-mode", "client", "--robot-id", robot, "--rate", rate_hz, "--quiet", "--summary-json"])
+                .args(["stream", "--source", &tum])
+                .args(reach)
+                .args(["--robot-id", robot, "--rate", rate_hz, "--quiet", "--summary-json"])
                 .arg(summary)
                 .args(extra)
                 .env("STILLMAP_LOG", "error")
@@ -643,6 +664,28 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     check_robots(clients, &summaries, &to_b);
 }
 
+/// Shared storage and a router of the test's own, on which servers start one by
+/// one (without perception; advertising their gRPC addresses when `advertise`).
+struct Joining {
+    pg: Postgres,
+    router: String,
+    _router: zenoh::Session,
+    advertise: bool,
+}
+
+impl Joining {
+    async fn new(advertise: bool) -> Self {
+        let router = format!("tcp/127.0.0.1:{}", free_port());
+        let session = open("router", ("listen/endpoints", &router)).await;
+        Self { pg: Postgres::start(), router, _router: session, advertise }
+    }
+
+    fn server(&self, id: &str) -> Server {
+        let url = self.pg.url();
+        Server::start_with(&["--no-perception", "--zenoh-connect", &self.router, "--server-id", id, "--replica-url", &url], self.advertise)
+    }
+}
+
 /// With shared storage, a joining server takes the robots placement now gives it
 /// and they go on in their own sessions: the server they were on hands each one over
 /// once its last frames there are answered and committed, and the joining server
@@ -653,16 +696,14 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_joining_server_resumes_the_sessions_of_the_robots_it_takes() {
     let _turn = scenario_turn().await;
-    let pg = Postgres::start();
-    let router = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router)).await;
-    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router, "--server-id", id, "--replica-url", &pg.url()]);
+    let cluster = Joining::new(false).await;
+    let (pg, router, start) = (&cluster.pg, &cluster.router, |id: &str| cluster.server(id));
     let a = start(ID_A);
     let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
     let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(ID_B)).cloned().collect();
     assert!(!to_b.is_empty() && to_b.len() < robots.len(), "this test needs robots for both servers");
     // 30 s of frames (5 Hz), as in the join test: room for B's start on a loaded machine.
-    let (clients, summaries) = spawn_robots(&router, &robots, "5", "handover");
+    let (clients, summaries) = spawn_robots(router, &robots, "5", "handover");
     eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, ID_A).await.1 == robots).await;
     tokio::time::sleep(Duration::from_secs(3)).await;
     let held: BTreeMap<String, String> = sessions_held(&a, Some(ID_A)).await.into_iter().filter(|(r, _)| to_b.contains(r)).collect();
@@ -714,17 +755,15 @@ async fn a_joining_server_resumes_the_sessions_of_the_robots_it_takes() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
     let _turn = scenario_turn().await;
-    let pg = Postgres::start();
-    let router = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router)).await;
-    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router, "--server-id", id, "--replica-url", &pg.url()]);
+    let cluster = Joining::new(false).await;
+    let (router, start) = (&cluster.router, |id: &str| cluster.server(id));
     let a = start(ID_A);
     let fleet = (0..32)
         .map(|i| format!("fleet-{i}"))
         .find(|f| stillmap_proto::placement_owner(&stillmap_proto::placement_key("robot-0", f), [ID_A, ID_B]) == Some(ID_B))
         .expect("a fleet placed on B");
     let robots = ["robot-0".to_string(), "robot-1".to_string()];
-    let (clients, summaries) = spawn_robots_with(&router, &robots, "5", "fleet-join", &["--fleet", &fleet]);
+    let (clients, summaries) = spawn_robots_with(router, &robots, "5", "fleet-join", &["--fleet", &fleet]);
     let path = format!("/api/v1/fleets/{fleet}");
     let merged = |v: &serde_json::Value| v["merged"] == 2;
     eventually(Duration::from_secs(20), "both sessions merged in their fleet on A", async || merged(&a.get_json(&path).await.1)).await;
@@ -754,33 +793,13 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
 #[tokio::test(flavor = "multi_thread")]
 async fn grpc_robots_that_ask_where_they_belong_move_with_their_sessions_when_a_server_joins() {
     let _turn = scenario_turn().await;
-    let pg = Postgres::start();
-    let router = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router)).await;
-    let start = |id: &str| {
-        Server::start_with(&["--no-perception", "--zenoh-connect", &router, "--server-id", id, "--replica-url", &pg.url()], true)
-    };
+    let cluster = Joining::new(true).await;
+    let start = |id: &str| cluster.server(id);
     let a = start(ID_A);
     let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
     let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [ID_A, ID_B]) == Some(ID_B)).cloned().collect();
-    let tum = format!("tum:{}", tum_dir().display());
-    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("grpc-join-{r}.json")))).collect();
-    let clients = Robots(
-        summaries
-            .iter()
-            .map(|(robot, summary)| {
-                Command::new(bin("stillmap-client"))
-                    .args(["stream", "--source", &tum, "--transport", "grpc", "--server", &a.grpc_url()])
-                    .args(["--robot-id", robot, "--rate", "5", "--quiet", "--summary-json"])
-                    .arg(summary)
-                    .env("STILLMAP_LOG", "error")
-                    .stdout(Stdio::null())
-                    .stderr(Stdio::inherit())
-                    .spawn()
-                    .expect("spawn robot")
-            })
-            .collect(),
-    );
+    let given: Vec<(String, String)> = robots.iter().map(|r| (r.clone(), a.grpc_url())).collect();
+    let (clients, summaries) = spawn_grpc_robots(&given, "5", "grpc-join", &[]);
     eventually(Duration::from_secs(10), "every robot streaming on A", async || robots_on(&a, ID_A).await.1 == robots).await;
     tokio::time::sleep(Duration::from_secs(3)).await;
     let held: BTreeMap<String, String> = sessions_held(&a, Some(ID_A)).await.into_iter().filter(|(r, _)| to_b.contains(r)).collect();
@@ -1043,25 +1062,8 @@ async fn grpc_robots_ask_where_they_belong_and_resume_on_the_other_server_when_t
     // One robot lists the owner first, the other the server that is not.
     let (first, second) = (format!("http://{}", owner.grpc), format!("http://{}", other.grpc));
     let lists = [format!("{second},{first}"), format!("{first},{second}")];
-    let tum = format!("tum:{}", tum_dir().display());
-    let summaries: Vec<_> = robots.iter().map(|r| (r.clone(), tempfile_path(&format!("grpc-placed-{r}.json")))).collect();
-    let clients = Robots(
-        summaries
-            .iter()
-            .zip(&lists)
-            .map(|((robot, summary), servers)| {
-                Command::new(bin("stillmap-client"))
-                    .args(["stream", "--source", &tum, "--transport", "grpc", "--server", servers, "--fleet", fleet])
-                    .args(["--robot-id", robot, "--rate", "15", "--quiet", "--summary-json"])
-                    .arg(summary)
-                    .env("STILLMAP_LOG", "error")
-                    .stdout(Stdio::null())
-                    .stderr(Stdio::inherit())
-                    .spawn()
-                    .expect("spawn robot")
-            })
-            .collect(),
-    );
+    let given: Vec<(String, String)> = robots.iter().cloned().zip(lists).collect();
+    let (clients, summaries) = spawn_grpc_robots(&given, "15", "grpc-placed", &["--fleet", fleet]);
     eventually(Duration::from_secs(10), "both robots streaming on their fleet's server", async || {
         robots_on(&other, owner_id).await.1 == robots
     })
