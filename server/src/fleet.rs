@@ -344,8 +344,9 @@ impl FleetService {
         true
     }
 
-    /// Rebuilds the fleets from the store: sessions in the order they started,
-    /// their merges, and the keyframes of merged sessions in the index.
+    /// Rebuilds the fleets from the store: sessions with a frame in their fleet,
+    /// then the others, each in the order they started; their merges, and the
+    /// keyframes of merged sessions in the index.
     pub fn restore(&self, stored: &[SessionHead]) {
         let frames = match &self.shared.store {
             Some(store) => store.fleet_frames().unwrap_or_else(|e| {
@@ -355,7 +356,9 @@ impl FleetService {
             None => HashMap::new(),
         };
         let mut order: Vec<&SessionHead> = stored.iter().collect();
-        order.sort_by_key(|s| (s.meta.started_unix_ns, s.id.clone()));
+        // Sessions with a frame first: one without, coming back before them, would
+        // otherwise anchor a fleet whose frame came with a resumed session's merge.
+        order.sort_by_key(|s| (!frames.contains_key(&s.id), s.meta.started_unix_ns, s.id.clone()));
         let mut fleets = lock(&self.shared.fleets);
         for s in order {
             let name = self.fleet_for(&s.meta.fleet);
@@ -1108,5 +1111,44 @@ mod tests {
         assert!(!service.join_carried("yard", "y1", "robot-y", None));
         assert_eq!(frame_of("yard", "y1").map(|f| (f.anchor, f.lineage)), Some((true, "y1".to_string())));
         service.close();
+    }
+
+    /// After a restart, a fleet whose frame came with a resumed session's merge
+    /// (its anchor on another server) is not anchored anew by a session without a
+    /// frame that started before it.
+    #[test]
+    fn a_restart_keeps_a_carried_frame_unanchored_here() {
+        let path = std::env::temp_dir().join(format!("stillmap-fleet-restore-{}.redb", std::process::id()));
+        let _ = std::fs::remove_file(&path);
+        let store = Arc::new(Store::open(&path).expect("store"));
+        let moved = Isometry3::from_parts(Translation3::new(1.0, 2.0, 0.0), UnitQuaternion::identity());
+        store.put_fleet_frame("b1", &FleetFrame { lineage: "a0".into(), ..frame(false, &moved) }).expect("frame");
+        let head = |id: &str, started_unix_ns: u64| SessionHead {
+            id: id.into(),
+            meta: crate::store::SessionMeta {
+                robot_id: format!("robot-{id}"),
+                transport: "zenoh".into(),
+                started_unix_ns,
+                class_names: vec![],
+                up_in_world: None,
+                up_source: None,
+                keyframes: 0,
+                map_stamp: 0,
+                fleet: "lab".into(),
+            },
+            camera: stillmap_proto::pb::CameraInfo::default(),
+            pose_count: 0,
+            latest: None,
+            keyframes: vec![],
+        };
+        let service =
+            FleetService::start(&FleetConfig::default(), &MappingConfig::default(), Some(store), Arc::default()).expect("started");
+        service.restore(&[head("c0", 1), head("b1", 2)]);
+        let view = service.get("lab").expect("the fleet");
+        let frame_of = |id: &str| view.members.iter().find(|m| m.session_id == id).and_then(|m| m.frame.clone());
+        assert_eq!(frame_of("b1").map(|f| (f.anchor, f.lineage)), Some((false, "a0".to_string())));
+        assert_eq!(frame_of("c0"), None, "not an anchor of another frame");
+        service.close();
+        let _ = std::fs::remove_file(&path);
     }
 }
