@@ -167,11 +167,28 @@ pub struct Replica {
     /// Set at shutdown: the thread copies what is queued while PostgreSQL answers,
     /// and stops retrying when it does not.
     closing: Arc<AtomicBool>,
-    /// Each session's resume-secret hash, sent with every commit of it (a commit
-    /// left out must not leave the session impossible to resume).
-    secrets: std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>,
-    /// Each session's fleet frame (JSON), sent with every commit of it, as the secrets.
-    fleet_frames: std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>,
+    /// What every commit of a session carries, by session id (a commit left out
+    /// must not leave the session impossible to resume, or without its merge).
+    carried: std::sync::Mutex<std::collections::HashMap<String, Carried>>,
+}
+
+/// Whether the copy thread took a job.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Queued {
+    Yes,
+    /// `store.replica_queue` jobs wait already.
+    Full,
+    /// The replica is closing.
+    Closed,
+}
+
+/// What each commit of a session carries once known.
+#[derive(Debug, Default)]
+struct Carried {
+    /// The resume secret's SHA-256.
+    secret_sha256: Option<Vec<u8>>,
+    /// Its frame in its fleet (`FleetFrame`, JSON).
+    fleet_frame: Option<Vec<u8>>,
 }
 
 /// Longest wait for a connection, and for one statement (a stalled peer must not
@@ -213,8 +230,8 @@ impl Replica {
             })
             .map_err(ReplicaError::Thread)?;
         let done = std::sync::Mutex::new(done_rx);
-        let (secrets, fleet_frames) = (std::sync::Mutex::default(), std::sync::Mutex::default());
-        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, secrets, fleet_frames }))
+        let carried = std::sync::Mutex::default();
+        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, carried }))
     }
 
     /// Reads session `id` back from PostgreSQL (its newest `keyframes` records) for
@@ -257,23 +274,31 @@ impl Replica {
 
     /// Sends `hash` (its resume secret's) with every later commit of session `session_id`.
     pub fn remember(&self, session_id: &str, hash: Vec<u8>) {
-        crate::lock(&self.secrets).insert(session_id.to_string(), hash);
+        crate::lock(&self.carried).entry(session_id.to_string()).or_default().secret_sha256 = Some(hash);
     }
 
-    /// Forgets a session's secret hash once the session left this server's memory
-    /// (PostgreSQL has it).
+    /// Forgets what a session's commits carry once the session left this server's
+    /// memory (PostgreSQL has it).
     pub fn forget(&self, session_id: &str) {
-        crate::lock(&self.secrets).remove(session_id);
-        crate::lock(&self.fleet_frames).remove(session_id);
+        crate::lock(&self.carried).remove(session_id);
     }
 
     /// Copies session `session_id`'s frame in its fleet (`FleetFrame` as JSON) now,
     /// where PostgreSQL already holds the session, and with every later commit of it.
     pub fn fleet_frame(&self, session_id: &str, json: Vec<u8>) {
-        crate::lock(&self.fleet_frames).insert(session_id.to_string(), json.clone());
-        let Some(tx) = crate::lock(&self.jobs).clone() else { return };
-        if let Err(TrySendError::Full(_)) = tx.try_send(ReplicaJob::FleetFrame(session_id.to_string(), json)) {
+        crate::lock(&self.carried).entry(session_id.to_string()).or_default().fleet_frame = Some(json.clone());
+        if self.enqueue(ReplicaJob::FleetFrame(session_id.to_string(), json)) == Queued::Full {
             tracing::warn!(session = session_id, "replica queue full (store.replica_queue): the fleet frame goes with the next commit");
+        }
+    }
+
+    /// Hands a job to the copy thread without waiting.
+    fn enqueue(&self, job: ReplicaJob) -> Queued {
+        let Some(tx) = crate::lock(&self.jobs).clone() else { return Queued::Closed };
+        match tx.try_send(job) {
+            Ok(()) => Queued::Yes,
+            Err(TrySendError::Full(_)) => Queued::Full,
+            Err(TrySendError::Disconnected(_)) => Queued::Closed,
         }
     }
 
@@ -285,25 +310,20 @@ impl Replica {
     /// Hands a commit to the copy; a full queue leaves it out (counted, logged).
     pub fn submit(&self, mut commit: ReplicaCommit) {
         {
-            let mut secrets = crate::lock(&self.secrets);
+            let mut carried = crate::lock(&self.carried);
+            let carried = carried.entry(commit.session_id.clone()).or_default();
             match &commit.resume_secret_sha256 {
-                Some(hash) => {
-                    secrets.insert(commit.session_id.clone(), hash.clone());
-                }
-                None => commit.resume_secret_sha256 = secrets.get(&commit.session_id).cloned(),
+                Some(hash) => carried.secret_sha256 = Some(hash.clone()),
+                None => commit.resume_secret_sha256.clone_from(&carried.secret_sha256),
+            }
+            if commit.fleet_frame.is_none() {
+                commit.fleet_frame.clone_from(&carried.fleet_frame);
             }
         }
-        if commit.fleet_frame.is_none() {
-            commit.fleet_frame = crate::lock(&self.fleet_frames).get(&commit.session_id).cloned();
-        }
-        let Some(tx) = crate::lock(&self.jobs).clone() else { return };
-        match tx.try_send(ReplicaJob::Commit(commit)) {
-            Ok(()) => {}
-            Err(TrySendError::Full(c)) => {
-                self.counters.dropped.inc();
-                tracing::warn!(session = %c.session_id(), "replica queue full (store.replica_queue): this commit is not copied to PostgreSQL");
-            }
-            Err(TrySendError::Disconnected(_)) => {}
+        let id = commit.session_id.clone();
+        if self.enqueue(ReplicaJob::Commit(commit)) == Queued::Full {
+            self.counters.dropped.inc();
+            tracing::warn!(session = %id, "replica queue full (store.replica_queue): this commit is not copied to PostgreSQL");
         }
     }
 
@@ -314,14 +334,13 @@ impl Replica {
     /// queued (the queue full, or the replica closing): the session stays this
     /// server's, and a robot resuming it elsewhere gets a new session.
     pub fn release(&self, id: &str) -> bool {
-        let Some(tx) = crate::lock(&self.jobs).clone() else { return false };
-        match tx.try_send(ReplicaJob::Release(id.to_string())) {
-            Ok(()) => true,
-            Err(TrySendError::Full(_)) => {
+        match self.enqueue(ReplicaJob::Release(id.to_string())) {
+            Queued::Yes => true,
+            Queued::Full => {
                 tracing::warn!(session = id, "replica queue full (store.replica_queue): the session is not handed over");
                 false
             }
-            Err(TrySendError::Disconnected(_)) => false,
+            Queued::Closed => false,
         }
     }
 
