@@ -1074,16 +1074,30 @@ impl Registry {
                 return None;
             }
         };
+        self.admit_loaded(id, stored)
+    }
+
+    /// Puts session `id`, just read from the store for a query, into memory
+    /// (read-only), unless it left the listing meanwhile.
+    fn admit_loaded(&self, id: &str, stored: StoredSession) -> Option<Arc<Session>> {
         let session = self.archived_session(stored);
         {
-            // A resume may have made it live meanwhile: that one stays.
+            // Listed still, or the load is dropped: while it read the store, a
+            // resume may have made the session live (that one answers), or the
+            // session may have been left out as moved on to another server (a
+            // query then goes there, never to this older copy). Locks: dormant,
+            // then sessions.
+            let mut dormant = write(&self.dormant);
+            if dormant.remove(id).is_none() {
+                drop(dormant);
+                return self.resident(id);
+            }
             let mut sessions = write(&self.sessions);
             if let Some(live) = sessions.get(id) {
                 return Some(live.clone());
             }
             sessions.insert(id.to_string(), session.clone());
         }
-        write(&self.dormant).remove(id);
         self.metrics.session_loaded();
         self.metrics.resident_delta(1);
         tracing::info!(session = id, "stored session brought back into memory for a query");
@@ -1932,6 +1946,31 @@ mod tests {
         assert_eq!(metric(&registry, "stillmap_sessions_loaded_total").as_deref(), Some("stillmap_sessions_loaded_total 1"));
         assert_eq!(metric(&registry, "stillmap_sessions_resident ").as_deref(), Some("stillmap_sessions_resident 2"));
         assert_eq!(registry.list_info().len(), 2, "listed once");
+        registry.close_all();
+        registry.join_workers();
+    }
+
+    /// A query's load of a stored session that is left out of the listing while it
+    /// reads the store (the session went on on another server) is dropped: the
+    /// older copy never comes into memory to answer instead of the live one.
+    #[test]
+    fn a_load_racing_a_move_elsewhere_is_dropped() {
+        let config = SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() };
+        let registry = registry_with(Some("load-race"), config, LimitsConfig::default());
+        let (sink, _rx) = mpsc::channel(4);
+        let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
+        let id = opened.id.clone();
+        opened.detach(&sink);
+        drop(opened);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), 1);
+        // A query reads the store; meanwhile the session is found written on server-a.
+        let stored = registry.store.as_ref().expect("a store").load(&id).expect("readable").expect("stored");
+        assert_eq!(registry.leave_moved(|_| Some("server-a".into())), [id.clone()]);
+        assert!(registry.admit_loaded(&id, stored).is_none(), "the older copy does not answer");
+        assert!(registry.resident(&id).is_none() && registry.info(&id).is_none(), "nor is it listed");
+        assert!(registry.get(&id).is_none(), "queries about it go to server-a");
+        assert_eq!(metric(&registry, "stillmap_sessions_loaded_total").as_deref(), Some("stillmap_sessions_loaded_total 0"));
         registry.close_all();
         registry.join_workers();
     }

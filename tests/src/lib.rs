@@ -106,7 +106,9 @@ impl Server {
         }
         let mut child = command
             .args(extra)
-            .env("STILLMAP_LOG", "warn")
+            // Warnings only, unless STILLMAP_E2E_LOG asks for more (a filter such as
+            // `info,stillmap_server=debug`) to see what the servers did.
+            .env("STILLMAP_LOG", std::env::var("STILLMAP_E2E_LOG").unwrap_or_else(|_| "warn".into()))
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
