@@ -46,6 +46,24 @@ pub struct FleetJob {
     pub keyframe: KeyframeRecord,
 }
 
+/// The stored keyframes of a session resumed from another server, to put into
+/// its fleet's place index here (as a restart puts a session's stored keyframes).
+pub struct StoredKeyframes {
+    pub fleet: String,
+    pub session_id: String,
+    pub camera: Camera,
+    /// Oldest first.
+    pub keyframes: Vec<KeyframeRecord>,
+}
+
+/// What the place-recognition thread does.
+enum Work {
+    /// A committed keyframe: matched against the fleet, then indexed.
+    Keyframe(FleetJob),
+    /// A resumed session's stored keyframes: indexed.
+    Stored(StoredKeyframes),
+}
+
 /// A session as its fleet knows it.
 struct Member {
     session_id: String,
@@ -134,6 +152,9 @@ pub struct MemberView {
     pub frame: Option<FleetFrame>,
     /// The pose graph's correction of its latest keyframe (`fleet_corrected_from_fleet`).
     pub latest_correction: Option<Isometry3<f64>>,
+    /// Its keyframes in the place index, and the oldest one's id.
+    pub indexed_keyframes: usize,
+    pub oldest_indexed_keyframe: Option<u64>,
 }
 
 /// A fleet, for the APIs.
@@ -167,7 +188,7 @@ pub struct FleetService {
     shared: Arc<Shared>,
     /// Keyframes handed to place recognition and not yet done with.
     backlog: Arc<std::sync::atomic::AtomicUsize>,
-    jobs: Mutex<Option<SyncSender<FleetJob>>>,
+    jobs: Mutex<Option<SyncSender<Work>>>,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
     /// The pose-graph thread, and the sender whose drop stops it.
     solver: Mutex<Option<(std::sync::mpsc::Sender<()>, std::thread::JoinHandle<()>)>>,
@@ -217,16 +238,19 @@ impl FleetService {
             fleets: Mutex::default(),
             metrics: metrics.clone(),
         });
-        let (tx, rx) = std::sync::mpsc::sync_channel::<FleetJob>(config.queue);
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Work>(config.queue);
         let worker_shared = shared.clone();
         let backlog = Arc::new(std::sync::atomic::AtomicUsize::new(0));
         let worker_backlog = backlog.clone();
         let worker = std::thread::Builder::new()
             .name("places".into())
             .spawn(move || {
-                for job in rx {
-                    let session = job.session_id.clone();
-                    if let Err(panic) = crate::pool::caught(|| worker_shared.process(job)) {
+                for work in rx {
+                    let (session, done) = match work {
+                        Work::Keyframe(job) => (job.session_id.clone(), crate::pool::caught(|| worker_shared.process(job))),
+                        Work::Stored(stored) => (stored.session_id.clone(), crate::pool::caught(|| worker_shared.index_stored(stored))),
+                    };
+                    if let Err(panic) = done {
                         worker_shared.metrics.panicked("places");
                         tracing::error!(session, "place recognition panicked on a keyframe (a bug; the keyframe is left out): {panic}");
                     }
@@ -281,16 +305,53 @@ impl FleetService {
 
     /// Hands a committed keyframe to place recognition; a full queue leaves it out.
     pub fn submit(&self, job: FleetJob) {
-        let Some(tx) = lock(&self.jobs).clone() else { return };
-        self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        match tx.try_send(job) {
-            Ok(()) => {}
-            Err(TrySendError::Full(job)) => {
+        if let Some(Work::Keyframe(job)) = self.enqueue(Work::Keyframe(job)) {
+            tracing::warn!(session = %job.session_id, keyframe = job.keyframe.id, "place-recognition queue full (fleet.queue): keyframe left out");
+        }
+    }
+
+    /// Hands the stored keyframes of a session resumed from another server to
+    /// place recognition, which indexes them in its fleet here (a merged
+    /// session's up to `fleet.max_places`; of an unmerged one's, those newer than
+    /// it has there, its latest `fleet.pending_keyframes`): the session's map can
+    /// be found by the fleet's other robots here at once, not only from its next
+    /// keyframe. A full queue leaves them out (the session's next keyframes are
+    /// indexed as usual), unless `wait` (a background reader) waits for room.
+    pub fn index_stored(&self, stored: StoredKeyframes, wait: bool) {
+        if stored.keyframes.is_empty() {
+            return;
+        }
+        if wait {
+            let Some(tx) = lock(&self.jobs).clone() else { return };
+            self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            if tx.send(Work::Stored(stored)).is_err() {
                 self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
-                tracing::warn!(session = %job.session_id, keyframe = job.keyframe.id, "place-recognition queue full (fleet.queue): keyframe left out");
+            }
+            return;
+        }
+        if let Some(Work::Stored(stored)) = self.enqueue(Work::Stored(stored)) {
+            tracing::warn!(
+                session = %stored.session_id,
+                keyframes = stored.keyframes.len(),
+                "place-recognition queue full (fleet.queue): the resumed session's stored keyframes left out of its fleet's index"
+            );
+        }
+    }
+
+    /// Queues `work` for the place-recognition thread; gives it back when the
+    /// queue is full (nothing when the thread is stopping).
+    fn enqueue(&self, work: Work) -> Option<Work> {
+        let tx = lock(&self.jobs).clone()?;
+        self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        match tx.try_send(work) {
+            Ok(()) => None,
+            Err(TrySendError::Full(work)) => {
+                self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                Some(work)
             }
             Err(TrySendError::Disconnected(_)) => {
                 self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                None
             }
         }
     }
@@ -511,6 +572,8 @@ fn view(name: &str, f: &Fleet) -> FleetView {
                 robot_id: m.robot_id.clone(),
                 frame: m.frame.clone(),
                 latest_correction: m.corrections.last().map(|(_, c)| *c),
+                indexed_keyframes: m.indexed.len(),
+                oldest_indexed_keyframe: m.indexed.iter().min().copied(),
             })
             .collect(),
         indexed_keyframes: f.index.len(),
@@ -892,6 +955,45 @@ impl Shared {
         f.dirty = true;
     }
 
+    /// Indexes a resumed session's stored keyframes (see
+    /// [`FleetService::index_stored`]); those already indexed are skipped. The
+    /// bags of words are computed without the lock.
+    fn index_stored(&self, stored: StoredKeyframes) {
+        let StoredKeyframes { fleet, session_id, camera, keyframes } = stored;
+        let (m, keep) = {
+            let fleets = lock(&self.fleets);
+            let Some(f) = fleets.get(&fleet) else { return };
+            let Some(m) = f.members.iter().position(|member| member.session_id == session_id) else { return };
+            let member = &f.members[m];
+            // An unmerged member keeps only its latest: older ones would push them out.
+            let (keep, after) = match member.frame {
+                Some(_) => (self.config.max_places, None),
+                None => (self.config.pending_keyframes, member.indexed.iter().max().copied()),
+            };
+            let mut new: Vec<&KeyframeRecord> =
+                keyframes.iter().filter(|k| !f.places.contains_key(&(m as u32, k.id)) && after.is_none_or(|a| k.id > a)).collect();
+            new.sort_by_key(|k| k.id);
+            let skip = new.len().saturating_sub(keep);
+            (m, new.into_iter().skip(skip).map(|k| k.id).collect::<std::collections::HashSet<u64>>())
+        };
+        let mut places: Vec<(u64, Indexed, BowVector)> = keyframes
+            .iter()
+            .filter(|k| keep.contains(&k.id))
+            .map(|k| {
+                let (place, bow, session_from_camera) = self.place_of(&camera, k);
+                (k.id, Indexed { session_from_camera, place, timestamp_ns: k.timestamp_ns }, bow)
+            })
+            .collect();
+        places.sort_by_key(|(id, _, _)| *id);
+        let mut fleets = lock(&self.fleets);
+        let Some(f) = fleets.get_mut(&fleet) else { return };
+        let count = places.len();
+        for (id, indexed, bow) in places {
+            self.add_place(f, m, id, indexed, bow);
+        }
+        tracing::debug!(fleet, session = session_id, keyframes = count, "a resumed session's stored keyframes indexed in its fleet");
+    }
+
     /// Adds a stored keyframe of member `m`.
     fn add_keyframe(&self, f: &mut Fleet, m: usize, camera: &Camera, record: &KeyframeRecord) {
         let (place, bow, session_from_camera) = self.place_of(camera, record);
@@ -1110,6 +1212,60 @@ mod tests {
         // Without a carried frame, a fleet's first session anchors it, as a new one does.
         assert!(!service.join_carried("yard", "y1", "robot-y", None));
         assert_eq!(frame_of("yard", "y1").map(|f| (f.anchor, f.lineage)), Some((true, "y1".to_string())));
+        service.close();
+    }
+
+    /// A resumed session's stored keyframes are indexed in its fleet here, in order:
+    /// a merged one's all (up to `fleet.max_places`), an unmerged one's latest
+    /// `fleet.pending_keyframes`; keyframes already indexed are not added again, and
+    /// a session not in the fleet (or a fleet not held) gets nothing.
+    #[test]
+    fn a_resumed_sessions_stored_keyframes_are_indexed_here() {
+        let config = FleetConfig { pending_keyframes: 2, ..FleetConfig::default() };
+        let service = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
+        let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
+        let keyframes = |ids: std::ops::Range<u64>| -> Vec<KeyframeRecord> {
+            ids.map(|id| KeyframeRecord {
+                id,
+                timestamp_ns: 1_000 + id,
+                world_from_camera: [0.1 * id as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                features: (0..20u64)
+                    .map(|i| ([10.0 + i as f32 * 7.0, 20.0 + id as f32], 0, 1.5, [id.wrapping_mul(0x9e37_79b9) ^ i, i, id, !i]))
+                    .collect(),
+            })
+            .collect()
+        };
+        let stored = |session: &str, ids| StoredKeyframes {
+            fleet: "lab".into(),
+            session_id: session.into(),
+            camera: camera.clone(),
+            keyframes: keyframes(ids),
+        };
+        let moved = Isometry3::from_parts(Translation3::new(1.0, 2.0, 0.0), UnitQuaternion::identity());
+        assert!(service.join_carried("lab", "b1", "robot-b", Some(FleetFrame { lineage: "a0".into(), ..frame(false, &moved) })));
+        assert!(!service.join_carried("lab", "d1", "robot-d", Some(FleetFrame { lineage: "elsewhere".into(), ..frame(false, &moved) })));
+        service.index_stored(stored("b1", 3..5), false);
+        service.index_stored(stored("d1", 0..5), false);
+        // Older ones read back later (a page at a time, newest first), and some again.
+        service.index_stored(stored("b1", 0..3), true);
+        service.index_stored(stored("b1", 3..7), false);
+        service.index_stored(stored("d1", 0..3), true);
+        service.index_stored(stored("nobody", 0..5), false);
+        service.index_stored(StoredKeyframes { fleet: "yard".into(), ..stored("b1", 0..5) }, false);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while service.backlog() > 0 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let view = service.get("lab").expect("the fleet");
+        let indexed = |id: &str| {
+            let m = view.members.iter().find(|m| m.session_id == id).expect("a member");
+            (m.indexed_keyframes, m.oldest_indexed_keyframe)
+        };
+        assert_eq!(indexed("b1"), (7, Some(0)), "merged: every stored keyframe, 5 and 6 once more");
+        assert_eq!(indexed("d1"), (2, Some(3)), "unmerged: the latest fleet.pending_keyframes");
+        assert_eq!(view.indexed_keyframes, 9);
+        assert_eq!(view.members.len(), 2, "no member made for an unknown session");
+        assert!(service.get("yard").is_none(), "nor a fleet");
         service.close();
     }
 

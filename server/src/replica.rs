@@ -147,6 +147,21 @@ pub enum ReplicaSession {
     Found { session: Box<crate::store::StoredSession>, server_id: String, fleet_frame: Option<crate::store::FleetFrame> },
 }
 
+/// The older keyframe records of a session resumed from the shared storage (which
+/// gives the resume only its newest few), read back in the background.
+pub struct Backfill {
+    pub session_id: String,
+    /// The records with a smaller id are read.
+    pub before_id: u64,
+    /// Given each page of records, newest first; false stops the reading.
+    pub page: Box<dyn FnMut(Vec<crate::store::KeyframeRecord>) -> bool + Send>,
+}
+
+/// Keyframe records read back per query (about 50 KB each).
+const BACKFILL_PAGE: usize = 32;
+/// Backfills waiting for the thread; more are left out (logged).
+const BACKFILL_QUEUE: usize = 256;
+
 /// SHA-256 of a resume secret, as the shared storage keeps it.
 pub fn secret_hash(secret: &str) -> Vec<u8> {
     use sha2::Digest as _;
@@ -170,6 +185,8 @@ pub struct Replica {
     /// What every commit of a session carries, by session id (a commit left out
     /// must not leave the session impossible to resume, or without its merge).
     carried: std::sync::Mutex<std::collections::HashMap<String, Carried>>,
+    /// The backfill thread's queue (see [`Backfill`]).
+    backfills: std::sync::Mutex<Option<SyncSender<Backfill>>>,
 }
 
 /// Whether the copy thread took a job.
@@ -229,9 +246,16 @@ impl Replica {
                 let _ = done_tx.send(());
             })
             .map_err(ReplicaError::Thread)?;
+        let (backfill_tx, backfill_rx) = std::sync::mpsc::sync_channel(BACKFILL_QUEUE);
+        let (backfill_config, backfill_closing) = (config.clone(), closing.clone());
+        std::thread::Builder::new()
+            .name("replica-backfill".into())
+            .spawn(move || backfill(&backfill_config, backfill_rx, &backfill_closing))
+            .map_err(ReplicaError::Thread)?;
         let done = std::sync::Mutex::new(done_rx);
         let carried = std::sync::Mutex::default();
-        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, carried }))
+        let backfills = std::sync::Mutex::new(Some(backfill_tx));
+        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, carried, backfills }))
     }
 
     /// Reads session `id` back from PostgreSQL (its newest `keyframes` records) for
@@ -307,6 +331,16 @@ impl Replica {
         *crate::lock(&self.server_id) = id.to_string();
     }
 
+    /// Reads a resumed session's older keyframe records back in the background, on
+    /// a thread and a connection of its own, a page at a time; a full queue leaves
+    /// them out (logged: the session goes on without them here).
+    pub fn backfill(&self, job: Backfill) {
+        let Some(tx) = crate::lock(&self.backfills).clone() else { return };
+        if let Err(TrySendError::Full(job)) = tx.try_send(job) {
+            tracing::warn!(session = %job.session_id, "replica: too many resumed sessions wait for their older keyframes; this one's are not read back");
+        }
+    }
+
     /// Hands a commit to the copy; a full queue leaves it out (counted, logged).
     pub fn submit(&self, mut commit: ReplicaCommit) {
         {
@@ -348,6 +382,7 @@ impl Replica {
     /// PostgreSQL fails, what is queued is left (counted as dropped).
     pub fn close(&self) {
         self.closing.store(true, Ordering::SeqCst);
+        crate::lock(&self.backfills).take();
         crate::lock(&self.jobs).take();
         if crate::lock(&self.done).recv_timeout(CLOSE_WAIT).is_err() {
             tracing::warn!("replica: the copy to PostgreSQL did not finish within {CLOSE_WAIT:?} of shutdown; left behind");
@@ -461,6 +496,60 @@ fn on_own_thread<T: Send + 'static>(
         .map_err(ReplicaError::Thread)?
         .join()
         .map_err(|_| ReplicaError::Read(format!("the {doing} thread panicked")))?
+}
+
+/// The backfill thread: pages through each job's older keyframe records, on one
+/// connection (made again after a failure), until the queue closes; at shutdown
+/// what is queued is dropped.
+fn backfill(config: &postgres::Config, jobs: Receiver<Backfill>, closing: &AtomicBool) {
+    use crate::store::KeyframeRecord;
+    let mut client: Option<postgres::Client> = None;
+    let page = i64::try_from(BACKFILL_PAGE).unwrap_or(i64::MAX);
+    for mut job in jobs {
+        let (id, mut before, mut read) = (job.session_id.clone(), job.before_id, 0usize);
+        while !closing.load(Ordering::SeqCst) {
+            if client.is_none() {
+                match config.connect(postgres::NoTls) {
+                    Ok(c) => client = Some(c),
+                    Err(e) => {
+                        tracing::warn!(session = %id, "replica: older keyframes not read back (PostgreSQL: {})", describe(&e));
+                        break;
+                    }
+                }
+            }
+            let Some(c) = client.as_mut() else { break };
+            let below = i64::try_from(before).unwrap_or(i64::MAX);
+            let rows = match c.query(
+                "SELECT record FROM stillmap_keyframes WHERE session_id = $1 AND id < $2 ORDER BY id DESC LIMIT $3",
+                &[&id, &below, &page],
+            ) {
+                Ok(rows) => rows,
+                Err(e) => {
+                    tracing::warn!(session = %id, "replica: older keyframes not read back (PostgreSQL: {})", describe(&e));
+                    client = None;
+                    break;
+                }
+            };
+            let records: Result<Vec<KeyframeRecord>, _> = rows.iter().map(|r| KeyframeRecord::from_bytes(r.get::<_, &[u8]>(0))).collect();
+            let records = match records {
+                Ok(records) => records,
+                Err(e) => {
+                    tracing::warn!(session = %id, "replica: a damaged keyframe record stops reading the older ones back: {e}");
+                    break;
+                }
+            };
+            let Some(oldest) = records.iter().map(|k| k.id).min() else { break };
+            let full = records.len() == BACKFILL_PAGE;
+            read += records.len();
+            before = oldest;
+            if !(job.page)(records) || !full {
+                break;
+            }
+        }
+        if read > 0 {
+            tracing::info!(session = %id, keyframes = read, "older keyframe records read back from the shared storage");
+        }
+    }
 }
 
 /// Session `id` as PostgreSQL holds it.

@@ -1544,7 +1544,7 @@ impl Registry {
     /// keyframes. `None`: it cannot be found again (a new session instead).
     fn resume_stored(
         &self,
-        s: StoredSession,
+        mut s: StoredSession,
         copy: bool,
         fleet_frame: Option<crate::store::FleetFrame>,
         hello: &pb::Hello,
@@ -1607,10 +1607,19 @@ impl Registry {
             next_keyframe_id,
             find_within_s: self.config.resume_find_s,
         };
+        let map = self.restored_map(&s);
+        self.backfill_keyframes(&s, &fleet_name, &tracking_camera);
         if let Some(f) = &self.fleets {
             f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame);
+            // Its map can be found by the fleet's robots here at once.
+            let stored = crate::fleet::StoredKeyframes {
+                fleet: fleet_name.clone(),
+                session_id: id.to_string(),
+                camera: tracking_camera.clone(),
+                keyframes: std::mem::take(&mut s.keyframes),
+            };
+            f.index_stored(stored, false);
         }
-        let map = self.restored_map(&s);
         let counters = Counters::default();
         counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
         let latest = s.poses.last().copied();
@@ -1643,6 +1652,33 @@ impl Registry {
         self.metrics.resident_delta(1);
         tracing::info!(session = id, robot = %session.robot_id, "session resumed from the shared storage");
         Ok(Some(Opened { session, resumed: true, restored: true }))
+    }
+
+    /// Has the shared storage read back, in the background, the keyframe records of
+    /// resumed session `s` older than those the resume read: each page goes into
+    /// this server's store (so a restart or an export here has them all) and into
+    /// its fleet's place index here.
+    fn backfill_keyframes(&self, s: &StoredSession, fleet: &str, camera: &stillmap_tracking::Camera) {
+        let Some(store) = self.store.clone() else { return };
+        let Some(replica) = store.replica().cloned() else { return };
+        let Some(before_id) = s.keyframes.iter().map(|k| k.id).min().filter(|id| *id > 0) else { return };
+        let (id, fleet, camera, fleets) = (s.id.clone(), fleet.to_string(), camera.clone(), self.fleets.clone());
+        let session_id = id.clone();
+        replica.backfill(crate::replica::Backfill {
+            session_id,
+            before_id,
+            page: Box::new(move |keyframes| {
+                if let Err(e) = store.put_keyframes(&id, &keyframes) {
+                    tracing::warn!(session = %id, "older keyframe records not kept in this server's store: {e}");
+                }
+                if let Some(f) = &fleets {
+                    let stored =
+                        crate::fleet::StoredKeyframes { fleet: fleet.clone(), session_id: id.clone(), camera: camera.clone(), keyframes };
+                    f.index_stored(stored, true);
+                }
+                true
+            }),
+        });
     }
 
     /// A stored session's map in memory, attached to this server's store.
@@ -1966,7 +2002,7 @@ mod tests {
         assert_eq!(registry.evict_idle(), 1);
         // A query reads the store; meanwhile the session is found written on server-a.
         let stored = registry.store.as_ref().expect("a store").load(&id).expect("readable").expect("stored");
-        assert_eq!(registry.leave_moved(|_| Some("server-a".into())), [id.clone()]);
+        assert_eq!(registry.leave_moved(|_| Some("server-a".into())), std::slice::from_ref(&id));
         assert!(registry.admit_loaded(&id, stored).is_none(), "the older copy does not answer");
         assert!(registry.resident(&id).is_none() && registry.info(&id).is_none(), "nor is it listed");
         assert!(registry.get(&id).is_none(), "queries about it go to server-a");

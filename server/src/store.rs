@@ -688,6 +688,22 @@ impl Store {
         Ok(tx.open_table(SESSIONS).map_err(|e| self.err(e))?.get(id).map_err(|e| self.err(e))?.is_some())
     }
 
+    /// Adds keyframe records of session `id` (a resumed session's older ones, read
+    /// back from the shared storage, which holds them already: not copied there).
+    pub fn put_keyframes(&self, id: &str, keyframes: &[KeyframeRecord]) -> Result<(), StoreError> {
+        let db = self.db_for_write()?;
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            {
+                let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+                for k in keyframes {
+                    table.insert((id, k.id), k.to_bytes().as_slice()).map_err(|e| self.err(e))?;
+                }
+            }
+            tx.commit().map_err(|e| self.err(e))
+        })())
+    }
+
     /// Writes a whole session (an imported map file) in one transaction.
     pub fn import(&self, s: &StoredSession) -> Result<(), StoreError> {
         let db = self.db_for_write()?;

@@ -767,8 +767,23 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
     let path = format!("/api/v1/fleets/{fleet}");
     let merged = |v: &serde_json::Value| v["merged"] == 2;
     eventually(Duration::from_secs(20), "both sessions merged in their fleet on A", async || merged(&a.get_json(&path).await.1)).await;
+    // Each session with more keyframes than a resume reads back at once (8): the
+    // older ones follow in the background.
+    let indexed = |v: &serde_json::Value| -> BTreeMap<String, u64> {
+        let sessions = v["sessions"].as_array().cloned().unwrap_or_default();
+        sessions
+            .iter()
+            .map(|s| (s["session_id"].as_str().unwrap_or("").to_string(), s["indexed_keyframes"].as_u64().unwrap_or(0)))
+            .collect()
+    };
+    eventually(Duration::from_secs(30), "each session with more than 8 keyframes on A", async || {
+        let v = a.get_json(&path).await.1;
+        indexed(&v).len() == 2 && indexed(&v).values().all(|n| *n > 8)
+    })
+    .await;
     let on_a = a.get_json(&path).await.1;
     let anchor = on_a["anchor_session_id"].as_str().expect("an anchor").to_string();
+    let indexed_on_a = indexed(&on_a);
     let b = start(ID_B);
     let b_started_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_nanos() as u64;
     eventually(Duration::from_secs(20), "the fleet's robots streaming on B", async || robots_on(&b, ID_B).await.1 == robots).await;
@@ -781,6 +796,11 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
         assert_eq!(frame["lineage"].as_str(), Some(anchor.as_str()), "{s}");
         let first_merged = frame["first_merged_unix_ns"].as_u64().expect("merged");
         assert!(first_merged < b_started_ns, "merged on A, carried, not merged again on B: {s}");
+        // Its keyframes stored on A are in B's place index (from its first on),
+        // so the fleet's robots on B find its map at once.
+        assert_eq!(s["oldest_indexed_keyframe"], 0, "{s}");
+        let id = s["session_id"].as_str().expect("an id");
+        assert!(s["indexed_keyframes"].as_u64() >= indexed_on_a.get(id).copied(), "{s}: {indexed_on_a:?} on A");
     }
     eprintln!("fleet {fleet}: anchored by {anchor} on A, the same frame on B");
 }

@@ -323,6 +323,10 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
                     "merged": m.frame.is_some(),
                     "fleet_from_session": frame,
                     "latest_correction": correction,
+                    // Its keyframes place recognition can find it by here (a
+                    // resumed session's include those stored on the server before).
+                    "indexed_keyframes": m.indexed_keyframes,
+                    "oldest_indexed_keyframe": m.oldest_indexed_keyframe,
                 })
             })
             .collect::<Vec<_>>()
