@@ -252,7 +252,10 @@ impl FleetService {
                     };
                     if let Err(panic) = done {
                         worker_shared.metrics.panicked("places");
-                        tracing::error!(session, "place recognition panicked on a keyframe (a bug; the keyframe is left out): {panic}");
+                        tracing::error!(
+                            session,
+                            "place recognition panicked (a bug; the keyframe or the stored keyframes are left out): {panic}"
+                        );
                     }
                     worker_backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
                 }
@@ -960,7 +963,7 @@ impl Shared {
     /// bags of words are computed without the lock.
     fn index_stored(&self, stored: StoredKeyframes) {
         let StoredKeyframes { fleet, session_id, camera, keyframes } = stored;
-        let (m, keep) = {
+        let (m, chosen) = {
             let fleets = lock(&self.fleets);
             let Some(f) = fleets.get(&fleet) else { return };
             let Some(m) = f.members.iter().position(|member| member.session_id == session_id) else { return };
@@ -974,17 +977,15 @@ impl Shared {
                 keyframes.iter().filter(|k| !f.places.contains_key(&(m as u32, k.id)) && after.is_none_or(|a| k.id > a)).collect();
             new.sort_by_key(|k| k.id);
             let skip = new.len().saturating_sub(keep);
-            (m, new.into_iter().skip(skip).map(|k| k.id).collect::<std::collections::HashSet<u64>>())
+            (m, new.into_iter().skip(skip).collect::<Vec<_>>())
         };
-        let mut places: Vec<(u64, Indexed, BowVector)> = keyframes
-            .iter()
-            .filter(|k| keep.contains(&k.id))
+        let places: Vec<(u64, Indexed, BowVector)> = chosen
+            .into_iter()
             .map(|k| {
                 let (place, bow, session_from_camera) = self.place_of(&camera, k);
                 (k.id, Indexed { session_from_camera, place, timestamp_ns: k.timestamp_ns }, bow)
             })
             .collect();
-        places.sort_by_key(|(id, _, _)| *id);
         let mut fleets = lock(&self.fleets);
         let Some(f) = fleets.get_mut(&fleet) else { return };
         let count = places.len();
@@ -1261,7 +1262,7 @@ mod tests {
             let m = view.members.iter().find(|m| m.session_id == id).expect("a member");
             (m.indexed_keyframes, m.oldest_indexed_keyframe)
         };
-        assert_eq!(indexed("b1"), (7, Some(0)), "merged: every stored keyframe, 5 and 6 once more");
+        assert_eq!(indexed("b1"), (7, Some(0)), "merged: every stored keyframe, 3 and 4 once");
         assert_eq!(indexed("d1"), (2, Some(3)), "unmerged: the latest fleet.pending_keyframes");
         assert_eq!(view.indexed_keyframes, 9);
         assert_eq!(view.members.len(), 2, "no member made for an unknown session");

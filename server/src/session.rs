@@ -1608,7 +1608,7 @@ impl Registry {
             find_within_s: self.config.resume_find_s,
         };
         let map = self.restored_map(&s);
-        self.backfill_keyframes(&s, &fleet_name, &tracking_camera);
+        let oldest_read = s.keyframes.iter().map(|k| k.id).min();
         if let Some(f) = &self.fleets {
             f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame);
             // Its map can be found by the fleet's robots here at once.
@@ -1620,6 +1620,8 @@ impl Registry {
             };
             f.index_stored(stored, false);
         }
+        // The older ones after them (the fleet holds the session by now).
+        self.backfill_keyframes(id, oldest_read, &fleet_name, &tracking_camera);
         let counters = Counters::default();
         counters.processed.store(s.poses.len() as u64, Ordering::Relaxed);
         let latest = s.poses.last().copied();
@@ -1655,14 +1657,15 @@ impl Registry {
     }
 
     /// Has the shared storage read back, in the background, the keyframe records of
-    /// resumed session `s` older than those the resume read: each page goes into
+    /// resumed session `id` older than those the resume read (`oldest_read` the
+    /// oldest of them): each page goes into
     /// this server's store (so a restart or an export here has them all) and into
     /// its fleet's place index here.
-    fn backfill_keyframes(&self, s: &StoredSession, fleet: &str, camera: &stillmap_tracking::Camera) {
+    fn backfill_keyframes(&self, id: &str, oldest_read: Option<u64>, fleet: &str, camera: &stillmap_tracking::Camera) {
         let Some(store) = self.store.clone() else { return };
         let Some(replica) = store.replica().cloned() else { return };
-        let Some(before_id) = s.keyframes.iter().map(|k| k.id).min().filter(|id| *id > 0) else { return };
-        let (id, fleet, camera, fleets) = (s.id.clone(), fleet.to_string(), camera.clone(), self.fleets.clone());
+        let Some(before_id) = oldest_read.filter(|id| *id > 0) else { return };
+        let (id, fleet, camera, fleets) = (id.to_string(), fleet.to_string(), camera.clone(), self.fleets.clone());
         let session_id = id.clone();
         replica.backfill(crate::replica::Backfill {
             session_id,
