@@ -681,8 +681,13 @@ impl Joining {
     }
 
     fn server(&self, id: &str) -> Server {
+        self.server_with(id, &[])
+    }
+
+    fn server_with(&self, id: &str, extra: &[&str]) -> Server {
         let url = self.pg.url();
-        Server::start_with(&["--no-perception", "--zenoh-connect", &self.router, "--server-id", id, "--replica-url", &url], self.advertise)
+        let common = ["--no-perception", "--zenoh-connect", &self.router, "--server-id", id, "--replica-url", &url];
+        Server::start_with(&[&common[..], extra].concat(), self.advertise)
     }
 }
 
@@ -784,7 +789,9 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
     let on_a = a.get_json(&path).await.1;
     let anchor = on_a["anchor_session_id"].as_str().expect("an anchor").to_string();
     let indexed_on_a = indexed(&on_a);
-    let b = start(ID_B);
+    let store_b = tempfile_path("fleet-join-b.redb");
+    let store_b = store_b.to_str().expect("utf-8 path").to_string();
+    let b = cluster.server_with(ID_B, &["--store", &store_b]);
     let b_started_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_nanos() as u64;
     eventually(Duration::from_secs(20), "the fleet's robots streaming on B", async || robots_on(&b, ID_B).await.1 == robots).await;
     check_robots(clients, &summaries, &robots);
@@ -803,6 +810,16 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
         assert!(s["indexed_keyframes"].as_u64() >= indexed_on_a.get(id).copied(), "{s}: {indexed_on_a:?} on A");
     }
     eprintln!("fleet {fleet}: anchored by {anchor} on A, the same frame on B");
+    // B restarted on its store: the older keyframes read back were kept there.
+    drop(b);
+    let b = cluster.server_with(ID_B, &["--store", &store_b]);
+    eventually(Duration::from_secs(10), "B back with every keyframe of the fleet's sessions", async || {
+        let sessions = b.get_json(&path).await.1["sessions"].as_array().cloned().unwrap_or_default();
+        sessions.len() == 2 && sessions.iter().all(|s| s["oldest_indexed_keyframe"] == 0)
+    })
+    .await;
+    drop(b);
+    let _ = std::fs::remove_file(&store_b);
 }
 
 /// gRPC robots that ask where they belong (`Ingest.Place`) move too when a server
