@@ -104,6 +104,11 @@ impl Default for Metrics {
         registry.register("replica_commits", "Store commits copied to shared storage (store.replica_url)", replica.commits.clone());
         registry.register("replica_bytes", "Bytes of store commits copied to shared storage", replica.bytes.clone());
         registry.register("replica_dropped", "Store commits not copied: the replica queue was full", replica.dropped.clone());
+        registry.register(
+            "replica_fenced",
+            "Store commits not copied: another server had taken the session over (a late commit of this one)",
+            replica.fenced.clone(),
+        );
         registry.register("replica_write_microseconds", "Time spent writing commits to shared storage", replica.write_micros.clone());
         let store_errors = Counter::default();
         registry.register(

@@ -83,6 +83,8 @@ pub struct ReplicaCounters {
     pub commits: Counter,
     pub bytes: Counter,
     pub dropped: Counter,
+    /// Commits not written because another server writes the session now.
+    pub fenced: Counter,
     /// Time spent writing commits, in microseconds.
     pub write_micros: Counter,
 }
@@ -410,6 +412,8 @@ fn copy(
 ) {
     let mut client: Option<postgres::Client> = None;
     let mut wait = Duration::from_secs(1);
+    // Sessions whose commits another server's claim fenced off (logged once each).
+    let mut fenced = std::collections::HashSet::new();
     let give_up = |left: u64| {
         counters.dropped.inc_by(left);
         tracing::warn!(left, "replica: PostgreSQL fails at shutdown; these commits are not copied");
@@ -440,7 +444,7 @@ fn copy(
             let written = match &job {
                 ReplicaJob::Commit(commit) => write(c, &server, commit),
                 ReplicaJob::Release(id) => {
-                    c.execute("UPDATE stillmap_sessions SET server_id = '' WHERE id = $1 AND server_id = $2", &[id, &server]).map(|_| ())
+                    c.execute("UPDATE stillmap_sessions SET server_id = '' WHERE id = $1 AND server_id = $2", &[id, &server]).map(|_| true)
                 }
                 ReplicaJob::FleetFrame(id, json) => {
                     let json = std::str::from_utf8(json).unwrap_or("null");
@@ -448,15 +452,25 @@ fn copy(
                         "UPDATE stillmap_sessions SET fleet_frame = $3::text::jsonb WHERE id = $1 AND server_id = $2",
                         &[id, &server, &json],
                     )
-                    .map(|_| ())
+                    .map(|_| true)
                 }
             };
             match written {
-                Ok(()) => {
+                Ok(copied) => {
                     if let ReplicaJob::Commit(commit) = &job {
-                        counters.commits.inc();
-                        counters.bytes.inc_by(commit.bytes() as u64);
-                        counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
+                        if copied {
+                            counters.commits.inc();
+                            counters.bytes.inc_by(commit.bytes() as u64);
+                            counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
+                        } else {
+                            counters.fenced.inc();
+                            if fenced.insert(commit.session_id.clone()) {
+                                tracing::warn!(
+                                    session = %commit.session_id,
+                                    "replica: another server has taken this session over; this server's commits to it are left out"
+                                );
+                            }
+                        }
                     }
                     wait = Duration::from_secs(1);
                     break;
@@ -631,19 +645,27 @@ fn describe(e: &postgres::Error) -> String {
 }
 
 /// One commit, in one transaction (upserts: a commit sent twice changes nothing).
-fn write(client: &mut postgres::Client, server_id: &str, c: &ReplicaCommit) -> Result<(), postgres::Error> {
+/// Fenced: written only while the row names this server or no writer (a handover's
+/// release); once another server has taken the session over (`Replica::claim`), a
+/// commit still queued here changes nothing and `Ok(false)` says so.
+fn write(client: &mut postgres::Client, server_id: &str, c: &ReplicaCommit) -> Result<bool, postgres::Error> {
     let mut tx = client.transaction()?;
     let meta = std::str::from_utf8(&c.meta_json).unwrap_or("{}");
     let fleet_frame = c.fleet_frame.as_deref().and_then(|f| std::str::from_utf8(f).ok());
-    tx.execute(
+    let rows = tx.execute(
         "INSERT INTO stillmap_sessions (id, server_id, meta, camera, resume_secret_sha256, fleet_frame)
              VALUES ($1, $2, $3::text::jsonb, $4, $5, $6::text::jsonb)
          ON CONFLICT (id) DO UPDATE SET server_id = $2, meta = $3::text::jsonb,
              camera = COALESCE($4, stillmap_sessions.camera),
              resume_secret_sha256 = COALESCE($5, stillmap_sessions.resume_secret_sha256),
-             fleet_frame = COALESCE($6::text::jsonb, stillmap_sessions.fleet_frame), updated = now()",
+             fleet_frame = COALESCE($6::text::jsonb, stillmap_sessions.fleet_frame), updated = now()
+         WHERE stillmap_sessions.server_id IN ($2, '')",
         &[&c.session_id, &server_id, &meta, &c.camera, &c.resume_secret_sha256, &fleet_frame],
     )?;
+    if rows == 0 {
+        // Dropped: rolled back.
+        return Ok(false);
+    }
     // One statement per table, the rows as arrays (one round trip each).
     if !c.poses.is_empty() {
         let sequences: Vec<i64> = c.poses.iter().map(|(s, _)| *s as i64).collect();
@@ -681,7 +703,7 @@ fn write(client: &mut postgres::Client, server_id: &str, c: &ReplicaCommit) -> R
             &[&c.session_id, &axis(0), &axis(1), &axis(2), &blocks],
         )?;
     }
-    tx.commit()
+    tx.commit().map(|()| true)
 }
 
 #[cfg(test)]

@@ -80,6 +80,34 @@ async fn every_commit_is_copied_to_postgres() {
     );
 }
 
+/// A commit still queued on a server after another server has taken its session
+/// over (`Replica::claim`: here the same UPDATE, naming another writer) is fenced
+/// off: the row keeps naming the other server, none of the commit's poses are
+/// written, and the server counts it; its robot is served all the same.
+#[tokio::test(flavor = "multi_thread")]
+async fn commits_after_another_server_took_the_session_over_are_fenced_off() {
+    let pg = Postgres::start();
+    let mut server = Server::start(&["--no-perception", "--replica-url", &pg.url()]);
+    let (tum, grpc) = (format!("tum:{}", tum_dir().display()), server.grpc_url());
+    let robot = std::thread::spawn(move || run_client(&["--source", &tum, "--server", &grpc, "--robot-id", "fenced", "--rate", "15"]));
+    let poses = || pg.try_query("SELECT count(*) FROM stillmap_poses").map_or(0, |rows| rows[0].get::<_, i64>(0));
+    eventually(Duration::from_secs(20), "the session's first commits copied", async || poses() > 0).await;
+    pg.execute("UPDATE stillmap_sessions SET server_id = 'server-x'");
+    let at_claim = poses();
+    let (out, summary) = robot.join().expect("the robot's thread");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(summary.expect("summary")["poses_returned"], 150, "served all the same");
+    let metrics = server.get_text("/metrics").await;
+    server.terminate();
+    let writer = pg.query("SELECT server_id FROM stillmap_sessions");
+    assert_eq!(writer.len(), 1);
+    assert_eq!(writer[0].get::<_, String>(0), "server-x", "the other server stays the writer");
+    assert_eq!(poses(), at_claim, "nothing of the fenced commits was written ({at_claim} poses before them)");
+    let fenced = metric(&metrics, "stillmap_replica_fenced_total");
+    assert!(fenced > 0, "fenced commits counted");
+    eprintln!("{at_claim} of 150 poses copied before the other server's claim; {fenced} commits fenced off after it");
+}
+
 /// PostgreSQL down: the robot is served as ever (the server's own store has
 /// everything), nothing is counted as copied, and the server stops promptly.
 #[tokio::test(flavor = "multi_thread")]
