@@ -89,7 +89,10 @@ async fn commits_after_another_server_took_the_session_over_are_fenced_off() {
     let pg = Postgres::start();
     let mut server = Server::start(&["--no-perception", "--replica-url", &pg.url()]);
     let (tum, grpc) = (format!("tum:{}", tum_dir().display()), server.grpc_url());
-    let robot = std::thread::spawn(move || run_client(&["--source", &tum, "--server", &grpc, "--robot-id", "fenced", "--rate", "15"]));
+    let robot = std::thread::Builder::new()
+        .name("robot".into())
+        .spawn(move || run_client(&["--source", &tum, "--server", &grpc, "--robot-id", "fenced", "--rate", "15"]))
+        .expect("a thread for the robot");
     let poses = || pg.try_query("SELECT count(*) FROM stillmap_poses").map_or(0, |rows| rows[0].get::<_, i64>(0));
     eventually(Duration::from_secs(20), "the session's first commits copied", async || poses() > 0).await;
     pg.execute("UPDATE stillmap_sessions SET server_id = 'server-x'");
