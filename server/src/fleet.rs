@@ -52,7 +52,7 @@ pub struct StoredKeyframes {
     pub fleet: String,
     pub session_id: String,
     pub camera: Camera,
-    /// Oldest first.
+    /// In any order.
     pub keyframes: Vec<KeyframeRecord>,
 }
 
@@ -62,6 +62,16 @@ enum Work {
     Keyframe(FleetJob),
     /// A resumed session's stored keyframes: indexed.
     Stored(StoredKeyframes),
+}
+
+impl Work {
+    /// The keyframes it carries (what the backlog counts).
+    fn keyframes(&self) -> usize {
+        match self {
+            Work::Keyframe(_) => 1,
+            Work::Stored(s) => s.keyframes.len(),
+        }
+    }
 }
 
 /// A session as its fleet knows it.
@@ -246,6 +256,7 @@ impl FleetService {
             .name("places".into())
             .spawn(move || {
                 for work in rx {
+                    let carried = work.keyframes();
                     let (session, done) = match work {
                         Work::Keyframe(job) => (job.session_id.clone(), crate::pool::caught(|| worker_shared.process(job))),
                         Work::Stored(stored) => (stored.session_id.clone(), crate::pool::caught(|| worker_shared.index_stored(stored))),
@@ -257,7 +268,7 @@ impl FleetService {
                             "place recognition panicked (a bug; the keyframe or the stored keyframes are left out): {panic}"
                         );
                     }
-                    worker_backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                    worker_backlog.fetch_sub(carried, std::sync::atomic::Ordering::SeqCst);
                 }
             })
             .map_err(FleetError::Thread)?;
@@ -326,9 +337,10 @@ impl FleetService {
         }
         if wait {
             let Some(tx) = lock(&self.jobs).clone() else { return };
-            self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            let n = stored.keyframes.len();
+            self.backlog.fetch_add(n, std::sync::atomic::Ordering::SeqCst);
             if tx.send(Work::Stored(stored)).is_err() {
-                self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
             }
             return;
         }
@@ -345,15 +357,16 @@ impl FleetService {
     /// queue is full (nothing when the thread is stopping).
     fn enqueue(&self, work: Work) -> Option<Work> {
         let tx = lock(&self.jobs).clone()?;
-        self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let n = work.keyframes();
+        self.backlog.fetch_add(n, std::sync::atomic::Ordering::SeqCst);
         match tx.try_send(work) {
             Ok(()) => None,
             Err(TrySendError::Full(work)) => {
-                self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
                 Some(work)
             }
             Err(TrySendError::Disconnected(_)) => {
-                self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
                 None
             }
         }
@@ -989,7 +1002,14 @@ impl Shared {
         let mut fleets = lock(&self.fleets);
         let Some(f) = fleets.get_mut(&fleet) else { return };
         let count = places.len();
-        for (id, indexed, bow) in places {
+        // Those older than every keyframe it has indexed go in as the oldest, newest
+        // of them first; the others as new ones, oldest first.
+        let oldest_here = f.members[m].indexed.iter().min().copied();
+        let (older, newer): (Vec<_>, Vec<_>) = places.into_iter().partition(|(id, _, _)| oldest_here.is_some_and(|o| *id < o));
+        for (id, indexed, bow) in older.into_iter().rev() {
+            self.index_at(f, m, id, indexed, bow, true);
+        }
+        for (id, indexed, bow) in newer {
             self.add_place(f, m, id, indexed, bow);
         }
         tracing::debug!(fleet, session = session_id, keyframes = count, "a resumed session's stored keyframes indexed in its fleet");
@@ -1005,7 +1025,7 @@ impl Shared {
     /// Indexes a keyframe of member `m`; an unmerged member keeps only its latest
     /// `fleet.pending_keyframes` there.
     fn add_place(&self, f: &mut Fleet, m: usize, id: u64, indexed: Indexed, bow: BowVector) {
-        self.index(f, m, id, indexed, bow);
+        self.index_at(f, m, id, indexed, bow, false);
         if f.members[m].frame.is_none() {
             while f.members[m].indexed.len() > self.config.pending_keyframes {
                 if let Some(old) = f.members[m].indexed.pop_front() {
@@ -1016,7 +1036,11 @@ impl Shared {
         }
     }
 
-    fn index(&self, f: &mut Fleet, m: usize, id: u64, indexed: Indexed, bow: BowVector) {
+    /// Indexes keyframe `id` of member `m`: as the newest in the fleet, or, when
+    /// `older` (a resumed session's keyframe older than any of its indexed ones),
+    /// as the oldest, the first forgotten beyond `fleet.max_places` (so stored
+    /// history never pushes out the fleet's current keyframes).
+    fn index_at(&self, f: &mut Fleet, m: usize, id: u64, indexed: Indexed, bow: BowVector, older: bool) {
         let Indexed { session_from_camera, place, timestamp_ns } = indexed;
         let key = (m as u32, id);
         // As a candidate, only the features with depth count, and of them only the
@@ -1030,8 +1054,13 @@ impl Shared {
         });
         f.index.insert(key, bow);
         if f.places.insert(key, Indexed { session_from_camera, place, timestamp_ns }).is_none() {
-            f.order.push_back(key);
-            f.members[m].indexed.push_back(id);
+            if older {
+                f.order.push_front(key);
+                f.members[m].indexed.push_front(id);
+            } else {
+                f.order.push_back(key);
+                f.members[m].indexed.push_back(id);
+            }
         }
         // The oldest first (keys an unmerged member dropped already are skipped).
         while f.places.len() > self.config.max_places {
@@ -1219,10 +1248,11 @@ mod tests {
     /// A resumed session's stored keyframes are indexed in its fleet here, in order:
     /// a merged one's all (up to `fleet.max_places`), an unmerged one's latest
     /// `fleet.pending_keyframes`; keyframes already indexed are not added again, and
-    /// a session not in the fleet (or a fleet not held) gets nothing.
+    /// a session not in the fleet (or a fleet not held) gets nothing. Older ones
+    /// are the first forgotten beyond `fleet.max_places`, before current ones.
     #[test]
     fn a_resumed_sessions_stored_keyframes_are_indexed_here() {
-        let config = FleetConfig { pending_keyframes: 2, ..FleetConfig::default() };
+        let config = FleetConfig { pending_keyframes: 2, max_places: 9, ..FleetConfig::default() };
         let service = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
         let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
         let keyframes = |ids: std::ops::Range<u64>| -> Vec<KeyframeRecord> {
@@ -1253,20 +1283,33 @@ mod tests {
         service.index_stored(stored("d1", 0..3), true);
         service.index_stored(stored("nobody", 0..5), false);
         service.index_stored(StoredKeyframes { fleet: "yard".into(), ..stored("b1", 0..5) }, false);
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while service.backlog() > 0 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        let view = service.get("lab").expect("the fleet");
-        let indexed = |id: &str| {
+        let drained = || {
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while service.backlog() > 0 && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            service.get("lab").expect("the fleet")
+        };
+        let view = drained();
+        let indexed_in = |view: &FleetView, id: &str| {
             let m = view.members.iter().find(|m| m.session_id == id).expect("a member");
             (m.indexed_keyframes, m.oldest_indexed_keyframe)
         };
+        let indexed = |id: &str| indexed_in(&view, id);
         assert_eq!(indexed("b1"), (7, Some(0)), "merged: every stored keyframe, 3 and 4 once");
         assert_eq!(indexed("d1"), (2, Some(3)), "unmerged: the latest fleet.pending_keyframes");
         assert_eq!(view.indexed_keyframes, 9);
         assert_eq!(view.members.len(), 2, "no member made for an unknown session");
         assert!(service.get("yard").is_none(), "nor a fleet");
+        // Full (fleet.max_places 9): a new merged session's two keyframes push out
+        // b1's two oldest, read back last, not its current ones.
+        assert!(service.join_carried("lab", "c1", "robot-c", Some(FleetFrame { lineage: "a0".into(), ..frame(false, &moved) })));
+        service.index_stored(stored("c1", 0..2), false);
+        let view = drained();
+        assert_eq!(view.indexed_keyframes, 9);
+        assert_eq!(indexed_in(&view, "c1"), (2, Some(0)));
+        assert_eq!(indexed_in(&view, "b1"), (5, Some(2)), "b1's 0 and 1 forgotten first");
+        assert_eq!(indexed_in(&view, "d1"), (2, Some(3)));
         service.close();
     }
 

@@ -85,7 +85,7 @@ async fn leave_moved_sessions(
 ) {
     let mut changes = membership.changes();
     loop {
-        let ids = registry.dormant_ids();
+        let ids = registry.stored_ids();
         if !ids.is_empty() {
             let r = replica.clone();
             match tokio::task::spawn_blocking(move || r.writers(&ids)).await {

@@ -159,6 +159,8 @@ pub struct Backfill {
     pub page: Box<dyn FnMut(Vec<crate::store::KeyframeRecord>) -> bool + Send>,
 }
 
+/// Sessions remembered as fenced off (for logging each once); forgotten beyond it.
+const MAX_FENCED_LOGGED: usize = 4096;
 /// Keyframe records read back per query (about 50 KB each).
 const BACKFILL_PAGE: usize = 32;
 /// Backfills waiting for the thread; more are left out (logged).
@@ -338,8 +340,14 @@ impl Replica {
     /// them out (logged: the session goes on without them here).
     pub fn backfill(&self, job: Backfill) {
         let Some(tx) = crate::lock(&self.backfills).clone() else { return };
-        if let Err(TrySendError::Full(job)) = tx.try_send(job) {
-            tracing::warn!(session = %job.session_id, "replica: too many resumed sessions wait for their older keyframes; this one's are not read back");
+        match tx.try_send(job) {
+            Ok(()) => {}
+            Err(TrySendError::Full(job)) => {
+                tracing::warn!(session = %job.session_id, "replica: too many resumed sessions wait for their older keyframes; this one's are not read back");
+            }
+            Err(TrySendError::Disconnected(job)) => {
+                tracing::error!(session = %job.session_id, "replica: the thread reading older keyframes back has stopped (a bug); not read back");
+            }
         }
     }
 
@@ -464,6 +472,9 @@ fn copy(
                             counters.write_micros.inc_by(started.elapsed().as_micros() as u64);
                         } else {
                             counters.fenced.inc();
+                            if fenced.len() >= MAX_FENCED_LOGGED {
+                                fenced.clear();
+                            }
                             if fenced.insert(commit.session_id.clone()) {
                                 tracing::warn!(
                                     session = %commit.session_id,

@@ -1402,20 +1402,28 @@ impl Registry {
         }
     }
 
-    /// The ids of the stored sessions not in memory.
-    pub fn dormant_ids(&self) -> Vec<String> {
-        read(&self.dormant).keys().cloned().collect()
+    /// The ids of the stored sessions that are not live here: out of memory, or
+    /// brought back read-only for a query.
+    pub fn stored_ids(&self) -> Vec<String> {
+        let mut ids: Vec<String> = read(&self.dormant).keys().cloned().collect();
+        ids.extend(read(&self.sessions).values().filter(|s| s.archived).map(|s| s.id.clone()));
+        ids
     }
 
     /// Leaves out of this server's listing the stored sessions that `holder_of` says
     /// another server holds now (a session that moved on while this server was away:
-    /// this copy is older), so that queries about them go to that server. Returns
-    /// the ids left out.
+    /// this copy is older), so that queries about them go to that server; a copy a
+    /// query brought into memory leaves memory too. Returns the ids left out.
     pub fn leave_moved(&self, holder_of: impl Fn(&str) -> Option<String>) -> Vec<String> {
         let mut dormant = write(&self.dormant);
-        let moved: Vec<(String, String)> = dormant.keys().filter_map(|id| holder_of(id).map(|h| (id.clone(), h))).collect();
+        let mut sessions = write(&self.sessions);
+        let stored = dormant.keys().cloned().chain(sessions.values().filter(|s| s.archived).map(|s| s.id.clone()));
+        let moved: Vec<(String, String)> = stored.filter_map(|id| holder_of(&id).map(|h| (id, h))).collect();
         for (id, holder) in &moved {
             dormant.remove(id);
+            if sessions.get(id).is_some_and(|s| s.archived) && sessions.remove(id).is_some() {
+                self.metrics.resident_delta(-1);
+            }
             tracing::info!(session = %id, holder = %holder, "stored here, but it went on on another server: queries about it go there");
         }
         moved.into_iter().map(|(id, _)| id).collect()
@@ -1608,7 +1616,12 @@ impl Registry {
             find_within_s: self.config.resume_find_s,
         };
         let map = self.restored_map(&s);
-        let oldest_read = s.keyframes.iter().map(|k| k.id).min();
+        // The newest keyframes (all a resume read from the shared storage; of a
+        // local copy, as many), the others after them in the background.
+        let mut newest = std::mem::take(&mut s.keyframes);
+        newest.sort_by_key(|k| k.id);
+        let newest = newest.split_off(newest.len().saturating_sub(RESUME_KEYFRAMES));
+        let oldest_read = newest.first().map(|k| k.id);
         if let Some(f) = &self.fleets {
             f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame);
             // Its map can be found by the fleet's robots here at once.
@@ -1616,7 +1629,7 @@ impl Registry {
                 fleet: fleet_name.clone(),
                 session_id: id.to_string(),
                 camera: tracking_camera.clone(),
-                keyframes: std::mem::take(&mut s.keyframes),
+                keyframes: newest,
             };
             f.index_stored(stored, false);
         }
@@ -1672,7 +1685,8 @@ impl Registry {
             before_id,
             page: Box::new(move |keyframes| {
                 if let Err(e) = store.put_keyframes(&id, &keyframes) {
-                    tracing::warn!(session = %id, "older keyframe records not kept in this server's store: {e}");
+                    tracing::warn!(session = %id, "older keyframe records not kept in this server's store (no more are read back): {e}");
+                    return false;
                 }
                 if let Some(f) = &fleets {
                     let stored =
@@ -1990,12 +2004,13 @@ mod tests {
     }
 
     /// A query's load of a stored session that is left out of the listing while it
-    /// reads the store (the session went on on another server) is dropped: the
-    /// older copy never comes into memory to answer instead of the live one.
+    /// reads the store (the session went on on another server) is dropped, and a
+    /// copy loaded just before leaves memory: the older copy does not answer
+    /// instead of the live one.
     #[test]
     fn a_load_racing_a_move_elsewhere_is_dropped() {
         let config = SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() };
-        let registry = registry_with(Some("load-race"), config, LimitsConfig::default());
+        let registry = registry_with(Some("load-race"), config.clone(), LimitsConfig::default());
         let (sink, _rx) = mpsc::channel(4);
         let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
         let id = opened.id.clone();
@@ -2010,6 +2025,22 @@ mod tests {
         assert!(registry.resident(&id).is_none() && registry.info(&id).is_none(), "nor is it listed");
         assert!(registry.get(&id).is_none(), "queries about it go to server-a");
         assert_eq!(metric(&registry, "stillmap_sessions_loaded_total").as_deref(), Some("stillmap_sessions_loaded_total 0"));
+        registry.close_all();
+        registry.join_workers();
+
+        // A load that finished just before the check: the copy in memory leaves too.
+        let registry = registry_with(Some("load-before"), config, LimitsConfig::default());
+        let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
+        let id = opened.id.clone();
+        opened.detach(&sink);
+        drop(opened);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), 1);
+        assert!(registry.get(&id).is_some_and(|s| s.is_archived()), "brought back for a query");
+        assert_eq!(registry.stored_ids(), [id.clone()]);
+        assert_eq!(registry.leave_moved(|_| Some("server-a".into())), std::slice::from_ref(&id));
+        assert!(registry.resident(&id).is_none() && registry.info(&id).is_none() && registry.get(&id).is_none());
+        assert_eq!(metric(&registry, "stillmap_sessions_resident ").as_deref(), Some("stillmap_sessions_resident 0"));
         registry.close_all();
         registry.join_workers();
     }
