@@ -2037,7 +2037,7 @@ mod tests {
         std::thread::sleep(std::time::Duration::from_millis(5));
         assert_eq!(registry.evict_idle(), 1);
         assert!(registry.get(&id).is_some_and(|s| s.is_archived()), "brought back for a query");
-        assert_eq!(registry.stored_ids(), [id.clone()]);
+        assert_eq!(registry.stored_ids(), std::slice::from_ref(&id));
         assert_eq!(registry.leave_moved(|_| Some("server-a".into())), std::slice::from_ref(&id));
         assert!(registry.resident(&id).is_none() && registry.info(&id).is_none() && registry.get(&id).is_none());
         assert_eq!(metric(&registry, "stillmap_sessions_resident ").as_deref(), Some("stillmap_sessions_resident 0"));
