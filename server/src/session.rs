@@ -2009,15 +2009,20 @@ mod tests {
     /// instead of the live one.
     #[test]
     fn a_load_racing_a_move_elsewhere_is_dropped() {
-        let config = SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() };
-        let registry = registry_with(Some("load-race"), config.clone(), LimitsConfig::default());
-        let (sink, _rx) = mpsc::channel(4);
-        let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
-        let id = opened.id.clone();
-        opened.detach(&sink);
-        drop(opened);
-        std::thread::sleep(std::time::Duration::from_millis(5));
-        assert_eq!(registry.evict_idle(), 1);
+        // A registry with a store holding one session, out of memory.
+        let evicted = |name: &str| {
+            let config = SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() };
+            let registry = registry_with(Some(name), config, LimitsConfig::default());
+            let (sink, _rx) = mpsc::channel(4);
+            let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
+            let id = opened.id.clone();
+            opened.detach(&sink);
+            drop(opened);
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            assert_eq!(registry.evict_idle(), 1);
+            (registry, id)
+        };
+        let (registry, id) = evicted("load-race");
         // A query reads the store; meanwhile the session is found written on server-a.
         let stored = registry.store.as_ref().expect("a store").load(&id).expect("readable").expect("stored");
         assert_eq!(registry.leave_moved(|_| Some("server-a".into())), std::slice::from_ref(&id));
@@ -2029,13 +2034,7 @@ mod tests {
         registry.join_workers();
 
         // A load that finished just before the check: the copy in memory leaves too.
-        let registry = registry_with(Some("load-before"), config, LimitsConfig::default());
-        let opened = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
-        let id = opened.id.clone();
-        opened.detach(&sink);
-        drop(opened);
-        std::thread::sleep(std::time::Duration::from_millis(5));
-        assert_eq!(registry.evict_idle(), 1);
+        let (registry, id) = evicted("load-before");
         assert!(registry.get(&id).is_some_and(|s| s.is_archived()), "brought back for a query");
         assert_eq!(registry.stored_ids(), std::slice::from_ref(&id));
         assert_eq!(registry.leave_moved(|_| Some("server-a".into())), std::slice::from_ref(&id));
