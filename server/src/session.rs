@@ -1600,28 +1600,21 @@ impl Registry {
             }
         }
         let tracking_camera = crate::convert::camera_of(&camera);
-        let keyframes = s
-            .keyframes
-            .iter()
-            .rev()
-            .take(RESUME_KEYFRAMES)
-            .map(|k| crate::fleet::place_of_record(&tracking_camera, k))
-            .map(|(p, w)| (w, p))
-            .collect();
         let next_keyframe_id = s.keyframes.iter().map(|k| k.id + 1).max().unwrap_or(0).max(s.meta.keyframes);
-        let anchor = crate::pipeline::track::ResumeAnchor {
-            keyframes,
-            verify: stillmap_places::VerifyConfig::default(),
-            next_keyframe_id,
-            find_within_s: self.config.resume_find_s,
-        };
         let map = self.restored_map(&s);
         // The newest keyframes (all a resume read from the shared storage; of a
-        // local copy, as many), the others after them in the background.
+        // local copy, as many): the tracker finds itself among them, the fleet
+        // indexes them at once, and the older ones follow in the background.
         let mut newest = std::mem::take(&mut s.keyframes);
         newest.sort_by_key(|k| k.id);
         let newest = newest.split_off(newest.len().saturating_sub(RESUME_KEYFRAMES));
         let oldest_read = newest.first().map(|k| k.id);
+        let anchor = crate::pipeline::track::ResumeAnchor {
+            keyframes: newest.iter().rev().map(|k| crate::fleet::place_of_record(&tracking_camera, k)).map(|(p, w)| (w, p)).collect(),
+            verify: stillmap_places::VerifyConfig::default(),
+            next_keyframe_id,
+            find_within_s: self.config.resume_find_s,
+        };
         if let Some(f) = &self.fleets {
             f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame);
             // Its map can be found by the fleet's robots here at once.
