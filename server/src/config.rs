@@ -164,6 +164,10 @@ pub struct FleetConfig {
     pub map_keyframes: usize,
     /// Keyframes a fleet map fuses (again) per pass of its thread: the bound on one pass's time.
     pub refuse_per_pass: usize,
+    /// With a store, a fused fleet map that changed is saved at most this often
+    /// (seconds; its changed blocks, on the fleet map's thread) and when the server
+    /// stops, so that it comes back at restart.
+    pub map_save_interval_s: f64,
     /// Niceness of the fleets' background threads (the pose graph's and the fleet
     /// map's; not place recognition, whose merges are awaited): they yield the
     /// cores to tracking. 0: the server's own.
@@ -196,6 +200,7 @@ impl Default for FleetConfig {
             map_queue: 64,
             map_keyframes: 1000,
             refuse_per_pass: 8,
+            map_save_interval_s: 5.0,
             nice: 10,
         }
     }
@@ -684,6 +689,9 @@ impl ServerConfig {
                 f.map_queue, f.refuse_per_pass, f.map_keyframes
             ));
         }
+        if !(f.map_save_interval_s > 0.0 && f.map_save_interval_s <= 3600.0) {
+            return bad(format!("fleet.map_save_interval_s must be in (0, 3600] seconds, got {}", f.map_save_interval_s));
+        }
         let sigma = |v: f64| v > 0.0 && v <= 10.0;
         if ![f.odometry_sigma_m, f.odometry_sigma_deg, f.place_sigma_m, f.place_sigma_deg].into_iter().all(sigma) {
             return bad(format!(
@@ -878,6 +886,7 @@ mod tests {
         assert!(err("[fleet]\ncandidates = 0\n").contains("fleet.candidates must be in 1..=32"));
         assert!(err("[fleet]\nagreement_m = -1.0\n").contains("fleet.agreement_m must be in (0, 1]"));
         assert!(err("[fleet]\ngraph_interval_s = -1.0\n").contains("fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600"));
+        assert!(err("[fleet]\nmap_save_interval_s = 0.0\n").contains("fleet.map_save_interval_s must be in (0, 3600] seconds, got 0"));
         assert!(err("[fleet]\nplace_sigma_m = 0.0\n").contains("place_sigma_m and place_sigma_deg must be in (0, 10]"));
         assert!(
             err("[perception.ego_motion]\nmoving_majority_share = 0.0\n")

@@ -244,7 +244,7 @@ impl FleetService {
             vocabulary,
             verify,
             detector,
-            store,
+            store: store.clone(),
             fleets: Mutex::default(),
             metrics: metrics.clone(),
         });
@@ -297,8 +297,10 @@ impl FleetService {
                 max_keyframes: config.map_keyframes,
                 refuse_per_pass: config.refuse_per_pass,
                 nice: config.nice,
+                save_interval: Duration::from_secs_f64(config.map_save_interval_s),
             },
             Arc::new(move |fleet: &str, session: &str| maps_shared.transform(fleet, session)),
+            store,
             metrics,
         )
         .map_err(FleetError::Thread)?;

@@ -23,11 +23,20 @@
 //! restored from the store, a full queue, a catch-up after a merge) the fleet
 //! products fall back to the merge of the sessions' own maps. The thread runs at
 //! niceness `fleet.nice`: it yields the cores to tracking.
+//!
+//! Kept across restarts: with a store, each fleet's map (its blocks changed since
+//! the last save, and how many keyframes of each session it fused) is saved at
+//! most every `fleet.map_save_interval_s` and when the server stops, after the
+//! keyframes still waiting are fused (for at most [`CLOSE_BUDGET`]). At start the
+//! saved maps come back, so a fleet whose sessions are all fused there is served
+//! from it again. The inputs kept to fuse keyframes again are not saved (200 KB
+//! each): a keyframe fused before the restart stays where it was fused, as one
+//! whose input was dropped beyond `fleet.map_keyframes`.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use nalgebra::Isometry3;
 use stillmap_mapping::map::FusionInput;
@@ -37,6 +46,7 @@ use stillmap_tracking::Camera;
 
 use crate::fleet::FleetTransform;
 use crate::lock;
+use crate::store::{FleetMapHead, Store};
 
 /// One map-lane job of a session, for its fleet's map.
 pub struct FleetMapJob {
@@ -75,6 +85,8 @@ pub struct FleetMapState {
     fused: HashMap<String, u64>,
     /// Keyframes fused again after their fleet pose moved.
     refused: u64,
+    /// The map's change stamp at its last save (or load).
+    saved_stamp: u64,
 }
 
 impl FleetMapState {
@@ -133,6 +145,8 @@ pub struct FleetMapConfig {
     pub refuse_per_pass: usize,
     /// The thread's niceness (`fleet.nice`).
     pub nice: i32,
+    /// How often at most a fleet map that changed is saved (`fleet.map_save_interval_s`).
+    pub save_interval: Duration,
 }
 
 /// The fleets' maps and their thread.
@@ -146,14 +160,21 @@ pub struct FleetMaps {
 pub type TransformOf = Arc<dyn Fn(&str, &str) -> Option<FleetTransform> + Send + Sync>;
 
 impl FleetMaps {
-    pub fn start(config: FleetMapConfig, transform_of: TransformOf, metrics: Arc<crate::metrics::Metrics>) -> std::io::Result<Self> {
+    /// Starts the thread, with the maps saved in `store` (if any) back.
+    pub fn start(
+        config: FleetMapConfig,
+        transform_of: TransformOf,
+        store: Option<Arc<Store>>,
+        metrics: Arc<crate::metrics::Metrics>,
+    ) -> std::io::Result<Self> {
         let (tx, rx) = std::sync::mpsc::sync_channel::<FleetMapJob>(config.queue.max(1));
-        let states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>> = Arc::default();
+        let states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>> = Arc::new(Mutex::new(load(&config, store.as_deref())));
         let worker_states = states.clone();
         let worker = std::thread::Builder::new().name("fleet-map".into()).spawn(move || {
             crate::lower_this_thread(config.nice, "fleet-map");
+            let store = store.as_deref();
             // A panic (a bug) costs the job it was on, not the thread.
-            while let Err(panic) = crate::pool::caught(|| run(&config, &rx, &worker_states, &transform_of)) {
+            while let Err(panic) = crate::pool::caught(|| run(&config, &rx, &worker_states, &transform_of, store)) {
                 metrics.panicked("fleet_map");
                 tracing::error!("the fleet map panicked (a bug; the keyframe it was fusing is left out): {panic}");
                 // One that recurs on every pass is logged once a second at most.
@@ -188,13 +209,114 @@ impl FleetMaps {
 
 /// How often a pass runs without a job (merges and pose-graph solves move keyframes).
 const PASS_INTERVAL: Duration = Duration::from_millis(250);
+/// When the server stops, keyframes still waiting are fused for at most this
+/// long before the maps are saved (within the server's 5 s shutdown grace).
+pub const CLOSE_BUDGET: Duration = Duration::from_secs(2);
+
+/// A fleet's map handle around `state`.
+fn handle(state: FleetMapState) -> Arc<FleetMapHandle> {
+    let counts = Mutex::new(state.counts());
+    Arc::new(FleetMapHandle { state: Mutex::new(state), counts })
+}
+
+/// An empty fleet map state around `map`.
+fn state_of(map: VoxelMap) -> FleetMapState {
+    let saved_stamp = map.change_stamp();
+    FleetMapState {
+        map,
+        rays: HashMap::new(),
+        kept: HashMap::new(),
+        order: VecDeque::new(),
+        held: HashMap::new(),
+        fused: HashMap::new(),
+        refused: 0,
+        saved_stamp,
+    }
+}
+
+/// The fleet maps saved in `store`, as the thread starts with them. A map of
+/// another voxel size, or one the store cannot read, is left out (logged): its
+/// fleet falls back to merging its sessions' maps, as after a restart without it.
+fn load(config: &FleetMapConfig, store: Option<&Store>) -> HashMap<String, Arc<FleetMapHandle>> {
+    let Some(store) = store else { return HashMap::new() };
+    let saved = match store.fleet_maps() {
+        Ok(saved) => saved,
+        Err(e) => {
+            tracing::error!("fused fleet maps cannot be read from the store: {e}");
+            return HashMap::new();
+        }
+    };
+    let mut out = HashMap::new();
+    for (fleet, (head, blocks)) in saved {
+        if head.voxel_size_m != config.mapping.voxel_size_m {
+            tracing::warn!(
+                fleet = %fleet,
+                "the stored fused fleet map has {} m voxels, mapping.voxel_size_m is {} m: left out",
+                head.voxel_size_m,
+                config.mapping.voxel_size_m
+            );
+            continue;
+        }
+        let map = match VoxelMap::new(config.mapping.clone()) {
+            Ok(map) => map,
+            Err(e) => {
+                tracing::error!("fleet map not made: {e}");
+                return HashMap::new();
+            }
+        };
+        let mut map = map.with_blocks(blocks);
+        map.set_change_stamp(head.change_stamp);
+        let mut state = state_of(map);
+        let fused: HashMap<String, u64> = head.fused.into_iter().collect();
+        // Fused here, so held here: no input is kept for them.
+        state.held = fused.clone();
+        state.fused = fused;
+        tracing::info!(fleet = %fleet, keyframes = state.fused.values().sum::<u64>(), "fused fleet map restored from the store");
+        out.insert(fleet, handle(state));
+    }
+    out
+}
+
+/// Saves each fleet map that changed since its last save: its changed blocks and
+/// head, copied under its lock and written after. A failed write is logged and
+/// tried again at the next save (the blocks stay changed since the saved stamp).
+fn save(states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>, store: &Store) {
+    let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+    for (fleet, handle) in all {
+        let (head, blocks) = {
+            let s = lock(&handle.state);
+            let stamp = s.map.change_stamp();
+            if stamp <= s.saved_stamp {
+                continue;
+            }
+            let blocks: Vec<_> = s.map.changed_since(s.saved_stamp).map(|(k, b)| (*k, b.clone())).collect();
+            let head = FleetMapHead {
+                voxel_size_m: s.map.voxel_size(),
+                change_stamp: stamp,
+                fused: s.fused.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+            };
+            (head, blocks)
+        };
+        let started = Instant::now();
+        match store.put_fleet_map(&fleet, &head, &blocks) {
+            Ok(()) => {
+                tracing::debug!(fleet = %fleet, blocks = blocks.len(), ms = started.elapsed().as_secs_f64() * 1e3, "fused fleet map saved");
+                let mut s = lock(&handle.state);
+                s.saved_stamp = s.saved_stamp.max(head.change_stamp);
+            }
+            Err(e) => tracing::warn!(fleet = %fleet, "fused fleet map not saved (tried again at the next save): {e}"),
+        }
+    }
+}
 
 fn run(
     config: &FleetMapConfig,
     jobs: &Receiver<FleetMapJob>,
     states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>,
     transform_of: &TransformOf,
+    store: Option<&Store>,
 ) {
+    let mut saved_at = Instant::now();
     loop {
         match jobs.recv_timeout(PASS_INTERVAL) {
             Ok(job) => {
@@ -204,17 +326,7 @@ fn run(
                         Some(s) => s.clone(),
                         None => match VoxelMap::new(config.mapping.clone()) {
                             Ok(map) => {
-                                let state = FleetMapState {
-                                    map,
-                                    rays: HashMap::new(),
-                                    kept: HashMap::new(),
-                                    order: VecDeque::new(),
-                                    held: HashMap::new(),
-                                    fused: HashMap::new(),
-                                    refused: 0,
-                                };
-                                let counts = Mutex::new(state.counts());
-                                let s = Arc::new(FleetMapHandle { state: Mutex::new(state), counts });
+                                let s = handle(state_of(map));
                                 all.insert(job.fleet.clone(), s.clone());
                                 s
                             }
@@ -235,7 +347,24 @@ fn run(
                     pass(&fleet, &state, config, transform_of);
                 }
             }
-            Err(RecvTimeoutError::Disconnected) => return,
+            Err(RecvTimeoutError::Disconnected) => {
+                // The server stops: fuse what waits (bounded), then save.
+                let deadline = Instant::now() + CLOSE_BUDGET;
+                let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+                for (fleet, state) in all {
+                    while Instant::now() < deadline && pass(&fleet, &state, config, transform_of) > 0 {}
+                }
+                if let Some(store) = store {
+                    save(states, store);
+                }
+                return;
+            }
+        }
+        if let Some(store) = store
+            && saved_at.elapsed() >= config.save_interval
+        {
+            save(states, store);
+            saved_at = Instant::now();
         }
     }
 }
@@ -303,13 +432,13 @@ fn take_job(s: &mut FleetMapState, job: FleetMapJob, max_keyframes: usize) {
 /// Fuses the keyframes of merged sessions not fused yet, and fuses again those
 /// whose fleet pose moved, at most `refuse_per_pass` of them. Nothing is fused
 /// while the fleet has one merged session (its map is that session's own): the
-/// inputs wait until a second one merges.
-fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform_of: &TransformOf) {
+/// inputs wait until a second one merges. Returns the keyframes it fused.
+fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform_of: &TransformOf) -> usize {
     let mut s = lock(&handle.state);
     let transforms: HashMap<String, Option<FleetTransform>> = s.held.keys().map(|id| (id.clone(), transform_of(fleet, id))).collect();
     if transforms.values().filter(|t| t.is_some()).count() < 2 {
         *lock(&handle.counts) = s.counts();
-        return;
+        return 0;
     }
     let (max_t, max_deg) = (config.mapping.refuse_translation_m, config.mapping.refuse_rotation_deg);
     let mut todo: Vec<((String, u64), Isometry3<f64>)> = Vec::new();
@@ -331,6 +460,7 @@ fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform
             }
         }
     }
+    let mut done = 0;
     for (key, target) in todo {
         let FleetMapState { map, rays, kept, refused, fused, .. } = &mut *s;
         let (Some(k), Some(r)) = (kept.get_mut(&key), rays.get(&key.0)) else { continue };
@@ -344,8 +474,10 @@ fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform
         }
         map.integrate(r, &input, &target);
         k.fused_at = Some(target);
+        done += 1;
     }
     *lock(&handle.counts) = s.counts();
+    done
 }
 
 #[cfg(test)]
@@ -380,6 +512,96 @@ mod tests {
         }
     }
 
+    fn config(mapping: MappingConfig, save_interval: Duration) -> FleetMapConfig {
+        FleetMapConfig { mapping, queue: 4, max_keyframes: 10, refuse_per_pass: 8, nice: 0, save_interval }
+    }
+
+    /// Waits until fleet "lab"'s counts satisfy `done`.
+    fn wait_for(maps: &FleetMaps, done: &dyn Fn(FleetMapCounts) -> bool) -> FleetMapCounts {
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        loop {
+            if let Some(c) = maps.state("lab").map(|s| s.counts()).filter(|c| done(*c)) {
+                return c;
+            }
+            assert!(std::time::Instant::now() < deadline, "never got there: {:?}", maps.state("lab").map(|s| s.counts()));
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Fleet "lab"'s occupied voxels and keyframes fused per session ("s", "t").
+    fn contents(maps: &FleetMaps) -> (std::collections::BTreeSet<[i32; 3]>, (u64, u64)) {
+        let s = maps.state("lab").expect("state");
+        let s = lock(&s.state);
+        let voxels = s.map().occupied().map(|(k, _, _)| [k[0], k[1], k[2]]).collect();
+        (voxels, (s.fused("s"), s.fused("t")))
+    }
+
+    /// A fused fleet map is saved (every `save_interval`, and when it stops) and
+    /// comes back at start with what it fused, so the fleet is served from it
+    /// again; it goes on fusing after; a map of another voxel size is left out.
+    #[test]
+    fn a_fused_fleet_map_comes_back_after_a_restart() {
+        let path = std::env::temp_dir().join(format!("stillmap-fleet-map-restart-{}.redb", std::process::id()));
+        let _ = std::fs::remove_file(&path);
+        let store = Arc::new(Store::open(&path).expect("store"));
+        let camera = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0);
+        let merge = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.1), UnitQuaternion::identity());
+        let both: TransformOf =
+            Arc::new(move |_: &str, _: &str| Some(FleetTransform { fleet_from_session: merge, corrections: Arc::default() }));
+        let start = |mapping: MappingConfig, save_interval: Duration| {
+            FleetMaps::start(config(mapping, save_interval), both.clone(), Some(store.clone()), Arc::default()).expect("started")
+        };
+
+        // Saved while it runs, every save_interval.
+        let maps = start(MappingConfig::default(), Duration::from_millis(50));
+        maps.submit(job(&camera, "s", Some(7), Vec::new()));
+        maps.submit(job(&camera, "t", Some(7), Vec::new()));
+        wait_for(&maps, &|c| c.fused == 2);
+        let (before, fused) = contents(&maps);
+        assert_eq!(fused, (1, 1));
+        assert!(before.len() > 200, "{}", before.len());
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        let saved = loop {
+            let saved = store.fleet_maps().expect("read");
+            if let Some((head, blocks)) = saved.get("lab").filter(|(head, _)| head.fused.values().sum::<u64>() == 2) {
+                break (head.clone(), blocks.len());
+            }
+            assert!(std::time::Instant::now() < deadline, "never saved: {:?}", saved.keys().collect::<Vec<_>>());
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert_eq!(saved.0.fused.get("s"), Some(&1));
+        assert!(saved.1 > 0);
+        // A keyframe submitted just before the server stops is fused and saved as it stops.
+        maps.submit(job(&camera, "t", Some(8), Vec::new()));
+        maps.close();
+
+        // Back at start, before any job: every voxel and the keyframes fused.
+        let maps = start(MappingConfig::default(), Duration::from_secs(3600));
+        let c = maps.state("lab").expect("restored").counts();
+        assert_eq!((c.keyframes, c.fused, c.kept_inputs), (3, 3, 0), "{c:?}");
+        let (after, fused) = contents(&maps);
+        assert_eq!(fused, (1, 2));
+        assert_eq!(after, before, "the same occupied voxels");
+        // It goes on fusing: a keyframe seen from 0.5 m further back adds the wall's new place.
+        let mut moved = job(&camera, "t", Some(9), Vec::new());
+        if let Some((_, _, pose, _)) = moved.keyframe.as_mut() {
+            *pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, -0.5), UnitQuaternion::identity());
+        }
+        maps.submit(moved);
+        wait_for(&maps, &|c| c.fused == 4);
+        assert_eq!(contents(&maps).1, (1, 3));
+        assert!(contents(&maps).0.len() > after.len());
+        maps.close();
+
+        // Another voxel size: the stored map is not this server's, the fleet starts empty.
+        let maps = start(MappingConfig { voxel_size_m: 0.04, ..MappingConfig::default() }, Duration::from_secs(3600));
+        assert!(maps.state("lab").is_none());
+        maps.close();
+        drop(maps);
+        drop(store);
+        let _ = std::fs::remove_file(&path);
+    }
+
     /// Keyframes wait until a second session merges, are fused where their merges
     /// put them, move when the pose graph corrects them, and leave the map where
     /// perception takes their samples back.
@@ -389,8 +611,9 @@ mod tests {
         let transforms: Arc<Mutex<HashMap<String, FleetTransform>>> = Arc::default();
         let shared = transforms.clone();
         let maps = FleetMaps::start(
-            FleetMapConfig { mapping: MappingConfig::default(), queue: 4, max_keyframes: 10, refuse_per_pass: 8, nice: 0 },
+            config(MappingConfig::default(), Duration::from_secs(3600)),
             Arc::new(move |_: &str, session: &str| lock(&shared).get(session).cloned()),
+            None,
             Arc::default(),
         )
         .expect("started");

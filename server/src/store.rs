@@ -32,6 +32,10 @@ const BLOCKS: TableDefinition<(&str, i32, i32, i32), &[u8]> = TableDefinition::n
 /// Session id → its frame in its fleet (JSON [`FleetFrame`]), once anchored or merged.
 const FLEET_FRAMES: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_frames");
 const FLEET_GRAPHS: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_graphs");
+/// Fleet name → what its fused map holds (JSON [`FleetMapHead`]).
+const FLEET_MAPS: TableDefinition<&str, &[u8]> = TableDefinition::new("fleet_maps");
+/// The fused fleet maps' blocks, by fleet name and block key.
+const FLEET_MAP_BLOCKS: TableDefinition<(&str, i32, i32, i32), &[u8]> = TableDefinition::new("fleet_map_blocks");
 
 /// redb's page cache unless `store.cache_bytes` says otherwise.
 pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
@@ -114,6 +118,17 @@ pub struct FleetGraph {
     /// `fleet_corrected_from_fleet`), in time order.
     pub corrections: std::collections::BTreeMap<String, Vec<(u64, [f64; 7])>>,
     pub last_solve: Option<GraphSolve>,
+}
+
+/// What a fleet's fused map (`crate::fleet_map`) holds, saved with its blocks.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FleetMapHead {
+    /// The map's voxel size: blocks of another size are not this server's map.
+    pub voxel_size_m: f64,
+    /// The map's change stamp when it was saved.
+    pub change_stamp: u64,
+    /// Keyframes fused in it, per session id.
+    pub fused: std::collections::BTreeMap<String, u64>,
 }
 
 /// What a fleet's pose-graph solve did.
@@ -502,6 +517,50 @@ impl Store {
     /// Every fleet's pose graph, by fleet name.
     pub fn fleet_graphs(&self) -> Result<std::collections::HashMap<String, FleetGraph>, StoreError> {
         self.all_json(FLEET_GRAPHS, "pose graph of fleet")
+    }
+
+    /// Saves what changed in a fleet's fused map: its head and the blocks changed
+    /// since the last save, in one transaction.
+    pub fn put_fleet_map(&self, fleet: &str, head: &FleetMapHead, blocks: &[(BlockKey, Block)]) -> Result<(), StoreError> {
+        let json = serde_json::to_vec(head).map_err(|e| self.err(e))?;
+        let compressed = blocks
+            .iter()
+            .map(|(key, block)| Ok((*key, zstd::bulk::compress(&block.to_bytes(), BLOCK_ZSTD_LEVEL).map_err(|e| self.err(e))?)))
+            .collect::<Result<Vec<_>, StoreError>>()?;
+        let db = self.db_for_write()?;
+        self.written((|| {
+            let tx = db.begin_write().map_err(|e| self.err(e))?;
+            {
+                tx.open_table(FLEET_MAPS).map_err(|e| self.err(e))?.insert(fleet, json.as_slice()).map_err(|e| self.err(e))?;
+                let mut table = tx.open_table(FLEET_MAP_BLOCKS).map_err(|e| self.err(e))?;
+                for (key, bytes) in &compressed {
+                    table.insert((fleet, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
+                }
+            }
+            tx.commit().map_err(|e| self.err(e))
+        })())
+    }
+
+    /// Every saved fleet map: its head and its blocks, by fleet name.
+    #[allow(clippy::type_complexity)]
+    pub fn fleet_maps(&self) -> Result<std::collections::HashMap<String, (FleetMapHead, Vec<(BlockKey, Block)>)>, StoreError> {
+        let heads: std::collections::HashMap<String, FleetMapHead> = self.all_json(FLEET_MAPS, "fused map of fleet")?;
+        let mut out: std::collections::HashMap<String, (FleetMapHead, Vec<(BlockKey, Block)>)> =
+            heads.into_iter().map(|(fleet, head)| (fleet, (head, Vec::new()))).collect();
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
+        let table = match tx.open_table(FLEET_MAP_BLOCKS) {
+            Ok(table) => table,
+            Err(redb::TableError::TableDoesNotExist(_)) => return Ok(out),
+            Err(e) => return Err(self.err(e)),
+        };
+        for entry in table.iter().map_err(|e| self.err(e))? {
+            let (k, v) = entry.map_err(|e| self.err(e))?;
+            let (fleet, x, y, z) = k.value();
+            if let Some((_, blocks)) = out.get_mut(fleet) {
+                blocks.push(([x, y, z], decode_block(v.value())?));
+            }
+        }
+        Ok(out)
     }
 
     /// Every session's fleet frame.

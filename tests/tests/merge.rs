@@ -431,7 +431,7 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     let (status, _) = server.get_json("/api/v1/fleets/nobody").await;
     assert_eq!(status, 404);
 
-    // A restart brings the merge back from the store.
+    // A restart brings the merge back from the store, and the fused fleet map.
     server.terminate();
     let server = Server::start(&["--no-zenoh", "--no-perception", "--store", &store_arg]);
     let (_, after) = server.get_json("/api/v1/fleets/lab").await;
@@ -439,6 +439,19 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     assert_eq!(after["last_correction"], solve, "the pose graph's corrections come back");
     let (_, again) = get_text(&server, &format!("/api/v1/sessions/{b_id}/trajectory?format=tum&frame=fleet")).await;
     assert_eq!(again, b_text);
+    // The fleet was settled before the restart (its map unchanged for three seconds),
+    // so the fused map comes back voxel for voxel, and is what the fleet serves.
+    assert_eq!((&after["map"]["fused"], &after["map"]["keyframes"]), (&map["fused"], &map["keyframes"]), "{after}");
+    let fleet_ply_again =
+        reqwest::get(format!("http://{}/api/v1/fleets/lab/cloud.ply", server.http)).await.expect("GET").bytes().await.expect("body");
+    let header = String::from_utf8_lossy(&fleet_ply_again[..fleet_ply_again.len().min(4096)]).into_owned();
+    assert!(header.contains("fused from their keyframes in the fleet frame"), "after the restart: {header}");
+    let sorted = |ply: &[u8]| {
+        let mut points = ply_points(ply);
+        points.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+        points
+    };
+    assert!(sorted(&fleet_ply_again) == sorted(&fleet_ply), "the fleet map's {n_fleet} voxels come back as they were");
     drop(server);
     let _ = std::fs::remove_file(&store);
 }
