@@ -19,9 +19,9 @@
 //! dropped (what it fused stays, and is no longer moved). Nothing is fused while a
 //! fleet has a single merged session (its map would be that session's own): the
 //! inputs wait for a second one. A fleet whose merged sessions all have every
-//! keyframe fused here is served from this map; otherwise (one session, sessions
-//! restored from the store, a full queue, a catch-up after a merge) the fleet
-//! products fall back to the merge of the sessions' own maps. The thread runs at
+//! keyframe fused here is served from this map; otherwise (one session, a full
+//! queue, a catch-up after a merge, keyframes made after the last save of a server
+//! that was killed) the fleet products fall back to the merge of the sessions' own maps. The thread runs at
 //! niceness `fleet.nice`: it yields the cores to tracking.
 //!
 //! Kept across restarts: with a store, each fleet's map (its blocks changed since
@@ -34,6 +34,7 @@
 //! whose input was dropped beyond `fleet.map_keyframes`.
 
 use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -87,6 +88,9 @@ pub struct FleetMapState {
     refused: u64,
     /// The map's change stamp at its last save (or load).
     saved_stamp: u64,
+    /// Whether the store holds this map (saved or loaded): a first save replaces
+    /// whatever blocks the store held for the fleet.
+    in_store: bool,
 }
 
 impl FleetMapState {
@@ -154,6 +158,8 @@ pub struct FleetMaps {
     states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>>,
     jobs: Mutex<Option<SyncSender<FleetMapJob>>>,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// Set when the server stops: the jobs still queued are only recorded, not fused one by one.
+    closing: Arc<AtomicBool>,
 }
 
 /// How the thread finds a session's transform into its fleet's frame.
@@ -170,18 +176,25 @@ impl FleetMaps {
         let (tx, rx) = std::sync::mpsc::sync_channel::<FleetMapJob>(config.queue.max(1));
         let states: Arc<Mutex<HashMap<String, Arc<FleetMapHandle>>>> = Arc::new(Mutex::new(load(&config, store.as_deref())));
         let worker_states = states.clone();
+        let closing = Arc::new(AtomicBool::new(false));
+        let worker_closing = closing.clone();
         let worker = std::thread::Builder::new().name("fleet-map".into()).spawn(move || {
             crate::lower_this_thread(config.nice, "fleet-map");
             let store = store.as_deref();
-            // A panic (a bug) costs the job it was on, not the thread.
-            while let Err(panic) = crate::pool::caught(|| run(&config, &rx, &worker_states, &transform_of, store)) {
+            // A panic (a bug) costs the job it was on, not the thread; while the
+            // server stops, it ends the thread (the maps are then not saved again:
+            // the last periodic save stands).
+            while let Err(panic) = crate::pool::caught(|| run(&config, &rx, &worker_states, &transform_of, store, &worker_closing)) {
                 metrics.panicked("fleet_map");
                 tracing::error!("the fleet map panicked (a bug; the keyframe it was fusing is left out): {panic}");
+                if worker_closing.load(Ordering::SeqCst) {
+                    return;
+                }
                 // One that recurs on every pass is logged once a second at most.
                 std::thread::sleep(PASS_INTERVAL * 4);
             }
         })?;
-        Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)) })
+        Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)), closing })
     }
 
     /// Hands a map-lane job over; a full queue leaves it out (logged), and the
@@ -198,8 +211,10 @@ impl FleetMaps {
         lock(&self.states).get(name).cloned()
     }
 
-    /// Waits for the queued jobs and stops the thread.
+    /// Records the queued jobs, fuses what waits (for at most [`CLOSE_BUDGET`]),
+    /// saves the maps and stops the thread.
     pub fn close(&self) {
+        self.closing.store(true, Ordering::SeqCst);
         lock(&self.jobs).take();
         if let Some(worker) = lock(&self.worker).take() {
             let _ = worker.join();
@@ -210,7 +225,8 @@ impl FleetMaps {
 /// How often a pass runs without a job (merges and pose-graph solves move keyframes).
 const PASS_INTERVAL: Duration = Duration::from_millis(250);
 /// When the server stops, keyframes still waiting are fused for at most this
-/// long before the maps are saved (within the server's 5 s shutdown grace).
+/// long before the maps are saved. (The server gives its workers 5 s in all to
+/// stop; the queued jobs before it are only recorded, each a compression.)
 pub const CLOSE_BUDGET: Duration = Duration::from_secs(2);
 
 /// A fleet's map handle around `state`.
@@ -231,6 +247,7 @@ fn state_of(map: VoxelMap) -> FleetMapState {
         fused: HashMap::new(),
         refused: 0,
         saved_stamp,
+        in_store: false,
     }
 }
 
@@ -248,7 +265,7 @@ fn load(config: &FleetMapConfig, store: Option<&Store>) -> HashMap<String, Arc<F
     };
     let mut out = HashMap::new();
     for (fleet, (head, blocks)) in saved {
-        if head.voxel_size_m != config.mapping.voxel_size_m {
+        if (head.voxel_size_m - config.mapping.voxel_size_m).abs() > 1e-9 {
             tracing::warn!(
                 fleet = %fleet,
                 "the stored fused fleet map has {} m voxels, mapping.voxel_size_m is {} m: left out",
@@ -267,6 +284,7 @@ fn load(config: &FleetMapConfig, store: Option<&Store>) -> HashMap<String, Arc<F
         let mut map = map.with_blocks(blocks);
         map.set_change_stamp(head.change_stamp);
         let mut state = state_of(map);
+        state.in_store = true;
         let fused: HashMap<String, u64> = head.fused.into_iter().collect();
         // Fused here, so held here: no input is kept for them.
         state.held = fused.clone();
@@ -283,10 +301,10 @@ fn load(config: &FleetMapConfig, store: Option<&Store>) -> HashMap<String, Arc<F
 fn save(states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>, store: &Store) {
     let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
     for (fleet, handle) in all {
-        let (head, blocks) = {
+        let (head, blocks, replace) = {
             let s = lock(&handle.state);
             let stamp = s.map.change_stamp();
-            if stamp <= s.saved_stamp {
+            if stamp <= s.saved_stamp && s.in_store {
                 continue;
             }
             let blocks: Vec<_> = s.map.changed_since(s.saved_stamp).map(|(k, b)| (*k, b.clone())).collect();
@@ -295,14 +313,15 @@ fn save(states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>, store: &Store) {
                 change_stamp: stamp,
                 fused: s.fused.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             };
-            (head, blocks)
+            (head, blocks, !s.in_store)
         };
         let started = Instant::now();
-        match store.put_fleet_map(&fleet, &head, &blocks) {
+        match store.put_fleet_map(&fleet, &head, &blocks, replace) {
             Ok(()) => {
                 tracing::debug!(fleet = %fleet, blocks = blocks.len(), ms = started.elapsed().as_secs_f64() * 1e3, "fused fleet map saved");
                 let mut s = lock(&handle.state);
                 s.saved_stamp = s.saved_stamp.max(head.change_stamp);
+                s.in_store = true;
             }
             Err(e) => tracing::warn!(fleet = %fleet, "fused fleet map not saved (tried again at the next save): {e}"),
         }
@@ -315,6 +334,7 @@ fn run(
     states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>,
     transform_of: &TransformOf,
     store: Option<&Store>,
+    closing: &AtomicBool,
 ) {
     let mut saved_at = Instant::now();
     loop {
@@ -339,7 +359,10 @@ fn run(
                 };
                 let fleet = job.fleet.clone();
                 take_job(&mut lock(&state.state), job, config.max_keyframes);
-                pass(&fleet, &state, config, transform_of);
+                // While the server stops, the passes below fuse what waits, bounded.
+                if !closing.load(Ordering::SeqCst) {
+                    pass(&fleet, &state, config, transform_of);
+                }
             }
             Err(RecvTimeoutError::Timeout) => {
                 let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
@@ -465,15 +488,16 @@ fn pass(fleet: &str, handle: &FleetMapHandle, config: &FleetMapConfig, transform
         let FleetMapState { map, rays, kept, refused, fused, .. } = &mut *s;
         let (Some(k), Some(r)) = (kept.get_mut(&key), rays.get(&key.0)) else { continue };
         let Ok(input) = FusionInput::from_compact(&k.input, r) else { continue };
-        match k.fused_at {
-            Some(at) => {
-                map.deintegrate(&input, &at);
-                *refused += 1;
-            }
-            None => *fused.entry(key.0.clone()).or_default() += 1,
+        let first = k.fused_at.is_none();
+        if let Some(at) = k.fused_at {
+            map.deintegrate(&input, &at);
+            *refused += 1;
         }
         map.integrate(r, &input, &target);
         k.fused_at = Some(target);
+        if first {
+            *fused.entry(key.0.clone()).or_default() += 1;
+        }
         done += 1;
     }
     *lock(&handle.counts) = s.counts();
@@ -536,9 +560,26 @@ mod tests {
         (voxels, (s.fused("s"), s.fused("t")))
     }
 
+    /// Session `session`'s keyframe `id` (see [`job`]) taken `back` metres further from the wall.
+    fn job_back(camera: &Camera, session: &str, id: u64, back: f64) -> FleetMapJob {
+        let mut j = job(camera, session, Some(id), Vec::new());
+        if let Some((_, _, pose, _)) = j.keyframe.as_mut() {
+            *pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, -back), UnitQuaternion::identity());
+        }
+        j
+    }
+
+    /// Whether fleet "lab"'s map has occupied voxels within 3 cm of depth `z` (fleet frame).
+    fn wall_at(maps: &FleetMaps, z: f64) -> bool {
+        let s = maps.state("lab").expect("state");
+        let s = lock(&s.state);
+        s.map().occupied().any(|(_, c, _)| (c.z - z).abs() < 0.03)
+    }
+
     /// A fused fleet map is saved (every `save_interval`, and when it stops) and
     /// comes back at start with what it fused, so the fleet is served from it
-    /// again; it goes on fusing after; a map of another voxel size is left out.
+    /// again; it goes on fusing after; a map of another voxel size is left out,
+    /// and the map started afresh then replaces its blocks in the store.
     #[test]
     fn a_fused_fleet_map_comes_back_after_a_restart() {
         let path = std::env::temp_dir().join(format!("stillmap-fleet-map-restart-{}.redb", std::process::id()));
@@ -552,50 +593,61 @@ mod tests {
             FleetMaps::start(config(mapping, save_interval), both.clone(), Some(store.clone()), Arc::default()).expect("started")
         };
 
-        // Saved while it runs, every save_interval.
+        // Saved while it runs, every save_interval. (The wall 2 m ahead lands at
+        // 2.1 m in the fleet frame; a keyframe taken b metres back puts it at 2.1 − b.)
         let maps = start(MappingConfig::default(), Duration::from_millis(50));
         maps.submit(job(&camera, "s", Some(7), Vec::new()));
         maps.submit(job(&camera, "t", Some(7), Vec::new()));
-        wait_for(&maps, &|c| c.fused == 2);
-        let (before, fused) = contents(&maps);
-        assert_eq!(fused, (1, 1));
-        assert!(before.len() > 200, "{}", before.len());
+        maps.submit(job_back(&camera, "t", 8, 0.3));
+        wait_for(&maps, &|c| c.fused == 3);
+        let (saved, fused) = contents(&maps);
+        assert_eq!(fused, (1, 2));
+        assert!(saved.len() > 200 && wall_at(&maps, 1.8), "{}", saved.len());
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
-        let saved = loop {
-            let saved = store.fleet_maps().expect("read");
-            if let Some((head, blocks)) = saved.get("lab").filter(|(head, _)| head.fused.values().sum::<u64>() == 2) {
-                break (head.clone(), blocks.len());
+        loop {
+            let stored = store.fleet_maps().expect("read");
+            if let Some((head, blocks)) = stored.get("lab").filter(|(head, _)| head.fused.values().sum::<u64>() == 3) {
+                assert_eq!(head.fused.get("t"), Some(&2));
+                assert!(!blocks.is_empty());
+                break;
             }
-            assert!(std::time::Instant::now() < deadline, "never saved: {:?}", saved.keys().collect::<Vec<_>>());
+            assert!(std::time::Instant::now() < deadline, "never saved: {:?}", stored.keys().collect::<Vec<_>>());
             std::thread::sleep(Duration::from_millis(20));
-        };
-        assert_eq!(saved.0.fused.get("s"), Some(&1));
-        assert!(saved.1 > 0);
-        // A keyframe submitted just before the server stops is fused and saved as it stops.
-        maps.submit(job(&camera, "t", Some(8), Vec::new()));
+        }
+        // A keyframe submitted as the server stops is fused and saved as it stops.
+        maps.submit(job_back(&camera, "t", 9, 0.6));
         maps.close();
 
         // Back at start, before any job: every voxel and the keyframes fused.
         let maps = start(MappingConfig::default(), Duration::from_secs(3600));
         let c = maps.state("lab").expect("restored").counts();
-        assert_eq!((c.keyframes, c.fused, c.kept_inputs), (3, 3, 0), "{c:?}");
+        assert_eq!((c.keyframes, c.fused, c.kept_inputs), (4, 4, 0), "{c:?}");
         let (after, fused) = contents(&maps);
-        assert_eq!(fused, (1, 2));
-        assert_eq!(after, before, "the same occupied voxels");
-        // It goes on fusing: a keyframe seen from 0.5 m further back adds the wall's new place.
-        let mut moved = job(&camera, "t", Some(9), Vec::new());
-        if let Some((_, _, pose, _)) = moved.keyframe.as_mut() {
-            *pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, -0.5), UnitQuaternion::identity());
-        }
-        maps.submit(moved);
-        wait_for(&maps, &|c| c.fused == 4);
-        assert_eq!(contents(&maps).1, (1, 3));
-        assert!(contents(&maps).0.len() > after.len());
+        assert_eq!(fused, (1, 3));
+        assert!(after.is_superset(&saved) && wall_at(&maps, 1.8), "what was saved while it ran");
+        assert!(wall_at(&maps, 1.5), "what was fused and saved as it stopped");
+        // It goes on fusing.
+        maps.submit(job_back(&camera, "t", 10, 0.9));
+        wait_for(&maps, &|c| c.fused == 5);
+        assert_eq!(contents(&maps).1, (1, 4));
+        assert!(wall_at(&maps, 1.2));
         maps.close();
 
-        // Another voxel size: the stored map is not this server's, the fleet starts empty.
-        let maps = start(MappingConfig { voxel_size_m: 0.04, ..MappingConfig::default() }, Duration::from_secs(3600));
+        // Another voxel size: the stored map is not this server's, the fleet starts
+        // empty, and its first save replaces the stored blocks.
+        let coarse = MappingConfig { voxel_size_m: 0.04, ..MappingConfig::default() };
+        let maps = start(coarse.clone(), Duration::from_secs(3600));
         assert!(maps.state("lab").is_none());
+        maps.submit(job(&camera, "s", Some(7), Vec::new()));
+        maps.submit(job(&camera, "t", Some(7), Vec::new()));
+        wait_for(&maps, &|c| c.fused == 2);
+        let (coarse_voxels, _) = contents(&maps);
+        maps.close();
+        let maps = start(coarse, Duration::from_secs(3600));
+        let (back, fused) = contents(&maps);
+        assert_eq!(fused, (1, 1));
+        assert!(back == coarse_voxels, "the 2 cm blocks are gone: {} voxels back, {} saved", back.len(), coarse_voxels.len());
+        assert!(!wall_at(&maps, 1.2), "nothing of the 2 cm map is left");
         maps.close();
         drop(maps);
         drop(store);

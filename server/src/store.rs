@@ -520,8 +520,10 @@ impl Store {
     }
 
     /// Saves what changed in a fleet's fused map: its head and the blocks changed
-    /// since the last save, in one transaction.
-    pub fn put_fleet_map(&self, fleet: &str, head: &FleetMapHead, blocks: &[(BlockKey, Block)]) -> Result<(), StoreError> {
+    /// since the last save, in one transaction; `replace` first removes every
+    /// block stored for the fleet (a map started afresh: another voxel size, or one
+    /// the store could not read back).
+    pub fn put_fleet_map(&self, fleet: &str, head: &FleetMapHead, blocks: &[(BlockKey, Block)], replace: bool) -> Result<(), StoreError> {
         let json = serde_json::to_vec(head).map_err(|e| self.err(e))?;
         let compressed = blocks
             .iter()
@@ -533,6 +535,11 @@ impl Store {
             {
                 tx.open_table(FLEET_MAPS).map_err(|e| self.err(e))?.insert(fleet, json.as_slice()).map_err(|e| self.err(e))?;
                 let mut table = tx.open_table(FLEET_MAP_BLOCKS).map_err(|e| self.err(e))?;
+                if replace {
+                    table
+                        .retain_in((fleet, i32::MIN, i32::MIN, i32::MIN)..=(fleet, i32::MAX, i32::MAX, i32::MAX), |_, _| false)
+                        .map_err(|e| self.err(e))?;
+                }
                 for (key, bytes) in &compressed {
                     table.insert((fleet, key[0], key[1], key[2]), bytes.as_slice()).map_err(|e| self.err(e))?;
                 }
@@ -541,7 +548,8 @@ impl Store {
         })())
     }
 
-    /// Every saved fleet map: its head and its blocks, by fleet name.
+    /// Every saved fleet map: its head and its blocks, by fleet name. A fleet with
+    /// a block that does not decode is left out (logged); the others come back.
     #[allow(clippy::type_complexity)]
     pub fn fleet_maps(&self) -> Result<std::collections::HashMap<String, (FleetMapHead, Vec<(BlockKey, Block)>)>, StoreError> {
         let heads: std::collections::HashMap<String, FleetMapHead> = self.all_json(FLEET_MAPS, "fused map of fleet")?;
@@ -556,8 +564,13 @@ impl Store {
         for entry in table.iter().map_err(|e| self.err(e))? {
             let (k, v) = entry.map_err(|e| self.err(e))?;
             let (fleet, x, y, z) = k.value();
-            if let Some((_, blocks)) = out.get_mut(fleet) {
-                blocks.push(([x, y, z], decode_block(v.value())?));
+            let Some((_, blocks)) = out.get_mut(fleet) else { continue };
+            match decode_block(v.value()) {
+                Ok(block) => blocks.push(([x, y, z], block)),
+                Err(e) => {
+                    tracing::error!(fleet, "the stored fused fleet map is left out: {e}");
+                    out.remove(fleet);
+                }
             }
         }
         Ok(out)
