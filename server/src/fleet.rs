@@ -34,7 +34,7 @@ use stillmap_tracking::Camera;
 
 use crate::config::FleetConfig;
 use crate::lock;
-use crate::store::{FleetFrame, FleetGraph, GraphEdge, GraphSolve, KeyframeRecord, SessionHead, Store};
+use crate::store::{FleetFrame, FleetGraph, GraphEdge, GraphSolve, KeyframeRecord, SessionGraph, SessionHead, Store};
 use stillmap_mapping::MappingConfig;
 
 /// A committed keyframe of some session, for place recognition.
@@ -105,6 +105,10 @@ struct Fleet {
     /// Verified matches between merged keyframes (loop and inter-session edges of
     /// the pose graph); those of forgotten keyframes are dropped.
     edges: Vec<PlaceEdge>,
+    /// Edges that sessions resumed from another server brought along, waiting until
+    /// both their keyframes are indexed here (the older ones are read back in the
+    /// background); at most `fleet.max_places`, the oldest dropped beyond.
+    carried_edges: VecDeque<GraphEdge>,
     /// A place edge came since the last solve.
     dirty: bool,
     /// Solves that have taken the graph and not handed their corrections back yet
@@ -423,6 +427,32 @@ impl FleetService {
         true
     }
 
+    /// Puts back the share of its fleet's pose graph that a session resumed from
+    /// another server brought along (call after [`Self::join_carried`] kept its
+    /// frame): its corrections at once, so that its fleet-frame poses are those the
+    /// other server served, and its place edges as soon as both their keyframes
+    /// are indexed here (then the graph is solved again with them).
+    pub fn carry_graph(&self, fleet: &str, session_id: &str, graph: SessionGraph) {
+        let mut fleets = lock(&self.shared.fleets);
+        let Some(f) = fleets.get_mut(fleet) else { return };
+        let Some(m) = f.members.iter().position(|m| m.session_id == session_id && m.frame.is_some()) else { return };
+        if f.members[m].corrections.is_empty() {
+            f.members[m].corrections = Arc::new(graph.corrections.iter().map(|(t, c)| (*t, exact_isometry(c))).collect());
+        }
+        let same = |x: &GraphEdge, y: &GraphEdge| (x.a == y.a && x.b == y.b) || (x.a == y.b && x.b == y.a);
+        for e in graph.edges {
+            if !f.carried_edges.iter().any(|c| same(c, &e)) {
+                f.carried_edges.push_back(e);
+            }
+        }
+        while f.carried_edges.len() > self.shared.config.max_places {
+            f.carried_edges.pop_front();
+        }
+        let carried = f.carried_edges.len();
+        let promoted = promote_carried(f);
+        tracing::info!(fleet, session = session_id, carried, promoted, "resumed with its share of the fleet's pose graph");
+    }
+
     /// Rebuilds the fleets from the store: sessions with a frame in their fleet,
     /// then the others, each in the order they started; their merges, and the
     /// keyframes of merged sessions in the index.
@@ -566,17 +596,59 @@ fn restore_graph(f: &mut Fleet, g: FleetGraph) {
         .collect();
     for (session, list) in &g.corrections {
         if let Some(m) = member(f, session) {
-            // As stored (unit when written): not normalised again, so a restart serves the same poses.
-            let exact = |p: &[f64; 7]| {
-                Isometry3::from_parts(
-                    Translation3::new(p[0], p[1], p[2]),
-                    UnitQuaternion::new_unchecked(Quaternion::new(p[6], p[3], p[4], p[5])),
-                )
-            };
-            f.members[m].corrections = Arc::new(list.iter().map(|(t, c)| (*t, exact(c))).collect());
+            f.members[m].corrections = Arc::new(list.iter().map(|(t, c)| (*t, exact_isometry(c))).collect());
         }
     }
     f.last_correction = g.last_solve;
+}
+
+/// A stored pose as it was stored (unit when written): not normalised again, so
+/// that a restart or another server serves the same poses.
+fn exact_isometry(p: &[f64; 7]) -> Isometry3<f64> {
+    Isometry3::from_parts(Translation3::new(p[0], p[1], p[2]), UnitQuaternion::new_unchecked(Quaternion::new(p[6], p[3], p[4], p[5])))
+}
+
+/// Moves the carried edges whose keyframes are both indexed here (of members
+/// with a frame) into the fleet's edges, unless it has the same edge already;
+/// the fleet is then due a solve. Returns how many were moved.
+fn promote_carried(f: &mut Fleet) -> usize {
+    let member = |f: &Fleet, session: &str| f.members.iter().position(|m| m.session_id == session && m.frame.is_some());
+    let mut promoted = 0;
+    let mut waiting = VecDeque::with_capacity(f.carried_edges.len());
+    for e in std::mem::take(&mut f.carried_edges) {
+        let ends = member(f, &e.a.0).zip(member(f, &e.b.0)).map(|(ma, mb)| ((ma as u32, e.a.1), (mb as u32, e.b.1)));
+        match ends.filter(|(a, b)| f.places.contains_key(a) && f.places.contains_key(b)) {
+            Some((a, b)) => {
+                if !f.edges.iter().any(|x| (x.a == a && x.b == b) || (x.a == b && x.b == a)) {
+                    let kind = if e.is_loop { EdgeKind::Loop } else { EdgeKind::InterSession };
+                    f.edges.push(PlaceEdge { a, b, a_from_b: isometry(&e.a_from_b), kind });
+                    promoted += 1;
+                }
+            }
+            None => waiting.push_back(e),
+        }
+    }
+    f.carried_edges = waiting;
+    if promoted > 0 {
+        f.dirty = true;
+    }
+    promoted
+}
+
+/// Each merged member's share of the stored graph (its corrections, the edges
+/// with one of its keyframes at either end, and the carried ones still waiting),
+/// by session id: what goes with it to another server.
+fn session_graphs(f: &Fleet, stored: &FleetGraph) -> Vec<(String, SessionGraph)> {
+    f.members
+        .iter()
+        .filter(|m| m.frame.is_some())
+        .map(|m| {
+            let id = &m.session_id;
+            let edges = stored.edges.iter().chain(&f.carried_edges).filter(|e| &e.a.0 == id || &e.b.0 == id).cloned().collect();
+            let corrections = stored.corrections.get(id).cloned().unwrap_or_default();
+            (id.clone(), SessionGraph { corrections, edges })
+        })
+        .collect()
 }
 
 fn view(name: &str, f: &Fleet) -> FleetView {
@@ -924,9 +996,19 @@ impl Shared {
         f.last_correction = Some(correction);
         let Some(store) = &self.store else { return };
         let stored = stored_graph(f);
+        // Each session's share goes with it to a server that resumes it.
+        let shares = store.replica().map(|_| session_graphs(f, &stored)).unwrap_or_default();
         drop(fleets);
         if let Err(e) = store.put_fleet_graph(name, &stored) {
             tracing::error!(fleet = name, "pose graph not persisted (the store failed): {e}");
+        }
+        if let Some(replica) = store.replica() {
+            for (session, share) in shares {
+                match serde_json::to_vec(&share) {
+                    Ok(json) => replica.fleet_graph(&session, json),
+                    Err(e) => tracing::error!(fleet = name, session, "pose-graph share not copied: {e}"),
+                }
+            }
         }
     }
 
@@ -1014,7 +1096,14 @@ impl Shared {
         for (id, indexed, bow) in newer {
             self.add_place(f, m, id, indexed, bow);
         }
-        tracing::debug!(fleet, session = session_id, keyframes = count, "a resumed session's stored keyframes indexed in its fleet");
+        let promoted = promote_carried(f);
+        tracing::debug!(
+            fleet,
+            session = session_id,
+            keyframes = count,
+            promoted,
+            "a resumed session's stored keyframes indexed in its fleet"
+        );
     }
 
     /// Adds a stored keyframe of member `m`.
@@ -1312,6 +1401,74 @@ mod tests {
         assert_eq!(indexed_in(&view, "c1"), (2, Some(0)));
         assert_eq!(indexed_in(&view, "b1"), (5, Some(2)), "b1's 0 and 1 forgotten first");
         assert_eq!(indexed_in(&view, "d1"), (2, Some(3)));
+        service.close();
+    }
+
+    /// A session resumed from another server brings its share of the fleet's pose
+    /// graph: its corrections apply at once, its place edges join the graph once
+    /// both their keyframes are indexed here (then a solve is due), an edge to a
+    /// session not here waits, and a session whose frame was not kept gets nothing.
+    #[test]
+    fn a_resumed_sessions_share_of_the_pose_graph_is_carried() {
+        let service = FleetService::start(&FleetConfig::default(), &MappingConfig::default(), None, Arc::default()).expect("started");
+        let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
+        let stored = |session: &str, ids: std::ops::Range<u64>| StoredKeyframes {
+            fleet: "lab".into(),
+            session_id: session.into(),
+            camera: camera.clone(),
+            keyframes: ids
+                .map(|id| KeyframeRecord {
+                    id,
+                    timestamp_ns: 1_000 + id,
+                    world_from_camera: [0.1 * id as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                    features: (0..20u64)
+                        .map(|i| ([10.0 + i as f32 * 7.0, 20.0 + id as f32], 0, 1.5, [id.wrapping_mul(0x9e37_79b9) ^ i, i, id, !i]))
+                        .collect(),
+                })
+                .collect(),
+        };
+        let moved = Isometry3::from_parts(Translation3::new(1.0, 2.0, 0.0), UnitQuaternion::identity());
+        let carried = |_: &str| Some(FleetFrame { lineage: "a0".into(), ..frame(false, &moved) });
+        assert!(service.join_carried("lab", "b1", "robot-b", carried("b1")));
+        assert!(service.join_carried("lab", "c1", "robot-c", carried("c1")));
+        assert!(!service.join_carried("lab", "d1", "robot-d", Some(FleetFrame { lineage: "elsewhere".into(), ..frame(false, &moved) })));
+        let correction = Isometry3::from_parts(Translation3::new(0.05, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 0.01));
+        let edge = |a: (&str, u64), b: (&str, u64)| GraphEdge {
+            a: (a.0.into(), a.1),
+            b: (b.0.into(), b.1),
+            a_from_b: pose7(&Isometry3::identity()),
+            is_loop: a.0 == b.0,
+        };
+        let share = |corrections: Vec<(u64, [f64; 7])>| SessionGraph {
+            corrections,
+            edges: vec![edge(("b1", 4), ("c1", 2)), edge(("b1", 1), ("gone", 0)), edge(("b1", 0), ("b1", 4))],
+        };
+        service.carry_graph("lab", "b1", share(vec![(1_003, pose7(&correction))]));
+        // c1 brings the same edges (b1–c1 seen from its side): kept once.
+        service.carry_graph("lab", "c1", SessionGraph { corrections: vec![], edges: vec![edge(("c1", 2), ("b1", 4))] });
+        service.carry_graph("lab", "d1", share(vec![(1_000, pose7(&correction))]));
+        service.carry_graph("yard", "b1", share(vec![]));
+        let b1 = service.fleet_transform("lab", "b1").expect("merged");
+        assert_eq!(b1.corrections.as_slice(), &[(1_003, correction)], "as the other server served it");
+        assert_eq!(b1.at(1_003), correction * moved);
+        assert!(service.fleet_transform("lab", "d1").is_none(), "d1 is merged again here, its share left out");
+        // Nothing to solve while the edges' keyframes are not indexed here.
+        service.solve_now();
+        assert!(service.get("lab").expect("fleet").last_correction.is_none());
+        service.index_stored(stored("b1", 0..5), false);
+        service.index_stored(stored("c1", 0..3), false);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !service.get("lab").expect("fleet").pose_graph_pending {
+            assert!(Instant::now() < deadline, "no solve due after the carried edges' keyframes were indexed");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        service.solve_now();
+        let solve = service.get("lab").expect("fleet").last_correction.expect("solved");
+        assert_eq!(
+            (solve.inter_session_edges, solve.loop_edges),
+            (1, 1),
+            "{solve:?}: the b1–c1 edge once, b1's loop; not the edge to a session not here"
+        );
         service.close();
     }
 

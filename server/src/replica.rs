@@ -66,13 +66,16 @@ enum ReplicaJob {
     Release(String),
     /// Session `id`'s frame in its fleet changed (JSON), while this server writes it.
     FleetFrame(String, Vec<u8>),
+    /// Session `id`'s share of its fleet's pose graph after a solve (JSON
+    /// [`crate::store::SessionGraph`]), while this server writes it.
+    FleetGraph(String, Vec<u8>),
 }
 
 impl ReplicaJob {
     fn session_id(&self) -> &str {
         match self {
             Self::Commit(c) => &c.session_id,
-            Self::Release(id) | Self::FleetFrame(id, _) => id,
+            Self::Release(id) | Self::FleetFrame(id, _) | Self::FleetGraph(id, _) => id,
         }
     }
 }
@@ -102,6 +105,7 @@ CREATE TABLE IF NOT EXISTS stillmap_sessions (
 );
 ALTER TABLE stillmap_sessions ADD COLUMN IF NOT EXISTS resume_secret_sha256 bytea;
 ALTER TABLE stillmap_sessions ADD COLUMN IF NOT EXISTS fleet_frame jsonb;
+ALTER TABLE stillmap_sessions ADD COLUMN IF NOT EXISTS fleet_graph jsonb;
 CREATE TABLE IF NOT EXISTS stillmap_poses (
     session_id text NOT NULL,
     sequence bigint NOT NULL,
@@ -144,9 +148,14 @@ pub enum ReplicaSession {
     /// It holds it, for another robot or with another resume secret (nothing more is read).
     Refused(String),
     /// It holds it, last written by the server `server_id`.
-    /// Its frame in its fleet comes along when it has one (an unreadable one is
-    /// left out, logged).
-    Found { session: Box<crate::store::StoredSession>, server_id: String, fleet_frame: Option<crate::store::FleetFrame> },
+    /// Its frame in its fleet and its share of the fleet's pose graph come along
+    /// when it has them (an unreadable one is left out, logged).
+    Found {
+        session: Box<crate::store::StoredSession>,
+        server_id: String,
+        fleet_frame: Option<crate::store::FleetFrame>,
+        fleet_graph: Option<Box<crate::store::SessionGraph>>,
+    },
 }
 
 /// The older keyframe records of a session resumed from the shared storage (which
@@ -320,6 +329,16 @@ impl Replica {
         }
     }
 
+    /// Copies session `session_id`'s share of its fleet's pose graph
+    /// (`SessionGraph` as JSON) after a solve, where PostgreSQL holds the session
+    /// and this server writes it. A full queue leaves it out (logged): the next
+    /// solve copies it again.
+    pub fn fleet_graph(&self, session_id: &str, json: Vec<u8>) {
+        if self.enqueue(ReplicaJob::FleetGraph(session_id.to_string(), json)) == Queued::Full {
+            tracing::warn!(session = session_id, "replica queue full (store.replica_queue): its pose-graph share goes with the next solve");
+        }
+    }
+
     /// Hands a job to the copy thread without waiting.
     fn enqueue(&self, job: ReplicaJob) -> Queued {
         let Some(tx) = crate::lock(&self.jobs).clone() else { return Queued::Closed };
@@ -462,6 +481,14 @@ fn copy(
                     )
                     .map(|_| true)
                 }
+                ReplicaJob::FleetGraph(id, json) => {
+                    let json = std::str::from_utf8(json).unwrap_or("null");
+                    c.execute(
+                        "UPDATE stillmap_sessions SET fleet_graph = $3::text::jsonb WHERE id = $1 AND server_id = $2",
+                        &[id, &server, &json],
+                    )
+                    .map(|_| true)
+                }
             };
             match written {
                 Ok(copied) => {
@@ -592,7 +619,7 @@ fn read_session(
     let mut client = config.connect(postgres::NoTls).map_err(read)?;
     let Some(row) = client
         .query_opt(
-            "SELECT meta::text, camera, resume_secret_sha256, server_id, fleet_frame::text FROM stillmap_sessions WHERE id = $1",
+            "SELECT meta::text, camera, resume_secret_sha256, server_id, fleet_frame::text, fleet_graph::text FROM stillmap_sessions WHERE id = $1",
             &[&id],
         )
         .map_err(read)?
@@ -619,6 +646,11 @@ fn read_session(
             })
             .ok()
     });
+    let fleet_graph = row.get::<_, Option<&str>>(5).and_then(|json| {
+        serde_json::from_str::<Box<crate::store::SessionGraph>>(json)
+            .inspect_err(|e| tracing::warn!(session = id, "its pose-graph share in the shared storage is unreadable (left out): {e}"))
+            .ok()
+    });
     let mut poses = Vec::new();
     for r in client.query("SELECT pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
         poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(0)).map_err(|e| corrupt("pose", &e))?);
@@ -638,7 +670,7 @@ fn read_session(
         blocks.push((key, decode_block(r.get::<_, &[u8]>(3)).map_err(|e| corrupt("map block", &e))?));
     }
     let session = Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks });
-    Ok(ReplicaSession::Found { session, server_id, fleet_frame })
+    Ok(ReplicaSession::Found { session, server_id, fleet_frame, fleet_graph })
 }
 
 fn pb_camera(bytes: Option<&[u8]>) -> Result<stillmap_proto::pb::CameraInfo, String> {

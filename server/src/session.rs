@@ -962,7 +962,7 @@ pub type LiveElsewhere = Arc<dyn Fn(&str) -> bool + Send + Sync>;
 const RESUME_KEYFRAMES: usize = 8;
 /// A session read from the shared storage: it, whether it must be copied into
 /// this server's store, and its frame in its fleet there.
-type FromReplica = (StoredSession, bool, Option<crate::store::FleetFrame>);
+type FromReplica = (StoredSession, bool, Option<crate::store::FleetFrame>, Option<Box<crate::store::SessionGraph>>);
 
 /// Sessions whose resume may wait for a handover at once (a bound on the map
 /// the hellos fill); beyond it a resume does not wait.
@@ -1261,9 +1261,9 @@ impl Registry {
             session.attach(sink);
             return Ok(Opened { session, resumed: true, restored: false });
         }
-        if let Some((stored, copy, fleet_frame)) = from_replica
+        if let Some((stored, copy, fleet_frame, fleet_graph)) = from_replica
             && self.resident(&stored.id).is_none()
-            && let Some(opened) = self.resume_stored(stored, copy, fleet_frame, hello, transport, sink.clone())?
+            && let Some(opened) = self.resume_stored(stored, copy, (fleet_frame, fleet_graph), hello, transport, sink.clone())?
         {
             return Ok(opened);
         }
@@ -1505,8 +1505,10 @@ impl Registry {
         let Some(replica) = self.store.as_ref().and_then(|s| s.replica()).filter(|_| self.reads_replica(hello)) else {
             return Ok(None);
         };
-        let ((s, fleet_frame), writer) = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
-            Ok(crate::replica::ReplicaSession::Found { session, server_id, fleet_frame }) => ((*session, fleet_frame), server_id),
+        let ((s, fleet_frame, fleet_graph), writer) = match replica.load(id, &hello.robot_id, &hello.resume_secret, RESUME_KEYFRAMES) {
+            Ok(crate::replica::ReplicaSession::Found { session, server_id, fleet_frame, fleet_graph }) => {
+                ((*session, fleet_frame, fleet_graph), server_id)
+            }
             Ok(crate::replica::ReplicaSession::Absent) => return Ok(None),
             Ok(crate::replica::ReplicaSession::Refused(why)) => return Err(BadHello::Unauthenticated(why)),
             Err(e) => {
@@ -1541,9 +1543,9 @@ impl Registry {
             && let Ok(Some(local)) = store.load(id)
             && local.poses.len() >= s.poses.len()
         {
-            return Ok(Some((local, false, fleet_frame)));
+            return Ok(Some((local, false, fleet_frame, fleet_graph)));
         }
-        Ok(Some((s, true, fleet_frame)))
+        Ok(Some((s, true, fleet_frame, fleet_graph)))
     }
 
     /// A session another server held, live on this one: copied into this server's
@@ -1554,7 +1556,7 @@ impl Registry {
         &self,
         mut s: StoredSession,
         copy: bool,
-        fleet_frame: Option<crate::store::FleetFrame>,
+        (fleet_frame, fleet_graph): (Option<crate::store::FleetFrame>, Option<Box<crate::store::SessionGraph>>),
         hello: &pb::Hello,
         transport: Transport,
         sink: ResultSink,
@@ -1616,7 +1618,12 @@ impl Registry {
             find_within_s: self.config.resume_find_s,
         };
         if let Some(f) = &self.fleets {
-            f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame);
+            // Its share of the fleet's pose graph holds only in the frame it came with.
+            if f.join_carried(&fleet_name, id, &hello.robot_id, fleet_frame)
+                && let Some(graph) = fleet_graph
+            {
+                f.carry_graph(&fleet_name, id, *graph);
+            }
             // Its map can be found by the fleet's robots here at once.
             let stored = crate::fleet::StoredKeyframes {
                 fleet: fleet_name.clone(),

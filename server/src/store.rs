@@ -157,6 +157,17 @@ pub struct GraphEdge {
     pub is_loop: bool,
 }
 
+/// A session's share of its fleet's pose graph, carried with it to a server that
+/// resumes it (through the shared storage).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct SessionGraph {
+    /// (keyframe capture time, tx, ty, tz, qx, qy, qz, qw of
+    /// `fleet_corrected_from_fleet`), in time order.
+    pub corrections: Vec<(u64, [f64; 7])>,
+    /// The place edges with one of its keyframes at either end.
+    pub edges: Vec<GraphEdge>,
+}
+
 /// A keyframe as stored: pose, keypoints and descriptors (for relocalization
 /// against an archived map).
 #[derive(Debug, Clone, PartialEq)]

@@ -789,6 +789,35 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
     let on_a = a.get_json(&path).await.1;
     let anchor = on_a["anchor_session_id"].as_str().expect("an anchor").to_string();
     let indexed_on_a = indexed(&on_a);
+    // A copies each session's share of the fleet's pose graph (its corrections, its
+    // place edges) to the shared storage with every solve.
+    // Per session: (writer, corrections, edges as sorted pairs of (session, keyframe)).
+    type Shares = BTreeMap<String, (String, usize, std::collections::BTreeSet<Vec<(String, u64)>>)>;
+    let shares = || -> Shares {
+        let rows = cluster.pg.query("SELECT id, server_id, fleet_graph::text FROM stillmap_sessions WHERE fleet_graph IS NOT NULL");
+        rows.iter()
+            .map(|r| {
+                let share: serde_json::Value = serde_json::from_str(r.get::<_, &str>(2)).expect("a share");
+                let end = |e: &serde_json::Value| (e[0].as_str().unwrap_or("").to_string(), e[1].as_u64().unwrap_or(u64::MAX));
+                let edges = share["edges"].as_array().cloned().unwrap_or_default();
+                let pairs = edges
+                    .iter()
+                    .map(|e| {
+                        let mut pair = vec![end(&e["a"]), end(&e["b"])];
+                        pair.sort();
+                        pair
+                    })
+                    .collect();
+                (r.get::<_, String>(0), (r.get::<_, String>(1), share["corrections"].as_array().map_or(0, Vec::len), pairs))
+            })
+            .collect()
+    };
+    eventually(Duration::from_secs(20), "both sessions' pose-graph shares written by A", async || {
+        let now = shares();
+        now.len() == 2 && now.values().all(|(writer, corrections, edges)| writer == ID_A && *corrections > 0 && !edges.is_empty())
+    })
+    .await;
+    let from_a: std::collections::BTreeSet<Vec<(String, u64)>> = shares().into_values().flat_map(|(_, _, edges)| edges).collect();
     let store_b = tempfile_path("fleet-join-b.redb");
     let store_b = store_b.to_str().expect("utf-8 path").to_string();
     let b = cluster.server_with(ID_B, &["--store", &store_b]);
@@ -815,6 +844,21 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
         assert!(s["indexed_keyframes"].as_u64() >= indexed_on_a.get(id).copied(), "{s}: {indexed_on_a:?} on A");
     }
     eprintln!("fleet {fleet}: anchored by {anchor} on A, the same frame on B");
+    // B took each session's share with it: its graph, solved on B, holds every
+    // edge A's shares held (edges between keyframes made on A, which B never
+    // matched itself), and B writes the shares now.
+    eventually(Duration::from_secs(30), "B's pose graph solved with the edges carried from A", async || {
+        let solve = &b.get_json(&path).await.1["last_correction"];
+        let edges = solve["loop_edges"].as_u64().unwrap_or(0) + solve["inter_session_edges"].as_u64().unwrap_or(0);
+        let by_b = shares();
+        solve["solved_unix_ns"].as_u64().is_some_and(|t| t > b_started_ns)
+            && edges as usize >= from_a.len()
+            && by_b.len() == 2
+            && by_b.values().all(|(writer, _, _)| writer == ID_B)
+            && from_a.iter().all(|pair| by_b.values().any(|(_, _, edges)| edges.contains(pair)))
+    })
+    .await;
+    eprintln!("{} place edges carried from A to B", from_a.len());
     // B restarted on its store: the older keyframes read back were kept there.
     drop(b);
     let b = cluster.server_with(ID_B, &["--store", &store_b]);
