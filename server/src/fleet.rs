@@ -88,8 +88,14 @@ struct Member {
     /// Capture times of its first and latest keyframes seen here.
     keyframe_span_ns: Option<(u64, u64)>,
     /// The pose graph's corrections of its keyframes (see [`FleetTransform`]).
-    corrections: Arc<Vec<(u64, Isometry3<f64>)>>,
+    corrections: Corrections,
+    /// The corrections and the number of edges of the share last copied to the
+    /// shared storage (a share that barely changed is not copied again).
+    shared: Option<(Corrections, usize)>,
 }
+
+/// (capture time, `fleet_corrected_from_fleet`) of a session's keyframes, in time order.
+type Corrections = Arc<Vec<(u64, Isometry3<f64>)>>;
 
 /// One fleet: its members and the index of its merged keyframes.
 #[derive(Default)]
@@ -181,6 +187,9 @@ pub struct FleetView {
     /// A pose-graph solve is due (place edges came since the last one) or running:
     /// `last_correction` and the members' corrections are about to change.
     pub pose_graph_pending: bool,
+    /// Place edges that sessions resumed from another server brought along and
+    /// that wait for their keyframes to be indexed here.
+    pub carried_edges_waiting: usize,
     /// The fused fleet map's counts, when it has one.
     pub map: Option<crate::fleet_map::FleetMapCounts>,
 }
@@ -436,16 +445,24 @@ impl FleetService {
         let mut fleets = lock(&self.shared.fleets);
         let Some(f) = fleets.get_mut(fleet) else { return };
         let Some(m) = f.members.iter().position(|m| m.session_id == session_id && m.frame.is_some()) else { return };
+        let max = self.shared.config.max_places;
+        // Only what a solve could have written: finite, unit rotations, in time
+        // order, at most one per place the fleet may index.
         if f.members[m].corrections.is_empty() {
-            f.members[m].corrections = Arc::new(graph.corrections.iter().map(|(t, c)| (*t, exact_isometry(c))).collect());
+            let mut corrections: Vec<(u64, Isometry3<f64>)> =
+                graph.corrections.iter().filter(|(_, c)| valid_pose7(c)).map(|(t, c)| (*t, exact_isometry(c))).collect();
+            corrections.sort_by_key(|(t, _)| *t);
+            corrections.dedup_by_key(|(t, _)| *t);
+            let skip = corrections.len().saturating_sub(max);
+            f.members[m].corrections = Arc::new(corrections.split_off(skip));
         }
-        let same = |x: &GraphEdge, y: &GraphEdge| (x.a == y.a && x.b == y.b) || (x.a == y.b && x.b == y.a);
-        for e in graph.edges {
-            if !f.carried_edges.iter().any(|c| same(c, &e)) {
+        let mut known: std::collections::HashSet<EdgeKey> = f.carried_edges.iter().map(edge_key).collect();
+        for e in graph.edges.into_iter().filter(|e| valid_pose7(&e.a_from_b)).take(max) {
+            if known.insert(edge_key(&e)) {
                 f.carried_edges.push_back(e);
             }
         }
-        while f.carried_edges.len() > self.shared.config.max_places {
+        while f.carried_edges.len() > max {
             f.carried_edges.pop_front();
         }
         let carried = f.carried_edges.len();
@@ -602,6 +619,19 @@ fn restore_graph(f: &mut Fleet, g: FleetGraph) {
     f.last_correction = g.last_solve;
 }
 
+/// An edge's two ends, in either order.
+type EdgeKey = ((String, u64), (String, u64));
+
+fn edge_key(e: &GraphEdge) -> EdgeKey {
+    if e.a <= e.b { (e.a.clone(), e.b.clone()) } else { (e.b.clone(), e.a.clone()) }
+}
+
+/// Whether stored numbers are a pose a solve could have written: finite, with a
+/// unit quaternion.
+fn valid_pose7(p: &[f64; 7]) -> bool {
+    p.iter().all(|v| v.is_finite()) && ((p[3] * p[3] + p[4] * p[4] + p[5] * p[5] + p[6] * p[6]).sqrt() - 1.0).abs() < 1e-6
+}
+
 /// A stored pose as it was stored (unit when written): not normalised again, so
 /// that a restart or another server serves the same poses.
 fn exact_isometry(p: &[f64; 7]) -> Isometry3<f64> {
@@ -612,14 +642,19 @@ fn exact_isometry(p: &[f64; 7]) -> Isometry3<f64> {
 /// with a frame) into the fleet's edges, unless it has the same edge already;
 /// the fleet is then due a solve. Returns how many were moved.
 fn promote_carried(f: &mut Fleet) -> usize {
+    if f.carried_edges.is_empty() {
+        return 0;
+    }
     let member = |f: &Fleet, session: &str| f.members.iter().position(|m| m.session_id == session && m.frame.is_some());
+    let unordered = |a: (u32, u64), b: (u32, u64)| if a <= b { (a, b) } else { (b, a) };
+    let mut present: std::collections::HashSet<((u32, u64), (u32, u64))> = f.edges.iter().map(|e| unordered(e.a, e.b)).collect();
     let mut promoted = 0;
     let mut waiting = VecDeque::with_capacity(f.carried_edges.len());
     for e in std::mem::take(&mut f.carried_edges) {
         let ends = member(f, &e.a.0).zip(member(f, &e.b.0)).map(|(ma, mb)| ((ma as u32, e.a.1), (mb as u32, e.b.1)));
         match ends.filter(|(a, b)| f.places.contains_key(a) && f.places.contains_key(b)) {
             Some((a, b)) => {
-                if !f.edges.iter().any(|x| (x.a == a && x.b == b) || (x.a == b && x.b == a)) {
+                if present.insert(unordered(a, b)) {
                     let kind = if e.is_loop { EdgeKind::Loop } else { EdgeKind::InterSession };
                     f.edges.push(PlaceEdge { a, b, a_from_b: isometry(&e.a_from_b), kind });
                     promoted += 1;
@@ -635,20 +670,44 @@ fn promote_carried(f: &mut Fleet) -> usize {
     promoted
 }
 
+/// A share is copied again only when its edges changed or a correction moved
+/// more than this (metres, degrees) since the last copy.
+const SHARE_MIN_MOVE_M: f64 = 0.001;
+const SHARE_MIN_MOVE_DEG: f64 = 0.05;
+
 /// Each merged member's share of the stored graph (its corrections, the edges
-/// with one of its keyframes at either end, and the carried ones still waiting),
-/// by session id: what goes with it to another server.
-fn session_graphs(f: &Fleet, stored: &FleetGraph) -> Vec<(String, SessionGraph)> {
-    f.members
-        .iter()
-        .filter(|m| m.frame.is_some())
-        .map(|m| {
-            let id = &m.session_id;
-            let edges = stored.edges.iter().chain(&f.carried_edges).filter(|e| &e.a.0 == id || &e.b.0 == id).cloned().collect();
-            let corrections = stored.corrections.get(id).cloned().unwrap_or_default();
-            (id.clone(), SessionGraph { corrections, edges })
-        })
-        .collect()
+/// with one of its keyframes at either end, and the carried ones still waiting,
+/// at most `max_edges`), by session id: what goes with it to another server.
+/// Only shares that changed since they were last copied (the member remembers
+/// what it copied).
+fn session_graphs(f: &mut Fleet, stored: &FleetGraph, solved_unix_ns: u64, max_edges: usize) -> Vec<(String, SessionGraph)> {
+    let mut edges_of: HashMap<&str, Vec<&GraphEdge>> = HashMap::new();
+    for e in stored.edges.iter().chain(&f.carried_edges) {
+        edges_of.entry(e.a.0.as_str()).or_default().push(e);
+        if e.b.0 != e.a.0 {
+            edges_of.entry(e.b.0.as_str()).or_default().push(e);
+        }
+    }
+    let mut out = Vec::new();
+    for m in f.members.iter_mut().filter(|m| m.frame.is_some()) {
+        let edges: Vec<GraphEdge> =
+            edges_of.get(m.session_id.as_str()).map_or(Vec::new(), |v| v.iter().take(max_edges).map(|e| (*e).clone()).collect());
+        let unchanged = m.shared.as_ref().is_some_and(|(corrections, n)| {
+            *n == edges.len()
+                && corrections.len() == m.corrections.len()
+                && corrections.iter().zip(m.corrections.iter()).all(|((ta, a), (tb, b))| {
+                    let d = a.inverse() * b;
+                    ta == tb && d.translation.vector.norm() <= SHARE_MIN_MOVE_M && d.rotation.angle().to_degrees() <= SHARE_MIN_MOVE_DEG
+                })
+        });
+        if unchanged {
+            continue;
+        }
+        m.shared = Some((m.corrections.clone(), edges.len()));
+        let corrections = m.corrections.iter().map(|(t, c)| (*t, pose7(c))).collect();
+        out.push((m.session_id.clone(), SessionGraph { corrections, edges, solved_unix_ns }));
+    }
+    out
 }
 
 fn view(name: &str, f: &Fleet) -> FleetView {
@@ -669,6 +728,7 @@ fn view(name: &str, f: &Fleet) -> FleetView {
         indexed_keyframes: f.index.len(),
         last_correction: f.last_correction.clone(),
         pose_graph_pending: f.dirty || f.solving > 0,
+        carried_edges_waiting: f.carried_edges.len(),
         map: None,
     }
 }
@@ -693,6 +753,7 @@ impl Shared {
             heard: 0,
             keyframe_span_ns: None,
             corrections: Arc::default(),
+            shared: None,
         }
     }
 
@@ -876,7 +937,7 @@ impl Shared {
     /// corrections back.
     fn solve_graph(&self, name: &str) {
         let c = &self.config;
-        let (graph, keys, fixed, counts) = {
+        let (graph, keys, raws, fixed, counts) = {
             let mut fleets = lock(&self.fleets);
             let Some(f) = fleets.get_mut(name) else { return };
             f.dirty = false;
@@ -885,12 +946,17 @@ impl Shared {
             f.edges.retain(|e| places.contains_key(&e.a) && places.contains_key(&e.b));
             let mut graph = PoseGraph::default();
             let mut keys: Vec<(u32, u64)> = Vec::new();
+            // Each keyframe's fleet pose without correction; the graph starts from
+            // the corrected ones (the last solve's, or those a resumed session
+            // brought), so the keyframe held fixed stays where it was served.
+            let mut raws: Vec<Isometry3<f64>> = Vec::new();
             let mut node: HashMap<(u32, u64), usize> = HashMap::new();
             let mut fixed = None;
             let (mut odometry, mut loops, mut inter) = (0, 0, 0);
             for (mi, member) in f.members.iter().enumerate() {
                 let Some(frame) = &member.frame else { continue };
                 let fleet_from_session = isometry(&frame.fleet_from_session);
+                let transform = FleetTransform { fleet_from_session, corrections: member.corrections.clone() };
                 let mut mine: Vec<(u64, u64, Isometry3<f64>)> = member
                     .indexed
                     .iter()
@@ -898,8 +964,9 @@ impl Shared {
                     .collect();
                 mine.sort_by_key(|(t, id, _)| (*t, *id));
                 let mut previous: Option<(usize, Isometry3<f64>)> = None;
-                for (_, id, session_from_camera) in mine {
-                    let i = graph.add_pose(fleet_from_session * session_from_camera);
+                for (t, id, session_from_camera) in mine {
+                    let i = graph.add_pose(transform.at(t) * session_from_camera);
+                    raws.push(fleet_from_session * session_from_camera);
                     keys.push((mi as u32, id));
                     node.insert((mi as u32, id), i);
                     if frame.anchor && fixed.is_none() {
@@ -941,7 +1008,7 @@ impl Shared {
             if loops + inter == 0 {
                 return;
             }
-            (graph, keys, fixed.unwrap_or(0), (odometry, loops, inter))
+            (graph, keys, raws, fixed.unwrap_or(0), (odometry, loops, inter))
         };
         let started = Instant::now();
         let solved = match graph.optimize(&SolveConfig { fixed, reweight_rounds: c.reweight_rounds, ..SolveConfig::default() }) {
@@ -964,7 +1031,7 @@ impl Shared {
             max_t = max_t.max(dt);
             max_r = max_r.max(dr);
             let stamp = f.places.get(key).map_or(0, |p| p.timestamp_ns);
-            corrections.entry(key.0).or_default().push((stamp, after * before.inverse()));
+            corrections.entry(key.0).or_default().push((stamp, after * raws[i].inverse()));
         }
         for (mi, list) in corrections {
             if let Some(member) = f.members.get_mut(mi as usize).filter(|m| m.frame.is_some()) {
@@ -997,7 +1064,8 @@ impl Shared {
         let Some(store) = &self.store else { return };
         let stored = stored_graph(f);
         // Each session's share goes with it to a server that resumes it.
-        let shares = store.replica().map(|_| session_graphs(f, &stored)).unwrap_or_default();
+        let solved_unix_ns = f.last_correction.as_ref().map_or(0, |c| c.solved_unix_ns);
+        let shares = store.replica().map(|_| session_graphs(f, &stored, solved_unix_ns, self.config.max_places)).unwrap_or_default();
         drop(fleets);
         if let Err(e) = store.put_fleet_graph(name, &stored) {
             tracing::error!(fleet = name, "pose graph not persisted (the store failed): {e}");
@@ -1410,7 +1478,9 @@ mod tests {
     /// session not here waits, and a session whose frame was not kept gets nothing.
     #[test]
     fn a_resumed_sessions_share_of_the_pose_graph_is_carried() {
-        let service = FleetService::start(&FleetConfig::default(), &MappingConfig::default(), None, Arc::default()).expect("started");
+        // Solved only when the test says (no pose-graph thread).
+        let config = FleetConfig { graph_interval_s: 0.0, ..FleetConfig::default() };
+        let service = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
         let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
         let stored = |session: &str, ids: std::ops::Range<u64>| StoredKeyframes {
             fleet: "lab".into(),
@@ -1442,26 +1512,35 @@ mod tests {
         let share = |corrections: Vec<(u64, [f64; 7])>| SessionGraph {
             corrections,
             edges: vec![edge(("b1", 4), ("c1", 2)), edge(("b1", 1), ("gone", 0)), edge(("b1", 0), ("b1", 4))],
+            solved_unix_ns: 1,
         };
-        service.carry_graph("lab", "b1", share(vec![(1_003, pose7(&correction))]));
+        // Out of time order, and one no solve could have written (NaN): sorted, left out.
+        let not_a_pose = [f64::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+        let later = Isometry3::from_parts(Translation3::new(0.07, 0.0, 0.0), UnitQuaternion::identity());
+        service.carry_graph("lab", "b1", share(vec![(1_004, pose7(&later)), (1_002, not_a_pose), (1_003, pose7(&correction))]));
         // c1 brings the same edges (b1–c1 seen from its side): kept once.
-        service.carry_graph("lab", "c1", SessionGraph { corrections: vec![], edges: vec![edge(("c1", 2), ("b1", 4))] });
+        service.carry_graph("lab", "c1", SessionGraph { corrections: vec![], edges: vec![edge(("c1", 2), ("b1", 4))], solved_unix_ns: 1 });
         service.carry_graph("lab", "d1", share(vec![(1_000, pose7(&correction))]));
         service.carry_graph("yard", "b1", share(vec![]));
         let b1 = service.fleet_transform("lab", "b1").expect("merged");
-        assert_eq!(b1.corrections.as_slice(), &[(1_003, correction)], "as the other server served it");
+        assert_eq!(b1.corrections.as_slice(), &[(1_003, correction), (1_004, later)], "as the other server served it");
         assert_eq!(b1.at(1_003), correction * moved);
         assert!(service.fleet_transform("lab", "d1").is_none(), "d1 is merged again here, its share left out");
         // Nothing to solve while the edges' keyframes are not indexed here.
         service.solve_now();
-        assert!(service.get("lab").expect("fleet").last_correction.is_none());
+        let view = service.get("lab").expect("fleet");
+        assert!(view.last_correction.is_none());
+        assert_eq!(view.carried_edges_waiting, 3);
         service.index_stored(stored("b1", 0..5), false);
         service.index_stored(stored("c1", 0..3), false);
         let deadline = Instant::now() + Duration::from_secs(10);
-        while !service.get("lab").expect("fleet").pose_graph_pending {
-            assert!(Instant::now() < deadline, "no solve due after the carried edges' keyframes were indexed");
+        while service.backlog() > 0 {
+            assert!(Instant::now() < deadline, "the stored keyframes never indexed");
             std::thread::sleep(Duration::from_millis(5));
         }
+        let view = service.get("lab").expect("fleet");
+        assert!(view.pose_graph_pending, "a solve is due once the carried edges' keyframes are indexed");
+        assert_eq!(view.carried_edges_waiting, 1, "the edge to a session not here waits");
         service.solve_now();
         let solve = service.get("lab").expect("fleet").last_correction.expect("solved");
         assert_eq!(

@@ -66,16 +66,20 @@ enum ReplicaJob {
     Release(String),
     /// Session `id`'s frame in its fleet changed (JSON), while this server writes it.
     FleetFrame(String, Vec<u8>),
-    /// Session `id`'s share of its fleet's pose graph after a solve (JSON
-    /// [`crate::store::SessionGraph`]), while this server writes it.
-    FleetGraph(String, Vec<u8>),
+    /// Sessions' shares of their fleets' pose graphs are waiting
+    /// ([`Replica::fleet_graph`]): the latest of each is written, while this
+    /// server writes the session.
+    FleetGraphs,
+    /// The shares taken from the waiting ones, by session id (made by the thread).
+    FleetGraphsTaken(Vec<(String, Vec<u8>)>),
 }
 
 impl ReplicaJob {
     fn session_id(&self) -> &str {
         match self {
             Self::Commit(c) => &c.session_id,
-            Self::Release(id) | Self::FleetFrame(id, _) | Self::FleetGraph(id, _) => id,
+            Self::Release(id) | Self::FleetFrame(id, _) => id,
+            Self::FleetGraphs | Self::FleetGraphsTaken(_) => "(pose-graph shares)",
         }
     }
 }
@@ -174,6 +178,9 @@ const MAX_FENCED_LOGGED: usize = 4096;
 const BACKFILL_PAGE: usize = 32;
 /// Backfills waiting for the thread; more are left out (logged).
 const BACKFILL_QUEUE: usize = 256;
+/// Sessions whose pose-graph share waits to be written; a share of another one
+/// beyond it is left out (logged; the next solve brings it again).
+const MAX_WAITING_SHARES: usize = 4096;
 
 /// SHA-256 of a resume secret, as the shared storage keeps it.
 pub fn secret_hash(secret: &str) -> Vec<u8> {
@@ -198,6 +205,11 @@ pub struct Replica {
     /// What every commit of a session carries, by session id (a commit left out
     /// must not leave the session impossible to resume, or without its merge).
     carried: std::sync::Mutex<std::collections::HashMap<String, Carried>>,
+    /// The latest pose-graph share of each session not written yet (JSON), and
+    /// whether a job to write them is queued: a solve replaces what an earlier one
+    /// left waiting, so shares never take more than one queue slot.
+    shares: Arc<std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>>,
+    shares_queued: Arc<AtomicBool>,
     /// The backfill thread's queue (see [`Backfill`]).
     backfills: std::sync::Mutex<Option<SyncSender<Backfill>>>,
 }
@@ -252,10 +264,13 @@ impl Replica {
         let closing = Arc::new(AtomicBool::new(false));
         let (worker_id, worker_counters, worker_closing, worker_config) =
             (server_id.clone(), counters.clone(), closing.clone(), config.clone());
+        let shares: Arc<std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>> = Arc::default();
+        let shares_queued = Arc::new(AtomicBool::new(false));
+        let waiting = (shares.clone(), shares_queued.clone());
         std::thread::Builder::new()
             .name("replica".into())
             .spawn(move || {
-                copy(worker_config, &worker_id, rx, &worker_counters, &worker_closing);
+                copy(worker_config, &worker_id, rx, &worker_counters, &worker_closing, &waiting);
                 let _ = done_tx.send(());
             })
             .map_err(ReplicaError::Thread)?;
@@ -268,7 +283,18 @@ impl Replica {
         let done = std::sync::Mutex::new(done_rx);
         let carried = std::sync::Mutex::default();
         let backfills = std::sync::Mutex::new(Some(backfill_tx));
-        Ok(Arc::new(Self { config, jobs: std::sync::Mutex::new(Some(tx)), counters, done, server_id, closing, carried, backfills }))
+        Ok(Arc::new(Self {
+            config,
+            jobs: std::sync::Mutex::new(Some(tx)),
+            counters,
+            done,
+            server_id,
+            closing,
+            carried,
+            shares,
+            shares_queued,
+            backfills,
+        }))
     }
 
     /// Reads session `id` back from PostgreSQL (its newest `keyframes` records) for
@@ -331,11 +357,20 @@ impl Replica {
 
     /// Copies session `session_id`'s share of its fleet's pose graph
     /// (`SessionGraph` as JSON) after a solve, where PostgreSQL holds the session
-    /// and this server writes it. A full queue leaves it out (logged): the next
-    /// solve copies it again.
+    /// and this server writes it. Only the latest share of a session waits; one
+    /// queued job writes every waiting share (when the queue is full, the next
+    /// share handed over queues it).
     pub fn fleet_graph(&self, session_id: &str, json: Vec<u8>) {
-        if self.enqueue(ReplicaJob::FleetGraph(session_id.to_string(), json)) == Queued::Full {
-            tracing::warn!(session = session_id, "replica queue full (store.replica_queue): its pose-graph share goes with the next solve");
+        {
+            let mut waiting = crate::lock(&self.shares);
+            if waiting.len() >= MAX_WAITING_SHARES && !waiting.contains_key(session_id) {
+                tracing::warn!(session = session_id, "{MAX_WAITING_SHARES} pose-graph shares wait for PostgreSQL: this one is left out");
+                return;
+            }
+            waiting.insert(session_id.to_string(), json);
+        }
+        if !self.shares_queued.swap(true, Ordering::SeqCst) && self.enqueue(ReplicaJob::FleetGraphs) != Queued::Yes {
+            self.shares_queued.store(false, Ordering::SeqCst);
         }
     }
 
@@ -430,12 +465,16 @@ fn pause(wait: Duration, closing: &AtomicBool) {
 /// The replica thread: connects (again, with a growing wait, while it fails) and
 /// writes each commit in one transaction, until the queue closes. At shutdown,
 /// a failure ends it (what is left is counted as dropped).
+/// The waiting pose-graph shares and whether a job to write them is queued (see [`Replica`]).
+type WaitingShares = (Arc<std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>>, Arc<AtomicBool>);
+
 fn copy(
     config: postgres::Config,
     server_id: &std::sync::Mutex<String>,
     rx: Receiver<ReplicaJob>,
     counters: &ReplicaCounters,
     closing: &AtomicBool,
+    (shares, shares_queued): &WaitingShares,
 ) {
     let mut client: Option<postgres::Client> = None;
     let mut wait = Duration::from_secs(1);
@@ -446,6 +485,17 @@ fn copy(
         tracing::warn!(left, "replica: PostgreSQL fails at shutdown; these commits are not copied");
     };
     for job in rx.iter() {
+        let job = match job {
+            ReplicaJob::FleetGraphs => {
+                shares_queued.store(false, Ordering::SeqCst);
+                let taken: Vec<(String, Vec<u8>)> = std::mem::take(&mut *crate::lock(shares)).into_iter().collect();
+                if taken.is_empty() {
+                    continue;
+                }
+                ReplicaJob::FleetGraphsTaken(taken)
+            }
+            other => other,
+        };
         let mut refused = 0;
         loop {
             if client.is_none() {
@@ -481,14 +531,8 @@ fn copy(
                     )
                     .map(|_| true)
                 }
-                ReplicaJob::FleetGraph(id, json) => {
-                    let json = std::str::from_utf8(json).unwrap_or("null");
-                    c.execute(
-                        "UPDATE stillmap_sessions SET fleet_graph = $3::text::jsonb WHERE id = $1 AND server_id = $2",
-                        &[id, &server, &json],
-                    )
-                    .map(|_| true)
-                }
+                ReplicaJob::FleetGraphsTaken(taken) => write_shares(c, &server, taken),
+                ReplicaJob::FleetGraphs => Ok(true),
             };
             match written {
                 Ok(copied) => {
@@ -518,8 +562,10 @@ fn copy(
                     // again; a few tries, then it is left out.
                     refused += u32::from(e.as_db_error().is_some());
                     if refused >= REFUSED_ATTEMPTS {
-                        counters.dropped.inc();
-                        tracing::error!(session = %job.session_id(), "replica: PostgreSQL refuses this commit ({}); left out", describe(&e));
+                        if matches!(job, ReplicaJob::Commit(_)) {
+                            counters.dropped.inc();
+                        }
+                        tracing::error!(session = %job.session_id(), "replica: PostgreSQL refuses this write ({}); left out", describe(&e));
                         break;
                     }
                     if closing.load(Ordering::SeqCst) {
@@ -533,6 +579,18 @@ fn copy(
             }
         }
     }
+}
+
+/// Writes pose-graph shares in one transaction, each only where this server
+/// writes the session (not one that moved to another server since).
+fn write_shares(c: &mut postgres::Client, server: &str, taken: &[(String, Vec<u8>)]) -> Result<bool, postgres::Error> {
+    let mut tx = c.transaction()?;
+    for (id, json) in taken {
+        let json = std::str::from_utf8(json).unwrap_or("null");
+        tx.execute("UPDATE stillmap_sessions SET fleet_graph = $3::text::jsonb WHERE id = $1 AND server_id = $2", &[id, &server, &json])?;
+    }
+    tx.commit()?;
+    Ok(true)
 }
 
 /// Runs `f` on a thread named `name` (a connection of its own, off the caller's

@@ -166,6 +166,9 @@ pub struct SessionGraph {
     pub corrections: Vec<(u64, [f64; 7])>,
     /// The place edges with one of its keyframes at either end.
     pub edges: Vec<GraphEdge>,
+    /// When the solve that wrote it finished (Unix ns).
+    #[serde(default)]
+    pub solved_unix_ns: u64,
 }
 
 /// A keyframe as stored: pose, keypoints and descriptors (for relocalization

@@ -791,8 +791,8 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
     let indexed_on_a = indexed(&on_a);
     // A copies each session's share of the fleet's pose graph (its corrections, its
     // place edges) to the shared storage with every solve.
-    // Per session: (writer, corrections, edges as sorted pairs of (session, keyframe)).
-    type Shares = BTreeMap<String, (String, usize, std::collections::BTreeSet<Vec<(String, u64)>>)>;
+    // Per session: (writer, solve time, edges as sorted pairs of (session, keyframe)).
+    type Shares = BTreeMap<String, (String, u64, std::collections::BTreeSet<Vec<(String, u64)>>)>;
     let shares = || -> Shares {
         let rows = cluster.pg.query("SELECT id, server_id, fleet_graph::text FROM stillmap_sessions WHERE fleet_graph IS NOT NULL");
         rows.iter()
@@ -808,13 +808,18 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
                         pair
                     })
                     .collect();
-                (r.get::<_, String>(0), (r.get::<_, String>(1), share["corrections"].as_array().map_or(0, Vec::len), pairs))
+                let solved = if share["corrections"].as_array().is_some_and(|c| !c.is_empty()) {
+                    share["solved_unix_ns"].as_u64().unwrap_or(0)
+                } else {
+                    0
+                };
+                (r.get::<_, String>(0), (r.get::<_, String>(1), solved, pairs))
             })
             .collect()
     };
     eventually(Duration::from_secs(20), "both sessions' pose-graph shares written by A", async || {
         let now = shares();
-        now.len() == 2 && now.values().all(|(writer, corrections, edges)| writer == ID_A && *corrections > 0 && !edges.is_empty())
+        now.len() == 2 && now.values().all(|(writer, solved, edges)| writer == ID_A && *solved > 0 && !edges.is_empty())
     })
     .await;
     let from_a: std::collections::BTreeSet<Vec<(String, u64)>> = shares().into_values().flat_map(|(_, _, edges)| edges).collect();
@@ -844,17 +849,19 @@ async fn a_fleet_taken_by_a_joining_server_keeps_its_frame() {
         assert!(s["indexed_keyframes"].as_u64() >= indexed_on_a.get(id).copied(), "{s}: {indexed_on_a:?} on A");
     }
     eprintln!("fleet {fleet}: anchored by {anchor} on A, the same frame on B");
-    // B took each session's share with it: its graph, solved on B, holds every
-    // edge A's shares held (edges between keyframes made on A, which B never
-    // matched itself), and B writes the shares now.
+    // B took each session's share with it: every edge A's shares held (edges
+    // between keyframes made on A, which B never matches itself) joined B's graph
+    // (none waits), B solved with them, and the shares B wrote after hold them.
     eventually(Duration::from_secs(30), "B's pose graph solved with the edges carried from A", async || {
-        let solve = &b.get_json(&path).await.1["last_correction"];
+        let fleet_on_b = b.get_json(&path).await.1;
+        let solve = &fleet_on_b["last_correction"];
         let edges = solve["loop_edges"].as_u64().unwrap_or(0) + solve["inter_session_edges"].as_u64().unwrap_or(0);
         let by_b = shares();
-        solve["solved_unix_ns"].as_u64().is_some_and(|t| t > b_started_ns)
+        fleet_on_b["carried_edges_waiting"] == 0
+            && solve["solved_unix_ns"].as_u64().is_some_and(|t| t > b_started_ns)
             && edges as usize >= from_a.len()
             && by_b.len() == 2
-            && by_b.values().all(|(writer, _, _)| writer == ID_B)
+            && by_b.values().all(|(writer, solved, _)| writer == ID_B && *solved > b_started_ns)
             && from_a.iter().all(|pair| by_b.values().any(|(_, _, edges)| edges.contains(pair)))
     })
     .await;

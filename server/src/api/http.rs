@@ -287,6 +287,9 @@ fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
         "indexed_keyframes": f.indexed_keyframes,
         // A pose-graph solve is due or running: the corrections are about to change.
         "pose_graph_pending": f.pose_graph_pending,
+        // Place edges sessions resumed from another server brought, waiting for
+        // their keyframes to be indexed here.
+        "carried_edges_waiting": f.carried_edges_waiting,
     });
     if detail {
         // The fused fleet map: keyframes held (fused, or waiting for their
