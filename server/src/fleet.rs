@@ -1409,28 +1409,32 @@ mod tests {
     /// `fleet.pending_keyframes`; keyframes already indexed are not added again, and
     /// a session not in the fleet (or a fleet not held) gets nothing. Older ones
     /// are the first forgotten beyond `fleet.max_places`, before current ones.
+    /// Session `session`'s stored keyframes `ids` in fleet "lab": each 10 cm along
+    /// x from the last, with 20 features of its own.
+    fn stored_keyframes(camera: &Camera, session: &str, ids: std::ops::Range<u64>) -> StoredKeyframes {
+        StoredKeyframes {
+            fleet: "lab".into(),
+            session_id: session.into(),
+            camera: camera.clone(),
+            keyframes: ids
+                .map(|id| KeyframeRecord {
+                    id,
+                    timestamp_ns: 1_000 + id,
+                    world_from_camera: [0.1 * id as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                    features: (0..20u64)
+                        .map(|i| ([10.0 + i as f32 * 7.0, 20.0 + id as f32], 0, 1.5, [id.wrapping_mul(0x9e37_79b9) ^ i, i, id, !i]))
+                        .collect(),
+                })
+                .collect(),
+        }
+    }
+
     #[test]
     fn a_resumed_sessions_stored_keyframes_are_indexed_here() {
         let config = FleetConfig { pending_keyframes: 2, max_places: 9, ..FleetConfig::default() };
         let service = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
         let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
-        let keyframes = |ids: std::ops::Range<u64>| -> Vec<KeyframeRecord> {
-            ids.map(|id| KeyframeRecord {
-                id,
-                timestamp_ns: 1_000 + id,
-                world_from_camera: [0.1 * id as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-                features: (0..20u64)
-                    .map(|i| ([10.0 + i as f32 * 7.0, 20.0 + id as f32], 0, 1.5, [id.wrapping_mul(0x9e37_79b9) ^ i, i, id, !i]))
-                    .collect(),
-            })
-            .collect()
-        };
-        let stored = |session: &str, ids| StoredKeyframes {
-            fleet: "lab".into(),
-            session_id: session.into(),
-            camera: camera.clone(),
-            keyframes: keyframes(ids),
-        };
+        let stored = |session: &str, ids| stored_keyframes(&camera, session, ids);
         let moved = Isometry3::from_parts(Translation3::new(1.0, 2.0, 0.0), UnitQuaternion::identity());
         assert!(service.join_carried("lab", "b1", "robot-b", Some(FleetFrame { lineage: "a0".into(), ..frame(false, &moved) })));
         assert!(!service.join_carried("lab", "d1", "robot-d", Some(FleetFrame { lineage: "elsewhere".into(), ..frame(false, &moved) })));
@@ -1482,21 +1486,7 @@ mod tests {
         let config = FleetConfig { graph_interval_s: 0.0, ..FleetConfig::default() };
         let service = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
         let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
-        let stored = |session: &str, ids: std::ops::Range<u64>| StoredKeyframes {
-            fleet: "lab".into(),
-            session_id: session.into(),
-            camera: camera.clone(),
-            keyframes: ids
-                .map(|id| KeyframeRecord {
-                    id,
-                    timestamp_ns: 1_000 + id,
-                    world_from_camera: [0.1 * id as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-                    features: (0..20u64)
-                        .map(|i| ([10.0 + i as f32 * 7.0, 20.0 + id as f32], 0, 1.5, [id.wrapping_mul(0x9e37_79b9) ^ i, i, id, !i]))
-                        .collect(),
-                })
-                .collect(),
-        };
+        let stored = |session: &str, ids| stored_keyframes(&camera, session, ids);
         let moved = Isometry3::from_parts(Translation3::new(1.0, 2.0, 0.0), UnitQuaternion::identity());
         let carried = |_: &str| Some(FleetFrame { lineage: "a0".into(), ..frame(false, &moved) });
         assert!(service.join_carried("lab", "b1", "robot-b", carried("b1")));

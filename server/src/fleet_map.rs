@@ -669,16 +669,7 @@ mod tests {
             Arc::default(),
         )
         .expect("started");
-        let wait = |done: &dyn Fn(FleetMapCounts) -> bool| {
-            let deadline = std::time::Instant::now() + Duration::from_secs(10);
-            loop {
-                if let Some(c) = maps.state("lab").map(|s| s.counts()).filter(|c| done(*c)) {
-                    return c;
-                }
-                assert!(std::time::Instant::now() < deadline, "never got there: {:?}", maps.state("lab").map(|s| s.counts()));
-                std::thread::sleep(Duration::from_millis(20));
-            }
-        };
+        let wait = |done: &dyn Fn(FleetMapCounts) -> bool| wait_for(&maps, done);
         // (mean height of the wall's voxels, their count, the box's voxels)
         let measure = || {
             let s = maps.state("lab").expect("state");
