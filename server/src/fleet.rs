@@ -334,7 +334,7 @@ impl FleetService {
 
     /// Hands a committed keyframe to place recognition; a full queue leaves it out.
     pub fn submit(&self, job: FleetJob) {
-        if let Some(Work::Keyframe(job)) = self.enqueue(Work::Keyframe(job)) {
+        if let Some(Work::Keyframe(job)) = self.enqueue(Work::Keyframe(job), false) {
             tracing::warn!(session = %job.session_id, keyframe = job.keyframe.id, "place-recognition queue full (fleet.queue): keyframe left out");
         }
     }
@@ -350,16 +350,7 @@ impl FleetService {
         if stored.keyframes.is_empty() {
             return;
         }
-        if wait {
-            let Some(tx) = lock(&self.jobs).clone() else { return };
-            let n = stored.keyframes.len();
-            self.backlog.fetch_add(n, std::sync::atomic::Ordering::SeqCst);
-            if tx.send(Work::Stored(stored)).is_err() {
-                self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
-            }
-            return;
-        }
-        if let Some(Work::Stored(stored)) = self.enqueue(Work::Stored(stored)) {
+        if let Some(Work::Stored(stored)) = self.enqueue(Work::Stored(stored), wait) {
             tracing::warn!(
                 session = %stored.session_id,
                 keyframes = stored.keyframes.len(),
@@ -368,23 +359,23 @@ impl FleetService {
         }
     }
 
-    /// Queues `work` for the place-recognition thread; gives it back when the
-    /// queue is full (nothing when the thread is stopping).
-    fn enqueue(&self, work: Work) -> Option<Work> {
+    /// Queues `work` for the place-recognition thread (`wait`: for room in the
+    /// queue); gives it back when the queue is full (nothing when the thread is
+    /// stopping).
+    fn enqueue(&self, work: Work, wait: bool) -> Option<Work> {
         let tx = lock(&self.jobs).clone()?;
         let n = work.keyframes();
         self.backlog.fetch_add(n, std::sync::atomic::Ordering::SeqCst);
-        match tx.try_send(work) {
-            Ok(()) => None,
-            Err(TrySendError::Full(work)) => {
-                self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
-                Some(work)
-            }
-            Err(TrySendError::Disconnected(_)) => {
-                self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
-                None
-            }
+        let (queued, back) = match (wait, tx.try_send(work)) {
+            (_, Ok(())) => (true, None),
+            (false, Err(TrySendError::Full(work))) => (false, Some(work)),
+            (true, Err(TrySendError::Full(work))) => (tx.send(work).is_ok(), None),
+            (_, Err(TrySendError::Disconnected(_))) => (false, None),
+        };
+        if !queued {
+            self.backlog.fetch_sub(n, std::sync::atomic::Ordering::SeqCst);
         }
+        back
     }
 
     /// Keyframes waiting for (or in) place recognition.
@@ -1065,14 +1056,15 @@ impl Shared {
         let stored = stored_graph(f);
         // Each session's share goes with it to a server that resumes it.
         let solved_unix_ns = f.last_correction.as_ref().map_or(0, |c| c.solved_unix_ns);
-        let shares = store.replica().map(|_| session_graphs(f, &stored, solved_unix_ns, self.config.max_places)).unwrap_or_default();
+        let replica = store.replica();
+        let shares = replica.map(|_| session_graphs(f, &stored, solved_unix_ns, self.config.max_places)).unwrap_or_default();
         drop(fleets);
         if let Err(e) = store.put_fleet_graph(name, &stored) {
             tracing::error!(fleet = name, "pose graph not persisted (the store failed): {e}");
         }
-        if let Some(replica) = store.replica() {
+        if let Some(replica) = replica {
             for (session, share) in shares {
-                match serde_json::to_vec(&share) {
+                match serde_json::to_string(&share) {
                     Ok(json) => replica.fleet_graph(&session, json),
                     Err(e) => tracing::error!(fleet = name, session, "pose-graph share not copied: {e}"),
                 }

@@ -295,11 +295,16 @@ fn load(config: &FleetMapConfig, store: Option<&Store>) -> HashMap<String, Arc<F
     out
 }
 
+/// Every fleet's map handle, copied out of the lock.
+fn every_fleet(states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>) -> Vec<(String, Arc<FleetMapHandle>)> {
+    lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect()
+}
+
 /// Saves each fleet map that changed since its last save: its changed blocks and
 /// head, copied under its lock and written after. A failed write is logged and
 /// tried again at the next save (the blocks stay changed since the saved stamp).
 fn save(states: &Mutex<HashMap<String, Arc<FleetMapHandle>>>, store: &Store) {
-    let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+    let all = every_fleet(states);
     for (fleet, handle) in all {
         let (head, blocks, replace) = {
             let s = lock(&handle.state);
@@ -365,7 +370,7 @@ fn run(
                 }
             }
             Err(RecvTimeoutError::Timeout) => {
-                let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+                let all = every_fleet(states);
                 for (fleet, state) in all {
                     pass(&fleet, &state, config, transform_of);
                 }
@@ -373,7 +378,7 @@ fn run(
             Err(RecvTimeoutError::Disconnected) => {
                 // The server stops: fuse what waits (bounded), then save.
                 let deadline = Instant::now() + CLOSE_BUDGET;
-                let all: Vec<(String, Arc<FleetMapHandle>)> = lock(states).iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+                let all = every_fleet(states);
                 for (fleet, state) in all {
                     while Instant::now() < deadline && pass(&fleet, &state, config, transform_of) > 0 {}
                 }

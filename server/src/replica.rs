@@ -71,7 +71,7 @@ enum ReplicaJob {
     /// server writes the session.
     FleetGraphs,
     /// The shares taken from the waiting ones, by session id (made by the thread).
-    FleetGraphsTaken(Vec<(String, Vec<u8>)>),
+    FleetGraphsTaken(Vec<(String, String)>),
 }
 
 impl ReplicaJob {
@@ -208,7 +208,7 @@ pub struct Replica {
     /// The latest pose-graph share of each session not written yet (JSON), and
     /// whether a job to write them is queued: a solve replaces what an earlier one
     /// left waiting, so shares never take more than one queue slot.
-    shares: Arc<std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>>,
+    shares: Shares,
     shares_queued: Arc<AtomicBool>,
     /// The backfill thread's queue (see [`Backfill`]).
     backfills: std::sync::Mutex<Option<SyncSender<Backfill>>>,
@@ -264,7 +264,7 @@ impl Replica {
         let closing = Arc::new(AtomicBool::new(false));
         let (worker_id, worker_counters, worker_closing, worker_config) =
             (server_id.clone(), counters.clone(), closing.clone(), config.clone());
-        let shares: Arc<std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>> = Arc::default();
+        let shares = Shares::default();
         let shares_queued = Arc::new(AtomicBool::new(false));
         let waiting = (shares.clone(), shares_queued.clone());
         std::thread::Builder::new()
@@ -360,7 +360,7 @@ impl Replica {
     /// and this server writes it. Only the latest share of a session waits; one
     /// queued job writes every waiting share (when the queue is full, the next
     /// share handed over queues it).
-    pub fn fleet_graph(&self, session_id: &str, json: Vec<u8>) {
+    pub fn fleet_graph(&self, session_id: &str, json: String) {
         {
             let mut waiting = crate::lock(&self.shares);
             if waiting.len() >= MAX_WAITING_SHARES && !waiting.contains_key(session_id) {
@@ -465,8 +465,11 @@ fn pause(wait: Duration, closing: &AtomicBool) {
 /// The replica thread: connects (again, with a growing wait, while it fails) and
 /// writes each commit in one transaction, until the queue closes. At shutdown,
 /// a failure ends it (what is left is counted as dropped).
+/// The latest pose-graph share (JSON) of each session waiting to be written.
+type Shares = Arc<std::sync::Mutex<std::collections::HashMap<String, String>>>;
+
 /// The waiting pose-graph shares and whether a job to write them is queued (see [`Replica`]).
-type WaitingShares = (Arc<std::sync::Mutex<std::collections::HashMap<String, Vec<u8>>>>, Arc<AtomicBool>);
+type WaitingShares = (Shares, Arc<AtomicBool>);
 
 fn copy(
     config: postgres::Config,
@@ -488,7 +491,7 @@ fn copy(
         let job = match job {
             ReplicaJob::FleetGraphs => {
                 shares_queued.store(false, Ordering::SeqCst);
-                let taken: Vec<(String, Vec<u8>)> = std::mem::take(&mut *crate::lock(shares)).into_iter().collect();
+                let taken: Vec<(String, String)> = std::mem::take(&mut *crate::lock(shares)).into_iter().collect();
                 if taken.is_empty() {
                     continue;
                 }
@@ -583,10 +586,9 @@ fn copy(
 
 /// Writes pose-graph shares in one transaction, each only where this server
 /// writes the session (not one that moved to another server since).
-fn write_shares(c: &mut postgres::Client, server: &str, taken: &[(String, Vec<u8>)]) -> Result<bool, postgres::Error> {
+fn write_shares(c: &mut postgres::Client, server: &str, taken: &[(String, String)]) -> Result<bool, postgres::Error> {
     let mut tx = c.transaction()?;
     for (id, json) in taken {
-        let json = std::str::from_utf8(json).unwrap_or("null");
         tx.execute("UPDATE stillmap_sessions SET fleet_graph = $3::text::jsonb WHERE id = $1 AND server_id = $2", &[id, &server, &json])?;
     }
     tx.commit()?;
