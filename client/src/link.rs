@@ -560,7 +560,7 @@ async fn rejoin(
         in_flight.retain(|&q| q != r.sequence);
         let _ = events.send(LinkEvent::Result(r)).await;
     }
-    if again.restored {
+    if again.restored && !same_restore(accepted, &again, *moves, in_flight.is_empty()) {
         // Resumed from the shared storage by a server that did not hold it: what was
         // in flight to the server that left is not answered.
         *moves += 1;
@@ -587,6 +587,19 @@ async fn rejoin(
         let _ = events.send(LinkEvent::Accepted(again.clone())).await;
     }
     Ok(again)
+}
+
+/// Whether a `restored` answer to a rejoin is the restore `accepted` already was,
+/// answered again. A server answers a hello identical to the one that opened its link
+/// with that open's accept until a frame reaches it (the robot may not have heard it),
+/// so when the robot hears of one move twice (the new owner's FAILED_PRECONDITION,
+/// then the old server's liveliness token leaving) the second rejoin is told
+/// `restored` again. It is the same move when the session is the one just restored,
+/// no result came since (`moves` > 0) and nothing was sent since (a frame would have
+/// reached that server before the hello, and it would answer `restored: false`).
+#[cfg(feature = "zenoh")]
+fn same_restore(accepted: &pb::SessionAccepted, again: &pb::SessionAccepted, moves: u32, nothing_in_flight: bool) -> bool {
+    moves > 0 && nothing_in_flight && accepted.restored && again.restored && again.session_id == accepted.session_id
 }
 
 /// Whether a status is about session `id`: its `session_id`, or for a server that
@@ -676,6 +689,22 @@ mod tests {
         assert!(!names_session(message, "robot-1-6b2a"), "a prefix is another session");
         assert!(!names_session(message, "robot-1-6b2a-30"));
         assert!(!names_session(message, ""), "no session yet");
+    }
+
+    /// One move heard twice (a FAILED_PRECONDITION, then the liveliness token) is
+    /// counted once; a restore after a result, with frames in flight, of another
+    /// session or after a resume that was not a restore is a move of its own.
+    #[test]
+    fn a_restore_answered_again_is_the_same_move() {
+        let accept =
+            |id: &str, restored: bool| pb::SessionAccepted { session_id: id.into(), resumed: true, restored, ..Default::default() };
+        let (restored, again) = (accept("r-1a-1", true), accept("r-1a-1", true));
+        assert!(same_restore(&restored, &again, 1, true));
+        assert!(!same_restore(&restored, &again, 0, true), "a result came since: a new move");
+        assert!(!same_restore(&restored, &again, 1, false), "frames were sent since: a new move");
+        assert!(!same_restore(&restored, &accept("r-1a-2", true), 1, true), "another session");
+        assert!(!same_restore(&accept("r-1a-1", false), &again, 1, true), "the last accept was no restore");
+        assert!(!same_restore(&restored, &accept("r-1a-1", false), 1, true), "not restored now");
     }
 
     /// A status that names its session (`session_id`) is judged by it alone; one
