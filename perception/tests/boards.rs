@@ -23,6 +23,10 @@
 //! `STILLMAP_BOARDS="rpy_b later pipeline" cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture trace_one_run`
 //! (clip `rpy` or `rpy_b`; arrangement `built`, `later` or `mirrored`; run
 //! `pipeline`, `no-baseline`, `every-board`, `moving-boards`, `no-mask` or `free`).
+//! `tracker_under_a_configuration` runs the tracker alone (object-free, and with the
+//! exact masks of every board) under the `[tracking]` keys given as TOML in
+//! `STILLMAP_TRACKING`, and prints ATE, keyframes and time per frame:
+//! `STILLMAP_TRACKING="keyframe_tracked_ratio = 0.85" cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture tracker_under`.
 
 use stillmap_perception::testing as support;
 use stillmap_perception::testing::composite_run;
@@ -244,4 +248,58 @@ fn trace_one_run() {
         arrangement.label(),
         frames.len() - trajectory.len()
     );
+}
+
+/// One frame for the tracker: timestamp, colour, depth, dynamic mask.
+type TrackedImages<'a> = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>);
+
+/// The tracker alone, with a configuration given as TOML in `STILLMAP_TRACKING`
+/// (e.g. `keyframe_max_interval = 10`): object-free and with the exact masks of
+/// every board, in the three arrangements of both clips; ATE, keyframes made and
+/// the tracker's mean time per frame.
+#[test]
+#[ignore = "diagnostic: the tracker alone under a tracking configuration (STILLMAP_TRACKING, TOML)"]
+fn tracker_under_a_configuration() {
+    let toml_text = std::env::var("STILLMAP_TRACKING").unwrap_or_default();
+    let config: TrackerConfig = toml::from_str(&toml_text).expect("STILLMAP_TRACKING: a [tracking] table's keys");
+    let run = |frames: &[TrackedImages]| {
+        let mut tracker = Tracker::new(tum::fr1_camera(), config.clone()).expect("tracker");
+        let (mut poses, mut keyframes) = (Vec::new(), 0);
+        let start = std::time::Instant::now();
+        for &(timestamp_ns, rgb, depth, dynamic_mask) in frames {
+            let out = tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask }).expect("track");
+            keyframes += usize::from(out.keyframe);
+            if let Some(p) = out.world_from_camera {
+                poses.push((tum::fr1_pose_time_ns(timestamp_ns), p));
+            }
+        }
+        (poses, keyframes, start.elapsed().as_secs_f64() * 1e3 / frames.len() as f64)
+    };
+    let (mut free_mean, mut masked_mean, mut ms) = (0.0, 0.0, 0.0);
+    for dir in [tum::fr1_rpy_dir(), stillmap_dataset::shared::fr1_rpy_b()] {
+        let frames = tum::load(&dir, 150);
+        let gt = tum::groundtruth(&dir);
+        let poses = exposure_poses(&frames, &gt);
+        let ate = |t: &[(u64, Isometry3<f64>)]| 100.0 * tum::score(&gt, t).ate_m;
+        let plain: Vec<_> = frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), None)).collect();
+        let (free, free_keyframes, free_ms) = run(&plain);
+        let mut row = Vec::new();
+        for arrangement in Arrangement::ALL {
+            let (composite, _) = scene(&frames, &poses, arrangement);
+            let masked: Vec<_> =
+                composite.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), Some(f.object_mask.as_slice()))).collect();
+            let (t, keyframes, t_ms) = run(&masked);
+            row.push(format!("{:.2} ({} posed, {keyframes} kf, {t_ms:.0} ms)", ate(&t), t.len()));
+            masked_mean += ate(&t) / 6.0;
+        }
+        free_mean += ate(&free) / 2.0;
+        ms += free_ms / 2.0;
+        println!(
+            "{}: object-free {:.2} cm ({free_keyframes} kf, {free_ms:.0} ms); exact masks {}",
+            dir.display(),
+            ate(&free),
+            row.join(" / ")
+        );
+    }
+    println!("mean: object-free {free_mean:.2} cm ({ms:.0} ms), exact masks {masked_mean:.2} cm ({toml_text:?})");
 }
