@@ -15,7 +15,8 @@
 //!
 //! All of it runs on one thread of its own behind a bounded queue
 //! (`fleet.queue`): neither tracking nor the map lane ever waits for it, and a
-//! keyframe finding the queue full is left out of place recognition (logged).
+//! keyframe finding the queue full is left out of place recognition (logged and
+//! counted in `stillmap_fleet_keyframes_left_out_total`).
 //! Memory is bounded by `fleet.max_places` keyframes per fleet (about 60 KB each:
 //! the features with depth, point and descriptor, and the index postings; 300 MB
 //! per fleet at the default 5,000) and `fleet.pending_keyframes` per unmerged session.
@@ -335,6 +336,7 @@ impl FleetService {
     /// Hands a committed keyframe to place recognition; a full queue leaves it out.
     pub fn submit(&self, job: FleetJob) {
         if let Some(Work::Keyframe(job)) = self.enqueue(Work::Keyframe(job), false) {
+            self.shared.metrics.fleet_keyframes_left_out("places", 1);
             tracing::warn!(session = %job.session_id, keyframe = job.keyframe.id, "place-recognition queue full (fleet.queue): keyframe left out");
         }
     }
@@ -351,6 +353,7 @@ impl FleetService {
             return;
         }
         if let Some(Work::Stored(stored)) = self.enqueue(Work::Stored(stored), wait) {
+            self.shared.metrics.fleet_keyframes_left_out("places", stored.keyframes.len());
             tracing::warn!(
                 session = %stored.session_id,
                 keyframes = stored.keyframes.len(),
@@ -1465,6 +1468,37 @@ mod tests {
         assert_eq!(indexed_in(&view, "c1"), (2, Some(0)));
         assert_eq!(indexed_in(&view, "b1"), (5, Some(2)), "b1's 0 and 1 forgotten first");
         assert_eq!(indexed_in(&view, "d1"), (2, Some(3)));
+        service.close();
+    }
+
+    /// Stored keyframes finding the place-recognition queue full are left out and
+    /// counted, every one of them
+    /// (`stillmap_fleet_keyframes_left_out_total{queue="places"}`).
+    #[test]
+    fn stored_keyframes_left_out_of_a_full_queue_are_counted() {
+        let config = FleetConfig { queue: 1, graph_interval_s: 0.0, ..FleetConfig::default() };
+        let metrics = Arc::new(crate::metrics::Metrics::default());
+        let service = FleetService::start(&config, &MappingConfig::default(), None, metrics.clone()).expect("started");
+        let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
+        service.join("lab", "a1", "robot-a");
+        let left_out = || {
+            metrics
+                .render()
+                .lines()
+                .find_map(|l| l.strip_prefix("stillmap_fleet_keyframes_left_out_total{queue=\"places\"} "))
+                .map_or(0, |n| n.parse::<usize>().expect("a count"))
+        };
+        {
+            // Holding the fleets stops the thread at its first job: it holds one
+            // job at most, the queue one more; the backlog counts their keyframes.
+            let _held = lock(&service.shared.fleets);
+            for first in [0, 2, 4, 6] {
+                service.index_stored(stored_keyframes(&camera, "a1", first..first + 2), false);
+            }
+            let backlog = service.backlog();
+            assert!(backlog == 2 || backlog == 4, "backlog {backlog}");
+            assert_eq!(left_out(), 8 - backlog);
+        }
         service.close();
     }
 

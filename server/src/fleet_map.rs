@@ -160,6 +160,7 @@ pub struct FleetMaps {
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
     /// Set when the server stops: the jobs still queued are only recorded, not fused one by one.
     closing: Arc<AtomicBool>,
+    metrics: Arc<crate::metrics::Metrics>,
 }
 
 /// How the thread finds a session's transform into its fleet's frame.
@@ -178,7 +179,9 @@ impl FleetMaps {
         let worker_states = states.clone();
         let closing = Arc::new(AtomicBool::new(false));
         let worker_closing = closing.clone();
+        let worker_metrics = metrics.clone();
         let worker = std::thread::Builder::new().name("fleet-map".into()).spawn(move || {
+            let metrics = worker_metrics;
             crate::lower_this_thread(config.nice, "fleet-map");
             let store = store.as_deref();
             // A panic (a bug) costs the job it was on, not the thread; while the
@@ -194,15 +197,25 @@ impl FleetMaps {
                 std::thread::sleep(PASS_INTERVAL * 4);
             }
         })?;
-        Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)), closing })
+        Ok(Self { states, jobs: Mutex::new(Some(tx)), worker: Mutex::new(Some(worker)), closing, metrics })
     }
 
-    /// Hands a map-lane job over; a full queue leaves it out (logged), and the
-    /// fleet products then fall back to the sessions' maps.
-    pub fn submit(&self, job: FleetMapJob) {
-        let Some(tx) = lock(&self.jobs).clone() else { return };
-        if let Err(TrySendError::Full(job)) = tx.try_send(job) {
-            tracing::warn!(session = %job.session_id, "fleet map queue full (fleet.map_queue): keyframe left out of the fleet map");
+    /// Hands a map-lane job over; a full queue leaves it out (logged, and counted
+    /// in `stillmap_fleet_keyframes_left_out_total{queue="fleet_map"}` when it
+    /// carries a keyframe), and the fleet products then fall back to the
+    /// sessions' maps. Returns whether the job was queued.
+    pub fn submit(&self, job: FleetMapJob) -> bool {
+        let Some(tx) = lock(&self.jobs).clone() else { return false };
+        match tx.try_send(job) {
+            Ok(()) => true,
+            Err(TrySendError::Full(job)) => {
+                if job.keyframe.is_some() {
+                    self.metrics.fleet_keyframes_left_out("fleet_map", 1);
+                }
+                tracing::warn!(session = %job.session_id, "fleet map queue full (fleet.map_queue): keyframe left out of the fleet map");
+                false
+            }
+            Err(TrySendError::Disconnected(_)) => false,
         }
     }
 
@@ -579,6 +592,41 @@ mod tests {
         let s = maps.state("lab").expect("state");
         let s = lock(&s.state);
         s.map().occupied().any(|(_, c, _)| (c.z - z).abs() < 0.03)
+    }
+
+    /// A keyframe finding the fleet map's queue full is left out and counted
+    /// (`stillmap_fleet_keyframes_left_out_total{queue="fleet_map"}`), so an
+    /// operator sees the fleet map fall behind; a job without a keyframe left out
+    /// is not counted as one.
+    #[test]
+    fn a_keyframe_left_out_of_a_full_queue_is_counted() {
+        let camera = Camera::pinhole(160, 120, 130.0, 130.0, 79.5, 59.5, 1000.0);
+        let metrics = Arc::new(crate::metrics::Metrics::default());
+        let unmerged: TransformOf = Arc::new(|_: &str, _: &str| None);
+        let one_job = FleetMapConfig { queue: 1, ..config(MappingConfig::default(), Duration::from_secs(3600)) };
+        let maps = FleetMaps::start(one_job, unmerged, None, metrics.clone()).expect("started");
+        assert!(maps.submit(job(&camera, "s", Some(1), Vec::new())));
+        wait_for(&maps, &|c| c.keyframes == 1);
+        let left_out = |metrics: &crate::metrics::Metrics| {
+            let text = metrics.render();
+            text.lines()
+                .find_map(|l| l.strip_prefix("stillmap_fleet_keyframes_left_out_total{queue=\"fleet_map\"} "))
+                .map_or(0, |n| n.parse::<u64>().expect("a count"))
+        };
+        assert_eq!(left_out(&metrics), 0);
+        // Holding the fleet's state stops the thread at its next job or pass: it
+        // holds one job at most, the queue one more.
+        let state = maps.state("lab").expect("state");
+        let held = lock(&state.state);
+        let queued = (2..8).filter(|&id| maps.submit(job(&camera, "s", Some(id), Vec::new()))).count();
+        assert!((1..=2).contains(&queued), "{queued} of 6 queued");
+        assert_eq!(left_out(&metrics), 6 - queued as u64);
+        assert!(!maps.submit(job(&camera, "s", None, Vec::new())), "the queue is still full");
+        assert_eq!(left_out(&metrics), 6 - queued as u64, "a job without a keyframe is no keyframe left out");
+        drop(held);
+        let c = wait_for(&maps, &|c| c.keyframes == 1 + queued as u64);
+        assert_eq!(c.fused, 0, "unmerged: held, not fused");
+        maps.close();
     }
 
     /// A fused fleet map is saved (every `save_interval`, and when it stops) and

@@ -37,6 +37,7 @@ pub struct Metrics {
     segmentation_replaced: Counter,
     map_backlog: Gauge,
     map_jobs_skipped: Family<Labels, Counter>,
+    fleet_keyframes_left_out: Family<Labels, Counter>,
     store_errors: Counter,
     replica: crate::replica::ReplicaCounters,
     sessions_resident: Gauge,
@@ -99,6 +100,12 @@ impl Default for Metrics {
             "map_jobs_skipped",
             "Map jobs left out because their session's map queue was full (kind: keyframe, refuse)",
             map_jobs_skipped.clone(),
+        );
+        let fleet_keyframes_left_out = Family::<Labels, Counter>::default();
+        registry.register(
+            "fleet_keyframes_left_out",
+            "Keyframes left out of their fleet because its queue was full: place recognition (queue=places, fleet.queue) or the fused fleet map (queue=fleet_map, fleet.map_queue)",
+            fleet_keyframes_left_out.clone(),
         );
         let replica = crate::replica::ReplicaCounters::default();
         registry.register("replica_commits", "Store commits copied to shared storage (store.replica_url)", replica.commits.clone());
@@ -178,6 +185,7 @@ impl Default for Metrics {
             segmentation_replaced,
             map_backlog,
             map_jobs_skipped,
+            fleet_keyframes_left_out,
             store_errors,
             replica,
             sessions_resident,
@@ -247,6 +255,11 @@ impl Metrics {
     }
     pub fn map_job_skipped(&self, keyframe: bool) {
         self.map_jobs_skipped.get_or_create(&one("kind", if keyframe { "keyframe" } else { "refuse" })).inc();
+    }
+
+    /// `n` keyframes left out of a fleet's `queue` ("places" or "fleet_map").
+    pub fn fleet_keyframes_left_out(&self, queue: &str, n: usize) {
+        self.fleet_keyframes_left_out.get_or_create(&one("queue", queue)).inc_by(n as u64);
     }
 
     pub fn session_opened(&self) {
