@@ -552,6 +552,9 @@ async fn rejoin(
     moves: &mut u32,
 ) -> Result<pb::SessionAccepted, ClientError> {
     let ZenohEnds { publisher, subscriber, hello, events, timeout } = link;
+    // Judged before the hello: a result arriving meanwhile means a frame reached a
+    // server since the last accept (so its repeated accept would not say restored).
+    let nothing_sent = in_flight.is_empty();
     let resume =
         pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..(*hello).clone() };
     let resume_bytes = zenoh_message(ClientMsg::Hello(resume), hello);
@@ -560,7 +563,7 @@ async fn rejoin(
         in_flight.retain(|&q| q != r.sequence);
         let _ = events.send(LinkEvent::Result(r)).await;
     }
-    if again.restored && !same_restore(accepted, &again, *moves, in_flight.is_empty()) {
+    if again.restored && !same_restore(accepted, &again, *moves, nothing_sent) {
         // Resumed from the shared storage by a server that did not hold it: what was
         // in flight to the server that left is not answered.
         *moves += 1;
@@ -597,6 +600,8 @@ async fn rejoin(
 /// `restored` again. It is the same move when the session is the one just restored,
 /// no result came since (`moves` > 0) and nothing was sent since (a frame would have
 /// reached that server before the hello, and it would answer `restored: false`).
+/// A move to a third server before any frame reached the second looks the same
+/// and is counted once too (nothing was in flight to lose).
 #[cfg(feature = "zenoh")]
 fn same_restore(accepted: &pb::SessionAccepted, again: &pb::SessionAccepted, moves: u32, nothing_in_flight: bool) -> bool {
     moves > 0 && nothing_in_flight && accepted.restored && again.restored && again.session_id == accepted.session_id

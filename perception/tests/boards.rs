@@ -267,7 +267,8 @@ fn tracker_under_a_configuration() {
         let (mut poses, mut keyframes) = (Vec::new(), 0);
         let start = std::time::Instant::now();
         for &(timestamp_ns, rgb, depth, dynamic_mask) in frames {
-            let out = tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask }).expect("track");
+            // As the benchmark's runs: a frame the tracker refuses gets no pose.
+            let Ok(out) = tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask }) else { continue };
             keyframes += usize::from(out.keyframe);
             if let Some(p) = out.world_from_camera {
                 poses.push((tum::fr1_pose_time_ns(timestamp_ns), p));
@@ -280,7 +281,7 @@ fn tracker_under_a_configuration() {
         let frames = tum::load(&dir, 150);
         let gt = tum::groundtruth(&dir);
         let poses = exposure_poses(&frames, &gt);
-        let ate = |t: &[(u64, Isometry3<f64>)]| 100.0 * tum::score(&gt, t).ate_m;
+        let ate = |t: &[(u64, Isometry3<f64>)]| if t.len() > 2 { 100.0 * tum::score(&gt, t).ate_m } else { f64::NAN };
         let plain: Vec<_> = frames.iter().map(|f| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), None)).collect();
         let (free, free_keyframes, free_ms) = run(&plain);
         let mut row = Vec::new();

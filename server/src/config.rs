@@ -114,7 +114,8 @@ pub struct FleetConfig {
     pub vocabulary_path: String,
     /// Stored keyframes verified per looked-up keyframe (the best place-recognition scores).
     pub candidates: usize,
-    /// Keyframes waiting for place recognition; a keyframe finding it full is left out (logged).
+    /// Keyframes waiting for place recognition; a keyframe finding it full is left out
+    /// (logged, counted in `stillmap_fleet_keyframes_left_out_total{queue="places"}`).
     pub queue: usize,
     /// Keyframes indexed per fleet (about 60 KB each); the oldest are forgotten first.
     pub max_places: usize,
@@ -155,7 +156,8 @@ pub struct FleetConfig {
     /// loosens it. 0: the σ as configured.
     pub reweight_rounds: usize,
     /// Map-lane jobs waiting for the fleet maps' thread (each holds a keyframe's
-    /// fusion input, about 2 MB at VGA); a job finding it full is left out (logged)
+    /// fusion input, about 2 MB at VGA); a job finding it full is left out (logged,
+    /// its keyframe counted in `stillmap_fleet_keyframes_left_out_total{queue="fleet_map"}`)
     /// and the fleet's products fall back to merging its sessions' maps.
     pub map_queue: usize,
     /// Keyframe fusion inputs a fleet map keeps to fuse them again where the pose

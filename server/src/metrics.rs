@@ -104,7 +104,7 @@ impl Default for Metrics {
         let fleet_keyframes_left_out = Family::<Labels, Counter>::default();
         registry.register(
             "fleet_keyframes_left_out",
-            "Keyframes left out of their fleet because its queue was full: place recognition (queue=places, fleet.queue) or the fused fleet map (queue=fleet_map, fleet.map_queue)",
+            "Keyframes left out of their fleet because its queue was full: place recognition (queue=places, fleet.queue) or the fused fleet map (queue=fleet_map, fleet.map_queue); a keyframe left out of both counts in each",
             fleet_keyframes_left_out.clone(),
         );
         let replica = crate::replica::ReplicaCounters::default();
