@@ -617,7 +617,12 @@ fn restore_graph(f: &mut Fleet, g: FleetGraph) {
 type EdgeKey = ((String, u64), (String, u64));
 
 fn edge_key(e: &GraphEdge) -> EdgeKey {
-    if e.a <= e.b { (e.a.clone(), e.b.clone()) } else { (e.b.clone(), e.a.clone()) }
+    unordered(e.a.clone(), e.b.clone())
+}
+
+/// A pair in order, whichever way it came.
+fn unordered<T: PartialOrd>(a: T, b: T) -> (T, T) {
+    if a <= b { (a, b) } else { (b, a) }
 }
 
 /// Whether stored numbers are a pose a solve could have written: finite, with a
@@ -640,7 +645,6 @@ fn promote_carried(f: &mut Fleet) -> usize {
         return 0;
     }
     let member = |f: &Fleet, session: &str| f.members.iter().position(|m| m.session_id == session && m.frame.is_some());
-    let unordered = |a: (u32, u64), b: (u32, u64)| if a <= b { (a, b) } else { (b, a) };
     let mut present: std::collections::HashSet<((u32, u64), (u32, u64))> = f.edges.iter().map(|e| unordered(e.a, e.b)).collect();
     let mut promoted = 0;
     let mut waiting = VecDeque::with_capacity(f.carried_edges.len());
@@ -1399,11 +1403,6 @@ mod tests {
         service.close();
     }
 
-    /// A resumed session's stored keyframes are indexed in its fleet here, in order:
-    /// a merged one's all (up to `fleet.max_places`), an unmerged one's latest
-    /// `fleet.pending_keyframes`; keyframes already indexed are not added again, and
-    /// a session not in the fleet (or a fleet not held) gets nothing. Older ones
-    /// are the first forgotten beyond `fleet.max_places`, before current ones.
     /// Session `session`'s stored keyframes `ids` in fleet "lab": each 10 cm along
     /// x from the last, with 20 features of its own.
     fn stored_keyframes(camera: &Camera, session: &str, ids: std::ops::Range<u64>) -> StoredKeyframes {
@@ -1424,6 +1423,11 @@ mod tests {
         }
     }
 
+    /// A resumed session's stored keyframes are indexed in its fleet here, in order:
+    /// a merged one's all (up to `fleet.max_places`), an unmerged one's latest
+    /// `fleet.pending_keyframes`; keyframes already indexed are not added again, and
+    /// a session not in the fleet (or a fleet not held) gets nothing. Older ones
+    /// are the first forgotten beyond `fleet.max_places`, before current ones.
     #[test]
     fn a_resumed_sessions_stored_keyframes_are_indexed_here() {
         let config = FleetConfig { pending_keyframes: 2, max_places: 9, ..FleetConfig::default() };
@@ -1481,13 +1485,7 @@ mod tests {
         let service = FleetService::start(&config, &MappingConfig::default(), None, metrics.clone()).expect("started");
         let camera = Camera::pinhole(640, 480, 525.0, 525.0, 319.5, 239.5, 5000.0);
         service.join("lab", "a1", "robot-a");
-        let left_out = || {
-            metrics
-                .render()
-                .lines()
-                .find_map(|l| l.strip_prefix("stillmap_fleet_keyframes_left_out_total{queue=\"places\"} "))
-                .map_or(0, |n| n.parse::<usize>().expect("a count"))
-        };
+        let left_out = || metrics.counter(r#"stillmap_fleet_keyframes_left_out_total{queue="places"}"#) as usize;
         {
             // Holding the fleets stops the thread at its first job: it holds one
             // job at most, the queue one more; the backlog counts their keyframes.

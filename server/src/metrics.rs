@@ -262,6 +262,13 @@ impl Metrics {
         self.fleet_keyframes_left_out.get_or_create(&one("queue", queue)).inc_by(n as u64);
     }
 
+    /// A counter's value as rendered (`series`: its name and labels), 0 before it
+    /// counted anything (tests).
+    #[cfg(test)]
+    pub fn counter(&self, series: &str) -> u64 {
+        self.render().lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.parse().ok()).unwrap_or(0)
+    }
+
     pub fn session_opened(&self) {
         self.sessions_total.inc();
     }

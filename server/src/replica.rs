@@ -462,15 +462,15 @@ fn pause(wait: Duration, closing: &AtomicBool) {
     }
 }
 
-/// The replica thread: connects (again, with a growing wait, while it fails) and
-/// writes each commit in one transaction, until the queue closes. At shutdown,
-/// a failure ends it (what is left is counted as dropped).
 /// The latest pose-graph share (JSON) of each session waiting to be written.
 type Shares = Arc<std::sync::Mutex<std::collections::HashMap<String, String>>>;
 
 /// The waiting pose-graph shares and whether a job to write them is queued (see [`Replica`]).
 type WaitingShares = (Shares, Arc<AtomicBool>);
 
+/// The replica thread: connects (again, with a growing wait, while it fails) and
+/// writes each commit in one transaction, until the queue closes. At shutdown,
+/// a failure ends it (what is left is counted as dropped).
 fn copy(
     config: postgres::Config,
     server_id: &std::sync::Mutex<String>,
@@ -535,6 +535,7 @@ fn copy(
                     .map(|_| true)
                 }
                 ReplicaJob::FleetGraphsTaken(taken) => write_shares(c, &server, taken),
+                // Turned into FleetGraphsTaken above, before the first try.
                 ReplicaJob::FleetGraphs => Ok(true),
             };
             match written {

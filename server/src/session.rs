@@ -961,7 +961,8 @@ pub type LiveElsewhere = Arc<dyn Fn(&str) -> bool + Send + Sync>;
 /// newest stored keyframes.
 const RESUME_KEYFRAMES: usize = 8;
 /// A session read from the shared storage: it, whether it must be copied into
-/// this server's store, and its frame in its fleet there.
+/// this server's store, and its frame in its fleet and its share of the fleet's
+/// pose graph there.
 type FromReplica = (StoredSession, bool, Option<crate::store::FleetFrame>, Option<Box<crate::store::SessionGraph>>);
 
 /// Sessions whose resume may wait for a handover at once (a bound on the map
