@@ -22,7 +22,10 @@
 //! for finding where a run goes wrong:
 //! `STILLMAP_BOARDS="rpy_b later pipeline" cargo test --release -p stillmap-perception --test boards -- --ignored --nocapture trace_one_run`
 //! (clip `rpy` or `rpy_b`; arrangement `built`, `later` or `mirrored`; run
-//! `pipeline`, `no-baseline`, `every-board`, `moving-boards`, `no-mask` or `free`).
+//! `pipeline`, `no-baseline`, `every-board`, `moving-boards`, `no-mask` or `free`;
+//! the tracker under the `[tracking]` keys in `STILLMAP_TRACKING`, as below). On a
+//! keyframe the last column also says how many of the map points it made lie on a
+//! moving board.
 //! `tracker_under_a_configuration` runs the tracker alone (object-free, and with the
 //! exact masks of every board) under the `[tracking]` keys given as TOML in
 //! `STILLMAP_TRACKING`, and prints ATE, keyframes and time per frame:
@@ -160,8 +163,9 @@ fn trace_one_run() {
     };
     let pipelined = matches!(run, "pipeline" | "free" | "no-baseline");
     let names = seg.class_names().to_vec();
-    let mut pipeline = MaskedTracking::with_configs(&names, perception, TrackerConfig::default());
-    let mut tracker = Tracker::new(tum::fr1_camera(), TrackerConfig::default()).expect("tracker");
+    let tracking = tracking_from_env();
+    let mut pipeline = MaskedTracking::with_configs(&names, perception, tracking.clone());
+    let mut tracker = Tracker::new(tum::fr1_camera(), tracking).expect("tracker");
     let mut trajectory = Vec::new();
     let mut coasting = 0;
     // (estimate, truth) at the first tracked frame and at the previous one.
@@ -230,8 +234,33 @@ fn trace_one_run() {
                 format!("{on_surface} / {in_view} / {}", mapped.map().points.len())
             },
         );
+        // A keyframe's new points (made from the features no map point explained) that
+        // lie on a moving board: what the mask missed of a mover steers the next frames.
+        let made = if track.keyframe {
+            let map = mapped.map();
+            let w = mapped.camera().width as usize;
+            map.keyframes.values().next_back().map_or_else(String::new, |kf| {
+                let new: Vec<usize> = kf
+                    .points
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, p)| p.and_then(|p| map.points.get(&p)).is_some_and(|mp| mp.created_by == kf.id))
+                    .map(|(i, _)| i)
+                    .collect();
+                let on_moving = new
+                    .iter()
+                    .filter(|&&i| {
+                        let f = &kf.features.features[i].raw;
+                        moving.get(f.y as usize * w + f.x as usize).is_some_and(|&m| m != 0)
+                    })
+                    .count();
+                format!("; new points {on_moving} of {} on a moving board", new.len())
+            })
+        } else {
+            String::new()
+        };
         println!(
-            "{k} | {:?} | {} | {} | {:.0} % | {:.0} % | {} | {} | {} | {step} | {drift} | {in_view}",
+            "{k} | {:?} | {} | {} | {:.0} % | {:.0} % | {} | {} | {} | {step} | {drift} | {in_view}{made}",
             track.state,
             track.tracked_points,
             u8::from(track.keyframe),
@@ -250,6 +279,12 @@ fn trace_one_run() {
     );
 }
 
+/// The `[tracking]` keys given as TOML in `STILLMAP_TRACKING` (the defaults without it).
+fn tracking_from_env() -> TrackerConfig {
+    let toml_text = std::env::var("STILLMAP_TRACKING").unwrap_or_default();
+    toml::from_str(&toml_text).expect("STILLMAP_TRACKING: a [tracking] table's keys")
+}
+
 /// One frame for the tracker: timestamp, colour, depth, dynamic mask.
 type TrackedImages<'a> = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>);
 
@@ -261,7 +296,7 @@ type TrackedImages<'a> = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>);
 #[ignore = "diagnostic: the tracker alone under a tracking configuration (STILLMAP_TRACKING, TOML)"]
 fn tracker_under_a_configuration() {
     let toml_text = std::env::var("STILLMAP_TRACKING").unwrap_or_default();
-    let config: TrackerConfig = toml::from_str(&toml_text).expect("STILLMAP_TRACKING: a [tracking] table's keys");
+    let config = tracking_from_env();
     let run = |frames: &[TrackedImages]| {
         let mut tracker = Tracker::new(tum::fr1_camera(), config.clone()).expect("tracker");
         let (mut poses, mut keyframes) = (Vec::new(), 0);
