@@ -144,6 +144,61 @@ async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
     assert_eq!(statuses(&tool).await[&id_b]["pid"], b2.pid());
 }
 
+/// A server restarted under its id (a StatefulSet pod) can announce itself while
+/// the old process's link still lingers in the router (until Zenoh's lease runs
+/// out after a crash). When the old link then drops, its token's removal must not
+/// take the server out of the others' live set: Zenoh keeps one token alive per key
+/// while any session still declares it, so no removal reaches them. The old link
+/// is dropped here by `kill -9` while the new process runs.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_server_restarted_under_its_id_stays_live_when_its_old_link_drops() {
+    let _turn = scenario_turn().await;
+    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
+    let tag = std::process::id();
+    let (id_a, id_b) = (format!("a-twin-{tag}"), format!("b-twin-{tag}"));
+    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
+    let a = start(&id_a);
+    let mut old_b = start(&id_b);
+    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
+    wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
+    let watch = tool.liveliness().declare_subscriber(keys::ALL_SERVERS).await.expect("liveliness subscriber");
+
+    // The new B announces itself while the old one still holds its token.
+    let new_b = start(&id_b);
+    eventually(Duration::from_secs(10), "the new B's status", async || {
+        let replies = tool.get(keys::server_status(&id_b)).await.expect("get");
+        let mut pids = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                let status: serde_json::Value = serde_json::from_slice(&sample.payload().to_bytes()).expect("status JSON");
+                pids.push(status["pid"].clone());
+            }
+        }
+        pids.contains(&serde_json::json!(new_b.pid()))
+    })
+    .await;
+    old_b.kill9();
+
+    // For two seconds after the old link dropped: no removal of B's token, B live
+    // in the liveliness view and in A's own live set, and B's status the new process's.
+    let removal = tokio::time::timeout(Duration::from_secs(2), async {
+        loop {
+            let sample = watch.recv_async().await.expect("liveliness sample");
+            if sample.kind() == zenoh::sample::SampleKind::Delete && sample.key_expr().as_str() == keys::server(&id_b) {
+                return;
+            }
+        }
+    })
+    .await;
+    assert!(removal.is_err(), "B's token was removed while the new B holds it");
+    assert_eq!(live(&tool).await, [id_a.clone(), id_b.clone()]);
+    let s = statuses(&tool).await;
+    assert_eq!(s[&id_b]["pid"], new_b.pid(), "{s:?}");
+    assert_eq!(s[&id_a]["pid"], a.pid(), "{s:?}");
+    assert_eq!(s[&id_a]["servers"], serde_json::json!([id_a, id_b]), "A's live set");
+}
+
 /// Robot processes, killed if the test ends early.
 struct Robots(Vec<std::process::Child>);
 
