@@ -143,7 +143,10 @@ fn trace_one_run() {
         "built" => Arrangement::AsBuilt,
         "later" => Arrangement::Later(0.7),
         "mirrored" => Arrangement::Mirrored,
-        other => panic!("arrangement {other:?}: built, later or mirrored"),
+        "later-0.35" => Arrangement::Later(0.35),
+        "later-1.4" => Arrangement::Later(1.4),
+        "mirrored-later" => Arrangement::MirroredLater(0.7),
+        other => panic!("arrangement {other:?}: built, later, mirrored, later-0.35, later-1.4 or mirrored-later"),
     };
     let frames = tum::load(&dir, 150);
     let gt = tum::groundtruth(&dir);
@@ -276,6 +279,59 @@ fn trace_one_run() {
         "{clip} {} {run}: ATE {ate}, {} frames without a pose, {coasting} coasting",
         arrangement.label(),
         frames.len() - trajectory.len()
+    );
+}
+
+/// The pipeline (mask and tracker) and the tracker with exact masks of every board,
+/// under the `[tracking]` keys in `STILLMAP_TRACKING`, on the six arrangements the
+/// defaults were chosen on ([`Arrangement::ALL`]) and on six fresh ones
+/// ([`Arrangement::FRESH`]), with the object-free pipeline: whether a change that
+/// helps one set helps the other.
+#[test]
+#[ignore = "benchmark: the board scene's pipeline on the tuned and the fresh arrangements (about 6 minutes in release)"]
+fn boards_under_a_configuration() {
+    let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
+    let tracking = tracking_from_env();
+    let schedule = Schedule::Late { every: 2, delay: 0 };
+    let (mut sums, mut free_row) = ([[0.0f64; 2]; 2], Vec::new());
+    println!("| clip | arrangement | set | pipeline | coasting | exact masks of every board |\n|---|---|---|---|---|---|");
+    for dir in [tum::fr1_rpy_dir(), stillmap_dataset::shared::fr1_rpy_b()] {
+        let frames = tum::load(&dir, 150);
+        let gt = tum::groundtruth(&dir);
+        let poses = exposure_poses(&frames, &gt);
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let ate = |t: &[(u64, Isometry3<f64>)]| if t.len() > 2 { 100.0 * tum::score(&gt, t).ate_m } else { f64::NAN };
+        let run = |seg: &mut YoloSegmenter, composite: &[CompositeFrame]| {
+            composite_run::run_with(composite, Some(seg), schedule, false, PerceptionConfig::default(), tracking.clone())
+        };
+        let free = run(&mut seg, &composite_run::without_object(&frames));
+        free_row.push(format!("{name} {:.2} cm", ate(&free.trajectory)));
+        for (set, arrangements) in [("tuned", Arrangement::ALL), ("fresh", Arrangement::FRESH)] {
+            for arrangement in arrangements {
+                let (composite, _) = scene(&frames, &poses, arrangement);
+                let piped = run(&mut seg, &composite);
+                let every_board: Vec<Vec<u8>> = composite.iter().map(|f| f.object_mask.clone()).collect();
+                let exact = composite_run::track_masked_with(&composite, &every_board, tracking.clone());
+                let (p, e) = (ate(&piped.trajectory), ate(&exact));
+                let k = usize::from(set == "fresh");
+                sums[k][0] += p / 6.0;
+                sums[k][1] += e / 6.0;
+                println!(
+                    "| {name} | {} | {set} | {p:.2} cm ({} posed) | {} | {e:.2} cm |",
+                    arrangement.label(),
+                    piped.trajectory.len(),
+                    piped.coasting
+                );
+            }
+        }
+    }
+    println!(
+        "mean: tuned {:.2} cm (exact {:.2}), fresh {:.2} cm (exact {:.2}); object-free {}",
+        sums[0][0],
+        sums[0][1],
+        sums[1][0],
+        sums[1][1],
+        free_row.join(", ")
     );
 }
 

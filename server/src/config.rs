@@ -881,6 +881,10 @@ mod tests {
         assert!(err("[tracking]\ncoast_s = -1.0\n").contains("tracking.coast_s must be in [0, 60], got -1"));
         assert!(err("[tracking]\ncoast_min_agreement = 2.0\n").contains("tracking.coast_min_agreement must be in [0, 1], got 2"));
         assert!(err("[tracking]\nweak_placement_ratio = 1.5\n").contains("tracking.weak_placement_ratio must be in [0, 1], got 1.5"));
+        assert!(
+            err("[tracking]\ndense_prior_check_chi2 = -1.0\n")
+                .contains("tracking.dense_prior_check_chi2 must be 0 (off) or positive, got -1")
+        );
         assert_eq!(
             err("[fleet]\ndefault_fleet = \"a b\"\n"),
             "invalid configuration: fleet.default_fleet: fleet \"a b\" contains ' '; allowed are A-Z a-z 0-9 _ -"

@@ -64,6 +64,18 @@ pub struct TrackerConfig {
     /// intervals (frames dropped, a slower camera) widens them n-fold (n rounded,
     /// at least 1): the alignment's error grows with the motion it must recover.
     pub dense_prior_interval_s: f64,
+    /// How far the features may disagree with the dense prior before it loses
+    /// weight: the features alone place the frame first, and where the prior lies
+    /// further from that placement than this χ² (over both covariances, the
+    /// features' from their information at their placement), its information is
+    /// scaled down as a Huber kernel would (√(threshold / χ²)). Dense odometry
+    /// aligns every pixel the mask leaves, a near thing the mask missed included,
+    /// while the features are matched to the map with a robust kernel. 50 is four
+    /// times the χ² 95 % quantile for six degrees of freedom: the features'
+    /// covariance assumes independent one-pixel errors and is optimistic by about
+    /// twice in σ (chosen among 12.6, 25, 50 and 200 on issue 19's board scene,
+    /// docs/people.md). 0 turns the check off.
+    pub dense_prior_check_chi2: f64,
     /// Matches below which the motion-model search is repeated with a wider radius,
     /// then replaced by PnP-RANSAC.
     pub min_motion_matches: usize,
@@ -78,8 +90,15 @@ pub struct TrackerConfig {
     pub keyframe_tracked_ratio: f64,
     /// A new keyframe is taken at least every this many frames.
     pub keyframe_max_interval: u32,
-    /// New map points created per keyframe, at most (nearest depth first).
+    /// New map points created per keyframe, at most.
     pub max_new_points_per_keyframe: usize,
+    /// New map points are made spread over the image, from the unmatched features
+    /// with depth: the nearest of every square cell this wide (pixels) first, then
+    /// the second nearest of each, and so on. Near points have the best depth, but
+    /// the nearest over the whole frame are most often on one near thing, and on a
+    /// moving one the mask missed they are most of what no map point explains
+    /// (docs/people.md). 0: the nearest over the whole frame first.
+    pub new_point_cell_px: u32,
     /// Keyframes optimised together by local bundle adjustment (0 disables it).
     pub ba_window: usize,
     /// Levenberg–Marquardt iterations of one local bundle adjustment.
@@ -132,6 +151,9 @@ impl TrackerConfig {
         if !(self.dense_prior_interval_s > 0.0 && self.dense_prior_interval_s <= 1.0) {
             return Err(format!("tracking.dense_prior_interval_s must be in (0, 1], got {}", self.dense_prior_interval_s));
         }
+        if !(self.dense_prior_check_chi2 >= 0.0 && self.dense_prior_check_chi2.is_finite()) {
+            return Err(format!("tracking.dense_prior_check_chi2 must be 0 (off) or positive, got {}", self.dense_prior_check_chi2));
+        }
         if !(self.coast_s >= 0.0 && self.coast_s <= 60.0) {
             return Err(format!("tracking.coast_s must be in [0, 60], got {}", self.coast_s));
         }
@@ -174,6 +196,7 @@ impl Default for TrackerConfig {
             dense_prior_sigma_deg: 0.1,
             dense_prior_sigma_m: 0.001,
             dense_prior_interval_s: 1.0 / 30.0,
+            dense_prior_check_chi2: 50.0,
             min_motion_matches: 20,
             min_tracked_inliers: 30,
             min_relocalization_inliers: 50,
@@ -181,6 +204,7 @@ impl Default for TrackerConfig {
             keyframe_tracked_ratio: 0.75,
             keyframe_max_interval: 5,
             max_new_points_per_keyframe: 400,
+            new_point_cell_px: 64,
             ba_window: 6,
             ba_iterations: 8,
             relocalization_candidates: 5,

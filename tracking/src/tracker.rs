@@ -4,7 +4,7 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Matrix6, Point3, Vector6};
 
 use crate::TrackingError;
 use crate::ba;
@@ -12,9 +12,9 @@ use crate::camera::Camera;
 use crate::config::TrackerConfig;
 use crate::dense::DenseOdometry;
 use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales, rectify_rolling_shutter};
-use crate::geometry::{Measurement, PnpRansac, frame_intervals, pnp_ransac, scale_motion};
+use crate::geometry::{Measurement, PnpRansac, frame_intervals, huber_weight, linearise_pose, pnp_ransac, scale_motion};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
-use crate::optimize::{PosePrior, optimize_pose_with_prior};
+use crate::optimize::{PosePrior, optimize_pose, optimize_pose_with_prior};
 
 /// The state of tracking for one frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -630,7 +630,17 @@ impl Tracker {
         if corr.len() < 3 {
             return None;
         }
-        let est = optimize_pose_with_prior(&self.camera, self.bf, initial, &corr, self.prior.as_ref());
+        // The dense prior, weighed by how well the features alone agree with it.
+        let prior = self.prior.map(|prior| {
+            let check = (self.config.dense_prior_check_chi2, self.config.min_tracked_inliers);
+            let weight = prior_weight(&self.camera, self.bf, initial, &corr, &prior, check);
+            PosePrior {
+                rotation_information: prior.rotation_information * weight,
+                translation_information: prior.translation_information * weight,
+                ..prior
+            }
+        });
+        let est = optimize_pose_with_prior(&self.camera, self.bf, initial, &corr, prior.as_ref());
         for (k, &i) in which.iter().enumerate() {
             if !est.inliers[k] {
                 matches[i] = None;
@@ -728,14 +738,7 @@ impl Tracker {
         let id = self.map.next_keyframe_id();
         let n = feats.features.len();
         let thumb = thumbnail(gray, self.camera.width as usize, self.camera.height as usize);
-        let mut new: Vec<(f64, usize)> = feats
-            .features
-            .iter()
-            .enumerate()
-            .filter(|(i, f)| f.depth.is_some() && matches.get(*i).is_none_or(|m| m.is_none()))
-            .map(|(i, f)| (f.depth.unwrap_or(f64::MAX), i))
-            .collect();
-        new.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let new = new_point_order(&feats.features, &matches, self.config.new_point_cell_px);
         let limit = if self.map.keyframes.is_empty() { usize::MAX } else { self.config.max_new_points_per_keyframe };
         let kf = Keyframe { id, timestamp_ns, world_from_camera, features: feats, points: vec![None; n], thumbnail: thumb };
         self.map.keyframes.insert(id, kf);
@@ -744,7 +747,7 @@ impl Tracker {
                 self.map.add_observation(*p, id, i);
             }
         }
-        for &(_, i) in new.iter().take(limit) {
+        for &i in new.iter().take(limit) {
             let Some(kf) = self.map.keyframes.get(&id) else { break };
             let f = &kf.features.features[i];
             let Some(pc) = f.point_in_camera(&self.camera) else { continue };
@@ -908,6 +911,82 @@ fn brute_force_match(frame: &[Descriptor], points: &[(Descriptor, PointId)], max
     out
 }
 
+/// The unmatched features with depth in the order a keyframe makes new map points
+/// from them (`tracking.new_point_cell_px`): spread over square cells of
+/// `cell_px`, the nearest of every cell first, then the second nearest of each, and
+/// so on (nearest first within a round); `cell_px` 0: nearest first over the frame.
+fn new_point_order(features: &[Feature], matches: &[Option<PointId>], cell_px: u32) -> Vec<usize> {
+    let mut nearest_first: Vec<(f64, usize)> = features
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| matches.get(*i).is_none_or(|m| m.is_none()))
+        .filter_map(|(i, f)| f.depth.map(|z| (z, i)))
+        .collect();
+    nearest_first.sort_by(|a, b| a.0.total_cmp(&b.0));
+    if cell_px == 0 {
+        return nearest_first.into_iter().map(|(_, i)| i).collect();
+    }
+    let cell_px = cell_px as f32;
+    let mut taken: HashMap<(u32, u32), usize> = HashMap::new();
+    // (round, nearness): the k-th nearest of its cell is in round k.
+    let mut ranked: Vec<(usize, usize)> = nearest_first
+        .iter()
+        .enumerate()
+        .map(|(nearness, &(_, i))| {
+            let at = &features[i].raw;
+            // Keypoints lie in the image (a stray negative coordinate saturates to cell 0).
+            let round = taken.entry(((at.x / cell_px) as u32, (at.y / cell_px) as u32)).or_default();
+            *round += 1;
+            (*round, nearness)
+        })
+        .collect();
+    ranked.sort_unstable();
+    ranked.into_iter().map(|(_, nearness)| nearest_first[nearness].1).collect()
+}
+
+/// The share of the dense prior's information a frame keeps
+/// (`tracking.dense_prior_check_chi2`, `threshold`; 0: all of it): the features
+/// alone place the frame from `initial`, and the prior's distance from that
+/// placement, χ² over the sum of both covariances (the features' the inverse of
+/// their information at their placement), is weighed as a Huber kernel would.
+/// Features placing the frame on fewer than `min_inliers` inliers (a frame the
+/// mask nearly fills) are no judge: the prior keeps all of its information.
+fn prior_weight(
+    camera: &Camera,
+    bf: f64,
+    initial: Isometry3<f64>,
+    correspondences: &[(Point3<f64>, Measurement)],
+    prior: &PosePrior,
+    (threshold, min_inliers): (f64, usize),
+) -> f64 {
+    if threshold <= 0.0 {
+        return 1.0;
+    }
+    let features = optimize_pose(camera, bf, initial, correspondences);
+    if features.inlier_count < min_inliers {
+        return 1.0;
+    }
+    let mut information = Matrix6::<f64>::zeros();
+    for ((point_in_world, m), _) in correspondences.iter().zip(&features.inliers).filter(|(_, inlier)| **inlier) {
+        if let Some((r, d_pose)) = linearise_pose(camera, bf, &features.camera_from_world, point_in_world, m) {
+            let j = d_pose.rows(0, r.rows);
+            information += j.transpose() * j * m.information;
+        }
+    }
+    // Too few features to place the frame on their own: nothing to check against.
+    let Some(mut covariance) = information.try_inverse() else { return 1.0 };
+    for i in 0..3 {
+        covariance[(i, i)] += 1.0 / prior.rotation_information;
+        covariance[(i + 3, i + 3)] += 1.0 / prior.translation_information;
+    }
+    let Some(combined) = covariance.try_inverse() else { return 1.0 };
+    // prior = exp(e) · placement, e = (ω, v), as the prior's own residual.
+    let d = prior.camera_from_world * features.camera_from_world.inverse();
+    let (w, v) = (d.rotation.scaled_axis(), d.translation.vector);
+    let e = Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z);
+    huber_weight(e.dot(&(combined * e)), threshold)
+}
+
 /// The share of a measurement's information left when it is matched to a map point
 /// known from `observations` keyframe measurements of the same noise: the point's
 /// own error (variance σ²/n) adds to the new measurement's (σ²), so the residual has
@@ -935,6 +1014,60 @@ mod tests {
     #[test]
     fn gray_matches_bt601() {
         assert_eq!(to_gray(&[255, 255, 255, 0, 0, 0, 255, 0, 0]), vec![255, 0, 77]);
+    }
+
+    #[test]
+    fn new_points_are_spread_over_cells_nearest_first_in_each() {
+        use nalgebra::Point2;
+        let feature = |x: f32, y: f32, depth: Option<f64>| Feature {
+            raw: Point2::new(x, y),
+            ideal: Point2::new(f64::from(x), f64::from(y)),
+            octave: 0,
+            depth,
+        };
+        let features = [
+            feature(10.0, 10.0, Some(1.0)),  // cell (0, 0)
+            feature(20.0, 20.0, Some(0.5)),  // cell (0, 0), the nearest of all
+            feature(100.0, 10.0, Some(2.0)), // cell (1, 0)
+            feature(30.0, 30.0, Some(0.7)),  // cell (0, 0)
+            feature(200.0, 200.0, None),     // no depth: no point
+            feature(110.0, 20.0, Some(0.1)), // matched already: no new point
+        ];
+        let matches = [None, None, None, None, None, Some(7)];
+        assert_eq!(new_point_order(&features, &matches, 64), [1, 2, 3, 0], "one of each cell per round, nearest first");
+        assert_eq!(new_point_order(&features, &matches, 0), [1, 3, 0, 2], "0: nearest first over the frame");
+        assert_eq!(new_point_order(&features, &matches[..2], 64), [5, 1, 3, 2, 0], "a feature without a match slot is unmatched");
+    }
+
+    #[test]
+    fn the_dense_prior_loses_weight_as_far_as_the_features_disagree() {
+        use nalgebra::{Point2, Vector3};
+        let camera = Camera::pinhole(640, 480, 520.0, 520.0, 320.0, 240.0, 5000.0);
+        let bf = 41.6;
+        let truth = Isometry3::new(Vector3::new(0.05, -0.02, 0.1), Vector3::new(0.02, 0.05, -0.01));
+        let correspondences: Vec<(Point3<f64>, Measurement)> = (0..200)
+            .map(|i| {
+                let pw =
+                    Point3::new(((i * 37) % 200) as f64 / 100.0 - 1.0, ((i * 91) % 150) as f64 / 100.0 - 0.75, 1.5 + (i % 7) as f64 * 0.3);
+                let pc = truth * pw;
+                let ideal = camera.project(&pc).expect("in front");
+                (pw, Measurement { ideal: Point2::from(ideal.coords), disparity: Some(bf / pc.z), information: 1.0 })
+            })
+            .collect();
+        let prior_at = |offset_m: f64| PosePrior {
+            camera_from_world: Isometry3::translation(offset_m, 0.0, 0.0) * truth,
+            rotation_information: 0.1f64.to_radians().powi(2).recip(),
+            translation_information: 0.001f64.powi(2).recip(),
+        };
+        let weight = |offset_m: f64, check: (f64, usize)| prior_weight(&camera, bf, truth, &correspondences, &prior_at(offset_m), check);
+        assert_eq!(weight(0.0, (50.0, 30)), 1.0, "a prior where the features put the frame keeps its weight");
+        assert_eq!(weight(0.0005, (50.0, 30)), 1.0, "half its σ off: within the threshold");
+        let (near, far) = (weight(0.02, (50.0, 30)), weight(0.05, (50.0, 30)));
+        assert!(0.0 < far && far < near && near < 1.0, "2 cm off keeps {near}, 5 cm off {far}");
+        // Huber: the weight falls as the distance grows (χ² with its square).
+        assert!((near / far - 2.5).abs() < 0.05, "weights {near} / {far}");
+        assert_eq!(weight(0.05, (0.0, 30)), 1.0, "threshold 0: the check is off");
+        assert_eq!(weight(0.05, (50.0, 201)), 1.0, "fewer inliers than needed: the features are no judge");
     }
 
     #[test]

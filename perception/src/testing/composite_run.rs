@@ -342,10 +342,12 @@ pub fn track_unmasked(frames: &[CompositeFrame]) -> Vec<(u64, Isometry3<f64>)> {
 
 /// The tracker alone with the given per-frame masks (exact ones, for the headroom): stamped poses.
 pub fn track_masked(frames: &[CompositeFrame], masks: &[Vec<u8>]) -> Vec<(u64, Isometry3<f64>)> {
-    track_images(
-        frames.iter().zip(masks).map(|(f, m)| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), Some(m.as_slice()))),
-        TrackerConfig::default(),
-    )
+    track_masked_with(frames, masks, TrackerConfig::default())
+}
+
+/// [`track_masked`] under the given tracking configuration.
+pub fn track_masked_with(frames: &[CompositeFrame], masks: &[Vec<u8>], config: TrackerConfig) -> Vec<(u64, Isometry3<f64>)> {
+    track_images(frames.iter().zip(masks).map(|(f, m)| (f.timestamp_ns, f.rgb.as_slice(), f.depth.as_slice(), Some(m.as_slice()))), config)
 }
 
 /// Tracks (timestamp, colour, depth, mask) frames; poses stamped at the ground truth's time base.
