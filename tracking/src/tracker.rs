@@ -984,7 +984,9 @@ fn prior_weight(
     let d = prior.camera_from_world * features.camera_from_world.inverse();
     let (w, v) = (d.rotation.scaled_axis(), d.translation.vector);
     let e = Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z);
-    huber_weight(e.dot(&(combined * e)), threshold)
+    let chi2 = e.dot(&(combined * e));
+    // A degenerate placement judges nothing.
+    if chi2.is_nan() { 1.0 } else { huber_weight(chi2, threshold) }
 }
 
 /// The share of a measurement's information left when it is matched to a map point
