@@ -71,18 +71,56 @@ async fn scenario_turn() -> tokio::sync::SemaphorePermit<'static> {
     SCENARIOS.acquire().await.expect("the semaphore is never closed")
 }
 
+/// A Zenoh router this test runs, two servers `<a>-<pid>` and `<b>-<pid>` this test
+/// started connected to it (both seen live), and a client session on it.
+struct TwoServers {
+    _router: zenoh::Session,
+    router_endpoint: String,
+    id_a: String,
+    id_b: String,
+    a: Server,
+    b: Server,
+    tool: zenoh::Session,
+}
+
+async fn two_servers(a: &str, b: &str) -> TwoServers {
+    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let router = open("router", ("listen/endpoints", &router_endpoint)).await;
+    let tag = std::process::id();
+    let (id_a, id_b) = (format!("{a}-{tag}"), format!("{b}-{tag}"));
+    let (a, b) = (start_on(&router_endpoint, &id_a), start_on(&router_endpoint, &id_b));
+    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
+    wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
+    TwoServers { _router: router, router_endpoint, id_a, id_b, a, b, tool }
+}
+
+/// A server without perception, named `id`, connected to the router at `endpoint`.
+fn start_on(endpoint: &str, id: &str) -> Server {
+    Server::start(&["--no-perception", "--zenoh-connect", endpoint, "--server-id", id])
+}
+
+/// Whether the liveliness subscriber `watch` hears server `id`'s token removed within `within`.
+async fn token_removed(
+    watch: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    id: &str,
+    within: Duration,
+) -> bool {
+    tokio::time::timeout(within, async {
+        loop {
+            let sample = watch.recv_async().await.expect("liveliness sample");
+            if sample.kind() == zenoh::sample::SampleKind::Delete && sample.key_expr().as_str() == keys::server(id) {
+                return;
+            }
+        }
+    })
+    .await
+    .is_ok()
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
     let _turn = scenario_turn().await;
-    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
-    let tag = std::process::id();
-    let (id_a, id_b) = (format!("a-{tag}"), format!("b-{tag}"));
-    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
-    let a = start(&id_a);
-    let mut b = start(&id_b);
-    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
-    wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
+    let TwoServers { _router, router_endpoint, id_a, id_b, a, mut b, tool } = two_servers("a", "b").await;
 
     // Each status comes from the process this test started, with its addresses.
     let s = statuses(&tool).await;
@@ -123,20 +161,11 @@ async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
     b.kill9();
     let gone = wait_live(&tool, &[&id_a], Duration::from_secs(5)).await;
     eprintln!("server B's liveliness token withdrawn {:.0} ms after kill -9", gone.as_secs_f64() * 1e3);
-    let deleted = tokio::time::timeout(Duration::from_secs(5), async {
-        loop {
-            let sample = watch.recv_async().await.expect("liveliness sample");
-            if sample.kind() == zenoh::sample::SampleKind::Delete && sample.key_expr().as_str() == keys::server(&id_b) {
-                return;
-            }
-        }
-    })
-    .await;
-    assert!(deleted.is_ok(), "no liveliness delete for B");
+    assert!(token_removed(&watch, &id_b, Duration::from_secs(5)).await, "no liveliness delete for B");
     assert_eq!(statuses(&tool).await.keys().collect::<Vec<_>>(), [&id_a]);
 
     // B restarts under the same id and is back.
-    let b2 = start(&id_b);
+    let b2 = start_on(&router_endpoint, &id_b);
     wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
     // Its token comes first (placement needs it before any robot is answered), its
     // status queryable a moment later: the status answered is the new process's.
@@ -153,19 +182,12 @@ async fn servers_announce_themselves_and_their_load_and_vanish_when_killed() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_server_restarted_under_its_id_stays_live_when_its_old_link_drops() {
     let _turn = scenario_turn().await;
-    let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
-    let tag = std::process::id();
-    let (id_a, id_b) = (format!("a-twin-{tag}"), format!("b-twin-{tag}"));
-    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
-    let a = start(&id_a);
-    let mut old_b = start(&id_b);
-    let tool = open("client", ("connect/endpoints", &router_endpoint)).await;
-    wait_live(&tool, &[&id_a, &id_b], Duration::from_secs(10)).await;
+    let TwoServers { _router, router_endpoint, id_a, id_b, a, b: mut old_b, tool } = two_servers("a-twin", "b-twin").await;
     let watch = tool.liveliness().declare_subscriber(keys::ALL_SERVERS).await.expect("liveliness subscriber");
 
-    // The new B announces itself while the old one still holds its token.
-    let new_b = start(&id_b);
+    // The new B announces itself while the old one still holds its token (a server
+    // prints its ready line, which `start_on` waits for, after its token is declared).
+    let mut new_b = start_on(&router_endpoint, &id_b);
     eventually(Duration::from_secs(10), "the new B's status", async || {
         let replies = tool.get(keys::server_status(&id_b)).await.expect("get");
         let mut pids = Vec::new();
@@ -182,21 +204,17 @@ async fn a_server_restarted_under_its_id_stays_live_when_its_old_link_drops() {
 
     // For two seconds after the old link dropped: no removal of B's token, B live
     // in the liveliness view and in A's own live set, and B's status the new process's.
-    let removal = tokio::time::timeout(Duration::from_secs(2), async {
-        loop {
-            let sample = watch.recv_async().await.expect("liveliness sample");
-            if sample.kind() == zenoh::sample::SampleKind::Delete && sample.key_expr().as_str() == keys::server(&id_b) {
-                return;
-            }
-        }
-    })
-    .await;
-    assert!(removal.is_err(), "B's token was removed while the new B holds it");
+    assert!(!token_removed(&watch, &id_b, Duration::from_secs(2)).await, "B's token was removed while the new B holds it");
     assert_eq!(live(&tool).await, [id_a.clone(), id_b.clone()]);
     let s = statuses(&tool).await;
     assert_eq!(s[&id_b]["pid"], new_b.pid(), "{s:?}");
     assert_eq!(s[&id_a]["pid"], a.pid(), "{s:?}");
     assert_eq!(s[&id_a]["servers"], serde_json::json!([id_a, id_b]), "A's live set");
+
+    // Control: the old link is gone (the new B alone holds the token), so its
+    // removal arrives as soon as the new B dies too.
+    new_b.kill9();
+    assert!(token_removed(&watch, &id_b, Duration::from_secs(5)).await, "B's token outlived both processes");
 }
 
 /// Robot processes, killed if the test ends early.

@@ -104,7 +104,9 @@ async fn streamed_tum_clip_is_tracked_and_served_on_every_channel() {
     // Accuracy against the ground truth, evo semantics (20 ms association).
     // Measured on this machine (every frame segmented, the client declaring the
     // freiburg1 camera's 25 ms rolling-shutter readout and its -12.5 ms exposure
-    // offset): ATE 0.96 cm, origin-aligned rotation 1.41 deg, RPE 5.89 mm / 0.453 deg
+    // offset): ATE 0.89 cm, origin-aligned rotation 1.38 deg, RPE 5.9 mm / 0.454 deg
+    // (2026-12-06, new map points spread over the image; before: 0.96 cm, 1.41 deg,
+    // 5.89 mm, 0.453 deg)
     // per frame (docs/tracking.md, "Tracking accuracy"); the targets are 2.0 cm, 2.0 deg,
     // 6 mm and 0.5 deg. The bounds leave a margin for the clip's sensitivity to tiny
     // changes.

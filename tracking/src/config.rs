@@ -76,7 +76,11 @@ pub struct TrackerConfig {
     /// on the public clip falls from 0.90 to 0.81 cm and the board scene's from
     /// 2.72 to 2.57 cm, but streamed RPE rises to 5.90–6.03 mm, over the 6 mm the
     /// tracker is held to (docs/people.md, "an eighth session"). Where large unknown
-    /// things move in front of the camera, 50 is the value measured.
+    /// things move in front of the camera, 50 is the value measured. Features placing
+    /// the frame on fewer than `min_tracked_inliers` inliers are no judge (the prior
+    /// keeps its weight). When on, each of a frame's two pose optimisations first
+    /// runs one without the prior (the tracker's 10 ms per frame became 11 ms on a
+    /// 2-core machine, `tracker_under_a_configuration`).
     pub dense_prior_check_chi2: f64,
     /// Matches below which the motion-model search is repeated with a wider radius,
     /// then replaced by PnP-RANSAC.

@@ -1070,6 +1070,30 @@ mod tests {
         assert!((near / far - 2.5).abs() < 0.05, "weights {near} / {far}");
         assert_eq!(weight(0.05, (0.0, 30)), 1.0, "threshold 0: the check is off");
         assert_eq!(weight(0.05, (50.0, 201)), 1.0, "fewer inliers than needed: the features are no judge");
+
+        // Far points without depth cannot tell a sideways step from a turn: a prior
+        // off by 2 cm sideways with the compensating turn keeps its weight, since the
+        // features' covariance along that direction is wide (without the features'
+        // term in the sum it would be 20 σ of the prior away). A 10 cm step without
+        // the turn, which every point shows as a 1 ° turn would be, loses weight.
+        let far: Vec<(Point3<f64>, Measurement)> = (0..40)
+            .map(|i| {
+                let pw =
+                    Point3::new(((i * 37) % 40) as f64 / 10.0 - 2.0, ((i * 13) % 40) as f64 / 40.0 * 3.0 - 1.5, 4.0 + (i % 5) as f64 * 0.5);
+                let ideal = camera.project(&pw).expect("in front");
+                (pw, Measurement { ideal: Point2::from(ideal.coords), disparity: None, information: 1.0 })
+            })
+            .collect();
+        let prior = |camera_from_world: Isometry3<f64>| PosePrior {
+            camera_from_world,
+            rotation_information: 0.1f64.to_radians().powi(2).recip(),
+            translation_information: 0.001f64.powi(2).recip(),
+        };
+        let sideways_turned = prior(Isometry3::new(Vector3::new(0.02, 0.0, 0.0), Vector3::new(0.0, -0.004, 0.0)));
+        let sideways = prior(Isometry3::translation(0.1, 0.0, 0.0));
+        let check = (50.0, 30);
+        assert_eq!(prior_weight(&camera, bf, Isometry3::identity(), &far, &sideways_turned, check), 1.0, "the features cannot tell");
+        assert!(prior_weight(&camera, bf, Isometry3::identity(), &far, &sideways, check) < 1.0, "every point shows the step");
     }
 
     #[test]
