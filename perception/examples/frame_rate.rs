@@ -15,8 +15,7 @@ use stillmap_perception::{PerceptionConfig, YoloSegmenter};
 use stillmap_tracking::testing as tum;
 
 fn main() {
-    let tracking: stillmap_tracking::TrackerConfig =
-        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let tracking: stillmap_tracking::TrackerConfig = tum::config_from_env("TRACKING");
     let mut segmenter = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
     println!("| clip | frames fed | ATE | frames without a pose |");
     println!("|---|---|---|---|");

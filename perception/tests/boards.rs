@@ -171,7 +171,7 @@ fn trace_one_run() {
     };
     let pipelined = matches!(run, "pipeline" | "free" | "no-baseline");
     let names = seg.class_names().to_vec();
-    let tracking = tracking_from_env();
+    let tracking = tum::config_from_env("STILLMAP_TRACKING");
     let mut pipeline = MaskedTracking::with_configs(&names, perception, tracking.clone());
     let mut tracker = Tracker::new(tum::fr1_camera(), tracking).expect("tracker");
     let mut trajectory = Vec::new();
@@ -296,7 +296,7 @@ fn trace_one_run() {
 #[ignore = "benchmark: the board scene's pipeline on the tuned and the fresh arrangements (about 3.5 minutes in release)"]
 fn boards_under_a_configuration() {
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
-    let tracking = tracking_from_env();
+    let tracking = tum::config_from_env("STILLMAP_TRACKING");
     let schedule = Schedule::Late { every: 2, delay: 0 };
     let (mut sums, mut free_row) = ([[0.0f64; 2]; 2], Vec::new());
     println!("| clip | arrangement | set | pipeline | coasting | exact masks of every board |\n|---|---|---|---|---|---|");
@@ -340,13 +340,6 @@ fn boards_under_a_configuration() {
     );
 }
 
-/// The `[tracking]` keys given as TOML in `STILLMAP_TRACKING`, on lines of their own or
-/// separated by `;` (the defaults without it).
-fn tracking_from_env() -> TrackerConfig {
-    let toml_text = std::env::var("STILLMAP_TRACKING").unwrap_or_default();
-    toml::from_str(&toml_text.replace(';', "\n")).expect("STILLMAP_TRACKING: a [tracking] table's keys")
-}
-
 /// One frame for the tracker: timestamp, colour, depth, dynamic mask.
 type TrackedImages<'a> = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>);
 
@@ -358,7 +351,7 @@ type TrackedImages<'a> = (u64, &'a [u8], &'a [u16], Option<&'a [u8]>);
 #[ignore = "diagnostic: the tracker alone under a tracking configuration (STILLMAP_TRACKING, TOML)"]
 fn tracker_under_a_configuration() {
     let toml_text = std::env::var("STILLMAP_TRACKING").unwrap_or_default();
-    let config = tracking_from_env();
+    let config = tum::config_from_env("STILLMAP_TRACKING");
     let run = |frames: &[TrackedImages]| {
         let mut tracker = Tracker::new(tum::fr1_camera(), config.clone()).expect("tracker");
         let (mut poses, mut keyframes) = (Vec::new(), 0);

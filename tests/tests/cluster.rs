@@ -694,7 +694,7 @@ async fn a_joining_server_takes_only_the_robots_it_now_owns() {
     let router_endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let _router = open("router", ("listen/endpoints", &router_endpoint)).await;
     let (id_a, id_b) = ("server-a", "server-b");
-    let start = |id: &str| Server::start(&["--no-perception", "--zenoh-connect", &router_endpoint, "--server-id", id]);
+    let start = |id: &str| start_on(&router_endpoint, id);
     let a = start(id_a);
     let robots: Vec<String> = (0..4).map(|i| format!("robot-{i}")).collect();
     let to_b: Vec<String> = robots.iter().filter(|r| stillmap_proto::placement_owner(r, [id_a, id_b]) == Some(id_b)).cloned().collect();

@@ -23,8 +23,7 @@ fn main() {
         Some(dir) => vec![PathBuf::from(dir)],
         None => vec![tum::fr1_rpy_dir(), stillmap_dataset::shared::fr1_rpy_b()],
     };
-    let config: TrackerConfig =
-        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let config: TrackerConfig = tum::config_from_env("TRACKING");
     let runs = [
         ("30 Hz (every frame)", Keep::Every(1)),
         ("15 Hz (every 2nd)", Keep::Every(2)),

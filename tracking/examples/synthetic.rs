@@ -10,7 +10,7 @@ fn main() {
     let frames: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(150);
     let camera = kinect_camera();
     let scene = Scene::room(7);
-    let config: TrackerConfig = toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("overrides");
+    let config: TrackerConfig = tum::config_from_env("TRACKING");
     let mut tracker = Tracker::new(camera.clone(), config).expect("tracker");
     let path = sway_path(frames);
     let mut gt = Vec::new();

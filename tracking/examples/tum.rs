@@ -11,8 +11,7 @@ fn main() {
     let dir = std::env::args().nth(1).map(PathBuf::from).unwrap_or_else(tum::fr1_rpy_dir);
     let frames = tum::load(&dir, usize::MAX);
     let gt = tum::groundtruth(&dir);
-    let config: TrackerConfig =
-        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let config: TrackerConfig = tum::config_from_env("TRACKING");
     let mut tracker = Tracker::new(tum::fr1_camera_with_readout_from_env(), config).expect("tracker");
     let mut est = Vec::new();
     let mut totals = Vec::new();

@@ -19,8 +19,7 @@ fn main() {
     let dir = std::env::args().nth(1).map(PathBuf::from).unwrap_or_else(tum::fr1_rpy_dir);
     let frames = tum::load(&dir, usize::MAX);
     let gt = tum::groundtruth(&dir);
-    let base: TrackerConfig =
-        toml::from_str(&std::env::var("TRACKING").unwrap_or_default().replace(';', "\n")).expect("TRACKING overrides");
+    let base: TrackerConfig = tum::config_from_env("TRACKING");
     println!("| features | tracked | ATE (cm) | ATE rot, origin-aligned (deg) | RPE (mm) | RPE (deg) |");
     println!("|---|---|---|---|---|---|");
     let mut ates = Vec::new();

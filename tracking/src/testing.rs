@@ -114,3 +114,11 @@ pub fn write_est_if_asked(est: &[(u64, Isometry3<f64>)]) {
     let Some(path) = std::env::var_os("EST") else { return };
     std::fs::write(path, stillmap_dataset::trajectory::format_tum_ns(est)).expect("write EST");
 }
+
+/// The `[tracking]` keys given as TOML in the environment variable `var`, on lines of
+/// their own or separated by `;`, over the defaults (all defaults without it): how
+/// examples and benchmarks take a configuration to compare. Panics naming `var` on
+/// keys it cannot read (a developer's command line, not a robot's input).
+pub fn config_from_env(var: &str) -> TrackerConfig {
+    toml::from_str(&std::env::var(var).unwrap_or_default().replace(';', "\n")).unwrap_or_else(|e| panic!("{var}: {e}"))
+}
