@@ -21,15 +21,12 @@ use std::path::Path;
 use composite_run::Stage;
 use map_run::{Frame, Masking, ON_BOARD_M, distance_to_board, fuse};
 use nalgebra::{Isometry3, Point3};
+use stillmap_perception::YoloSegmenter;
 use stillmap_perception::composite::{StopAndGo, TexturedPlane, paste};
-use stillmap_perception::{Segmenter, YoloSegmenter};
+use support::boards::{DESK_Z_M, FLOOR_Z_M};
 
-/// A person's height, and the floor of the TUM freiburg1 room (the motion-capture
-/// frame's z = 0; the clips' lowest depth points lie at −3 to 0 cm).
+/// A person's height (the floor and desk heights: `boards::FLOOR_Z_M`, `DESK_Z_M`).
 const PERSON_HEIGHT_M: f64 = 1.7;
-const FLOOR_Z_M: f64 = 0.0;
-/// The desk top (the clips' points cluster at 0.75–0.80 m).
-const DESK_Z_M: f64 = 0.76;
 /// Segmentation runs on every n-th frame and arrives with it (deterministic).
 const SEGMENT_EVERY: usize = 2;
 
@@ -42,11 +39,7 @@ struct Actor {
 /// The two largest people of `bus.jpg`, cut out along the segmenter's masks.
 fn people() -> Vec<TexturedPlane> {
     let mut seg = YoloSegmenter::new(&support::segmentation_config("yolov8n-seg_fp32_640.onnx")).expect("model");
-    let (rgb, w, h) = support::photo("bus.jpg");
-    let out = seg.segment(&rgb, w, h).expect("segment");
-    let mut persons: Vec<_> = out.instances.iter().filter(|i| i.class_name == "person").collect();
-    persons.sort_by_key(|i| std::cmp::Reverse(i.pixels));
-    persons.iter().take(2).map(|i| TexturedPlane::cutout(&rgb, w, h, &out, i.id, PERSON_HEIGHT_M).expect("cut-out")).collect()
+    support::boards::people(&mut seg, PERSON_HEIGHT_M).into_iter().take(2).collect()
 }
 
 fn actors(poses: &[Isometry3<f64>]) -> Vec<Actor> {

@@ -370,6 +370,14 @@ impl DynamicMasker {
         self.finish(depth, motion)
     }
 
+    /// The camera motion (`previous_from_current`) the prepared frame's own labels
+    /// were made under, when the flow confirmed it (`ego_motion.before_tracking`):
+    /// an estimate from the flow and depth alone, independent of the tracker's.
+    pub fn prepared_motion(&self) -> Option<Isometry3<f64>> {
+        let (ego, _, _) = self.pending.as_ref()?.early.as_ref()?;
+        ego.confirmed.then_some(ego.previous_from_current)
+    }
+
     /// First phase of a frame (frames in increasing sequence order): flow to the
     /// previous frame, the segmentation carried to this frame, with
     /// `ego_motion.before_tracking` this frame's own labels under the predicted

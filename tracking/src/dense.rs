@@ -204,6 +204,11 @@ impl DenseOdometry {
         Ok(self.step)
     }
 
+    /// The last frame's step (`previous_from_current`), if the alignment gave one.
+    pub fn last_step(&self) -> Option<Isometry3<f64>> {
+        self.step
+    }
+
     /// Of the last step's overlap (this frame's pixels with depth that land on the
     /// previous frame's pixels with depth), the share whose depth the step predicts
     /// within the alignment's own correspondence distance (7 cm): how much of the

@@ -219,6 +219,17 @@ impl Tracker {
         &self.map
     }
 
+    /// Dense odometry's step into the last tracked frame (`previous_from_current`),
+    /// when it ran and gave one: for diagnostics.
+    pub fn dense_step(&self) -> Option<Isometry3<f64>> {
+        self.dense.as_ref().and_then(DenseOdometry::last_step)
+    }
+
+    /// [`DenseOdometry::agreement`] of the last step: for diagnostics.
+    pub fn dense_agreement(&self) -> Option<f64> {
+        self.dense.as_ref().and_then(DenseOdometry::agreement)
+    }
+
     /// The last inter-frame motion `camera_k_from_camera_k−1`, when the last two
     /// frames were tracked (the constant-velocity prediction of the next step).
     pub fn velocity(&self) -> Option<Isometry3<f64>> {

@@ -4,25 +4,34 @@
 //! of the image. Shared by the board benchmark and its per-frame trace
 //! (`perception/tests/boards.rs`).
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 
+use crate::Segmenter;
 use crate::composite::{StopAndGo, TexturedPlane, paste};
 use crate::testing::composite_run::{CompositeFrame, Stage};
 use stillmap_tracking::testing as tum;
+
+/// The floor of the TUM freiburg1 room (the motion-capture frame's z = 0; the
+/// clips' lowest depth points lie at −3 to 0 cm) and its desk top (the clips'
+/// points cluster at 0.75–0.80 m).
+pub const FLOOR_Z_M: f64 = 0.0;
+pub const DESK_Z_M: f64 = 0.76;
 
 struct Board {
     plane: TexturedPlane,
     motion: StopAndGo,
 }
 
+/// A shipped photo printed on a `w × h` m board.
+fn photo(name: &str, w: f64, h: f64) -> TexturedPlane {
+    let (rgb, pw, ph) = super::photo(name);
+    TexturedPlane::from_image(rgb, pw as usize, ph as usize, w, h)
+}
+
 fn boards(poses: &[Isometry3<f64>]) -> Vec<Board> {
     let s = Stage::new(poses);
     // Held a little below the camera (it looks down at the desk).
     let z = s.origin.z - 0.45;
-    let photo = |name: &str, w: f64, h: f64| {
-        let (rgb, pw, ph) = super::photo(name);
-        TexturedPlane::from_image(rgb, pw as usize, ph as usize, w, h)
-    };
     vec![
         // Standing 0.7 m ahead in the first frame; carried off to the right after 1.5 s.
         Board {
@@ -85,8 +94,87 @@ impl Arrangement {
 /// each board is drawn from where the camera was when the image was exposed (the
 /// time its pose is scored at), so that a standing board stands still in the room.
 pub fn scene(frames: &[tum::TumFrame], poses: &[Isometry3<f64>], arrangement: Arrangement) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
+    compose(frames, poses, arrangement, boards(poses))
+}
+
+/// The people of `bus.jpg` (its four), largest first, cut out along the segmenter's
+/// own masks as `height_m` billboards.
+pub fn people(segmenter: &mut dyn Segmenter, height_m: f64) -> Vec<TexturedPlane> {
+    let (rgb, w, h) = super::photo("bus.jpg");
+    let out = segmenter.segment(&rgb, w, h).expect("segment bus.jpg");
+    let mut persons: Vec<_> = out.instances.iter().filter(|i| i.class_name == "person").collect();
+    persons.sort_by_key(|i| std::cmp::Reverse(i.pixels));
+    persons.iter().map(|i| TexturedPlane::cutout(&rgb, w, h, &out, i.id, height_m).expect("cut-out")).collect()
+}
+
+/// The crowd: issue 19's second held-out version built like the board scene. The
+/// three boards of [`scene`], a fourth board (`astronaut.png`, 0.7 × 0.5 m)
+/// standing 0.75 m ahead of the first frame's camera and carried off after 1 s,
+/// a photo-covered box (0.4 × 0.3 m, `bus.jpg`) pushed along the desk, resting
+/// 1 s, and four people (`people`, 1.7 m billboards) walking, standing 1 s and
+/// walking on: behind the desk, beside it coming within 1.2 m, across the room, and
+/// one coming from the side to within 1 m. Together they cover a third to half of
+/// the image on average.
+pub fn crowd(
+    frames: &[tum::TumFrame],
+    poses: &[Isometry3<f64>],
+    arrangement: Arrangement,
+    people: &[TexturedPlane],
+) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
+    let s = Stage::new(poses);
+    let mut objects = boards(poses);
+    // The board in front of the first frame's camera, upright and facing it.
+    if let Some(first) = poses.first() {
+        let view = first.rotation * Vector3::z();
+        let ahead = Vector3::new(view.x, view.y, 0.0).normalize();
+        let side = Vector3::z().cross(&ahead);
+        let at = first.translation.vector + view * 0.75;
+        let facing = UnitQuaternion::face_towards(&-ahead, &Vector3::z());
+        let p = |d: f64| Point3::from(at + side * d);
+        objects.push(Board {
+            plane: photo("astronaut.png", 0.7, 0.5),
+            motion: StopAndGo { waypoints: vec![(0.0, p(0.0)), (1.0, p(0.0)), (2.5, p(-1.2))], rotation: facing },
+        });
+    }
+    objects.push(Board {
+        plane: photo("bus.jpg", 0.4, 0.3),
+        motion: StopAndGo {
+            waypoints: vec![
+                (0.0, s.at(0.75, -0.4, DESK_Z_M + 0.15)),
+                (1.2, s.at(0.75, 0.05, DESK_Z_M + 0.15)),
+                (2.2, s.at(0.75, 0.05, DESK_Z_M + 0.15)),
+                (4.0, s.at(0.75, 0.9, DESK_Z_M + 0.15)),
+            ],
+            rotation: s.facing,
+        },
+    });
+    let centre = FLOOR_Z_M + 0.85;
+    let walks = [
+        // Behind the desk, 2.1 m ahead, across.
+        vec![(0.0, (2.1, 0.8)), (1.5, (2.1, 0.0)), (2.5, (2.1, 0.0)), (4.0, (2.1, -0.8))],
+        // Beside the desk, coming from 2.0 m to 1.2 m and back.
+        vec![(0.0, (2.0, -0.55)), (1.3, (1.2, -0.55)), (2.3, (1.2, -0.55)), (3.8, (2.0, -0.55))],
+        // Across the room at 1.6 m, the other way, later.
+        vec![(0.8, (1.6, -1.2)), (2.3, (1.6, -0.3)), (3.3, (1.6, -0.3)), (5.0, (1.6, 1.0))],
+        // From the side to within 1 m, standing, and away.
+        vec![(1.0, (1.0, 1.4)), (2.5, (1.0, 0.5)), (3.5, (1.0, 0.5)), (5.0, (1.4, -0.6))],
+    ];
+    for (plane, walk) in people.iter().zip(walks) {
+        objects.push(Board {
+            plane: plane.clone(),
+            motion: StopAndGo { waypoints: walk.into_iter().map(|(t, (a, d))| (t, s.at(a, d, centre))).collect(), rotation: s.facing },
+        });
+    }
+    compose(frames, poses, arrangement, objects)
+}
+
+fn compose(
+    frames: &[tum::TumFrame],
+    poses: &[Isometry3<f64>],
+    arrangement: Arrangement,
+    mut boards: Vec<Board>,
+) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
     let camera = tum::fr1_camera();
-    let mut boards = boards(poses);
     if let Arrangement::Mirrored | Arrangement::MirroredLater(_) = arrangement {
         let s = Stage::new(poses);
         for b in &mut boards {

@@ -151,6 +151,8 @@ pub struct MaskedTracking {
     pub masker: DynamicMasker,
     pub tracker: Tracker,
     last_pose: Option<Isometry3<f64>>,
+    /// The masker's own camera motion for the last frame, before tracking ([`DynamicMasker::prepared_motion`]).
+    pub prepared_motion: Option<Isometry3<f64>>,
 }
 
 impl MaskedTracking {
@@ -164,6 +166,7 @@ impl MaskedTracking {
             masker: DynamicMasker::new(camera.clone(), perception, class_names).expect("masker"),
             tracker: Tracker::new(camera, tracking).expect("tracker"),
             last_pose: None,
+            prepared_motion: None,
         }
     }
 
@@ -181,6 +184,7 @@ impl MaskedTracking {
             .masker
             .prepare(MaskerInput { sequence, capture_time_ns: timestamp_ns, rgb, depth, segmentation, motion_prior: None, accel_in_camera })
             .expect("prepare");
+        self.prepared_motion = self.masker.prepared_motion();
         let track = self.tracker.track(&FrameInput { timestamp_ns, rgb, depth, dynamic_mask: Some(&tracking_mask) }).expect("track");
         let motion = match (self.last_pose, track.world_from_camera) {
             (Some(prev), Some(cur)) => Some(prev.inverse() * cur),
