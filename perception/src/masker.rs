@@ -372,7 +372,9 @@ impl DynamicMasker {
 
     /// The camera motion (`previous_from_current`) the prepared frame's own labels
     /// were made under, when the flow confirmed it (`ego_motion.before_tracking`):
-    /// an estimate from the flow and depth alone, independent of the tracker's.
+    /// a refinement on the flow, or the constant-velocity prediction (from the
+    /// masker's last motion, which the tracked one may have replaced) when no
+    /// refinement beat it. For diagnostics.
     pub fn prepared_motion(&self) -> Option<Isometry3<f64>> {
         let (ego, _, _) = self.pending.as_ref()?.early.as_ref()?;
         ego.confirmed.then_some(ego.previous_from_current)
@@ -521,7 +523,7 @@ impl DynamicMasker {
         // The tracking mask counts as fusion.
         let t = Instant::now();
         // Only a motion the flow confirmed (a refinement with enough inliers, or
-        // the prediction when it beat one in the vote) labels pixels for tracking:
+        // the prediction when no refinement beat it in the vote) labels pixels for tracking:
         // an unchecked prediction (no refinement held: a sudden acceleration,
         // motion blur) can call most of the scene moving and starve the tracker.
         let persistent = carried_cells.clone();

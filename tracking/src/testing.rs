@@ -120,5 +120,11 @@ pub fn write_est_if_asked(est: &[(u64, Isometry3<f64>)]) {
 /// examples and benchmarks take a configuration to compare. Panics naming `var` on
 /// keys it cannot read (a developer's command line, not a robot's input).
 pub fn config_from_env(var: &str) -> TrackerConfig {
+    toml_from_env(var)
+}
+
+/// Any configuration given as TOML in the environment variable `var` (lines, or `;`
+/// between them) over its defaults, as [`config_from_env`] reads `[tracking]` keys.
+pub fn toml_from_env<T: serde::de::DeserializeOwned>(var: &str) -> T {
     toml::from_str(&std::env::var(var).unwrap_or_default().replace(';', "\n")).unwrap_or_else(|e| panic!("{var}: {e}"))
 }

@@ -1,8 +1,9 @@
 //! Issue 19's board scene, built from the public clips: photo-printed boards
 //! (0.7 × 0.5 m, the shipped photos) carried through the view, set down and carried
-//! on, one of them standing in the first frame, together covering a third to half
-//! of the image. Shared by the board benchmark and its per-frame trace
-//! (`perception/tests/boards.rs`).
+//! on, one of them standing in the first frame, together covering a quarter of the
+//! image on average and up to 60 %; and the crowd ([`crowd`]), boards, a box and
+//! people covering a third of it. Shared by the board benchmarks and their
+//! per-frame trace (`perception/tests/boards.rs`).
 
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 
@@ -94,7 +95,7 @@ impl Arrangement {
 /// each board is drawn from where the camera was when the image was exposed (the
 /// time its pose is scored at), so that a standing board stands still in the room.
 pub fn scene(frames: &[tum::TumFrame], poses: &[Isometry3<f64>], arrangement: Arrangement) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
-    compose(frames, poses, arrangement, boards(poses))
+    compose(frames, poses, arrangement, boards(poses), Vec::new())
 }
 
 /// The people of `bus.jpg` (its four), largest first, cut out along the segmenter's
@@ -109,70 +110,73 @@ pub fn people(segmenter: &mut dyn Segmenter, height_m: f64) -> Vec<TexturedPlane
 
 /// The crowd: issue 19's second held-out version built like the board scene. The
 /// three boards of [`scene`], a fourth board (`astronaut.png`, 0.7 × 0.5 m)
-/// standing 0.75 m ahead of the first frame's camera and carried off after 1 s,
-/// a photo-covered box (0.4 × 0.3 m, `bus.jpg`) pushed along the desk, resting
-/// 1 s, and four people (`people`, 1.7 m billboards) walking, standing 1 s and
-/// walking on: behind the desk, beside it coming within 1.2 m, across the room, and
-/// one coming from the side to within 1 m. Together they cover a third to half of
-/// the image on average.
+/// standing 0.75 m ahead of the first frame's camera and carried off after 1 s
+/// (to its left; mirrored, to its right), a photo-covered box (0.4 × 0.3 m,
+/// `bus.jpg`) pushed along the desk, resting 1 s, and the four people of
+/// `people` (at least four) standing on the floor, walking, standing 1 s and
+/// walking on: behind the desk, beside it coming within 1.2 m, and, starting
+/// 0.8 and 1 s later, across the room and from the side to within 1 m. Together
+/// they cover about a third of the image on average.
 pub fn crowd(
     frames: &[tum::TumFrame],
     poses: &[Isometry3<f64>],
     arrangement: Arrangement,
     people: &[TexturedPlane],
 ) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
+    assert!(people.len() >= 4, "the crowd has four people, got {} cut-outs", people.len());
     let s = Stage::new(poses);
     let mut objects = boards(poses);
-    // The board in front of the first frame's camera, upright and facing it.
+    // The board in front of the first frame's camera, upright and facing it: placed
+    // for the arrangement (the stage's mirror would move it out of that view).
+    let mut placed = Vec::new();
     if let Some(first) = poses.first() {
         let view = first.rotation * Vector3::z();
         let ahead = Vector3::new(view.x, view.y, 0.0).normalize();
         let side = Vector3::z().cross(&ahead);
         let at = first.translation.vector + view * 0.75;
         let facing = UnitQuaternion::face_towards(&-ahead, &Vector3::z());
+        let away = if let Arrangement::Mirrored | Arrangement::MirroredLater(_) = arrangement { 1.2 } else { -1.2 };
         let p = |d: f64| Point3::from(at + side * d);
-        objects.push(Board {
+        placed.push(Board {
             plane: photo("astronaut.png", 0.7, 0.5),
-            motion: StopAndGo { waypoints: vec![(0.0, p(0.0)), (1.0, p(0.0)), (2.5, p(-1.2))], rotation: facing },
+            motion: StopAndGo { waypoints: vec![(0.0, p(0.0)), (1.0, p(0.0)), (2.5, p(away))], rotation: facing },
         });
     }
+    // Waypoints (seconds; metres ahead and to the side, on the stage) at one height, facing the camera.
+    let along = |z: f64, path: &[(f64, f64, f64)]| StopAndGo {
+        waypoints: path.iter().map(|&(t, ahead, side)| (t, s.at(ahead, side, z))).collect(),
+        rotation: s.facing,
+    };
+    // The box, pushed along the desk, resting 1 s, pushed on.
     objects.push(Board {
         plane: photo("bus.jpg", 0.4, 0.3),
-        motion: StopAndGo {
-            waypoints: vec![
-                (0.0, s.at(0.75, -0.4, DESK_Z_M + 0.15)),
-                (1.2, s.at(0.75, 0.05, DESK_Z_M + 0.15)),
-                (2.2, s.at(0.75, 0.05, DESK_Z_M + 0.15)),
-                (4.0, s.at(0.75, 0.9, DESK_Z_M + 0.15)),
-            ],
-            rotation: s.facing,
-        },
+        motion: along(DESK_Z_M + 0.15, &[(0.0, 0.75, -0.4), (1.2, 0.75, 0.05), (2.2, 0.75, 0.05), (4.0, 0.75, 0.9)]),
     });
-    let centre = FLOOR_Z_M + 0.85;
-    let walks = [
+    let walks: [&[(f64, f64, f64)]; 4] = [
         // Behind the desk, 2.1 m ahead, across.
-        vec![(0.0, (2.1, 0.8)), (1.5, (2.1, 0.0)), (2.5, (2.1, 0.0)), (4.0, (2.1, -0.8))],
+        &[(0.0, 2.1, 0.8), (1.5, 2.1, 0.0), (2.5, 2.1, 0.0), (4.0, 2.1, -0.8)],
         // Beside the desk, coming from 2.0 m to 1.2 m and back.
-        vec![(0.0, (2.0, -0.55)), (1.3, (1.2, -0.55)), (2.3, (1.2, -0.55)), (3.8, (2.0, -0.55))],
+        &[(0.0, 2.0, -0.55), (1.3, 1.2, -0.55), (2.3, 1.2, -0.55), (3.8, 2.0, -0.55)],
         // Across the room at 1.6 m, the other way, later.
-        vec![(0.8, (1.6, -1.2)), (2.3, (1.6, -0.3)), (3.3, (1.6, -0.3)), (5.0, (1.6, 1.0))],
+        &[(0.8, 1.6, -1.2), (2.3, 1.6, -0.3), (3.3, 1.6, -0.3), (5.0, 1.6, 1.0)],
         // From the side to within 1 m, standing, and away.
-        vec![(1.0, (1.0, 1.4)), (2.5, (1.0, 0.5)), (3.5, (1.0, 0.5)), (5.0, (1.4, -0.6))],
+        &[(1.0, 1.0, 1.4), (2.5, 1.0, 0.5), (3.5, 1.0, 0.5), (5.0, 1.4, -0.6)],
     ];
     for (plane, walk) in people.iter().zip(walks) {
-        objects.push(Board {
-            plane: plane.clone(),
-            motion: StopAndGo { waypoints: walk.into_iter().map(|(t, (a, d))| (t, s.at(a, d, centre))).collect(), rotation: s.facing },
-        });
+        // Standing on the floor.
+        objects.push(Board { plane: plane.clone(), motion: along(FLOOR_Z_M + plane.height_m / 2.0, walk) });
     }
-    compose(frames, poses, arrangement, objects)
+    compose(frames, poses, arrangement, objects, placed)
 }
 
+/// The composite frames of `boards` (mirrored about the stage for the mirrored
+/// arrangements) and `placed` (already placed for the arrangement).
 fn compose(
     frames: &[tum::TumFrame],
     poses: &[Isometry3<f64>],
     arrangement: Arrangement,
     mut boards: Vec<Board>,
+    placed: Vec<Board>,
 ) -> (Vec<CompositeFrame>, Vec<Vec<u8>>) {
     let camera = tum::fr1_camera();
     if let Arrangement::Mirrored | Arrangement::MirroredLater(_) = arrangement {
@@ -184,6 +188,7 @@ fn compose(
             }
         }
     }
+    boards.extend(placed);
     let later = match arrangement {
         Arrangement::Later(dt) | Arrangement::MirroredLater(dt) => dt,
         Arrangement::AsBuilt | Arrangement::Mirrored => 0.0,
