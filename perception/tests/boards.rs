@@ -255,14 +255,14 @@ fn trace_one_run() {
             (drift.translation.vector.norm() * 1e3, step.map(|s| (s.translation.vector.norm() * 1e3, s.rotation.angle().to_degrees())))
         });
         // Dense odometry's step against the true step (the tracker's prior).
-        let dense_tracker = if pipelined { &pipeline.tracker } else { &tracker };
-        if let (Some(d), Some(k1)) = (dense_tracker.dense_step(), k.checked_sub(1)) {
+        let mapped = if pipelined { &pipeline.tracker } else { &tracker };
+        if let (Some(d), Some(k1)) = (mapped.dense_step(), k.checked_sub(1)) {
             let e = (poses[k1].inverse() * world_from_camera).inverse() * d;
             ego_error += &format!(
                 "; dense {:.1}, {:.2} agreeing {:.2}",
                 e.translation.vector.norm() * 1e3,
                 e.rotation.angle().to_degrees(),
-                dense_tracker.dense_agreement().unwrap_or(f64::NAN)
+                mapped.dense_agreement().unwrap_or(f64::NAN)
             );
             if let Some(m) = pipeline.prepared_motion.filter(|_| pipelined) {
                 let disagreement = d.inverse() * m;
@@ -295,7 +295,6 @@ fn trace_one_run() {
         // the first frame's alignment), and of those the ones on the surface the
         // frame shows there (depth within 5 %; not hidden, not on a board that left):
         // few while lost means little to relocalize on.
-        let mapped = if pipelined { &pipeline.tracker } else { &tracker };
         let in_view = first.map_or_else(
             || "–".to_string(),
             |(estimate0, truth0)| {
