@@ -699,7 +699,11 @@ impl DynamicMasker {
             }
         }
         self.remember_moved(&fused.labels, carried_cells.as_deref(), sequence, depth);
-        self.dynamic_grid = Some((sequence, cells));
+        // Without a camera motion (the first frame, or the first after a break in the
+        // flow) nothing was judged moving or still: an empty grid carried into the next
+        // frame would read as "nothing moves" there, and a next frame whose own motion
+        // the flow does not confirm would then track on the people it cannot judge.
+        self.dynamic_grid = ego.is_some().then_some((sequence, cells));
         let retractions = if self.origins.is_empty() {
             Vec::new()
         } else {
@@ -1657,6 +1661,38 @@ mod tests {
         step(&mut masker, 6, None);
         step(&mut masker, 7, Some(Segmentation::empty(w as u32, h as u32)));
         assert_eq!(person_pixels(&masker), 0, "6 frames after: gone");
+    }
+
+    /// The first frame has no camera motion, so nothing on it was judged moving or
+    /// still: a person it segmented stays out of the next frame's tracking mask
+    /// only if that frame knows his motion. Where the flow cannot confirm the next
+    /// frame's motion either (here: an image without texture), he is still of
+    /// unknown motion and is kept out (`ExcludeWhileMoving`), as on the first frame.
+    #[test]
+    fn a_person_of_unknown_motion_is_kept_out_of_tracking_on_the_second_frame_too() {
+        let (w, h) = (96usize, 72usize);
+        let mut masker = DynamicMasker::new(pinhole(w, h, 80.0), PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        assert_eq!(masker.config.fusion.prior_dynamic_tracking, PriorDynamicTracking::ExcludeWhileMoving);
+        let rgb = vec![128u8; w * h * 3];
+        let depth: Vec<u16> = (0..w * h).map(|i| if (30..50).contains(&(i % w)) { 1000 } else { 3000 }).collect();
+        let detection = person(w, h, 30..50, 10..60);
+        let on_person: Vec<usize> = (0..w * h).filter(|&i| detection.instance_map[i] != 0).collect();
+        let input = |k: u64, seg: Option<Segmentation>| MaskerInput {
+            sequence: k,
+            capture_time_ns: 0,
+            rgb: &rgb,
+            depth: &depth,
+            segmentation: seg.map(|s| (k, s)),
+            motion_prior: None,
+            accel_in_camera: None,
+        };
+        let first = masker.prepare(input(0, Some(detection.clone()))).expect("prepare");
+        assert!(on_person.iter().all(|&i| first[i] != 0), "first frame: his motion is unknown");
+        let out = masker.finish(&depth, None).expect("finish");
+        assert!(out.ego.is_none(), "no camera motion on the first frame");
+        let second = masker.prepare(input(1, None)).expect("prepare");
+        let kept_out = on_person.iter().filter(|&&i| second[i] != 0).count();
+        assert_eq!(kept_out, on_person.len(), "second frame, motion unconfirmed: all of his pixels stay out");
     }
 
     /// A track's 3D points: projected back where they were seen; the part out of

@@ -210,11 +210,13 @@ fn trace_one_run() {
     let mut trajectory = Vec::new();
     let mut coasting = 0;
     let mut last_ego: Option<Isometry3<f64>> = None;
+    // Map points made from a feature on an object (moving or not, at its making).
+    let mut on_object = std::collections::HashSet::new();
     // (estimate, truth) at the first tracked frame and at the previous one.
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map; a keyframe's new points on a moving board, else the inliers made from a feature on an object"
     );
     for (k, f) in composite.iter().enumerate() {
         let mut ego_error = "–".to_string();
@@ -328,6 +330,14 @@ fn trace_one_run() {
                     .filter(|(_, p)| p.and_then(|p| map.points.get(&p)).is_some_and(|mp| mp.created_by == kf.id))
                     .map(|(i, _)| i)
                     .collect();
+                for &i in &new {
+                    let p = &kf.features.features[i].raw;
+                    if object.get(p.y as usize * w + p.x as usize).is_some_and(|&o| o != 0)
+                        && let Some(id) = kf.points[i]
+                    {
+                        on_object.insert(id);
+                    }
+                }
                 let on_moving = new
                     .iter()
                     .filter(|&&i| {
@@ -337,6 +347,10 @@ fn trace_one_run() {
                     .count();
                 format!("; new points {on_moving} of {} on a moving board", new.len())
             })
+        } else if matches!(track.state, TrackingState::Tracking | TrackingState::Relocalized) {
+            // How much of the placement stands on the objects (standing ones included).
+            let last = mapped.last_points();
+            format!("; inliers made on an object {} of {}", last.iter().filter(|p| on_object.contains(p)).count(), last.len())
         } else {
             String::new()
         };

@@ -225,6 +225,12 @@ impl Tracker {
         self.dense.as_ref().and_then(DenseOdometry::last_step)
     }
 
+    /// The map points the last frame placed itself on (its inliers; a keyframe's
+    /// every point, new ones included): for diagnostics.
+    pub fn last_points(&self) -> &[PointId] {
+        self.last.as_ref().map_or(&[], |l| l.points.as_slice())
+    }
+
     /// [`DenseOdometry::agreement`] of the last step: for diagnostics.
     pub fn dense_agreement(&self) -> Option<f64> {
         self.dense.as_ref().and_then(DenseOdometry::agreement)
