@@ -246,7 +246,9 @@ pub struct EgoMotionConfig {
 pub enum PriorDynamicTracking {
     /// Never track on prior-dynamic classes.
     AlwaysExclude,
-    /// Exclude them only while their instance moves (a parked car, a seated person may help).
+    /// Exclude them only while their instance moves (a parked car, a seated person may
+    /// help), and while their motion is unknown (no flow yet, or a camera motion the
+    /// flow did not confirm, with nothing judged on the frame before).
     ExcludeWhileMoving,
 }
 

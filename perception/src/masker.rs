@@ -239,7 +239,8 @@ pub struct DynamicMasker {
     last_ego: Option<EgoResult>,
     /// Frame intervals the last result's motion spans: more than one after drops.
     last_ego_frames: f64,
-    /// The last finished frame's dynamic flow-grid cells (1 = dynamic).
+    /// The last finished frame's dynamic flow-grid cells (1 = dynamic); `None` when
+    /// that frame had no camera motion (nothing on it was judged).
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
     pending: Option<Pending>,
@@ -1664,10 +1665,10 @@ mod tests {
     }
 
     /// The first frame has no camera motion, so nothing on it was judged moving or
-    /// still: a person it segmented stays out of the next frame's tracking mask
-    /// only if that frame knows his motion. Where the flow cannot confirm the next
-    /// frame's motion either (here: an image without texture), he is still of
-    /// unknown motion and is kept out (`ExcludeWhileMoving`), as on the first frame.
+    /// still: on the next frame a person it segmented is tracked on only if that
+    /// frame judges him still. Where the flow cannot confirm that frame's motion
+    /// (here: an image without texture), his motion is still unknown and he stays in
+    /// the tracking mask (`ExcludeWhileMoving`), as on the first frame.
     #[test]
     fn a_person_of_unknown_motion_is_kept_out_of_tracking_on_the_second_frame_too() {
         let (w, h) = (96usize, 72usize);
@@ -1691,6 +1692,8 @@ mod tests {
         let out = masker.finish(&depth, None).expect("finish");
         assert!(out.ego.is_none(), "no camera motion on the first frame");
         let second = masker.prepare(input(1, None)).expect("prepare");
+        assert!(masker.prepared_motion().is_none(), "the flow cannot confirm a motion on an image without texture");
+        assert_eq!(second[5 * w + 5], 0, "the wall is tracked on");
         let kept_out = on_person.iter().filter(|&&i| second[i] != 0).count();
         assert_eq!(kept_out, on_person.len(), "second frame, motion unconfirmed: all of his pixels stay out");
     }

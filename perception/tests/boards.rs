@@ -216,7 +216,7 @@ fn trace_one_run() {
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map; a keyframe's new points on a moving board, else the inliers made from a feature on an object"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map; a keyframe's new points on a moving board, else, on a tracked frame, the inliers made from a feature on an object"
     );
     for (k, f) in composite.iter().enumerate() {
         let mut ego_error = "–".to_string();
@@ -347,7 +347,7 @@ fn trace_one_run() {
                     .count();
                 format!("; new points {on_moving} of {} on a moving board", new.len())
             })
-        } else if matches!(track.state, TrackingState::Tracking | TrackingState::Relocalized) {
+        } else if track.state == TrackingState::Tracking {
             // How much of the placement stands on the objects (standing ones included).
             let last = mapped.last_points();
             format!("; inliers made on an object {} of {}", last.iter().filter(|p| on_object.contains(p)).count(), last.len())

@@ -225,8 +225,9 @@ impl Tracker {
         self.dense.as_ref().and_then(DenseOdometry::last_step)
     }
 
-    /// The map points the last frame placed itself on (its inliers; a keyframe's
-    /// every point, new ones included): for diagnostics.
+    /// The map points the last tracked frame placed itself on (its inliers; a
+    /// keyframe's every point, new ones included; kept while coasting, empty after
+    /// LOST): for diagnostics.
     pub fn last_points(&self) -> &[PointId] {
         self.last.as_ref().map_or(&[], |l| l.points.as_slice())
     }
