@@ -1539,6 +1539,20 @@ mod tests {
         Camera::pinhole(w as u32, h as u32, f, f, w as f64 / 2.0, h as f64 / 2.0, 1000.0)
     }
 
+    /// Frame `k`'s input, with the segmentation (if any) made on it; no capture
+    /// time, motion prior or accelerometer.
+    fn frame_input<'a>(k: u64, rgb: &'a [u8], depth: &'a [u16], seg: Option<Segmentation>) -> MaskerInput<'a> {
+        MaskerInput {
+            sequence: k,
+            capture_time_ns: 0,
+            rgb,
+            depth,
+            segmentation: seg.map(|s| (k, s)),
+            motion_prior: None,
+            accel_in_camera: None,
+        }
+    }
+
     /// A segmentation of one person (instance 1, class 0) over `xs` × `ys`.
     fn person(w: usize, h: usize, xs: std::ops::Range<usize>, ys: std::ops::Range<usize>) -> Segmentation {
         let mut seg = Segmentation::empty(w as u32, h as u32);
@@ -1627,16 +1641,7 @@ mod tests {
             m.segmentation().map_or(0, |s| s.instances.iter().filter(|i| i.class_name == "person").map(|i| i.pixels).sum::<u32>())
         };
         let step = |m: &mut DynamicMasker, k: u64, seg: Option<Segmentation>| {
-            m.prepare(MaskerInput {
-                sequence: k,
-                capture_time_ns: 0,
-                rgb: &rgb,
-                depth: &depth,
-                segmentation: seg.map(|s| (k, s)),
-                motion_prior: None,
-                accel_in_camera: None,
-            })
-            .expect("prepare");
+            m.prepare(frame_input(k, &rgb, &depth, seg)).expect("prepare");
             m.finish(&depth, Some(Isometry3::identity())).expect("finish")
         };
         // Frame 0 has no person detected and becomes keyframe 100: the person is fused.
@@ -1678,20 +1683,11 @@ mod tests {
         let depth: Vec<u16> = (0..w * h).map(|i| if (30..50).contains(&(i % w)) { 1000 } else { 3000 }).collect();
         let detection = person(w, h, 30..50, 10..60);
         let on_person: Vec<usize> = (0..w * h).filter(|&i| detection.instance_map[i] != 0).collect();
-        let input = |k: u64, seg: Option<Segmentation>| MaskerInput {
-            sequence: k,
-            capture_time_ns: 0,
-            rgb: &rgb,
-            depth: &depth,
-            segmentation: seg.map(|s| (k, s)),
-            motion_prior: None,
-            accel_in_camera: None,
-        };
-        let first = masker.prepare(input(0, Some(detection.clone()))).expect("prepare");
+        let first = masker.prepare(frame_input(0, &rgb, &depth, Some(detection.clone()))).expect("prepare");
         assert!(on_person.iter().all(|&i| first[i] != 0), "first frame: his motion is unknown");
         let out = masker.finish(&depth, None).expect("finish");
         assert!(out.ego.is_none(), "no camera motion on the first frame");
-        let second = masker.prepare(input(1, None)).expect("prepare");
+        let second = masker.prepare(frame_input(1, &rgb, &depth, None)).expect("prepare");
         assert!(masker.prepared_motion().is_none(), "the flow cannot confirm a motion on an image without texture");
         assert_eq!(second[5 * w + 5], 0, "the wall is tracked on");
         let kept_out = on_person.iter().filter(|&&i| second[i] != 0).count();
