@@ -882,6 +882,9 @@ mod tests {
         assert!(err("[tracking]\ncoast_min_agreement = 2.0\n").contains("tracking.coast_min_agreement must be in [0, 1], got 2"));
         assert!(err("[tracking]\nweak_placement_ratio = 1.5\n").contains("tracking.weak_placement_ratio must be in [0, 1], got 1.5"));
         assert!(
+            err("[tracking]\ndense_second_start_ratio = -0.5\n").contains("tracking.dense_second_start_ratio must be in [0, 1], got -0.5")
+        );
+        assert!(
             err("[tracking]\ndense_prior_check_chi2 = -1.0\n")
                 .contains("tracking.dense_prior_check_chi2 must be 0 (off) or positive, got -1")
         );

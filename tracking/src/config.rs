@@ -82,6 +82,27 @@ pub struct TrackerConfig {
     /// runs one without the prior (the tracker's 10 ms per frame became 11 ms on a
     /// 2-core machine, `tracker_under_a_configuration`).
     pub dense_prior_check_chi2: f64,
+    /// Dense odometry's second start. Each frame's alignment starts from standing
+    /// still; where it ends more than 1 cm or 0.5° from the motion model's step
+    /// (the last tracked step), it is run again from that step, and the second
+    /// step is kept where it explains the grey levels better nearly everywhere:
+    /// the image is cut into 40-pixel cells, a cell favours the step whose mean
+    /// grey-level difference over the two frames' overlap there is below this
+    /// share of the other's (and a grey level lower), and at least
+    /// `dense_second_start_share` of the cells that favour either must favour the
+    /// second. Coarse-to-fine alignment from standing still lands in a wrong
+    /// minimum where a near thing masked out leaves little of the image to align
+    /// in a fast turn (rpy_b, the crowd's exact masks: a step 91 mm off, 37 mm of
+    /// point-to-plane error on the pixels left), and misregisters the whole image
+    /// (75–100 % of the deciding cells, 92 % or more in 14 of 17 such frames,
+    /// favour the start from the motion model); where the motion model followed a
+    /// moving thing the mask missed, that thing's cells favour it and the room's
+    /// do not (17 of 31 at a board's onset). 0 turns the second start off
+    /// (docs/tracking.md, "Two starts").
+    pub dense_second_start_ratio: f64,
+    /// See `dense_second_start_ratio`: the share of the deciding cells that must
+    /// favour the second start's step.
+    pub dense_second_start_share: f64,
     /// Matches below which the motion-model search is repeated with a wider radius,
     /// then replaced by PnP-RANSAC.
     pub min_motion_matches: usize,
@@ -163,6 +184,12 @@ impl TrackerConfig {
         if !(self.coast_s >= 0.0 && self.coast_s <= 60.0) {
             return Err(format!("tracking.coast_s must be in [0, 60], got {}", self.coast_s));
         }
+        if !(self.dense_second_start_ratio >= 0.0 && self.dense_second_start_ratio <= 1.0) {
+            return Err(format!("tracking.dense_second_start_ratio must be in [0, 1], got {}", self.dense_second_start_ratio));
+        }
+        if !(self.dense_second_start_share > 0.0 && self.dense_second_start_share <= 1.0) {
+            return Err(format!("tracking.dense_second_start_share must be in (0, 1], got {}", self.dense_second_start_share));
+        }
         if !(self.coast_min_agreement >= 0.0 && self.coast_min_agreement <= 1.0) {
             return Err(format!("tracking.coast_min_agreement must be in [0, 1], got {}", self.coast_min_agreement));
         }
@@ -203,6 +230,8 @@ impl Default for TrackerConfig {
             dense_prior_sigma_m: 0.001,
             dense_prior_interval_s: 1.0 / 30.0,
             dense_prior_check_chi2: 0.0,
+            dense_second_start_ratio: 0.8,
+            dense_second_start_share: 0.9,
             min_motion_matches: 20,
             min_tracked_inliers: 30,
             min_relocalization_inliers: 50,
@@ -240,6 +269,11 @@ mod tests {
         assert_eq!(TrackerConfig { coast_s: 0.0, ..TrackerConfig::default() }.validate(), Ok(()), "0 turns coasting off");
         let err = TrackerConfig { coast_min_agreement: 1.5, ..TrackerConfig::default() }.validate().expect_err("rejected");
         assert_eq!(err, "tracking.coast_min_agreement must be in [0, 1], got 1.5");
+        for bad in [-0.1, 1.01, f64::NAN] {
+            let err = TrackerConfig { dense_second_start_ratio: bad, ..TrackerConfig::default() }.validate().expect_err("rejected");
+            assert_eq!(err, format!("tracking.dense_second_start_ratio must be in [0, 1], got {bad}"));
+        }
+        assert_eq!(TrackerConfig { dense_second_start_ratio: 0.0, ..TrackerConfig::default() }.validate(), Ok(()), "0 turns it off");
         for bad in [-0.1, 1.01, f64::NAN] {
             let err = TrackerConfig { weak_placement_ratio: bad, ..TrackerConfig::default() }.validate().expect_err("rejected");
             assert!(err.starts_with("tracking.weak_placement_ratio must be in [0, 1]"), "{bad}: {err}");

@@ -41,6 +41,41 @@ const RIGID_BODY_MOTION: i32 = 4;
 /// destination of one step and the source of the next.
 const CACHE_ALL: i32 = 3;
 
+/// A second alignment (see [`DenseStart::IdentityOrGuess`]) is run only where the
+/// first one ended further than this from the motion model's step (metres of
+/// translation or degrees of rotation): an alignment started that close to where
+/// the first one ended lands there too, so it would only repeat the work.
+const SECOND_START_BEYOND_M: f64 = 0.01;
+const SECOND_START_BEYOND_DEG: f64 = 0.5;
+
+/// The cells (pixels of the reduced image, square) over which two starts' grey
+/// residuals are compared: 20 reduced pixels, a 16 × 12 grid at 320 × 240.
+const RESIDUAL_CELL_PX: usize = 20;
+/// Overlapping pixels a cell needs (of 400) to take part in the comparison.
+const MIN_CELL_OVERLAP: usize = 50;
+/// Grey levels two cell residuals must differ by to decide a cell (below that,
+/// a bare wall's noise).
+const MIN_CELL_DIFFERENCE: f64 = 1.0;
+
+/// Where a frame's alignment starts (as `previous_from_current`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DenseStart {
+    /// Standing still.
+    Identity,
+    /// The motion model's step.
+    Guess(Isometry3<f64>),
+    /// Standing still and, where that alignment ends away from the motion model's
+    /// step `guess`, also from `guess`; the second alignment's step is kept where
+    /// it explains the grey levels better nearly everywhere: of the image cells
+    /// where the two steps' mean grey-level differences differ (the lower below
+    /// `ratio` times the higher), at least `share` favour it. Coarse-to-fine
+    /// alignment from standing still lands in a wrong minimum where little of the
+    /// image is left to align (a near thing masked out) and the step is large, and
+    /// such a step misregisters the whole image; a moving thing the mask missed
+    /// that the motion model followed explains only its own part.
+    IdentityOrGuess { guess: Isometry3<f64>, ratio: f64, share: f64 },
+}
+
 /// Frame-to-frame dense odometry for one camera.
 pub struct DenseOdometry {
     odometry: Ptr<rgbd::Odometry>,
@@ -57,6 +92,10 @@ pub struct DenseOdometry {
     /// missing or masked), for [`agreement`](Self::agreement); reused frame to frame.
     depth: Vec<f32>,
     earlier_depth: Vec<f32>,
+    /// The same frames' reduced, undistorted grey images, for the photometric fit
+    /// that chooses between two starts.
+    gray: Vec<u8>,
+    earlier_gray: Vec<u8>,
     /// The last push's step (`previous_from_current`), if it gave one.
     step: Option<Isometry3<f64>>,
     frames: i32,
@@ -119,6 +158,8 @@ impl DenseOdometry {
             previous: None,
             depth: Vec::new(),
             earlier_depth: Vec::new(),
+            gray: Vec::new(),
+            earlier_gray: Vec::new(),
             step: None,
             frames: 0,
             reduced_k,
@@ -140,6 +181,17 @@ impl DenseOdometry {
         depth: &[u16],
         dynamic_mask: Option<&[u8]>,
         guess: Option<Isometry3<f64>>,
+    ) -> Result<Option<Isometry3<f64>>, TrackingError> {
+        self.push_started(gray, depth, dynamic_mask, guess.map_or(DenseStart::Identity, DenseStart::Guess))
+    }
+
+    /// [`push`](Self::push) with the alignment started as `start` says.
+    pub fn push_started(
+        &mut self,
+        gray: &[u8],
+        depth: &[u16],
+        dynamic_mask: Option<&[u8]>,
+        start: DenseStart,
     ) -> Result<Option<Isometry3<f64>>, TrackingError> {
         let (w, h) = self.full;
         if gray.len() != w * h || depth.len() != w * h || dynamic_mask.is_some_and(|m| m.len() != w * h) {
@@ -174,33 +226,40 @@ impl DenseOdometry {
         self.depth.clear();
         self.depth
             .extend(metres.data_typed::<f32>()?.iter().zip(valid.data_typed::<u8>()?).map(|(&z, &ok)| if ok != 0 { z } else { f32::NAN }));
+        std::mem::swap(&mut self.gray, &mut self.earlier_gray);
+        self.gray.clear();
+        self.gray.extend_from_slice(gray.data_typed::<u8>()?);
         self.step = None;
         let mut frame = rgbd::OdometryFrame::create(&gray, &metres, &valid, &Mat::default(), self.frames)?;
         self.frames = self.frames.wrapping_add(1);
         self.odometry.prepare_frame_cache(&mut frame, CACHE_ALL)?;
         let Some(mut previous) = self.previous.replace(frame) else { return Ok(None) };
         let Some(current) = self.previous.as_mut() else { return Ok(None) };
-        let mut rt = Mat::default();
-        // OpenCV's initial Rt takes the source (previous) frame into the destination.
-        let init = match guess {
-            Some(previous_from_current) => {
-                let m = previous_from_current.inverse().to_homogeneous();
-                let rows: Vec<f64> = (0..4).flat_map(|r| (0..4).map(move |c| m[(r, c)])).collect();
-                Mat::new_rows_cols_with_data(4, 4, &rows)?.try_clone()?
+        self.step = match start {
+            DenseStart::Identity => align(&mut self.odometry, &mut previous, current, None)?,
+            DenseStart::Guess(guess) => align(&mut self.odometry, &mut previous, current, Some(guess))?,
+            DenseStart::IdentityOrGuess { guess, ratio, share } => {
+                let first = align(&mut self.odometry, &mut previous, current, None)?;
+                let near_guess = first.is_some_and(|step| {
+                    let apart = guess.inverse() * step;
+                    apart.translation.vector.norm() <= SECOND_START_BEYOND_M
+                        && apart.rotation.angle() <= SECOND_START_BEYOND_DEG.to_radians()
+                });
+                if near_guess {
+                    first
+                } else {
+                    let second = align(&mut self.odometry, &mut previous, current, Some(guess))?;
+                    let overlap = self.overlap();
+                    let cells = |step: &Isometry3<f64>| overlap.grey_residual_cells(step, &self.gray, &self.earlier_gray);
+                    match (first, second) {
+                        (Some(a), Some(b)) => {
+                            Some(if explains_nearly_everywhere_better(&cells(&b), &cells(&a), ratio, share) { b } else { a })
+                        }
+                        (a, b) => a.or(b),
+                    }
+                }
             }
-            None => Mat::default(),
         };
-        if !self.odometry.compute2(&mut previous, current, &mut rt, &init)? {
-            return Ok(None);
-        }
-        let m = |r: i32, c: i32| rt.at_2d::<f64>(r, c).copied();
-        let rotation = Matrix3::new(m(0, 0)?, m(0, 1)?, m(0, 2)?, m(1, 0)?, m(1, 1)?, m(1, 2)?, m(2, 0)?, m(2, 1)?, m(2, 2)?);
-        // OpenCV's Rt takes points of the source (previous) frame into the destination (current) one.
-        let current_from_previous = Isometry3::from_parts(
-            Translation3::new(m(0, 3)?, m(1, 3)?, m(2, 3)?),
-            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
-        );
-        self.step = Some(current_from_previous.inverse());
         Ok(self.step)
     }
 
@@ -215,46 +274,138 @@ impl DenseOdometry {
     /// scene it explains. `None` without a step or without overlap. Computed on
     /// demand (the tracker asks only on a frame it would coast).
     pub fn agreement(&self) -> Option<f64> {
-        depth_agreement(&self.depth, &self.earlier_depth, self.width, self.height, self.reduced_k, &self.step?)
+        self.overlap().depth_agreement(&self.step?)
+    }
+
+    /// The last pushed frame and the one before, at the reduced size.
+    fn overlap(&self) -> Overlap<'_> {
+        Overlap { current: &self.depth, previous: &self.earlier_depth, width: self.width, height: self.height, k: self.reduced_k }
     }
 }
 
-/// See [`DenseOdometry::agreement`]; `k` = (fx, fy, cx, cy) at the reduced size.
-fn depth_agreement(
-    current: &[f32],
-    previous: &[f32],
+/// Two frames' reduced depth (metres, NaN where missing or masked) and the reduced
+/// intrinsics `k` = (fx, fy, cx, cy), for judging a step between them.
+struct Overlap<'a> {
+    current: &'a [f32],
+    previous: &'a [f32],
     width: usize,
     height: usize,
     k: (f64, f64, f64, f64),
-    previous_from_current: &Isometry3<f64>,
-) -> Option<f64> {
-    if current.len() != width * height || previous.len() != width * height {
-        return None;
+}
+
+impl Overlap<'_> {
+    /// Calls `each(i, j, z, seen)` for every pixel `i` of the current frame with
+    /// depth that `previous_from_current` carries onto a pixel `j` of the previous
+    /// frame with depth (`z`: the point's depth carried into the previous frame;
+    /// `seen`: the depth measured there). Nothing where the sizes do not match.
+    fn each(&self, previous_from_current: &Isometry3<f64>, mut each: impl FnMut(usize, usize, f64, f32)) {
+        let (width, height) = (self.width, self.height);
+        if self.current.len() != width * height || self.previous.len() != width * height {
+            return;
+        }
+        let (fx, fy, cx, cy) = self.k;
+        for (i, &z) in self.current.iter().enumerate() {
+            if !z.is_finite() {
+                continue;
+            }
+            let (u, v) = ((i % width) as f64, (i / width) as f64);
+            let z = f64::from(z);
+            let p = previous_from_current * nalgebra::Point3::new((u - cx) / fx * z, (v - cy) / fy * z, z);
+            if p.z <= 0.0 {
+                continue;
+            }
+            let (pu, pv) = ((fx * p.x / p.z + cx).round(), (fy * p.y / p.z + cy).round());
+            if pu < 0.0 || pv < 0.0 || pu >= width as f64 || pv >= height as f64 {
+                continue;
+            }
+            let j = pv as usize * width + pu as usize;
+            let seen = self.previous[j];
+            if seen.is_finite() {
+                each(i, j, p.z, seen);
+            }
+        }
     }
-    let (fx, fy, cx, cy) = k;
-    let (mut overlap, mut agree) = (0usize, 0usize);
-    for (i, &z) in current.iter().enumerate() {
-        if !z.is_finite() {
-            continue;
-        }
-        let (u, v) = ((i % width) as f64, (i / width) as f64);
-        let z = f64::from(z);
-        let p = previous_from_current * nalgebra::Point3::new((u - cx) / fx * z, (v - cy) / fy * z, z);
-        if p.z <= 0.0 {
-            continue;
-        }
-        let (pu, pv) = ((fx * p.x / p.z + cx).round(), (fy * p.y / p.z + cy).round());
-        if pu < 0.0 || pv < 0.0 || pu >= width as f64 || pv >= height as f64 {
-            continue;
-        }
-        let seen = previous[pv as usize * width + pu as usize];
-        if !seen.is_finite() {
-            continue;
-        }
-        overlap += 1;
-        agree += usize::from((f64::from(seen) - p.z).abs() <= MAX_DEPTH_DIFFERENCE_M);
+
+    /// See [`DenseOdometry::agreement`]: the share of the overlap whose depth the step
+    /// predicts within the correspondence distance; `None` without overlap.
+    fn depth_agreement(&self, previous_from_current: &Isometry3<f64>) -> Option<f64> {
+        let (mut overlap, mut agree) = (0usize, 0usize);
+        self.each(previous_from_current, |_, _, z, seen| {
+            overlap += 1;
+            agree += usize::from((f64::from(seen) - z).abs() <= MAX_DEPTH_DIFFERENCE_M);
+        });
+        (overlap > 0).then(|| agree as f64 / overlap as f64)
     }
-    (overlap > 0).then(|| agree as f64 / overlap as f64)
+
+    /// Per cell of [`RESIDUAL_CELL_PX`] square (row-major over the current frame),
+    /// the mean absolute difference between the current frame's grey levels `gray`
+    /// and the previous frame's `earlier_gray` over the step's overlap: what the
+    /// photometric half of the alignment minimises. `None` for a cell with fewer
+    /// than [`MIN_CELL_OVERLAP`] overlapping pixels; empty where the sizes do not match.
+    fn grey_residual_cells(&self, previous_from_current: &Isometry3<f64>, gray: &[u8], earlier_gray: &[u8]) -> Vec<Option<f64>> {
+        if gray.len() != self.current.len() || earlier_gray.len() != self.previous.len() {
+            return Vec::new();
+        }
+        let columns = self.width.div_ceil(RESIDUAL_CELL_PX);
+        let mut cells = vec![(0u64, 0usize); columns * self.height.div_ceil(RESIDUAL_CELL_PX)];
+        self.each(previous_from_current, |i, j, _, _| {
+            let cell = &mut cells[(i / self.width / RESIDUAL_CELL_PX) * columns + (i % self.width) / RESIDUAL_CELL_PX];
+            cell.0 += u64::from(gray[i].abs_diff(earlier_gray[j]));
+            cell.1 += 1;
+        });
+        cells.into_iter().map(|(sum, n)| (n >= MIN_CELL_OVERLAP).then(|| sum as f64 / n as f64)).collect()
+    }
+}
+
+/// Whether the step with per-cell grey residuals `candidate` explains the images
+/// better than the one with `incumbent` nearly everywhere: of the cells both
+/// overlap where the residuals differ (the lower below `ratio` times the higher and
+/// by more than [`MIN_CELL_DIFFERENCE`]), at least `share` favour `candidate`; no
+/// such cell keeps the incumbent.
+fn explains_nearly_everywhere_better(candidate: &[Option<f64>], incumbent: &[Option<f64>], ratio: f64, share: f64) -> bool {
+    let (mut for_candidate, mut deciding) = (0usize, 0usize);
+    for (c, i) in candidate.iter().zip(incumbent) {
+        let (Some(c), Some(i)) = (*c, *i) else { continue };
+        if c < ratio * i && i - c > MIN_CELL_DIFFERENCE {
+            for_candidate += 1;
+            deciding += 1;
+        } else if i < ratio * c && c - i > MIN_CELL_DIFFERENCE {
+            deciding += 1;
+        }
+    }
+    deciding > 0 && for_candidate as f64 >= share * deciding as f64
+}
+
+/// One alignment of `previous` onto `current` started from `guess`
+/// (`previous_from_current`; standing still when `None`): the step, or `None` where
+/// it did not converge.
+fn align(
+    odometry: &mut Ptr<rgbd::Odometry>,
+    previous: &mut Ptr<rgbd::OdometryFrame>,
+    current: &mut Ptr<rgbd::OdometryFrame>,
+    guess: Option<Isometry3<f64>>,
+) -> Result<Option<Isometry3<f64>>, TrackingError> {
+    let mut rt = Mat::default();
+    // OpenCV's initial Rt takes the source (previous) frame into the destination.
+    let init = match guess {
+        Some(previous_from_current) => {
+            let m = previous_from_current.inverse().to_homogeneous();
+            let rows: Vec<f64> = (0..4).flat_map(|r| (0..4).map(move |c| m[(r, c)])).collect();
+            Mat::new_rows_cols_with_data(4, 4, &rows)?.try_clone()?
+        }
+        None => Mat::default(),
+    };
+    if !odometry.compute2(previous, current, &mut rt, &init)? {
+        return Ok(None);
+    }
+    let m = |r: i32, c: i32| rt.at_2d::<f64>(r, c).copied();
+    let rotation = Matrix3::new(m(0, 0)?, m(0, 1)?, m(0, 2)?, m(1, 0)?, m(1, 1)?, m(1, 2)?, m(2, 0)?, m(2, 1)?, m(2, 2)?);
+    // OpenCV's Rt takes points of the source (previous) frame into the destination (current) one.
+    let current_from_previous = Isometry3::from_parts(
+        Translation3::new(m(0, 3)?, m(1, 3)?, m(2, 3)?),
+        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
+    );
+    Ok(Some(current_from_previous.inverse()))
 }
 
 /// `src` resampled through the undistortion maps; outside the image: `border`.
@@ -300,6 +451,46 @@ mod tests {
         assert!(wrong_way.is_none_or(|e| e > 0.01), "started at the inverse step: {wrong_way:?} m off");
     }
 
+    /// The second start: over a 10 cm, 5.7° step with the left 70 % of the image
+    /// masked (a near thing), the alignment from standing still lands in a wrong
+    /// minimum (measured 11.7 mm and 2.1° off); started again from the motion
+    /// model's step it lands on the truth (0.6 mm), and its lower grey-level residual
+    /// keeps that step. Where standing still lands right (nothing masked), a wrong
+    /// motion model (the step's inverse, whose own alignment ends centimetres off)
+    /// does not replace it.
+    #[test]
+    fn a_second_start_from_the_motion_model_replaces_a_wrong_minimum_and_not_a_right_one() {
+        let camera = kinect_camera();
+        let scene = Scene::room(7);
+        let (a, b) = (sway_pose(10.0), sway_pose(22.0));
+        let truth = a.inverse() * b;
+        let (first, second) = (render(&scene, &camera, &a), render(&scene, &camera, &b));
+        let w = camera.width as usize;
+        let run = |masked_share: f64, start: DenseStart| {
+            let mask: Vec<u8> = (0..first.depth.len()).map(|i| u8::from(((i % w) as f64) < masked_share * w as f64)).collect();
+            let mut dense = DenseOdometry::new(&camera, 0.1, 6.0).expect("dense");
+            assert!(dense.push(&to_gray(&first.rgb), &first.depth, Some(&mask)).expect("push").is_none());
+            dense.push_started(&to_gray(&second.rgb), &second.depth, Some(&mask), start).expect("push").expect("converged")
+        };
+        let off = |step: Isometry3<f64>| {
+            let e = truth.inverse() * step;
+            (e.translation.vector.norm(), e.rotation.angle().to_degrees())
+        };
+        let either = |guess| DenseStart::IdentityOrGuess { guess, ratio: 0.8, share: 0.9 };
+
+        let (m, deg) = off(run(0.7, DenseStart::Identity));
+        assert!(m > 0.005, "standing still lands in a wrong minimum here: {m} m, {deg}°");
+        let (m, deg) = off(run(0.7, either(truth)));
+        assert!(m < 0.001 && deg < 0.05, "the second start keeps the right step: {m} m, {deg}°");
+
+        let from_identity = run(0.0, DenseStart::Identity);
+        let (m, _) = off(from_identity);
+        assert!(m < 0.001, "nothing masked: standing still lands right ({m} m)");
+        let (m, _) = off(run(0.0, DenseStart::Guess(truth.inverse())));
+        assert!(m > 0.01, "the wrong motion model's own alignment ends off ({m} m)");
+        assert_eq!(run(0.0, either(truth.inverse())), from_identity, "the right step stays");
+    }
+
     #[test]
     fn agreement_is_the_share_of_the_overlap_whose_depth_the_step_predicts() {
         // A wall 2 m ahead filling both frames; the left quarter of the previous one
@@ -309,13 +500,21 @@ mod tests {
         let current = vec![2.0f32; w * h];
         let previous: Vec<f32> = (0..w * h).map(|i| if i % w < w / 4 { f32::NAN } else { 2.0 }).collect();
         let along_z = |m: f64| Isometry3::translation(0.0, 0.0, m);
-        assert_eq!(depth_agreement(&current, &previous, w, h, k, &Isometry3::identity()), Some(1.0));
+        let overlap = Overlap { current: &current, previous: &previous, width: w, height: h, k };
+        assert_eq!(overlap.depth_agreement(&Isometry3::identity()), Some(1.0));
         // 5 cm off is within the 7 cm correspondence distance, 10 cm is not.
-        assert_eq!(depth_agreement(&current, &previous, w, h, k, &along_z(0.05)), Some(1.0));
-        assert_eq!(depth_agreement(&current, &previous, w, h, k, &along_z(0.10)), Some(0.0));
+        assert_eq!(overlap.depth_agreement(&along_z(0.05)), Some(1.0));
+        assert_eq!(overlap.depth_agreement(&along_z(0.10)), Some(0.0));
         // Nothing overlaps: no agreement to judge by.
-        assert_eq!(depth_agreement(&current, &vec![f32::NAN; w * h], w, h, k, &Isometry3::identity()), None);
-        assert_eq!(depth_agreement(&current, &previous, w + 1, h, k, &Isometry3::identity()), None, "sizes must match");
+        assert_eq!(
+            Overlap { current: &current, previous: &vec![f32::NAN; w * h], width: w, height: h, k }.depth_agreement(&Isometry3::identity()),
+            None
+        );
+        assert_eq!(
+            Overlap { current: &current, previous: &previous, width: w + 1, height: h, k }.depth_agreement(&Isometry3::identity()),
+            None,
+            "sizes must match"
+        );
     }
 
     /// Two renders of the synthetic room a few frames of its sway apart: the step

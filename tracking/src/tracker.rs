@@ -10,7 +10,7 @@ use crate::TrackingError;
 use crate::ba;
 use crate::camera::Camera;
 use crate::config::TrackerConfig;
-use crate::dense::DenseOdometry;
+use crate::dense::{DenseOdometry, DenseStart};
 use crate::features::{Descriptor, Extractor, Feature, FrameFeatures, GridIndex, hamming, level_scales, rectify_rolling_shutter};
 use crate::geometry::{Measurement, PnpRansac, frame_intervals, huber_weight, linearise_pose, pnp_ransac, scale_motion};
 use crate::map::{Keyframe, KeyframeId, Map, MapPoint, PointId};
@@ -273,12 +273,22 @@ impl Tracker {
             .unwrap_or(1.0);
         // After dropped frames (or from a slower camera) the step is larger than the
         // alignment's identity start can reach: the motion model's step over those
-        // intervals starts it. At the nominal rate the identity start is kept.
-        let guess = match self.velocity {
-            Some(v) if !self.lost && intervals > 1.0 && intervals <= MAX_GUESS_INTERVALS => {
-                Some(scale_motion(&v, intervals / self.velocity_intervals).inverse())
+        // intervals starts it. At the nominal rate the alignment starts from the
+        // identity, and from the motion model's step as well where the two may
+        // land apart (`dense_second_start_ratio`).
+        let dense_start = match self.velocity {
+            Some(v) if !self.lost && intervals <= MAX_GUESS_INTERVALS => {
+                let guess = scale_motion(&v, intervals / self.velocity_intervals).inverse();
+                let (ratio, share) = (self.config.dense_second_start_ratio, self.config.dense_second_start_share);
+                if intervals > 1.0 {
+                    DenseStart::Guess(guess)
+                } else if ratio > 0.0 {
+                    DenseStart::IdentityOrGuess { guess, ratio, share }
+                } else {
+                    DenseStart::Identity
+                }
             }
-            _ => None,
+            _ => DenseStart::Identity,
         };
         // Dense odometry needs only the images: it runs on its own thread while the
         // features are extracted.
@@ -287,7 +297,7 @@ impl Tracker {
                 let gray = &gray;
                 std::thread::Builder::new().name("dense-odometry".into()).spawn_scoped(scope, move || {
                     let t = Instant::now();
-                    (dense.push_from(gray, frame.depth, frame.dynamic_mask, guess), t.elapsed())
+                    (dense.push_started(gray, frame.depth, frame.dynamic_mask, dense_start), t.elapsed())
                 })
             });
             let feats = self.extractor.extract(&self.camera, &gray, frame.depth, frame.dynamic_mask);
