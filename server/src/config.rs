@@ -884,6 +884,7 @@ mod tests {
         assert!(
             err("[tracking]\ndense_second_start_ratio = -0.5\n").contains("tracking.dense_second_start_ratio must be in [0, 1], got -0.5")
         );
+        assert!(err("[tracking]\ndense_second_start_share = 0.0\n").contains("tracking.dense_second_start_share must be in (0, 1], got 0"));
         assert!(
             err("[tracking]\ndense_prior_check_chi2 = -1.0\n")
                 .contains("tracking.dense_prior_check_chi2 must be 0 (off) or positive, got -1")

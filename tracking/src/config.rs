@@ -83,7 +83,7 @@ pub struct TrackerConfig {
     /// 2-core machine, `tracker_under_a_configuration`).
     pub dense_prior_check_chi2: f64,
     /// Dense odometry's second start. Each frame's alignment starts from standing
-    /// still; where it ends more than 1 cm or 0.5° from the motion model's step
+    /// still; where it ends more than 2 cm or 1° from the motion model's step
     /// (the last tracked step), it is run again from that step, and the second
     /// step is kept where it explains the grey levels better nearly everywhere:
     /// the image is cut into 40-pixel cells, a cell favours the step whose mean
@@ -274,6 +274,10 @@ mod tests {
             assert_eq!(err, format!("tracking.dense_second_start_ratio must be in [0, 1], got {bad}"));
         }
         assert_eq!(TrackerConfig { dense_second_start_ratio: 0.0, ..TrackerConfig::default() }.validate(), Ok(()), "0 turns it off");
+        for bad in [0.0, 1.5, f64::NAN] {
+            let err = TrackerConfig { dense_second_start_share: bad, ..TrackerConfig::default() }.validate().expect_err("rejected");
+            assert_eq!(err, format!("tracking.dense_second_start_share must be in (0, 1], got {bad}"));
+        }
         for bad in [-0.1, 1.01, f64::NAN] {
             let err = TrackerConfig { weak_placement_ratio: bad, ..TrackerConfig::default() }.validate().expect_err("rejected");
             assert!(err.starts_with("tracking.weak_placement_ratio must be in [0, 1]"), "{bad}: {err}");

@@ -45,8 +45,8 @@ const CACHE_ALL: i32 = 3;
 /// first one ended further than this from the motion model's step (metres of
 /// translation or degrees of rotation): an alignment started that close to where
 /// the first one ended lands there too, so it would only repeat the work.
-const SECOND_START_BEYOND_M: f64 = 0.01;
-const SECOND_START_BEYOND_DEG: f64 = 0.5;
+const SECOND_START_BEYOND_M: f64 = 0.02;
+const SECOND_START_BEYOND_DEG: f64 = 1.0;
 
 /// The cells (pixels of the reduced image, square) over which two starts' grey
 /// residuals are compared: 20 reduced pixels, a 16 × 12 grid at 320 × 240.
