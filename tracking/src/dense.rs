@@ -43,8 +43,10 @@ const CACHE_ALL: i32 = 3;
 
 /// A second alignment (see [`DenseStart::IdentityOrGuess`]) is run only where the
 /// first one ended further than this from the motion model's step (metres of
-/// translation or degrees of rotation): an alignment started that close to where
-/// the first one ended lands there too, so it would only repeat the work.
+/// translation or degrees of rotation). A cost trade-off: the wrong minima it is for
+/// end centimetres away; at 1 cm / 0.5° it ran on a third of the public clip's
+/// frames (the tracker's median 9.7 → 13.6 ms on a 2-core machine) for little more
+/// gain, at 2 cm / 1° on 8 % (docs/tracking.md, "Two starts").
 const SECOND_START_BEYOND_M: f64 = 0.02;
 const SECOND_START_BEYOND_DEG: f64 = 1.0;
 
@@ -68,7 +70,8 @@ pub enum DenseStart {
     /// step `guess`, also from `guess`; the second alignment's step is kept where
     /// it explains the grey levels better nearly everywhere: of the image cells
     /// where the two steps' mean grey-level differences differ (the lower below
-    /// `ratio` times the higher), at least `share` favour it. Coarse-to-fine
+    /// `ratio` times the higher), at least `share` favour it. Where the first
+    /// alignment fails there is no step, as with `Identity`. Coarse-to-fine
     /// alignment from standing still lands in a wrong minimum where little of the
     /// image is left to align (a near thing masked out) and the step is large, and
     /// such a step misregisters the whole image; a moving thing the mask missed
@@ -89,7 +92,8 @@ pub struct DenseOdometry {
     depth_range: (f32, f32),
     previous: Option<Ptr<rgbd::OdometryFrame>>,
     /// The last pushed frame's reduced depth and the one's before (metres, NaN where
-    /// missing or masked), for [`agreement`](Self::agreement); reused frame to frame.
+    /// missing or masked), for [`agreement`](Self::agreement) and the comparison of
+    /// two starts; reused frame to frame.
     depth: Vec<f32>,
     earlier_depth: Vec<f32>,
     /// The same frames' reduced, undistorted grey images, for the photometric fit
@@ -170,19 +174,7 @@ impl DenseOdometry {
     /// dynamic) and returns `previous_from_current` when there was a previous frame
     /// and the alignment converged (OpenCV also refuses steps beyond 15 cm or 15°).
     pub fn push(&mut self, gray: &[u8], depth: &[u16], dynamic_mask: Option<&[u8]>) -> Result<Option<Isometry3<f64>>, TrackingError> {
-        self.push_from(gray, depth, dynamic_mask, None)
-    }
-
-    /// [`push`](Self::push) with the alignment started from `guess`
-    /// (`previous_from_current`, the motion model's prediction) instead of the identity.
-    pub fn push_from(
-        &mut self,
-        gray: &[u8],
-        depth: &[u16],
-        dynamic_mask: Option<&[u8]>,
-        guess: Option<Isometry3<f64>>,
-    ) -> Result<Option<Isometry3<f64>>, TrackingError> {
-        self.push_started(gray, depth, dynamic_mask, guess.map_or(DenseStart::Identity, DenseStart::Guess))
+        self.push_started(gray, depth, dynamic_mask, DenseStart::Identity)
     }
 
     /// [`push`](Self::push) with the alignment started as `start` says.
@@ -221,7 +213,8 @@ impl DenseOdometry {
             ),
             None => (gray, metres, valid),
         };
-        // This frame's depth where it may be used, for the step's agreement.
+        // This frame's depth where it may be used, for the step's agreement and the
+        // comparison of two starts.
         std::mem::swap(&mut self.depth, &mut self.earlier_depth);
         self.depth.clear();
         self.depth
@@ -239,24 +232,19 @@ impl DenseOdometry {
             DenseStart::Identity => align(&mut self.odometry, &mut previous, current, None)?,
             DenseStart::Guess(guess) => align(&mut self.odometry, &mut previous, current, Some(guess))?,
             DenseStart::IdentityOrGuess { guess, ratio, share } => {
-                let first = align(&mut self.odometry, &mut previous, current, None)?;
-                let near_guess = first.is_some_and(|step| {
-                    let apart = guess.inverse() * step;
-                    apart.translation.vector.norm() <= SECOND_START_BEYOND_M
-                        && apart.rotation.angle() <= SECOND_START_BEYOND_DEG.to_radians()
-                });
-                if near_guess {
-                    first
-                } else {
-                    let second = align(&mut self.odometry, &mut previous, current, Some(guess))?;
-                    let overlap = self.overlap();
-                    let cells = |step: &Isometry3<f64>| overlap.grey_residual_cells(step, &self.gray, &self.earlier_gray);
-                    match (first, second) {
-                        (Some(a), Some(b)) => {
-                            Some(if explains_nearly_everywhere_better(&cells(&b), &cells(&a), ratio, share) { b } else { a })
-                        }
-                        (a, b) => a.or(b),
+                // A first alignment that fails gives no step, as it did alone: the
+                // second one would have nothing to be judged against.
+                match align(&mut self.odometry, &mut previous, current, None)? {
+                    Some(first) if !near(&first, &guess) => {
+                        let second = align(&mut self.odometry, &mut previous, current, Some(guess))?;
+                        let overlap = self.overlap();
+                        let cells = |step: &Isometry3<f64>| overlap.grey_residual_cells(step, &self.gray, &self.earlier_gray);
+                        Some(match second {
+                            Some(second) if explains_nearly_everywhere_better(&cells(&second), &cells(&first), ratio, share) => second,
+                            _ => first,
+                        })
                     }
+                    first => first,
                 }
             }
         };
@@ -376,6 +364,13 @@ fn explains_nearly_everywhere_better(candidate: &[Option<f64>], incumbent: &[Opt
     deciding > 0 && for_candidate as f64 >= share * deciding as f64
 }
 
+/// Whether `step` ends within [`SECOND_START_BEYOND_M`] and [`SECOND_START_BEYOND_DEG`]
+/// of `guess` (both `previous_from_current`).
+fn near(step: &Isometry3<f64>, guess: &Isometry3<f64>) -> bool {
+    let apart = guess.inverse() * step;
+    apart.translation.vector.norm() <= SECOND_START_BEYOND_M && apart.rotation.angle() <= SECOND_START_BEYOND_DEG.to_radians()
+}
+
 /// One alignment of `previous` onto `current` started from `guess`
 /// (`previous_from_current`; standing still when `None`): the step, or `None` where
 /// it did not converge.
@@ -443,7 +438,7 @@ mod tests {
         let from = |guess: Isometry3<f64>| {
             let mut dense = DenseOdometry::new(&camera, 0.1, 6.0).expect("dense");
             assert!(dense.push(&to_gray(&first.rgb), &first.depth, None).expect("push").is_none());
-            dense.push_from(&to_gray(&second.rgb), &second.depth, None, Some(guess)).expect("push")
+            dense.push_started(&to_gray(&second.rgb), &second.depth, None, DenseStart::Guess(guess)).expect("push")
         };
         let error = truth.inverse() * from(truth).expect("converged");
         assert!(error.translation.vector.norm() < 1e-3 && error.rotation.angle() < 0.05f64.to_radians(), "{error:?}");
@@ -489,6 +484,24 @@ mod tests {
         let (m, _) = off(run(0.0, DenseStart::Guess(truth.inverse())));
         assert!(m > 0.01, "the wrong motion model's own alignment ends off ({m} m)");
         assert_eq!(run(0.0, either(truth.inverse())), from_identity, "the right step stays");
+    }
+
+    /// Nine cells of ten favouring the candidate is 90 %; ties (within the ratio,
+    /// or within a grey level) and cells without overlap do not decide, and no
+    /// deciding cell keeps the incumbent.
+    #[test]
+    fn the_second_start_wins_only_where_nearly_every_deciding_cell_favours_it() {
+        let mut candidate = vec![Some(4.0); 9];
+        let mut incumbent = vec![Some(10.0); 9];
+        candidate.push(Some(10.0));
+        incumbent.push(Some(4.0));
+        assert!(explains_nearly_everywhere_better(&candidate, &incumbent, 0.8, 0.9));
+        assert!(!explains_nearly_everywhere_better(&candidate, &incumbent, 0.8, 0.95));
+        assert!(!explains_nearly_everywhere_better(&incumbent, &candidate, 0.8, 0.9), "the other way round");
+        let (candidate, incumbent) = ([Some(4.0), Some(10.0), None, Some(1.5)], [Some(10.0), Some(10.5), Some(3.0), Some(1.0)]);
+        assert!(explains_nearly_everywhere_better(&candidate, &incumbent, 0.8, 1.0), "one cell decides, for the candidate");
+        assert!(!explains_nearly_everywhere_better(&[Some(5.0)], &[Some(5.0)], 0.8, 0.9), "no deciding cell");
+        assert!(!explains_nearly_everywhere_better(&[], &[], 0.8, 0.9), "no cell");
     }
 
     #[test]

@@ -271,25 +271,8 @@ impl Tracker {
             .previous_timestamp_ns
             .and_then(|previous_ns| frame_intervals(previous_ns, frame.timestamp_ns, self.config.dense_prior_interval_s))
             .unwrap_or(1.0);
-        // After dropped frames (or from a slower camera) the step is larger than the
-        // alignment's identity start can reach: the motion model's step over those
-        // intervals starts it. At the nominal rate the alignment starts from the
-        // identity, and from the motion model's step as well where the two may
-        // land apart (`dense_second_start_ratio`).
-        let dense_start = match self.velocity {
-            Some(v) if !self.lost && intervals <= MAX_GUESS_INTERVALS => {
-                let guess = scale_motion(&v, intervals / self.velocity_intervals).inverse();
-                let (ratio, share) = (self.config.dense_second_start_ratio, self.config.dense_second_start_share);
-                if intervals > 1.0 {
-                    DenseStart::Guess(guess)
-                } else if ratio > 0.0 {
-                    DenseStart::IdentityOrGuess { guess, ratio, share }
-                } else {
-                    DenseStart::Identity
-                }
-            }
-            _ => DenseStart::Identity,
-        };
+        let velocity = self.velocity.filter(|_| !self.lost).map(|v| (v, self.velocity_intervals));
+        let dense_start = dense_start(velocity, intervals, &self.config);
         // Dense odometry needs only the images: it runs on its own thread while the
         // features are extracted.
         let (feats, step) = std::thread::scope(|scope| {
@@ -909,6 +892,31 @@ impl Tracker {
     }
 }
 
+/// Where dense odometry starts a frame's alignment, `intervals` frame intervals
+/// after the last one, given the motion model's `velocity` (`current_from_previous`
+/// over the intervals it spanned; `None` while lost or unknown). After dropped
+/// frames (or from a slower camera) the step is larger than the alignment's identity
+/// start can reach: the motion model's step over those intervals starts it (up to
+/// [`MAX_GUESS_INTERVALS`]; beyond, standing still). At the nominal rate the alignment
+/// starts from the identity, and from the motion model's step as well where the two
+/// may land apart (`dense_second_start_ratio`, 0: off).
+fn dense_start(velocity: Option<(Isometry3<f64>, f64)>, intervals: f64, config: &TrackerConfig) -> DenseStart {
+    match velocity {
+        Some((v, velocity_intervals)) if intervals <= MAX_GUESS_INTERVALS => {
+            let guess = scale_motion(&v, intervals / velocity_intervals).inverse();
+            let (ratio, share) = (config.dense_second_start_ratio, config.dense_second_start_share);
+            if intervals > 1.0 {
+                DenseStart::Guess(guess)
+            } else if ratio > 0.0 {
+                DenseStart::IdentityOrGuess { guess, ratio, share }
+            } else {
+                DenseStart::Identity
+            }
+        }
+        _ => DenseStart::Identity,
+    }
+}
+
 /// Brute-force Hamming matching of frame descriptors against keyframe points with
 /// the ratio test; one frame feature per point. Returns (feature index, point).
 fn brute_force_match(frame: &[Descriptor], points: &[(Descriptor, PointId)], max_distance: u32) -> Vec<(usize, PointId)> {
@@ -1039,6 +1047,25 @@ mod tests {
         assert_eq!(point_information_share(0), 0.5, "no observation left counts as one");
         assert_eq!(point_information_share(3), 0.75);
         assert!(point_information_share(99) > 0.98);
+    }
+
+    /// The motion model starts the alignment after dropped frames (scaled to the
+    /// intervals, up to five), starts a second one at the nominal rate unless
+    /// turned off, and nothing while the velocity is unknown (lost).
+    #[test]
+    fn the_dense_start_follows_the_rate_and_the_configuration() {
+        let config = TrackerConfig::default();
+        let v = Isometry3::translation(0.01, 0.0, 0.0);
+        let step = |n: f64| scale_motion(&v, n).inverse();
+        assert_eq!(dense_start(None, 1.0, &config), DenseStart::Identity);
+        assert_eq!(dense_start(None, 3.0, &config), DenseStart::Identity);
+        assert_eq!(dense_start(Some((v, 1.0)), 1.0, &config), DenseStart::IdentityOrGuess { guess: step(1.0), ratio: 0.8, share: 0.9 });
+        assert_eq!(dense_start(Some((v, 1.0)), 3.0, &config), DenseStart::Guess(step(3.0)));
+        assert_eq!(dense_start(Some((v, 2.0)), 1.0, &config), DenseStart::IdentityOrGuess { guess: step(0.5), ratio: 0.8, share: 0.9 });
+        assert_eq!(dense_start(Some((v, 1.0)), 6.0, &config), DenseStart::Identity, "beyond five intervals");
+        let off = TrackerConfig { dense_second_start_ratio: 0.0, ..TrackerConfig::default() };
+        assert_eq!(dense_start(Some((v, 1.0)), 1.0, &off), DenseStart::Identity);
+        assert_eq!(dense_start(Some((v, 1.0)), 3.0, &off), DenseStart::Guess(step(3.0)), "dropped frames are unchanged");
     }
 
     #[test]
