@@ -420,8 +420,18 @@ fn reduce(src: &impl core::ToInputArray, size: Size, interpolation: i32) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synthetic::{Scene, kinect_camera, render, sway_pose};
+    use crate::synthetic::{Rendered, Scene, kinect_camera, render, sway_pose};
     use crate::tracker::to_gray;
+
+    /// The synthetic room rendered twelve frames of its sway apart (a 10 cm, 5.7°
+    /// step): the camera, the true step (`previous_from_current`) and both renders.
+    fn large_step() -> (Camera, Isometry3<f64>, Rendered, Rendered) {
+        let camera = kinect_camera();
+        let scene = Scene::room(7);
+        let (a, b) = (sway_pose(10.0), sway_pose(22.0));
+        let (first, second) = (render(&scene, &camera, &a), render(&scene, &camera, &b));
+        (camera, a.inverse() * b, first, second)
+    }
 
     /// A guess starts the alignment, read as `previous_from_current`: over a 10 cm,
     /// 5.7° step, started at the true step it lands on it (measured 0.4 mm); started
@@ -429,12 +439,8 @@ mod tests {
     /// is used and read the right way round.
     #[test]
     fn a_guess_starts_the_alignment() {
-        let camera = kinect_camera();
-        let scene = Scene::room(7);
-        let (a, b) = (sway_pose(10.0), sway_pose(22.0));
-        let truth = a.inverse() * b;
+        let (camera, truth, first, second) = large_step();
         assert!(truth.translation.vector.norm() > 0.1, "a large step: {truth:?}");
-        let (first, second) = (render(&scene, &camera, &a), render(&scene, &camera, &b));
         let from = |guess: Isometry3<f64>| {
             let mut dense = DenseOdometry::new(&camera, 0.1, 6.0).expect("dense");
             assert!(dense.push(&to_gray(&first.rgb), &first.depth, None).expect("push").is_none());
@@ -449,17 +455,13 @@ mod tests {
     /// The second start: over a 10 cm, 5.7° step with the left 70 % of the image
     /// masked (a near thing), the alignment from standing still lands in a wrong
     /// minimum (measured 11.7 mm and 2.1° off); started again from the motion
-    /// model's step it lands on the truth (0.6 mm), and its lower grey-level residual
-    /// keeps that step. Where standing still lands right (nothing masked), a wrong
+    /// model's step it lands on the truth (0.6 mm), and its cells' lower grey-level
+    /// residuals keep that step. Where standing still lands right (nothing masked), a wrong
     /// motion model (the step's inverse, whose own alignment ends centimetres off)
     /// does not replace it.
     #[test]
     fn a_second_start_from_the_motion_model_replaces_a_wrong_minimum_and_not_a_right_one() {
-        let camera = kinect_camera();
-        let scene = Scene::room(7);
-        let (a, b) = (sway_pose(10.0), sway_pose(22.0));
-        let truth = a.inverse() * b;
-        let (first, second) = (render(&scene, &camera, &a), render(&scene, &camera, &b));
+        let (camera, truth, first, second) = large_step();
         let w = camera.width as usize;
         let run = |masked_share: f64, start: DenseStart| {
             let mask: Vec<u8> = (0..first.depth.len()).map(|i| u8::from(((i % w) as f64) < masked_share * w as f64)).collect();
