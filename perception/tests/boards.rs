@@ -217,7 +217,7 @@ fn trace_one_run() {
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map; a keyframe's new points on a moving board, else, on a tracked frame, the inliers made from a feature on an object"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map (and at the estimated pose: on the surface, seen through, hidden, in view); a keyframe's new points on a moving board (after a relocalization also the earlier points it stood on: how many, on the surface at the true pose, made on an object, and by which frames), else, on a tracked frame, the inliers made from a feature on an object"
     );
     for (k, f) in composite.iter().enumerate() {
         let mut ego_error = "–".to_string();
@@ -315,7 +315,29 @@ fn trace_one_run() {
                     let z = f64::from(f.depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre;
                     on_surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
                 }
-                format!("{on_surface} / {in_view} / {}", mapped.map().points.len())
+                // The same at the estimated pose, split by where the frame's depth lies
+                // against each point's: a pose the map's depth disagrees with shows it.
+                let mut at_estimate = String::new();
+                if let Some(estimate) = track.world_from_camera {
+                    let camera_from_map = estimate.inverse();
+                    let (mut in_view, mut surface, mut behind, mut in_front) = (0, 0, 0, 0);
+                    for mp in mapped.map().points.values() {
+                        let p = camera_from_map * mp.point_in_world;
+                        let Some(pixel) = camera.project(&p).filter(|_| p.z > 0.0).map(|q| camera.distort(&q)) else { continue };
+                        if pixel.x < 0.0 || pixel.y < 0.0 || pixel.x >= w as f64 || pixel.y >= h as f64 {
+                            continue;
+                        }
+                        in_view += 1;
+                        let z = f64::from(f.depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre;
+                        surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
+                        behind += usize::from(z > 1.05 * p.z);
+                        in_front += usize::from(z > 0.0 && z < 0.95 * p.z);
+                    }
+                    at_estimate = format!(
+                        " (at the estimate: {surface} on the surface, {behind} seen through (the depth lies behind them), {in_front} hidden, of {in_view} in view)"
+                    );
+                }
+                format!("{on_surface} / {in_view} / {}{at_estimate}", mapped.map().points.len())
             },
         );
         // A keyframe's new points (made from the features no map point explained) that
@@ -346,7 +368,43 @@ fn trace_one_run() {
                         moving.get(f.y as usize * w + f.x as usize).is_some_and(|&m| m != 0)
                     })
                     .count();
-                format!("; new points {on_moving} of {} on a moving board", new.len())
+                let mut made = format!("; new points {on_moving} of {} on a moving board", new.len());
+                // What a relocalization stood on: its points from earlier keyframes,
+                // those on the surface the frame shows at the true pose, those made on
+                // an object, and the frames that made them.
+                if track.state == TrackingState::Relocalized
+                    && let Some((estimate0, truth0)) = first
+                {
+                    let camera_from_map = (estimate0 * truth0.inverse() * world_from_camera).inverse();
+                    let camera = mapped.camera();
+                    let h = camera.height as usize;
+                    let mut made_at = std::collections::BTreeMap::new();
+                    let (mut old, mut surface, mut on_an_object) = (0, 0, 0);
+                    for id in kf.points.iter().flatten() {
+                        let Some(mp) = map.points.get(id).filter(|mp| mp.created_by != kf.id) else { continue };
+                        old += 1;
+                        on_an_object += usize::from(on_object.contains(id));
+                        let maker = map.keyframes.get(&mp.created_by).and_then(|k| composite.iter().position(|c| c.timestamp_ns == k.timestamp_ns));
+                        *made_at.entry(maker).or_insert(0) += 1;
+                        let p = camera_from_map * mp.point_in_world;
+                        if let Some(px) = camera.project(&p).filter(|_| p.z > 0.0).map(|q| camera.distort(&q))
+                            && px.x >= 0.0
+                            && px.y >= 0.0
+                            && px.x < w as f64
+                            && px.y < h as f64
+                        {
+                            let z = f64::from(f.depth[px.y as usize * w + px.x as usize]) / camera.depth_units_per_metre;
+                            surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
+                        }
+                    }
+                    let made_at: Vec<String> =
+                        made_at.iter().map(|(k, n)| format!("{}: {n}", k.map_or_else(|| "?".to_string(), |k| k.to_string()))).collect();
+                    made += &format!(
+                        "; relocalized on {old} earlier points, {surface} on the surface at the true pose, {on_an_object} made on an object, made at frames {{{}}}",
+                        made_at.join(", ")
+                    );
+                }
+                made
             })
         } else if track.state == TrackingState::Tracking {
             // How much of the placement stands on the objects (standing ones included).
