@@ -248,7 +248,7 @@ pub enum PriorDynamicTracking {
     AlwaysExclude,
     /// Exclude them only while their instance moves (a parked car, a seated person may
     /// help), and while their motion is unknown (no flow yet, or a camera motion the
-    /// flow did not confirm, with nothing judged on the frame before).
+    /// flow did not confirm, with no confirmed judgement on the frame before).
     ExcludeWhileMoving,
 }
 

@@ -700,11 +700,12 @@ impl DynamicMasker {
             }
         }
         self.remember_moved(&fused.labels, carried_cells.as_deref(), sequence, depth);
-        // Without a camera motion (the first frame, or the first after a break in the
-        // flow) nothing was judged moving or still: an empty grid carried into the next
-        // frame would read as "nothing moves" there, and a next frame whose own motion
-        // the flow does not confirm would then track on the people it cannot judge.
-        self.dynamic_grid = ego.is_some().then_some((sequence, cells));
+        // Without a camera motion the flow confirmed (the first frame, the first after
+        // a break in the flow, or one where no refinement held) nothing was judged
+        // moving or still for sure: its grid carried into the next frame would read as
+        // a verdict there ("nothing moves", "he stands"), and a next frame whose own
+        // motion the flow does not confirm would then track on the people it cannot judge.
+        self.dynamic_grid = ego.as_ref().is_some_and(|e| e.confirmed).then_some((sequence, cells));
         let retractions = if self.origins.is_empty() {
             Vec::new()
         } else {
@@ -1692,6 +1693,31 @@ mod tests {
         assert_eq!(second[5 * w + 5], 0, "the wall is tracked on");
         let kept_out = on_person.iter().filter(|&&i| second[i] != 0).count();
         assert_eq!(kept_out, on_person.len(), "second frame, motion unconfirmed: all of his pixels stay out");
+    }
+
+    /// A frame whose camera motion the flow did not confirm judged nothing for
+    /// sure: its verdict (here: the person is still) is not carried into the next
+    /// frame, which, unconfirmed too, keeps him out of tracking as the first frame
+    /// does (`ExcludeWhileMoving`) instead of tracking on him.
+    #[test]
+    fn an_unconfirmed_frame_passes_no_verdict_on_a_person_to_the_next() {
+        let (w, h) = (96usize, 72usize);
+        let mut masker = DynamicMasker::new(pinhole(w, h, 80.0), PerceptionConfig::default(), &["person".to_string()]).expect("masker");
+        let rgb = vec![128u8; w * h * 3];
+        let depth: Vec<u16> = (0..w * h).map(|i| if (30..50).contains(&(i % w)) { 1000 } else { 3000 }).collect();
+        let detection = person(w, h, 30..50, 10..60);
+        let on_person: Vec<usize> = (0..w * h).filter(|&i| detection.instance_map[i] != 0).collect();
+        masker.prepare(frame_input(0, &rgb, &depth, Some(detection.clone()))).expect("prepare");
+        masker.finish(&depth, None).expect("finish");
+        for k in 1..=3 {
+            let mask = masker.prepare(frame_input(k, &rgb, &depth, None)).expect("prepare");
+            assert!(masker.prepared_motion().is_none(), "frame {k}: the flow cannot confirm a motion on an image without texture");
+            let kept_out = on_person.iter().filter(|&&i| mask[i] != 0).count();
+            assert_eq!(kept_out, on_person.len(), "frame {k}, motion unconfirmed: all of his pixels stay out");
+            assert_eq!(mask[5 * w + 5], 0, "frame {k}: the wall is tracked on");
+            let out = masker.finish(&depth, Some(Isometry3::identity())).expect("finish");
+            assert!(out.ego.is_some_and(|e| !e.refined), "frame {k}: a motion (the tracked one), not the flow's");
+        }
     }
 
     /// A track's 3D points: projected back where they were seen; the part out of
