@@ -240,7 +240,8 @@ pub struct DynamicMasker {
     /// Frame intervals the last result's motion spans: more than one after drops.
     last_ego_frames: f64,
     /// The last finished frame's dynamic flow-grid cells (1 = dynamic); `None` when
-    /// that frame had no camera motion (nothing on it was judged).
+    /// that frame had no camera motion the flow confirmed (nothing on it was judged
+    /// for sure).
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
     pending: Option<Pending>,
@@ -701,17 +702,23 @@ impl DynamicMasker {
         }
         self.remember_moved(&fused.labels, carried_cells.as_deref(), sequence, depth);
         // Without a camera motion the flow confirmed (the first frame, the first after
-        // a break in the flow, or one where no refinement held) nothing was judged
-        // moving or still for sure: its grid carried into the next frame would read as
-        // a verdict there ("nothing moves", "he stands"), and a next frame whose own
-        // motion the flow does not confirm would then track on the people it cannot judge.
-        self.dynamic_grid = ego.as_ref().is_some_and(|e| e.confirmed).then_some((sequence, cells));
+        // a break in the flow, or one where no refinement held and the tracked motion
+        // did not win the vote in `reconsider`) nothing was judged moving or still for
+        // sure: its grid carried into the next frame would read as a verdict there
+        // ("nothing moves", "he stands"), and a next frame whose own motion the flow
+        // does not confirm would then track on the people it cannot judge. Nor is
+        // anything then remembered as moving twice, nor retracted as dynamic twice, on
+        // the next frame. A motion the configuration takes as it is
+        // (`ego_motion.refine_tracked_motion` off) is unchecked by choice: its verdict
+        // is carried.
+        let judged = ego.as_ref().is_some_and(|e| e.confirmed || !self.config.ego_motion.refine_tracked_motion);
+        self.dynamic_grid = judged.then_some((sequence, cells));
         let retractions = if self.origins.is_empty() {
             Vec::new()
         } else {
             // Prior-dynamic cells, and dynamic cells that were dynamic in the previous
-            // frame too (one frame's false motion must not take a keyframe's samples
-            // out for good), dilated by one cell.
+            // frame too (under a motion it had confirmed; one frame's false motion must
+            // not take a keyframe's samples out for good), dilated by one cell.
             let (gw, gh) = self.ego.grid_size();
             let kept_out: Vec<bool> = self
                 .cell_centres()
@@ -1328,8 +1335,9 @@ impl DynamicMasker {
         cell_centres(self.camera.width as usize, self.camera.height as usize, self.config.flow.subsample as usize)
     }
 
-    /// Remembers the cells labelled dynamic on this frame and the previous one (the
-    /// flow saw them move twice: not one frame's noise) as points in the pose
+    /// Remembers the cells labelled dynamic on this frame and the previous one (when
+    /// that frame's motion was confirmed: the flow saw them move twice, not one
+    /// frame's noise) as points in the pose
     /// chain's frame, and forgets those older than `ego_motion.remember_moved_frames`.
     fn remember_moved(&mut self, labels: &[u8], carried: Option<&[u8]>, sequence: u64, depth: &[u16]) {
         let limit = u64::from(self.config.ego_motion.remember_moved_frames);
@@ -1698,7 +1706,8 @@ mod tests {
     /// A frame whose camera motion the flow did not confirm judged nothing for
     /// sure: its verdict (here: the person is still) is not carried into the next
     /// frame, which, unconfirmed too, keeps him out of tracking as the first frame
-    /// does (`ExcludeWhileMoving`) instead of tracking on him.
+    /// does (`ExcludeWhileMoving`) instead of tracking on him. With refinement off
+    /// by configuration the motion is unchecked by choice, and the verdict carried.
     #[test]
     fn an_unconfirmed_frame_passes_no_verdict_on_a_person_to_the_next() {
         let (w, h) = (96usize, 72usize);
@@ -1716,8 +1725,21 @@ mod tests {
             assert_eq!(kept_out, on_person.len(), "frame {k}, motion unconfirmed: all of his pixels stay out");
             assert_eq!(mask[5 * w + 5], 0, "frame {k}: the wall is tracked on");
             let out = masker.finish(&depth, Some(Isometry3::identity())).expect("finish");
-            assert!(out.ego.is_some_and(|e| !e.refined), "frame {k}: a motion (the tracked one), not the flow's");
+            assert!(out.ego.is_some_and(|e| !e.refined), "frame {k}: a motion, not a refinement on the flow");
+            // Its labels call him still: carried, they would let him into tracking.
+            assert!(on_person.iter().all(|&i| out.fused.labels[i] != PixelLabel::Dynamic as u8), "frame {k}: not judged moving");
         }
+        // A motion the configuration takes as it is, unrefined by choice, passes its
+        // verdict on: the next frame tracks on the person it judged still.
+        let mut config = PerceptionConfig::default();
+        config.ego_motion.refine_tracked_motion = false;
+        let mut masker = DynamicMasker::new(pinhole(w, h, 80.0), config, &["person".to_string()]).expect("masker");
+        masker.prepare(frame_input(0, &rgb, &depth, Some(detection.clone()))).expect("prepare");
+        masker.finish(&depth, None).expect("finish");
+        masker.prepare(frame_input(1, &rgb, &depth, None)).expect("prepare");
+        masker.finish(&depth, Some(Isometry3::identity())).expect("finish");
+        let mask = masker.prepare(frame_input(2, &rgb, &depth, None)).expect("prepare");
+        assert!(on_person.iter().all(|&i| mask[i] == 0), "refinement off: judged still, tracked on");
     }
 
     /// A track's 3D points: projected back where they were seen; the part out of

@@ -217,7 +217,7 @@ fn trace_one_run() {
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map (and at the estimated pose: on the surface, seen through, hidden, in view); a keyframe's new points on a moving board (after a relocalization also the earlier points it stood on: how many, on the surface at the true pose, made on an object, and by which frames), else, on a tracked frame, the inliers made from a feature on an object"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map (and at the estimated pose: on the surface, seen through, hidden, in view); a keyframe's new points on a moving board (after a relocalization also the earlier points it stood on, as its keyframe kept them after local BA and culling: how many, on the surface at the true pose, made on an object, and by which frames), else, on a tracked frame, the inliers made from a feature on an object"
     );
     for (k, f) in composite.iter().enumerate() {
         let mut ego_error = "–".to_string();
@@ -400,7 +400,7 @@ fn trace_one_run() {
                     let made_at: Vec<String> =
                         made_at.iter().map(|(k, n)| format!("{}: {n}", k.map_or_else(|| "?".to_string(), |k| k.to_string()))).collect();
                     made += &format!(
-                        "; relocalized on {old} earlier points, {surface} on the surface at the true pose, {on_an_object} made on an object, made at frames {{{}}}",
+                        "; relocalized: of the earlier points the keyframe kept, {old}, {surface} on the surface at the true pose, {on_an_object} made on an object, made at frames {{{}}}",
                         made_at.join(", ")
                     );
                 }
