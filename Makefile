@@ -41,12 +41,14 @@ demo: build
 	deploy/demo.sh target/debug
 
 # The lint policy (rustfmt.toml, [workspace.lints] in Cargo.toml, clippy.toml):
-# formatting, and clippy with warnings as errors. `make test` runs it first.
+# formatting, clippy with warnings as errors, and rustdoc with warnings as errors
+# (every intra-doc link resolves). `make test` runs it first.
 lint: deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
 	$(CARGO) clippy -p stillmap-server --no-default-features -- -D warnings  # the server without Zenoh (the fuzz targets build it so)
 	$(CARGO) clippy -p stillmap-client --no-default-features -- -D warnings  # a robot's client without Zenoh and OpenNI2
+	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps
 
 test: build lint
 	$(CARGO) test --workspace --no-fail-fast

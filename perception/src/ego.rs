@@ -644,7 +644,7 @@ impl EgoMotion {
     }
 
     /// Mean distance (full-size pixels) between where two motions put the scene's
-    /// points (the cells with depth, every [`VOTE_STRIDE`]-th in each direction):
+    /// points (the cells with depth, every `VOTE_STRIDE`-th in each direction):
     /// `None` without such points.
     pub fn prediction_gap(&self, a: &Isometry3<f64>, b: &Isometry3<f64>, depth_m: &[f32]) -> Option<f64> {
         let (mut sum, mut n) = (0.0, 0usize);

@@ -8,7 +8,7 @@
 //! 2. [`PlaceIndex`]: an inverted index (word → keyframes holding it) that answers
 //!    "which stored keyframes look like this one" touching only keyframes that
 //!    share words with the query.
-//! 3. [`verify`]: descriptor matching, PnP-RANSAC on the candidate's points with
+//! 3. [`verify()`]: descriptor matching, PnP-RANSAC on the candidate's points with
 //!    depth, robust pose optimisation and minimum inliers: a candidate becomes a
 //!    [`Verified`] relative pose or nothing.
 //! 4. [`MergeDetector`]: a session joins a fleet frame only when several of its

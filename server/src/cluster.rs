@@ -585,7 +585,7 @@ pub const FORWARDED_ANSWER_TIMEOUT: std::time::Duration = std::time::Duration::f
 
 /// Answers the GETs other servers forward here with this server's HTTP API `app`,
 /// until `shutdown` fires: only a session's, a map's or a fleet's paths and the lists,
-/// at most [`MAX_FORWARDED_AT_ONCE`] at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
+/// at most `MAX_FORWARDED_AT_ONCE` at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
 pub async fn answer_forwarded(
     zenoh: zenoh::Session,
     server_id: String,
@@ -647,7 +647,7 @@ pub async fn answer_forwarded(
 }
 
 /// Answers the queries on `key` with `answer` (the query and the key), until
-/// `shutdown` fires: at most [`MAX_FORWARDED_AT_ONCE`] at once, more wait.
+/// `shutdown` fires: at most `MAX_FORWARDED_AT_ONCE` at once, more wait.
 async fn serve_queries<F, A>(
     zenoh: &zenoh::Session,
     key: String,
@@ -678,7 +678,7 @@ where
 /// Answers the unary gRPC queries other servers forward here with `service`
 /// (which forwards nothing further), the caller's token checked for the read scope
 /// as this server's own gRPC queries are, until `shutdown` fires: at most
-/// [`MAX_FORWARDED_AT_ONCE`] at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
+/// `MAX_FORWARDED_AT_ONCE` at once, each within [`FORWARDED_ANSWER_TIMEOUT`].
 pub async fn answer_forwarded_grpc(
     zenoh: zenoh::Session,
     server_id: String,

@@ -442,7 +442,7 @@ impl Replica {
         }
     }
 
-    /// At shutdown: copies what is queued, waiting at most [`CLOSE_WAIT`]; while
+    /// At shutdown: copies what is queued, waiting at most `CLOSE_WAIT`; while
     /// PostgreSQL fails, what is queued is left (counted as dropped).
     pub fn close(&self) {
         self.closing.store(true, Ordering::SeqCst);

@@ -1182,7 +1182,7 @@ impl Registry {
         true
     }
 
-    /// Evicts sessions idle for `session.idle_evict_s` (see [`try_evict`](Self::try_evict));
+    /// Evicts sessions idle for `session.idle_evict_s` (see `try_evict`);
     /// returns how many left. The server calls it periodically, off the runtime.
     pub fn evict_idle(&self) -> usize {
         if self.config.idle_evict_s <= 0.0 {
