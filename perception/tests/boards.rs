@@ -51,13 +51,24 @@ use stillmap_perception::testing::composite_run;
 use stillmap_tracking::testing as tum;
 
 use composite_run::{CompositeFrame, MaskedTracking, Schedule, exposure_poses};
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3};
 use stillmap_perception::testing::boards::{self, Arrangement, crowd, scene};
 use stillmap_perception::{PerceptionConfig, Segmenter, YoloSegmenter};
-use stillmap_tracking::{FrameInput, Tracker, TrackerConfig, TrackingState};
+use stillmap_tracking::{Camera, FrameInput, Tracker, TrackerConfig, TrackingState};
 
 /// The crowd's people: 1.7 m billboards.
 const PERSON_HEIGHT_M: f64 = 1.7;
+
+/// The frame's depth (metres; 0: no reading) at the pixel of a point in the
+/// camera's frame, when the point lies in front of the camera and in the image.
+fn depth_under(camera: &Camera, depth: &[u16], point: &Point3<f64>) -> Option<f64> {
+    let pixel = camera.project(point).filter(|_| point.z > 0.0).map(|q| camera.distort(&q))?;
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    if pixel.x < 0.0 || pixel.y < 0.0 || pixel.x >= w as f64 || pixel.y >= h as f64 {
+        return None;
+    }
+    Some(f64::from(depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre)
+}
 
 /// The `[perception]` keys given as TOML in `STILLMAP_PERCEPTION` (tables and keys on
 /// lines of their own or separated by `;`, e.g. `[ego_motion];baseline_frames = 8`),
@@ -303,16 +314,11 @@ fn trace_one_run() {
             |(estimate0, truth0)| {
                 let camera_from_map = (estimate0 * truth0.inverse() * world_from_camera).inverse();
                 let camera = mapped.camera();
-                let (w, h) = (camera.width as usize, camera.height as usize);
                 let (mut in_view, mut on_surface) = (0, 0);
                 for mp in mapped.map().points.values() {
                     let p = camera_from_map * mp.point_in_world;
-                    let Some(pixel) = camera.project(&p).filter(|_| p.z > 0.0).map(|q| camera.distort(&q)) else { continue };
-                    if pixel.x < 0.0 || pixel.y < 0.0 || pixel.x >= w as f64 || pixel.y >= h as f64 {
-                        continue;
-                    }
+                    let Some(z) = depth_under(camera, &f.depth, &p) else { continue };
                     in_view += 1;
-                    let z = f64::from(f.depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre;
                     on_surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
                 }
                 // The same at the estimated pose, split by where the frame's depth lies
@@ -323,12 +329,8 @@ fn trace_one_run() {
                     let (mut in_view, mut surface, mut behind, mut in_front) = (0, 0, 0, 0);
                     for mp in mapped.map().points.values() {
                         let p = camera_from_map * mp.point_in_world;
-                        let Some(pixel) = camera.project(&p).filter(|_| p.z > 0.0).map(|q| camera.distort(&q)) else { continue };
-                        if pixel.x < 0.0 || pixel.y < 0.0 || pixel.x >= w as f64 || pixel.y >= h as f64 {
-                            continue;
-                        }
+                        let Some(z) = depth_under(camera, &f.depth, &p) else { continue };
                         in_view += 1;
-                        let z = f64::from(f.depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre;
                         surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
                         behind += usize::from(z > 1.05 * p.z);
                         in_front += usize::from(z > 0.0 && z < 0.95 * p.z);
@@ -377,7 +379,6 @@ fn trace_one_run() {
                 {
                     let camera_from_map = (estimate0 * truth0.inverse() * world_from_camera).inverse();
                     let camera = mapped.camera();
-                    let h = camera.height as usize;
                     let mut made_at = std::collections::BTreeMap::new();
                     let (mut old, mut surface, mut on_an_object) = (0, 0, 0);
                     for id in kf.points.iter().flatten() {
@@ -387,13 +388,7 @@ fn trace_one_run() {
                         let maker = map.keyframes.get(&mp.created_by).and_then(|k| composite.iter().position(|c| c.timestamp_ns == k.timestamp_ns));
                         *made_at.entry(maker).or_insert(0) += 1;
                         let p = camera_from_map * mp.point_in_world;
-                        if let Some(px) = camera.project(&p).filter(|_| p.z > 0.0).map(|q| camera.distort(&q))
-                            && px.x >= 0.0
-                            && px.y >= 0.0
-                            && px.x < w as f64
-                            && px.y < h as f64
-                        {
-                            let z = f64::from(f.depth[px.y as usize * w + px.x as usize]) / camera.depth_units_per_metre;
+                        if let Some(z) = depth_under(camera, &f.depth, &p) {
                             surface += usize::from(z > 0.0 && (z - p.z).abs() <= 0.05 * p.z);
                         }
                     }
