@@ -47,6 +47,9 @@ pub struct EgoResult {
     /// prior that a refinement did not beat in the vote (by more than
     /// `ego_motion.refinement_margin`; false: a prior nothing could check).
     pub confirmed: bool,
+    /// Whether the motion is a prior given to the estimate, as it was (not a
+    /// refinement, not identity left where no prior was given and no refinement held).
+    pub from_prior: bool,
     /// Flow samples used by the refinement, and how many it kept as inliers.
     pub samples: usize,
     pub inliers: usize,
@@ -347,7 +350,8 @@ impl EgoMotion {
             None => self.classify(flow, current, previous, &depth_m, &previous_from_current, noise_steps, Cells::All, None),
         };
         let confirmed = candidates.iter().any(|&(_, is_refined, _)| is_refined);
-        EgoResult { previous_from_current, refined, confirmed, samples, inliers, class, residual_px, depth_m }
+        let from_prior = prior.is_some() && !refined;
+        EgoResult { previous_from_current, refined, confirmed, from_prior, samples, inliers, class, residual_px, depth_m }
     }
 
     /// Classifies flow pixels under `previous_from_current`: their class and
@@ -478,6 +482,8 @@ impl EgoMotion {
             refined: false,
             // It left fewer pixels moving than the earlier result.
             confirmed: true,
+            // The tracker's motion, as it was given.
+            from_prior: true,
             samples: earlier.samples,
             inliers: 0,
             class,

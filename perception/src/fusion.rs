@@ -433,6 +433,7 @@ mod tests {
             previous_from_current: Isometry3::identity(),
             refined: true,
             confirmed: true,
+            from_prior: false,
             samples: 0,
             inliers: 0,
             class,

@@ -241,7 +241,8 @@ pub struct DynamicMasker {
     last_ego_frames: f64,
     /// The last finished frame's dynamic flow-grid cells (1 = dynamic); `None` when
     /// that frame had no camera motion the flow confirmed (nothing on it was judged
-    /// for sure).
+    /// for sure), or, with `ego_motion.refine_tracked_motion` off, no prior taken as
+    /// it was.
     dynamic_grid: Option<(u64, Vec<u8>)>,
     /// A prepared frame waiting for `finish`.
     pending: Option<Pending>,
@@ -708,16 +709,19 @@ impl DynamicMasker {
         // ("nothing moves", "he stands"), and a next frame whose own motion the flow
         // does not confirm would then track on the people it cannot judge. Nor is
         // anything then remembered as moving twice, nor retracted as dynamic twice, on
-        // the next frame. A motion the configuration takes as it is
+        // the next frame. A prior the configuration takes as it is
         // (`ego_motion.refine_tracked_motion` off) is unchecked by choice: its verdict
-        // is carried.
-        let judged = ego.as_ref().is_some_and(|e| e.confirmed || !self.config.ego_motion.refine_tracked_motion);
+        // is carried (identity left where no prior was given and no refinement held
+        // is not).
+        let refine = self.config.ego_motion.refine_tracked_motion;
+        let judged = ego.as_ref().is_some_and(|e| e.confirmed || (e.from_prior && !refine));
         self.dynamic_grid = judged.then_some((sequence, cells));
         let retractions = if self.origins.is_empty() {
             Vec::new()
         } else {
             // Prior-dynamic cells, and dynamic cells that were dynamic in the previous
-            // frame too (under a motion it had confirmed; one frame's false motion must
+            // frame too (under a motion it had confirmed, or a prior taken as it was by
+            // configuration; one frame's false motion must
             // not take a keyframe's samples out for good), dilated by one cell.
             let (gw, gh) = self.ego.grid_size();
             let kept_out: Vec<bool> = self
@@ -1336,8 +1340,8 @@ impl DynamicMasker {
     }
 
     /// Remembers the cells labelled dynamic on this frame and the previous one (when
-    /// that frame's motion was confirmed: the flow saw them move twice, not one
-    /// frame's noise) as points in the pose
+    /// that frame's motion was confirmed, or taken as it was by configuration: the
+    /// flow saw them move twice, not one frame's noise) as points in the pose
     /// chain's frame, and forgets those older than `ego_motion.remember_moved_frames`.
     fn remember_moved(&mut self, labels: &[u8], carried: Option<&[u8]>, sequence: u64, depth: &[u16]) {
         let limit = u64::from(self.config.ego_motion.remember_moved_frames);
@@ -1707,7 +1711,8 @@ mod tests {
     /// sure: its verdict (here: the person is still) is not carried into the next
     /// frame, which, unconfirmed too, keeps him out of tracking as the first frame
     /// does (`ExcludeWhileMoving`) instead of tracking on him. With refinement off
-    /// by configuration the motion is unchecked by choice, and the verdict carried.
+    /// by configuration a prior taken as it was is unchecked by choice, and its
+    /// verdict carried; identity where no prior was given is not.
     #[test]
     fn an_unconfirmed_frame_passes_no_verdict_on_a_person_to_the_next() {
         let (w, h) = (96usize, 72usize);
@@ -1729,17 +1734,22 @@ mod tests {
             // Its labels call him still: carried, they would let him into tracking.
             assert!(on_person.iter().all(|&i| out.fused.labels[i] != PixelLabel::Dynamic as u8), "frame {k}: not judged moving");
         }
-        // A motion the configuration takes as it is, unrefined by choice, passes its
-        // verdict on: the next frame tracks on the person it judged still.
+        // Refinement off: frame 1 has no prior (frame 0 had no motion) and no
+        // refinement holds, so it judged nothing and frame 2 keeps him out; frame 2
+        // takes its prior (frame 1's motion) as it is, by configuration, and passes its
+        // verdict on: frame 3 tracks on the person it judged still.
         let mut config = PerceptionConfig::default();
         config.ego_motion.refine_tracked_motion = false;
         let mut masker = DynamicMasker::new(pinhole(w, h, 80.0), config, &["person".to_string()]).expect("masker");
         masker.prepare(frame_input(0, &rgb, &depth, Some(detection.clone()))).expect("prepare");
         masker.finish(&depth, None).expect("finish");
-        masker.prepare(frame_input(1, &rgb, &depth, None)).expect("prepare");
-        masker.finish(&depth, Some(Isometry3::identity())).expect("finish");
-        let mask = masker.prepare(frame_input(2, &rgb, &depth, None)).expect("prepare");
-        assert!(on_person.iter().all(|&i| mask[i] == 0), "refinement off: judged still, tracked on");
+        let mut masks = Vec::new();
+        for k in 1..=3 {
+            masks.push(masker.prepare(frame_input(k, &rgb, &depth, None)).expect("prepare"));
+            masker.finish(&depth, Some(Isometry3::identity())).expect("finish");
+        }
+        assert!(on_person.iter().all(|&i| masks[1][i] != 0), "refinement off, frame 2: nothing judged on frame 1, he stays out");
+        assert!(on_person.iter().all(|&i| masks[2][i] == 0), "refinement off, frame 3: judged still under a prior taken as it was");
     }
 
     /// A track's 3D points: projected back where they were seen; the part out of
