@@ -721,8 +721,8 @@ impl DynamicMasker {
         } else {
             // Prior-dynamic cells, and dynamic cells that were dynamic in the previous
             // frame too (under a motion it had confirmed, or a prior taken as it was by
-            // configuration; one frame's false motion must
-            // not take a keyframe's samples out for good), dilated by one cell.
+            // configuration; one frame's false motion must not take a keyframe's
+            // samples out for good), dilated by one cell.
             let (gw, gh) = self.ego.grid_size();
             let kept_out: Vec<bool> = self
                 .cell_centres()
