@@ -62,12 +62,18 @@ const PERSON_HEIGHT_M: f64 = 1.7;
 /// The frame's depth (metres; 0: no reading) at the pixel of a point in the
 /// camera's frame, when the point lies in front of the camera and in the image.
 fn depth_under(camera: &Camera, depth: &[u16], point: &Point3<f64>) -> Option<f64> {
+    pixel_under(camera, point).map(|i| f64::from(depth[i]) / camera.depth_units_per_metre)
+}
+
+/// The raw image pixel (row-major index) a point in the camera frame projects to,
+/// when it lies in front of the camera and inside the image.
+fn pixel_under(camera: &Camera, point: &Point3<f64>) -> Option<usize> {
     let pixel = camera.project(point).filter(|_| point.z > 0.0).map(|q| camera.distort(&q))?;
     let (w, h) = (camera.width as usize, camera.height as usize);
     if pixel.x < 0.0 || pixel.y < 0.0 || pixel.x >= w as f64 || pixel.y >= h as f64 {
         return None;
     }
-    Some(f64::from(depth[pixel.y as usize * w + pixel.x as usize]) / camera.depth_units_per_metre)
+    Some(pixel.y as usize * w + pixel.x as usize)
 }
 
 /// The `[perception]` keys given as TOML in `STILLMAP_PERCEPTION` (tables and keys on
@@ -228,7 +234,7 @@ fn trace_one_run() {
     let mut first: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
     println!(
-        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map (and at the estimated pose: on the surface, seen through, hidden, in view); a keyframe's new points on a moving board (after a relocalization also the earlier points it stood on, as its keyframe kept them after local BA and culling: how many, on the surface at the true pose, made on an object, and by which frames), else, on a tracked frame, the inliers made from a feature on an object"
+        "frame | state | inliers | keyframe | boards cover | moving | moving masked | standing masked | static masked | step error (mm, deg) | the masker's motion's error (mm, deg; in brackets its departure from its last); dense odometry's step error (mm, deg), the share of its overlap it explains (in brackets its disagreement with the flow's motion before tracking, and its departure from the tracker's last step) | origin-aligned error (mm) | map points on the surface seen / in view of the true pose / in the map (and at the estimated pose: on the surface, seen through, hidden, in view); a keyframe's new points on a moving board (after a relocalization also the earlier points it stood on, as its keyframe kept them after local BA and culling: how many, on the surface at the true pose, made on an object, and by which frames), else, on a tracked frame, the inliers made from a feature on an object, and those that lie on a board moving now"
     );
     for (k, f) in composite.iter().enumerate() {
         let mut ego_error = "–".to_string();
@@ -404,7 +410,20 @@ fn trace_one_run() {
         } else if track.state == TrackingState::Tracking {
             // How much of the placement stands on the objects (standing ones included).
             let last = mapped.last_points();
-            format!("; inliers made on an object {} of {}", last.iter().filter(|p| on_object.contains(p)).count(), last.len())
+            // Those on a board moving now: the point at the estimated pose (where its
+            // feature was matched) on the frame's moving pixels.
+            let on_moving = track.world_from_camera.map_or(0, |estimate| {
+                let (camera, map) = (mapped.camera(), mapped.map());
+                last.iter()
+                    .filter_map(|id| map.points.get(id))
+                    .filter(|mp| pixel_under(camera, &(estimate.inverse() * mp.point_in_world)).is_some_and(|i| moving[i] != 0))
+                    .count()
+            });
+            format!(
+                "; inliers made on an object {} of {}, {on_moving} on a moving board now",
+                last.iter().filter(|p| on_object.contains(p)).count(),
+                last.len()
+            )
         } else {
             String::new()
         };
