@@ -14,7 +14,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
-use std::io::BufReader;
+use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
@@ -205,6 +205,7 @@ fn visit(path: &Path, format: BagFormat, f: &mut Visitor<'_>) -> Result<(), Clie
             }
         }
         BagFormat::Ros1 => {
+            check_ros1_records(path).map_err(|e| bad(format!("not a readable ROS 1 bag: {e}")))?;
             let bag = rosbag::RosBag::new(path).map_err(|e| bad(format!("not a readable ROS 1 bag: {e}")))?;
             let mut connections: HashMap<u32, (String, String)> = HashMap::new();
             for record in bag.chunk_records() {
@@ -262,9 +263,77 @@ struct ReadPlan {
 /// Frames decoded ahead of the streamer, at most.
 const READ_AHEAD_FRAMES: usize = 4;
 
+/// The longest record (an MCAP record, a ROS 1 chunk uncompressed) the reader takes:
+/// above any camera frame the server accepts (an 8192 × 8192 RGB image is 192 MiB),
+/// far below what a corrupt length field asks for (the reader allocates it).
+const MAX_RECORD_BYTES: u64 = 256 << 20;
+/// The longest ROS 1 record header: field lists and message definitions.
+const MAX_ROS1_HEADER_BYTES: u64 = 16 << 20;
+/// A ROS 1 bag's first line.
+const ROS1_MAGIC: &[u8] = b"#ROSBAG V2.0\n";
+
 fn open_reader(path: &Path) -> Result<mcap::io::MessageReader<BufReader<File>>, ClientError> {
     let file = File::open(path).map_err(|e| ClientError::Source(format!("{}: {e}", path.display())))?;
-    Ok(mcap::io::MessageReader::new(BufReader::new(file)))
+    let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(MAX_RECORD_BYTES as usize);
+    Ok(mcap::io::MessageReader::new_with_options(BufReader::new(file), options))
+}
+
+/// Checks a ROS 1 bag's top-level records before `rosbag` reads them: `rosbag`
+/// allocates a chunk's declared uncompressed size before decompressing it, so a
+/// chunk declaring more than [`MAX_RECORD_BYTES`] (or a record running past the
+/// file's end) is an error here. Only the headers are read; data is skipped.
+fn check_ros1_records(path: &Path) -> Result<(), String> {
+    let file = File::open(path).map_err(|e| e.to_string())?;
+    let len = file.metadata().map_err(|e| e.to_string())?.len();
+    let mut file = BufReader::new(file);
+    let mut magic = [0u8; ROS1_MAGIC.len()];
+    if file.read_exact(&mut magic).is_err() || magic != ROS1_MAGIC {
+        return Ok(()); // not a ROS 1 bag: rosbag says so
+    }
+    let read_u32 = |file: &mut BufReader<File>| -> Result<u64, String> {
+        let mut b = [0u8; 4];
+        file.read_exact(&mut b).map_err(|e| e.to_string())?;
+        Ok(u64::from(u32::from_le_bytes(b)))
+    };
+    let mut pos = ROS1_MAGIC.len() as u64;
+    while pos < len {
+        let header_len = read_u32(&mut file)?;
+        if header_len > MAX_ROS1_HEADER_BYTES || pos + 8 + header_len > len {
+            return Err(format!(
+                "record at byte {pos} declares a header of {header_len} bytes, past the file's end or over {MAX_ROS1_HEADER_BYTES}"
+            ));
+        }
+        let mut header = vec![0u8; header_len as usize];
+        file.read_exact(&mut header).map_err(|e| e.to_string())?;
+        let data_len = read_u32(&mut file)?;
+        let end = pos + 8 + header_len + data_len;
+        if end > len {
+            return Err(format!("record at byte {pos} declares {data_len} bytes of data, past the file's end"));
+        }
+        let (mut op, mut size) = (None, None);
+        let mut fields = header.as_slice();
+        while let Some((field_len, rest)) = fields.split_first_chunk::<4>() {
+            let field_len = u32::from_le_bytes(*field_len) as usize;
+            let Some((field, rest)) = rest.split_at_checked(field_len) else { break };
+            fields = rest;
+            match field.iter().position(|&c| c == b'=').map(|at| field.split_at(at)) {
+                Some((b"op", [_, value])) => op = Some(*value),
+                Some((b"size", [_, value @ ..])) if value.len() == 4 => size = value.try_into().ok().map(u32::from_le_bytes),
+                _ => {}
+            }
+        }
+        if op == Some(0x05)
+            && let Some(size) = size
+            && u64::from(size) > MAX_RECORD_BYTES
+        {
+            return Err(format!(
+                "chunk at byte {pos} declares {size} bytes uncompressed, more than the {MAX_RECORD_BYTES} this reader takes"
+            ));
+        }
+        file.seek(SeekFrom::Start(end)).map_err(|e| e.to_string())?;
+        pos = end;
+    }
+    Ok(())
 }
 
 /// The topic the user named, or the only one of the kind `fits` accepts.
@@ -344,7 +413,11 @@ impl BagSource {
                     if samples.len() >= MAX_IMU_SAMPLES {
                         return Err(source_error(format!("{topic}: more than {MAX_IMU_SAMPLES} IMU samples")));
                     }
-                    if let Some(t) = header.stamp_ns() {
+                    // A sample without a time or with a non-finite reading is left out
+                    // (the frames near it take the next nearest).
+                    if let Some(t) = header.stamp_ns()
+                        && [a.x, a.y, a.z].iter().all(|v| v.is_finite())
+                    {
                         samples.push((t, [a.x, a.y, a.z], header.frame_id));
                     }
                 }
@@ -538,8 +611,11 @@ fn is_ros_default(ci: &CameraInfo) -> bool {
 /// The camera from a ROS `CameraInfo` (`plumb_bob`, or no distortion).
 fn camera_from_info(ci: &CameraInfo, depth_encoding: &str) -> Result<pb::CameraInfo, String> {
     let [fx, _, cx, _, fy, cy, _, _, _] = ci.k;
-    if !(fx > 0.0 && fy > 0.0 && ci.width > 0 && ci.height > 0) {
+    if !(fx > 0.0 && fy > 0.0 && ci.width > 0 && ci.height > 0 && [fx, fy, cx, cy].iter().all(|v| v.is_finite())) {
         return Err(format!("camera info has no usable intrinsics (K = {:?}, {}x{})", ci.k, ci.width, ci.height));
+    }
+    if ci.d.iter().any(|d| !d.is_finite()) {
+        return Err(format!("camera info distortion coefficients {:?} are not all finite", ci.d));
     }
     let (model, coeffs) = match ci.distortion_model.as_str() {
         "plumb_bob" | "rational_polynomial" if ci.d.iter().any(|&d| d != 0.0) => {

@@ -451,8 +451,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             if max_in_flight == 0 {
                 return Err(ClientError::Usage("--max-in-flight must be at least 1".into()).into());
             }
-            let timeout =
-                Duration::try_from_secs_f64(timeout).map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
+            let timeout = seconds("--timeout", timeout)?;
             let options = StreamOptions {
                 robot_id,
                 fleet: fleet.unwrap_or_default(),
@@ -515,7 +514,11 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 std::fs::write(&path, serde_json::to_string_pretty(&summary)?)
                     .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
             }
-            let clean = summary.frames_rejected == 0 && summary.depth_mismatch == 0;
+            // Not clean: a frame the server refused, a depth that came back changed, a
+            // frame too large to send, or nothing sent. (A result a reconnect lost is
+            // not: the resumed session received that frame once.)
+            let clean =
+                summary.frames_rejected == 0 && summary.depth_mismatch == 0 && summary.frames_too_large == 0 && summary.frames_sent > 0;
             Ok(if clean { ExitCode::SUCCESS } else { ExitCode::from(2) })
         }
         Command::Fleet {
@@ -538,8 +541,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 return Err(ClientError::Usage("fleet replays a recording: --source tum:<dir>".into()).into());
             };
             let duration = positive_seconds("--duration", duration)?;
-            let timeout =
-                Duration::try_from_secs_f64(timeout).map_err(|_| ClientError::Usage(format!("--timeout {timeout} is not a duration")))?;
+            let timeout = seconds("--timeout", timeout)?;
             let options = FleetOptions {
                 robots,
                 tum,
@@ -608,9 +610,22 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
 }
 
 /// `seconds` as a positive duration, or the usage error naming `flag`.
+/// The longest time a flag may name: 30 days (longer, the clock's arithmetic would
+/// overflow; no run waits that long).
+const MAX_FLAG_SECONDS: f64 = 30.0 * 86_400.0;
+
 fn positive_seconds(flag: &str, seconds: f64) -> Result<Duration, ClientError> {
-    Duration::try_from_secs_f64(seconds)
-        .ok()
+    Some(seconds)
+        .filter(|s| *s > 0.0 && *s <= MAX_FLAG_SECONDS)
+        .and_then(|s| Duration::try_from_secs_f64(s).ok())
         .filter(|d| !d.is_zero())
-        .ok_or_else(|| ClientError::Usage(format!("{flag} {seconds} is not a positive number of seconds")))
+        .ok_or_else(|| ClientError::Usage(format!("{flag} {seconds} is not a positive number of seconds up to {MAX_FLAG_SECONDS}")))
+}
+
+/// A flag's seconds, 0 allowed.
+fn seconds(flag: &str, seconds: f64) -> Result<Duration, ClientError> {
+    Some(seconds)
+        .filter(|s| (0.0..=MAX_FLAG_SECONDS).contains(s))
+        .and_then(|s| Duration::try_from_secs_f64(s).ok())
+        .ok_or_else(|| ClientError::Usage(format!("{flag} {seconds} is not a number of seconds from 0 to {MAX_FLAG_SECONDS}")))
 }

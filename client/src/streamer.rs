@@ -31,6 +31,11 @@ pub enum Rate {
     Fixed(f64),
 }
 
+/// Slowest and fastest fixed rate (Hz): a frame every 1000 s at most (slower, the
+/// wait between frames stops being a rate), a microsecond apart at least.
+pub const MIN_RATE_HZ: f64 = 0.001;
+pub const MAX_RATE_HZ: f64 = 1_000_000.0;
+
 impl std::str::FromStr for Rate {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -38,8 +43,8 @@ impl std::str::FromStr for Rate {
             "realtime" => Ok(Self::Realtime),
             "max" => Ok(Self::Max),
             hz => match hz.parse::<f64>() {
-                Ok(v) if v > 0.0 && v.is_finite() => Ok(Self::Fixed(v)),
-                _ => Err(format!("rate {s:?} is not realtime, max or a positive number of Hz")),
+                Ok(v) if (MIN_RATE_HZ..=MAX_RATE_HZ).contains(&v) => Ok(Self::Fixed(v)),
+                _ => Err(format!("rate {s:?} is not realtime, max or a number of Hz from {MIN_RATE_HZ} to {MAX_RATE_HZ}")),
             },
         }
     }
@@ -451,6 +456,14 @@ mod tests {
         assert_eq!("max".parse(), Ok(Rate::Max));
         assert_eq!("15".parse(), Ok(Rate::Fixed(15.0)));
         assert!("0".parse::<Rate>().is_err());
+        assert_eq!("0.001".parse(), Ok(Rate::Fixed(0.001)));
+        for bad in ["1e-20", "inf", "NaN", "-3", "2e6"] {
+            assert_eq!(
+                bad.parse::<Rate>(),
+                Err(format!("rate {bad:?} is not realtime, max or a number of Hz from 0.001 to 1000000")),
+                "{bad}"
+            );
+        }
     }
 
     #[test]

@@ -119,6 +119,37 @@ fn millimetre_depth_is_read_at_its_scale_and_bad_topics_are_named() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Length fields the reader would allocate: a ROS 1 chunk declaring 4 GiB
+/// uncompressed, an MCAP record declaring 1 TiB. Each is refused naming the file and
+/// the problem, before anything of that size is allocated.
+#[test]
+fn a_recording_declaring_a_huge_record_is_refused_before_allocating() {
+    let (dir, file) = write_recording("huge", BagFormat::Ros1, Some(2), &[]);
+    let mut bytes = std::fs::read(&file).expect("read the bag");
+    // A chunk header's `size` field: its length (9), "size=", the u32.
+    let field = b"\x09\x00\x00\x00size=";
+    let at = bytes.windows(field.len()).position(|w| w == field).expect("a chunk's size field") + field.len();
+    bytes[at..at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+    std::fs::write(&file, &bytes).expect("write the bag");
+    let Err(e) = BagSource::open(&file, BagFormat::Ros1, &BagTopics::default(), None, &CameraOptions::default()) else {
+        panic!("accepted")
+    };
+    assert!(e.to_string().contains("declares 4294967295 bytes uncompressed, more than the 268435456 this reader takes"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+
+    // MCAP's magic, then a header record (opcode 1) declaring 2⁴⁰ bytes.
+    let huge = std::env::temp_dir().join(format!("stillmap-huge-{}.mcap", std::process::id()));
+    let mut mcap = b"\x89MCAP0\r\n\x01".to_vec();
+    mcap.extend_from_slice(&(1u64 << 40).to_le_bytes());
+    mcap.extend_from_slice(&[0; 16]);
+    std::fs::write(&huge, &mcap).expect("write");
+    let Err(e) = BagSource::open(&huge, BagFormat::Mcap, &BagTopics::default(), None, &CameraOptions::default()) else {
+        panic!("accepted")
+    };
+    assert!(e.to_string().contains("not a readable MCAP file"), "{e}");
+    let _ = std::fs::remove_file(&huge);
+}
+
 /// A bag like TUM's own: its `CameraInfo` holds ROS's uncalibrated defaults and its
 /// IMU is in the Kinect's own frame. It is not taken as calibrated (it refuses to
 /// start saying so), and `--camera tum-fr1` gives it freiburg1's calibration and its

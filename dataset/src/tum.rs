@@ -53,8 +53,9 @@ pub fn associate(first: &[u64], second: &[u64], max_difference_ns: u64) -> Vec<(
     sorted_second.sort_unstable();
     let mut candidates: Vec<(u64, usize, usize)> = Vec::new();
     for (i, &a) in first.iter().enumerate() {
-        let lo = sorted_second.partition_point(|&(b, _)| b + max_difference_ns <= a);
-        for &(b, j) in sorted_second[lo..].iter().take_while(|&&(b, _)| b < a + max_difference_ns) {
+        // Saturating: timestamps near u64::MAX parse (18446744073.7 s).
+        let lo = sorted_second.partition_point(|&(b, _)| b.saturating_add(max_difference_ns) <= a);
+        for &(b, j) in sorted_second[lo..].iter().take_while(|&&(b, _)| b < a.saturating_add(max_difference_ns)) {
             candidates.push((a.abs_diff(b), i, j));
         }
     }
@@ -117,7 +118,8 @@ pub fn read_sequence(dir: &Path) -> Result<Vec<FrameFiles>, DatasetError> {
         };
         let ts = rgb_ts[i];
         let accel_in_camera = nearest(&accel_ts, ts, MAX_ASSOCIATION_NS).and_then(|k| {
-            let v: Vec<f64> = accel[k].1.iter().filter_map(|x| x.parse().ok()).collect();
+            // A line that does not hold three finite numbers gives the frame no reading.
+            let v: Vec<f64> = accel[k].1.iter().filter_map(|x| x.parse::<f64>().ok().filter(|v| v.is_finite())).collect();
             (v.len() == 3).then(|| kinect_accel_to_camera([v[0], v[1], v[2]]))
         });
         frames.push(FrameFiles { timestamp_ns: ts, rgb: file(&rgb, i, "rgb")?, depth: file(&depth, j, "depth")?, accel_in_camera });
@@ -223,6 +225,14 @@ mod tests {
         // candidates: (10,20)=10 (10,12)=2 (11,20)=9 (11,12)=1 (100,95)=5 ; 50 has none.
         // greedy: (11,12) first, then (100,95), then (10,20).
         assert_eq!(associate(&first, &second, 20 * ms), vec![(0, 0), (1, 1), (3, 2)]);
+    }
+
+    /// Timestamps at the top of the range (they parse) pair without overflowing.
+    #[test]
+    fn association_holds_at_the_largest_timestamps() {
+        let top = parse_timestamp_ns("18446744073.709551").expect("parses");
+        let ms = 1_000_000;
+        assert_eq!(associate(&[top, 5 * ms], &[top - ms, 6 * ms], 20 * ms), vec![(1, 1), (0, 0)]);
     }
 
     /// The public clip reads as 150 associated frames with the accelerometer, and

@@ -127,7 +127,8 @@ impl TopDown {
         if zoom > MAX_ZOOM {
             return Err(MappingError::Input(format!("zoom {zoom} is out of range 0..={MAX_ZOOM}")));
         }
-        if x.abs() > MAX_TILE_INDEX || y.abs() > MAX_TILE_INDEX {
+        // `unsigned_abs`: i64::MIN has no `abs`.
+        if x.unsigned_abs() > MAX_TILE_INDEX.unsigned_abs() || y.unsigned_abs() > MAX_TILE_INDEX.unsigned_abs() {
             return Err(MappingError::Input(format!("tile index ({x}, {y}) is out of range ±{MAX_TILE_INDEX}")));
         }
         let k = 1i64 << (MAX_ZOOM - zoom); // cells per pixel edge
@@ -288,6 +289,17 @@ mod tests {
         for c in 0..80u16 {
             assert!(seen.insert(class_color(c)), "class {c} repeats a colour");
         }
+    }
+
+    #[test]
+    fn a_tile_index_out_of_range_is_refused_even_at_the_integer_limits() {
+        let map = VoxelMap::new(crate::MappingConfig::default()).unwrap();
+        let top = TopDown::build(&map, &UnitQuaternion::identity());
+        for (x, y) in [(i64::MIN, 0), (0, i64::MIN), (i64::MAX, 0), (MAX_TILE_INDEX + 1, 0), (0, -MAX_TILE_INDEX - 1)] {
+            let e = top.render(0, x, y).expect_err("out of range").to_string();
+            assert!(e.contains(&format!("tile index ({x}, {y}) is out of range ±1048576")), "{e}");
+        }
+        assert_eq!(top.render(0, -MAX_TILE_INDEX, MAX_TILE_INDEX).expect("in range").len(), TILE_PX * TILE_PX * 4);
     }
 
     #[test]

@@ -380,7 +380,8 @@ impl Session {
             // and must not tell a resuming robot it was received.
             // (A new timeline is followed here when the decoder follows it.)
             let mut last = lock(&self.last_received_sequence);
-            let jumped = !self.order_window.sequence_fits(*last, sequence);
+            // As the decoder: a frame behind the last counts as a jump too.
+            let jumped = !self.order_window.sequence_fits(*last, sequence) || last.is_some_and(|l| sequence <= l);
             if lock(&self.received_jumps).restart(jumped) {
                 *last = Some(sequence);
             } else if !jumped {

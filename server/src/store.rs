@@ -907,9 +907,21 @@ fn decompress_capped(body: &[u8], max_bytes: usize) -> Result<Vec<u8>, StoreErro
     Ok(out)
 }
 
+/// What an import may hold in memory, in multiples of `store.import_max_bytes`: a map
+/// block takes 12 KiB in memory however few of its voxels the file holds (a plane
+/// through a block, about 1.6 KB in the file, is 8 times that), so a file of empty
+/// blocks would take 140 times its size.
+pub const IMPORT_MEMORY_FACTOR: usize = 16;
+
+/// A map block in memory: its voxels (boxed) and the rest.
+const BLOCK_IN_MEMORY: usize =
+    std::mem::size_of::<Block>() + std::mem::size_of::<[stillmap_mapping::voxel::Voxel; stillmap_mapping::voxel::VOXELS_PER_BLOCK]>();
+
 /// Reads a file [`export`] wrote, decompressing at most `max_bytes`; every problem
-/// is named, and block keys outside the map's range
-/// ([`MAX_BLOCK_INDEX`](stillmap_mapping::voxel::MAX_BLOCK_INDEX)) are refused.
+/// is named, block keys outside the map's range
+/// ([`MAX_BLOCK_INDEX`](stillmap_mapping::voxel::MAX_BLOCK_INDEX)) or repeated are
+/// refused, and so is a file whose poses, keyframes and blocks would take more than
+/// [`IMPORT_MEMORY_FACTOR`] × `max_bytes` in memory.
 pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, StoreError> {
     let body = bytes.strip_prefix(EXPORT_MAGIC).ok_or_else(|| file_error("not a stillmap map file (bad magic)"))?;
     let body = decompress_capped(body, max_bytes)?;
@@ -920,18 +932,33 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
     let meta: SessionMeta = serde_json::from_value(header["meta"].clone()).map_err(|e| file_error(format!("header: {e}")))?;
     let camera = pb::CameraInfo::decode(r.section()?).map_err(|e| file_error(format!("camera: {e}")))?;
     crate::pipeline::decode::validate_camera(Some(&camera)).map_err(|e| file_error(format!("camera: {e}")))?;
+    // What the parsed file takes in memory, checked before each item is made.
+    let budget = max_bytes.saturating_mul(IMPORT_MEMORY_FACTOR);
+    let mut in_memory = 0usize;
+    let mut take = |bytes: usize, what: &str| {
+        in_memory = in_memory.saturating_add(bytes);
+        if in_memory > budget {
+            return Err(file_error(format!(
+                "its {what} would take more than {budget} bytes in memory ({IMPORT_MEMORY_FACTOR} × store.import_max_bytes)"
+            )));
+        }
+        Ok(())
+    };
     let mut poses = Vec::new();
     for _ in 0..r.u32()? {
+        take(std::mem::size_of::<pb::PoseStamped>(), "poses")?;
         poses.push(pb::PoseStamped::decode(r.section()?).map_err(|e| file_error(format!("pose: {e}")))?);
     }
     let mut keyframes = Vec::new();
     for _ in 0..r.u32()? {
+        let section = r.section()?;
+        take(section.len(), "keyframes")?;
         keyframes.push(
-            KeyframeRecord::from_bytes(r.section()?)
-                .map_err(|e| file_error(e.to_string().trim_start_matches("store holds corrupt data: ")))?,
+            KeyframeRecord::from_bytes(section).map_err(|e| file_error(e.to_string().trim_start_matches("store holds corrupt data: ")))?,
         );
     }
     let mut blocks = Vec::new();
+    let mut keys = std::collections::HashSet::new();
     for _ in 0..r.u32()? {
         let key = [r.u32()? as i32, r.u32()? as i32, r.u32()? as i32];
         if !stillmap_mapping::voxel::block_in_range(key) {
@@ -940,6 +967,10 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
                 stillmap_mapping::voxel::MAX_BLOCK_INDEX
             )));
         }
+        if !keys.insert(key) {
+            return Err(file_error(format!("map block {key:?} appears twice")));
+        }
+        take(BLOCK_IN_MEMORY, "map blocks")?;
         blocks.push((key, Block::from_bytes(r.section()?).map_err(file_error)?));
     }
     if r.at != body.len() {
@@ -1230,7 +1261,23 @@ mod tests {
                 stillmap_mapping::voxel::MAX_BLOCK_INDEX
             )
         );
-        let near = StoredSession { blocks: vec![([3, 0, -2], Block::default())], ..s };
+        let near = StoredSession { blocks: vec![([3, 0, -2], Block::default())], ..s.clone() };
         assert_eq!(import_file(&export(&near).unwrap(), 1 << 20).unwrap().blocks.len(), 1);
+
+        // Twice the same block.
+        let twice = StoredSession { blocks: vec![([3, 0, -2], Block::default()), ([3, 0, -2], Block::default())], ..s.clone() };
+        assert_eq!(
+            import_file(&export(&twice).unwrap(), 1 << 20).unwrap_err().to_string(),
+            "bad map file: map block [3, 0, -2] appears twice"
+        );
+        // 1,500 empty blocks: about 130 KB in the file, 18 MB in memory, over 16 × 1 MiB.
+        let empty = StoredSession { blocks: (0..1500).map(|k| ([k, 0, 0], Block::default())).collect(), ..s };
+        let file = export(&empty).unwrap();
+        assert!(file.len() < 1 << 20, "{}", file.len());
+        assert_eq!(
+            import_file(&file, 1 << 20).unwrap_err().to_string(),
+            "bad map file: its map blocks would take more than 16777216 bytes in memory (16 × store.import_max_bytes)"
+        );
+        assert_eq!(import_file(&file, 2 << 20).unwrap().blocks.len(), 1500, "within 16 × 2 MiB");
     }
 }

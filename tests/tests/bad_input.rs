@@ -193,6 +193,22 @@ async fn a_forged_frame_far_ahead_is_rejected_and_the_robots_frames_go_on() {
     let (_, detail) = server.get_json(&format!("/api/v1/sessions/{}", accepted.session_id)).await;
     assert_eq!(detail["counters"]["last_received_sequence"], 2, "{detail}");
     assert_eq!(detail["counters"]["frames_processed"], 2);
+
+    // One within the window (it could be the robot's, so it is taken): the robot's
+    // own frames, now behind it, are rejected three times and then followed again,
+    // and a resuming robot is told the last of its own.
+    s.send(ClientMsg::Frame(tum_frame(2 + 999_999, 4_000))).await;
+    assert_eq!(s.result().await.status(), FrameStatus::Ok);
+    for k in 0..3 {
+        s.send(ClientMsg::Frame(tum_frame(3 + k, 5_000 + k))).await;
+        assert_eq!(rejected(&s.result().await).0, Code::InvalidArgument, "frame {}", 3 + k);
+    }
+    for k in 3..5 {
+        s.send(ClientMsg::Frame(tum_frame(3 + k, 5_000 + k))).await;
+        assert_eq!(s.result().await.status(), FrameStatus::Ok, "frame {}", 3 + k);
+    }
+    let (_, detail) = server.get_json(&format!("/api/v1/sessions/{}", accepted.session_id)).await;
+    assert_eq!(detail["counters"]["last_received_sequence"], 7, "{detail}");
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -584,6 +600,26 @@ async fn camera_timing_is_checked_and_reaches_the_session() {
         let capture_ns = p["capture_time_ns"].as_u64().expect("capture time");
         assert_eq!(p["pose_time_ns"].as_u64(), Some(capture_ns - 4_000_000), "{p}");
     }
+}
+
+/// Rates and durations out of range are one-line errors before anything starts
+/// (beyond them the client's clock arithmetic would overflow and panic).
+#[test]
+fn out_of_range_rates_and_durations_are_named() {
+    let src = format!("tum:{}", stillmap_e2e::tum_dir().display());
+    let run = |flag: &str, value: &str| {
+        let (out, _) = stillmap_e2e::run_client(&["--source", &src, "--server", "http://127.0.0.1:9", flag, value]);
+        (out.status.code(), String::from_utf8_lossy(&out.stderr).trim().to_string())
+    };
+    let (code, stderr) = run("--result-timeout", "1e19");
+    assert_eq!(code, Some(1), "{stderr}");
+    assert_eq!(stderr, "stillmap-client: --result-timeout 10000000000000000000 is not a positive number of seconds up to 2592000");
+    let (code, stderr) = run("--timeout", "1e19");
+    assert_eq!(code, Some(1), "{stderr}");
+    assert_eq!(stderr, "stillmap-client: --timeout 10000000000000000000 is not a number of seconds from 0 to 2592000");
+    let (code, stderr) = run("--rate", "1e-20");
+    assert_eq!(code, Some(2), "clap's usage error: {stderr}");
+    assert!(stderr.contains("rate \"1e-20\" is not realtime, max or a number of Hz from 0.001 to 1000000"), "{stderr}");
 }
 
 /// Tokens never show in `--print-config`; an empty one is a named start-up error.

@@ -130,6 +130,11 @@ async fn import_and_export_need_an_admin_and_survive_bombs_and_id_theft() {
     assert_eq!(refusal(export(None).await.expect("GET")).await, missing);
     assert_eq!(refusal(export(Some(ROBOT_TOKEN)).await.expect("GET")).await, (403, "this token lacks the admin scope".to_string()));
     assert_eq!(refusal(export(Some("guess")).await.expect("GET")).await, (401, "unknown token".to_string()));
+    // axum's own rejections answer in the same JSON: a path segment that is not UTF-8.
+    let r = http.get(url("/api/v1/maps/%FF/export")).bearer_auth(ADMIN_TOKEN).send().await.expect("GET");
+    let (status, message) = refusal(r).await;
+    assert_eq!(status, 400);
+    assert!(message.contains("UTF-8") || message.contains("utf-8") || message.contains("parse"), "{message}");
     let r = export(Some(ADMIN_TOKEN)).await.expect("GET");
     assert_eq!(r.status(), 200);
     let file = r.bytes().await.expect("body").to_vec();

@@ -70,10 +70,12 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .route("/", get(crate::api::dashboard::index))
         .route("/assets/{*path}", get(crate::api::dashboard::asset))
         .with_state(dashboard);
-    // Whole maps in and out check `admin` themselves (before reading a body).
+    // Whole maps in and out check `admin` themselves (before reading a body). The
+    // compressed body is never much larger than what it decompresses to.
+    let body_limit = settings.import_max_bytes.saturating_add(IMPORT_BODY_MARGIN);
     let admin = Router::new()
         .route("/api/v1/maps/{id}/export", get(map_export).layer(Extension(settings.clone())))
-        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(MAX_IMPORT_BYTES), Extension(settings))))
+        .route("/api/v1/maps/import", post(map_import).layer((DefaultBodyLimit::max(body_limit), Extension(settings))))
         .with_state(registry.clone());
     Router::new()
         .route("/api/v1/sessions", get(list_sessions))
@@ -104,6 +106,7 @@ pub fn router(registry: Arc<Registry>, dashboard_dir: Option<std::path::PathBuf>
         .merge(admin)
         .merge(ui)
         .layer(rate_limited)
+        .layer(axum::middleware::map_response(json_errors))
         .fallback(|| async {
             let mut response = error(StatusCode::NOT_FOUND, "no such endpoint".into());
             response.extensions_mut().insert(NoSuchEndpoint);
@@ -118,6 +121,32 @@ pub struct NoSuchEndpoint;
 
 fn error(code: StatusCode, message: String) -> Response {
     (code, Json(ApiError { error: message })).into_response()
+}
+
+/// The most of a plain-text rejection's body kept as its JSON message.
+const MAX_REJECTION_TEXT: usize = 4096;
+
+/// Every error answer is JSON ([`ApiError`]): axum's own rejections (a path segment
+/// that is not UTF-8, a body over its limit, a wrong method) come as plain text and
+/// are turned into the same shape; their status and other headers stay.
+async fn json_errors(response: Response) -> Response {
+    let status = response.status();
+    let json = response.headers().get(header::CONTENT_TYPE).is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if json || !(status.is_client_error() || status.is_server_error()) {
+        return response;
+    }
+    let (parts, body) = response.into_parts();
+    let text =
+        axum::body::to_bytes(body, MAX_REJECTION_TEXT).await.map(|b| String::from_utf8_lossy(&b).trim().to_string()).unwrap_or_default();
+    let message = if text.is_empty() { status.canonical_reason().unwrap_or("error").to_lowercase() } else { text };
+    let mut out = error(status, message);
+    for (name, value) in &parts.headers {
+        if name != header::CONTENT_TYPE && name != header::CONTENT_LENGTH {
+            out.headers_mut().append(name.clone(), value.clone());
+        }
+    }
+    out.extensions_mut().extend(parts.extensions);
+    out
 }
 
 #[utoipa::path(
@@ -1087,8 +1116,9 @@ pub(crate) async fn map_objects(State(registry): State<Arc<Registry>>, Path(id):
     }
 }
 
-/// Largest map file `POST /api/v1/maps/import` accepts.
-const MAX_IMPORT_BYTES: usize = 1 << 30;
+/// How much larger than `store.import_max_bytes` an import's (compressed) body may
+/// be: zstd's framing of incompressible data.
+const IMPORT_BODY_MARGIN: usize = 1 << 20;
 
 /// The request's credentials: its `Authorization` header, else an
 /// `access_token` query parameter (a browser's `EventSource` and `<img>` cannot

@@ -14,6 +14,7 @@ pub enum RejectReason {
     Order,
     Color,
     Depth,
+    Accelerometer,
 }
 
 impl RejectReason {
@@ -22,6 +23,7 @@ impl RejectReason {
             Self::Order => "order",
             Self::Color => "color",
             Self::Depth => "depth",
+            Self::Accelerometer => "accelerometer",
         }
     }
 }
@@ -123,24 +125,30 @@ impl Decoder {
     /// counts as seen).
     pub fn decode(&mut self, frame: &pb::Frame) -> Result<Decoded, Rejection> {
         let reject = |reason, message: String| Rejection { reason, code: Code::InvalidArgument, message };
-        if let Some(last) = self.last_sequence
-            && frame.sequence <= last
-        {
-            return Err(reject(RejectReason::Order, format!("frame sequence {} is not after the previous frame's {last}", frame.sequence)));
-        }
         // A robot that really jumped (it paused for more than a day, its clock was
-        // set) sends more frames after the jump: after `RESYNC_AFTER_JUMPS` in a row
-        // the next is taken, and the session goes on from there. One forged frame
-        // between the robot's own is rejected and changes nothing.
-        let jumped = !self.window.sequence_fits(self.last_sequence, frame.sequence)
+        // set, it restarted its count) sends more frames after the jump: after
+        // `RESYNC_AFTER_JUMPS` in a row the next is taken, and the session goes on
+        // from there. A frame behind the previous one counts as a jump too: one
+        // forged frame beyond the order window is rejected and changes nothing, one
+        // within it (taken) costs the robot `RESYNC_AFTER_JUMPS` frames, not the
+        // session.
+        let behind = self.last_sequence.is_some_and(|last| frame.sequence <= last)
+            || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns <= last);
+        let jumped = behind
+            || !self.window.sequence_fits(self.last_sequence, frame.sequence)
             || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns.saturating_sub(last) > self.window.max_capture_gap_ns);
         if self.jumps.restart(jumped) {
             tracing::warn!(
                 sequence = frame.sequence,
-                "{RESYNC_AFTER_JUMPS} frames in a row jumped past the order window: taking the new sequence and clock"
+                "{RESYNC_AFTER_JUMPS} frames in a row jumped past the order window or went back: taking the new sequence and clock"
             );
             self.last_sequence = None;
             self.last_capture_time_ns = None;
+        }
+        if let Some(last) = self.last_sequence
+            && frame.sequence <= last
+        {
+            return Err(reject(RejectReason::Order, format!("frame sequence {} is not after the previous frame's {last}", frame.sequence)));
         }
         if !self.window.sequence_fits(self.last_sequence, frame.sequence) {
             return Err(reject(
@@ -179,6 +187,14 @@ impl Decoder {
         }
         self.last_sequence = Some(frame.sequence);
         self.last_capture_time_ns = Some(frame.capture_time_ns);
+        if let Some(a) = frame.accel_in_camera
+            && !(a.x.is_finite() && a.y.is_finite() && a.z.is_finite())
+        {
+            return Err(reject(
+                RejectReason::Accelerometer,
+                format!("frame {}: accelerometer reading ({}, {}, {}) is not finite", frame.sequence, a.x, a.y, a.z),
+            ));
+        }
 
         let (w, h) = (self.camera.width, self.camera.height);
         let t = Instant::now();
@@ -192,6 +208,13 @@ impl Decoder {
         Ok(Decoded { color, depth, depth_crc32, color_time, depth_time: t.elapsed() })
     }
 }
+
+/// Largest distortion coefficient (absolute) a hello may declare: strong wide-angle
+/// lenses stay within tens; beyond this it is a mistake, not a lens.
+pub const MAX_DISTORTION_COEFFICIENT: f64 = 1000.0;
+
+/// Highest nominal frame rate (Hz) a hello may declare.
+pub const MAX_NOMINAL_RATE_HZ: f64 = 1000.0;
 
 /// Longest `CameraInfo.calibration_source` the server accepts.
 pub const MAX_CALIBRATION_SOURCE_BYTES: usize = 512;
@@ -231,6 +254,9 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
     if !c.cx.is_finite() || !c.cy.is_finite() {
         return Err("camera principal point is not finite".into());
     }
+    if !(c.nominal_rate_hz.is_finite() && (0.0..=MAX_NOMINAL_RATE_HZ).contains(&c.nominal_rate_hz)) {
+        return Err(format!("nominal_rate_hz must be within 0..={MAX_NOMINAL_RATE_HZ} (0: unknown), got {}", c.nominal_rate_hz));
+    }
     let readout = c.rolling_shutter_readout_s;
     if !(0.0..=MAX_ROLLING_SHUTTER_READOUT_S).contains(&readout) {
         return Err(format!("rolling_shutter_readout_s must be within 0..={MAX_ROLLING_SHUTTER_READOUT_S} s, got {readout}"));
@@ -260,8 +286,15 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
         Ok(pb::DistortionModel::PlumbBob) if c.distortion_coeffs.len() != 5 => {
             return Err(format!("plumb_bob distortion needs 5 coefficients, got {}", c.distortion_coeffs.len()));
         }
+        // No model: nothing to read, and nothing to keep (a session stores its hello).
+        Ok(pb::DistortionModel::None | pb::DistortionModel::Unspecified) if !c.distortion_coeffs.is_empty() => {
+            return Err(format!("distortion model none takes no coefficients, got {}", c.distortion_coeffs.len()));
+        }
         Err(_) => return Err(format!("unknown distortion model {}", c.distortion_model)),
         _ => {}
+    }
+    if let Some(bad) = c.distortion_coeffs.iter().find(|k| !(k.is_finite() && k.abs() <= MAX_DISTORTION_COEFFICIENT)) {
+        return Err(format!("distortion coefficients must be finite and within ±{MAX_DISTORTION_COEFFICIENT}, got {bad}"));
     }
     Ok(c)
 }
@@ -353,6 +386,46 @@ mod tests {
         assert!(p.decode(&frame(6, 600)).is_ok());
     }
 
+    /// One forged frame within the order window (taken: it could be the robot's)
+    /// must not shut the robot's own frames out: they are behind it, and after
+    /// `RESYNC_AFTER_JUMPS` of them in a row their timeline is taken again. The
+    /// same for a capture time far ahead, and for a robot that restarted its count.
+    #[test]
+    fn a_forged_frame_within_the_window_costs_the_robot_a_few_frames_not_the_session() {
+        let window = OrderWindow { max_sequence_jump: 1_000_000, max_capture_gap_ns: 86_400_000_000_000 };
+        for forged in [frame(5 + 999_999, 501), frame(6, 500 + 86_000_000_000_000)] {
+            let mut p = Decoder::new(camera(), window);
+            assert!(p.decode(&frame(5, 500)).is_ok());
+            assert!(p.decode(&forged).is_ok(), "within the window: taken");
+            let behind = RESYNC_AFTER_JUMPS as u64;
+            for k in 0..behind {
+                assert_eq!(error_of(p.decode(&frame(7 + k, 700 + k))).0, Code::InvalidArgument as i32, "frame {}", 7 + k);
+            }
+            assert!(p.decode(&frame(7 + behind, 700 + behind)).is_ok(), "the robot's timeline again");
+            assert!(p.decode(&frame(8 + behind, 701 + behind)).is_ok());
+        }
+        // A single frame behind (a duplicate) is rejected and the next goes on.
+        let mut p = Decoder::new(camera(), window);
+        assert!(p.decode(&frame(5, 500)).is_ok());
+        assert!(p.decode(&frame(5, 500)).is_err());
+        assert!(p.decode(&frame(6, 600)).is_ok());
+        assert!(p.decode(&frame(6, 600)).is_err());
+        assert!(p.decode(&frame(7, 700)).is_ok(), "duplicates between good frames never add up");
+    }
+
+    #[test]
+    fn a_non_finite_accelerometer_reading_is_rejected_and_the_session_goes_on() {
+        let mut p = Decoder::new(camera(), OrderWindow::default());
+        let mut f = frame(1, 100);
+        f.accel_in_camera = Some(pb::Vector3 { x: 0.0, y: f64::NAN, z: 9.8 });
+        let e = p.decode(&f).err().expect("rejected");
+        assert_eq!((e.reason, e.code), (RejectReason::Accelerometer, Code::InvalidArgument));
+        assert_eq!(e.message, "frame 1: accelerometer reading (0, NaN, 9.8) is not finite");
+        let mut next = frame(2, 200);
+        next.accel_in_camera = Some(pb::Vector3 { x: 0.0, y: 0.0, z: 9.8 });
+        assert!(p.decode(&next).is_ok(), "the session goes on");
+    }
+
     #[test]
     fn bad_images_name_the_problem() {
         let mut p = Decoder::new(camera(), OrderWindow::default());
@@ -386,6 +459,24 @@ mod tests {
         let mut c = hello_camera();
         c.distortion_model = pb::DistortionModel::PlumbBob as i32;
         assert_eq!(validate_camera(Some(&c)).unwrap_err(), "plumb_bob distortion needs 5 coefficients, got 0");
+        c.distortion_coeffs = vec![0.2, -0.5, 0.001, 0.0, 0.5];
+        assert!(validate_camera(Some(&c)).is_ok(), "fr1's kind of lens");
+        for bad in [f64::NAN, f64::INFINITY, 1e300] {
+            c.distortion_coeffs[1] = bad;
+            assert_eq!(
+                validate_camera(Some(&c)).unwrap_err(),
+                format!("distortion coefficients must be finite and within ±1000, got {bad}")
+            );
+        }
+        // Without a model, a million coefficients would be stored with the session.
+        let mut c = hello_camera();
+        c.distortion_coeffs = vec![0.0; 1_000_000];
+        assert_eq!(validate_camera(Some(&c)).unwrap_err(), "distortion model none takes no coefficients, got 1000000");
+        let mut c = hello_camera();
+        for bad in [-1.0, f64::NAN, f64::INFINITY, 1001.0] {
+            c.nominal_rate_hz = bad;
+            assert_eq!(validate_camera(Some(&c)).unwrap_err(), format!("nominal_rate_hz must be within 0..=1000 (0: unknown), got {bad}"));
+        }
         let mut c = hello_camera();
         c.rolling_shutter_readout_s = 0.03;
         assert!(validate_camera(Some(&c)).is_ok(), "a 30 ms readout");
