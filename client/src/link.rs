@@ -414,6 +414,8 @@ async fn run_zenoh(
     let mut in_flight: VecDeque<u64> = VecDeque::new();
     // New sessions in a row without a result in between.
     let mut moves = 0u32;
+    // Timeouts in a row while frames waited for their results.
+    let mut stalls = 0u32;
     let mut input_done = false;
     loop {
         if input_done && in_flight.is_empty() {
@@ -442,6 +444,24 @@ async fn run_zenoh(
                     if input_done {
                         return Err(ClientError::Protocol(format!("{} results did not arrive within {:?}", in_flight.len(), options.timeout)));
                     }
+                    if in_flight.is_empty() {
+                        continue;
+                    }
+                    // Frames wait and nothing came back for a whole timeout (the streamer
+                    // sends no more while `max_in_flight` wait, so waiting on would never
+                    // end): the server left before its liveliness token did, or stalled.
+                    // The robot says hello again (its own server resumes the session,
+                    // another takes it over), and gives up after MAX_ZENOH_STALLS in a row.
+                    stalls += 1;
+                    if stalls > MAX_ZENOH_STALLS {
+                        return Err(ClientError::Protocol(format!(
+                            "{} results did not arrive within {:?} (--timeout), {stalls} times in a row",
+                            in_flight.len(),
+                            options.timeout
+                        )));
+                    }
+                    tracing::warn!("no result within {:?} while {} frames wait: saying hello again", options.timeout, in_flight.len());
+                    accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
                     continue;
                 };
                 let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
@@ -449,6 +469,7 @@ async fn run_zenoh(
                     Ok(pb::ServerMessage { msg: Some(Msg::Result(r)) }) => {
                         in_flight.retain(|&q| q != r.sequence);
                         moves = 0;
+                        stalls = 0;
                         let _ = events.send(LinkEvent::Result(r)).await;
                     }
                     // The server that answers this robot now does not know it: the
@@ -591,6 +612,11 @@ async fn rejoin(
     }
     Ok(again)
 }
+
+/// Timeouts in a row without a result while frames wait, each followed by a hello
+/// again, before a Zenoh link gives up.
+#[cfg(feature = "zenoh")]
+const MAX_ZENOH_STALLS: u32 = 2;
 
 /// Whether a `restored` answer to a rejoin is the restore `accepted` already was,
 /// answered again. A server answers a hello identical to the one that opened its link

@@ -98,6 +98,35 @@ pub struct ReturnedPose {
     pub rotation_xyzw: [f64; 4],
 }
 
+/// The longest gap between two frames' capture times that `--rate realtime` waits
+/// out: beyond it (a driver clock that started at 0, a clock set) the pacing starts
+/// again from that frame.
+const MAX_REALTIME_GAP_NS: u64 = 10_000_000_000;
+
+/// When to send the frame captured at `capture_ns` at the recording's own pace:
+/// `anchor` is the (capture time, wall time) pacing counts from, and the last frame's
+/// capture time; `now`, the wall clock. A gap over [`MAX_REALTIME_GAP_NS`] from the
+/// last frame, or a frame before it, moves the anchor to this frame (sent now).
+fn realtime_send_at(
+    anchor: &mut Option<((u64, tokio::time::Instant), u64)>,
+    capture_ns: u64,
+    now: tokio::time::Instant,
+) -> tokio::time::Instant {
+    match anchor {
+        Some(((t0, wall0), last)) if capture_ns >= *last && capture_ns - *last <= MAX_REALTIME_GAP_NS => {
+            *last = capture_ns;
+            *wall0 + Duration::from_nanos(capture_ns - *t0)
+        }
+        _ => {
+            if let Some((_, last)) = anchor {
+                tracing::warn!("capture times jump from {last} ns to {capture_ns} ns: realtime pacing starts again from this frame");
+            }
+            *anchor = Some(((capture_ns, now), capture_ns));
+            now
+        }
+    }
+}
+
 /// What happened to a streaming run.
 #[derive(Debug, Default, Clone, Serialize)]
 pub struct Summary {
@@ -268,7 +297,8 @@ pub async fn stream(
     let mut max_message_bytes: Option<u64> = None;
     let mut pending: Option<Encoded> = None;
     let mut source_done = false;
-    let mut first_capture: Option<(u64, tokio::time::Instant)> = None;
+    // Realtime pacing's anchor (capture time, wall time) and the last capture time.
+    let mut first_capture: Option<((u64, tokio::time::Instant), u64)> = None;
     let mut next_send = tokio::time::Instant::now();
     let started = Instant::now();
 
@@ -319,8 +349,13 @@ pub async fn stream(
                             }
                         }
                     }
-                    if let Some(p) = r.world_from_camera.as_ref() {
-                        let (t, q) = (p.translation.unwrap_or_default(), p.rotation.unwrap_or_default());
+                    // A pose without its rotation or translation, or not finite, is no
+                    // pose (the trajectory file would hold a zero quaternion).
+                    if let Some(p) = r.world_from_camera.as_ref()
+                        && let (Some(t), Some(q)) = (p.translation, p.rotation)
+                        && [t.x, t.y, t.z, q.x, q.y, q.z, q.w].iter().all(|v| v.is_finite())
+                        && q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w > 0.0
+                    {
                         summary.poses.push(ReturnedPose {
                             capture_time_ns: r.capture_time_ns,
                             // A server that predates the field sends none: its poses refer to the timestamp.
@@ -339,10 +374,7 @@ pub async fn stream(
                     next_send = match options.rate {
                         Rate::Max => tokio::time::Instant::now(),
                         Rate::Fixed(_) => next_send.max(tokio::time::Instant::now() - Duration::from_secs(1)),
-                        Rate::Realtime => {
-                            let (t0, wall0) = *first_capture.get_or_insert((enc.frame.capture_time_ns, tokio::time::Instant::now()));
-                            wall0 + Duration::from_nanos(enc.frame.capture_time_ns.saturating_sub(t0))
-                        }
+                        Rate::Realtime => realtime_send_at(&mut first_capture, enc.frame.capture_time_ns, tokio::time::Instant::now()),
                     };
                     pending = Some(enc);
                 }
@@ -450,6 +482,20 @@ impl Summary {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn realtime_pacing_waits_out_the_recording_but_not_a_clock_jump() {
+        let now = tokio::time::Instant::now();
+        let later = |ms: u64| now + Duration::from_millis(ms);
+        let mut anchor = None;
+        assert_eq!(realtime_send_at(&mut anchor, 0, now), now, "the first frame: now");
+        // A driver clock that started at 0, then the real one: sent at once, not in 56 years.
+        let epoch = 1_765_000_000_000_000_000;
+        assert_eq!(realtime_send_at(&mut anchor, epoch, later(5)), later(5));
+        assert_eq!(realtime_send_at(&mut anchor, epoch + 33_000_000, later(6)), later(5 + 33), "paced from the new anchor");
+        assert_eq!(realtime_send_at(&mut anchor, epoch + 9_033_000_000, later(7)), later(5 + 9_033), "a 9 s pause is waited out");
+        assert_eq!(realtime_send_at(&mut anchor, epoch + 1_000_000, later(8)), later(8), "back in time: now");
+    }
 
     #[test]
     fn rates_parse() {

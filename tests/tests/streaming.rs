@@ -369,6 +369,67 @@ async fn a_quiet_zenoh_robot_is_disconnected_until_its_next_frame() {
     let _ = std::fs::remove_file(&config);
 }
 
+/// A Zenoh server that accepts the robot and then never answers (a stalled
+/// pipeline, its liveliness up): each `--timeout` with frames waiting the client
+/// says hello again, and after three in a row it gives up, instead of waiting for
+/// ever once `--max-in-flight` frames wait.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_zenoh_server_that_stops_answering_is_given_up_after_the_timeout() {
+    use prost::Message;
+    use stillmap_proto::{keys, pb};
+    let endpoint = format!("tcp/127.0.0.1:{}", stillmap_e2e::free_port());
+    let mut zconfig = zenoh::Config::default();
+    for (key, value) in [
+        ("mode", "\"peer\"".to_string()),
+        ("scouting/multicast/enabled", "false".to_string()),
+        ("listen/endpoints", format!("[\"{endpoint}\"]")),
+    ] {
+        zconfig.insert_json5(key, &value).expect(key);
+    }
+    let stalled = zenoh::open(zconfig).await.expect("zenoh open");
+    let frames = stalled.declare_subscriber(keys::frames("stalled-bot")).await.expect("subscribe");
+    let results = stalled.declare_publisher(keys::results("stalled-bot")).await.expect("publisher");
+    // Accepts every hello, answers no frame.
+    let accepting = tokio::spawn(async move {
+        while let Ok(sample) = frames.recv_async().await {
+            let Ok(pb::ClientMessage { msg: Some(pb::client_message::Msg::Hello(_)), .. }) =
+                pb::ClientMessage::decode(sample.payload().to_bytes().as_ref())
+            else {
+                continue;
+            };
+            let accepted = pb::SessionAccepted { session_id: "stalled-bot-1".into(), max_message_bytes: 64 << 20, ..Default::default() };
+            let reply = pb::ServerMessage { msg: Some(pb::server_message::Msg::Accepted(accepted)) };
+            results.put(reply.encode_to_vec()).await.expect("put accept");
+        }
+    });
+    let src = format!("tum:{}", tum_dir().display());
+    let started = std::time::Instant::now();
+    let client = tokio::task::spawn_blocking(move || {
+        run_client(&[
+            "--source",
+            &src,
+            "--transport",
+            "zenoh",
+            "--zenoh-connect",
+            &endpoint,
+            "--robot-id",
+            "stalled-bot",
+            "--rate",
+            "max",
+            "--timeout",
+            "3",
+        ])
+    });
+    // A client that waits for ever fails the test here, not the run.
+    let (out, _) =
+        tokio::time::timeout(Duration::from_secs(60), client).await.expect("the client gave up within 60 s").expect("client thread");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("results did not arrive within 3s (--timeout), 3 times in a row"), "{stderr}");
+    assert!(started.elapsed() < Duration::from_secs(30), "took {:?}", started.elapsed());
+    accepting.abort();
+}
+
 /// gRPC health checking answers for the server and each service (SERVING), names an
 /// unknown service NOT_FOUND and turns NOT_SERVING when the server shuts down;
 /// reflection lists the services.
