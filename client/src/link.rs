@@ -434,7 +434,7 @@ async fn run_zenoh(
                 match left {
                     None => servers = None, // the subscriber closed: moves are noticed at the next frame
                     Some(sample) if sample.kind() == zenoh::sample::SampleKind::Delete => {
-                        accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
+                        accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?.0;
                     }
                     Some(_) => {}
                 }
@@ -461,7 +461,19 @@ async fn run_zenoh(
                         )));
                     }
                     tracing::warn!("no result within {:?} while {} frames wait: saying hello again", options.timeout, in_flight.len());
-                    accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
+                    match rejoin(&ends, &accepted, &mut in_flight, &mut moves).await {
+                        Ok((again, answered)) => {
+                            accepted = again;
+                            // Results came back meanwhile: the server answers.
+                            if answered {
+                                stalls = 0;
+                            }
+                        }
+                        // No server took the hello yet (a server that left may hold its
+                        // liveliness token until Zenoh's lease ends): one more stall.
+                        Err(ClientError::Connect(e)) => tracing::warn!("{e}"),
+                        Err(e) => return Err(e),
+                    }
                     continue;
                 };
                 let s = s.map_err(|e| ClientError::Connect(format!("zenoh results: {e}")))?;
@@ -477,7 +489,7 @@ async fn run_zenoh(
                     // session left memory. Ask for the session back.
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::FailedPrecondition => {
                         tracing::warn!("{}: saying hello again", e.message);
-                        accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?;
+                        accepted = rejoin(&ends, &accepted, &mut in_flight, &mut moves).await?.0;
                     }
                     // The server gave the session up (a resumed session not found again
                     // in its stored world): a new session. The same status answers the
@@ -486,7 +498,7 @@ async fn run_zenoh(
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) if Code::from_i32(e.code) == Code::Aborted => {
                         if about_session(&e, &accepted.session_id) {
                             tracing::warn!("{}: streaming on in a new session", e.message);
-                            accepted = rejoin(&ends, &pb::SessionAccepted::default(), &mut in_flight, &mut moves).await?;
+                            accepted = rejoin(&ends, &pb::SessionAccepted::default(), &mut in_flight, &mut moves).await?.0;
                         }
                     }
                     Ok(pb::ServerMessage { msg: Some(Msg::Error(e)) }) => {
@@ -564,14 +576,15 @@ struct ZenohEnds<'a> {
 /// does not know this robot answered it; an `accepted` without a session id: a new
 /// session, the server gave the last one up). Its own server, still there, resumes it and
 /// nothing is lost; a new owner opens a new session, and what was in flight is
-/// reported lost. Results that arrive meanwhile are passed on.
+/// reported lost, and so are frames a resumed session never received. Results that
+/// arrive meanwhile are passed on (the bool: some did).
 #[cfg(feature = "zenoh")]
 async fn rejoin(
     link: &ZenohEnds<'_>,
     accepted: &pb::SessionAccepted,
     in_flight: &mut VecDeque<u64>,
     moves: &mut u32,
-) -> Result<pb::SessionAccepted, ClientError> {
+) -> Result<(pb::SessionAccepted, bool), ClientError> {
     let ZenohEnds { publisher, subscriber, hello, events, timeout } = link;
     // Judged before the hello: a result arriving meanwhile means a frame reached a
     // server since the last accept (so its repeated accept would not say restored).
@@ -580,6 +593,7 @@ async fn rejoin(
         pb::Hello { resume_session_id: accepted.session_id.clone(), resume_secret: accepted.resume_secret.clone(), ..(*hello).clone() };
     let resume_bytes = zenoh_message(ClientMsg::Hello(resume), hello);
     let (again, meanwhile) = zenoh_hello(publisher, subscriber, &resume_bytes, *timeout).await?;
+    let answered = !meanwhile.is_empty();
     for r in meanwhile {
         in_flight.retain(|&q| q != r.sequence);
         let _ = events.send(LinkEvent::Result(r)).await;
@@ -609,8 +623,17 @@ async fn rejoin(
         }
         let _ = events.send(LinkEvent::Reconnected(*moves)).await;
         let _ = events.send(LinkEvent::Accepted(again.clone())).await;
+    } else {
+        // Resumed where it was: frames sent after the last one the server received
+        // never reached it, and the Zenoh link keeps no frame to send again.
+        let received = again.last_received_sequence;
+        let lost: Vec<u64> = in_flight.iter().copied().filter(|&q| received.is_none_or(|r| q > r)).collect();
+        if !lost.is_empty() {
+            in_flight.retain(|q| !lost.contains(q));
+            let _ = events.send(LinkEvent::Unanswered(lost)).await;
+        }
     }
-    Ok(again)
+    Ok((again, answered))
 }
 
 /// Timeouts in a row without a result while frames wait, each followed by a hello

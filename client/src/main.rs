@@ -451,7 +451,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             if max_in_flight == 0 {
                 return Err(ClientError::Usage("--max-in-flight must be at least 1".into()).into());
             }
-            let timeout = seconds("--timeout", timeout)?;
+            let timeout = positive_seconds("--timeout", timeout)?;
             let options = StreamOptions {
                 robot_id,
                 fleet: fleet.unwrap_or_default(),
@@ -541,7 +541,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 return Err(ClientError::Usage("fleet replays a recording: --source tum:<dir>".into()).into());
             };
             let duration = positive_seconds("--duration", duration)?;
-            let timeout = seconds("--timeout", timeout)?;
+            let timeout = positive_seconds("--timeout", timeout)?;
             let options = FleetOptions {
                 robots,
                 tum,
@@ -609,23 +609,16 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     }
 }
 
-/// `seconds` as a positive duration, or the usage error naming `flag`.
 /// The longest time a flag may name: 30 days (longer, the clock's arithmetic would
 /// overflow; no run waits that long).
 const MAX_FLAG_SECONDS: f64 = 30.0 * 86_400.0;
 
+/// `seconds` as a positive duration up to [`MAX_FLAG_SECONDS`], or the usage error
+/// naming `flag`.
 fn positive_seconds(flag: &str, seconds: f64) -> Result<Duration, ClientError> {
     Some(seconds)
         .filter(|s| *s > 0.0 && *s <= MAX_FLAG_SECONDS)
         .and_then(|s| Duration::try_from_secs_f64(s).ok())
         .filter(|d| !d.is_zero())
         .ok_or_else(|| ClientError::Usage(format!("{flag} {seconds} is not a positive number of seconds up to {MAX_FLAG_SECONDS}")))
-}
-
-/// A flag's seconds, 0 allowed.
-fn seconds(flag: &str, seconds: f64) -> Result<Duration, ClientError> {
-    Some(seconds)
-        .filter(|s| (0.0..=MAX_FLAG_SECONDS).contains(s))
-        .and_then(|s| Duration::try_from_secs_f64(s).ok())
-        .ok_or_else(|| ClientError::Usage(format!("{flag} {seconds} is not a number of seconds from 0 to {MAX_FLAG_SECONDS}")))
 }

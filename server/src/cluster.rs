@@ -43,6 +43,15 @@ use axum::response::{IntoResponse, Response};
 use tower::ServiceExt as _;
 
 use crate::ServerError;
+use crate::api::openapi::ApiError;
+
+/// The content type of an error's body, as every HTTP error has it.
+const JSON: &str = "application/json";
+
+/// An HTTP error's JSON body (`{"error": …}`), for an answer built by hand.
+fn json_error(message: &str) -> Vec<u8> {
+    serde_json::to_vec(&ApiError { error: message.into() }).unwrap_or_default()
+}
 use crate::lock;
 use crate::session::Registry;
 
@@ -506,7 +515,7 @@ impl crate::api::query::Remote for Forwarder {
 async fn merged_list(forwarder: &Forwarder, request: Forwarded, local: Response, list_key: &str) -> Response {
     let (parts, body) = local.into_parts();
     let Ok(bytes) = axum::body::to_bytes(body, MAX_FORWARDED_BYTES).await else {
-        return (StatusCode::INTERNAL_SERVER_ERROR, format!("{list_key} list too large")).into_response();
+        return (StatusCode::INTERNAL_SERVER_ERROR, axum::Json(ApiError { error: format!("{list_key} list too large") })).into_response();
     };
     let Ok(mut list) = serde_json::from_slice::<serde_json::Value>(&bytes) else {
         return Response::from_parts(parts, Body::from(bytes));
@@ -625,16 +634,16 @@ pub async fn answer_forwarded(
                 match axum::body::to_bytes(response.into_body(), MAX_FORWARDED_BYTES).await {
                     Ok(body) => (ForwardedHead { held, status, content_type }, body.to_vec()),
                     Err(_) => (
-                        ForwardedHead { held, status: StatusCode::BAD_GATEWAY.as_u16(), content_type: None },
-                        b"answer too large to forward".to_vec(),
+                        ForwardedHead { held, status: StatusCode::BAD_GATEWAY.as_u16(), content_type: Some(JSON.into()) },
+                        json_error("answer too large to forward"),
                     ),
                 }
             };
             let (head, body) = match tokio::time::timeout(FORWARDED_ANSWER_TIMEOUT, answer).await {
                 Ok(answered) => answered,
                 Err(_) => (
-                    ForwardedHead { held, status: StatusCode::GATEWAY_TIMEOUT.as_u16(), content_type: None },
-                    b"answer took too long".to_vec(),
+                    ForwardedHead { held, status: StatusCode::GATEWAY_TIMEOUT.as_u16(), content_type: Some(JSON.into()) },
+                    json_error("answer took too long"),
                 ),
             };
             let attachment = serde_json::to_vec(&head).unwrap_or_default();

@@ -113,6 +113,9 @@ pub struct Session {
     last_received_sequence: Mutex<Option<u64>>,
     /// Frames received in a row whose sequence jumped past the order window.
     received_jumps: Mutex<crate::pipeline::decode::JumpCount>,
+    /// The sequence received before `last_received_sequence` (as the decoder's: a
+    /// frame behind both is a resend, never a new timeline).
+    received_before_last: Mutex<Option<u64>>,
     /// `limits.frame_cpu_ms`: what one frame may cost on a pipeline thread.
     cpu_budget: CpuBudget,
     track: Mutex<TrackState>,
@@ -380,12 +383,15 @@ impl Session {
             // and must not tell a resuming robot it was received.
             // (A new timeline is followed here when the decoder follows it.)
             let mut last = lock(&self.last_received_sequence);
-            // As the decoder: a frame behind the last counts as a jump too.
-            let jumped = !self.order_window.sequence_fits(*last, sequence) || last.is_some_and(|l| sequence <= l);
+            let mut before = lock(&self.received_before_last);
+            // As the decoder: a frame behind the last but after the one before it
+            // counts as a jump too; one behind both is a resend.
+            let behind = last.is_some_and(|l| sequence < l) && before.is_none_or(|b| sequence > b);
+            let jumped = !self.order_window.sequence_fits(*last, sequence) || behind;
             if lock(&self.received_jumps).restart(jumped) {
-                *last = Some(sequence);
-            } else if !jumped {
-                *last = Some(last.map_or(sequence, |l| l.max(sequence)));
+                (*before, *last) = (None, Some(sequence));
+            } else if !jumped && last.is_none_or(|l| sequence > l) {
+                (*before, *last) = (*last, Some(sequence));
             }
         }
         if outcome != PushOutcome::Queued {
@@ -1846,6 +1852,7 @@ impl Registry {
             ended: Mutex::new(None),
             last_received_sequence: Mutex::new(p.last_received_sequence),
             received_jumps: Mutex::default(),
+            received_before_last: Mutex::new(None),
             cpu_budget: CpuBudget::new(&self.limits, self.metrics.clone()),
             track: Mutex::new(p.track),
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,

@@ -616,7 +616,10 @@ fn out_of_range_rates_and_durations_are_named() {
     assert_eq!(stderr, "stillmap-client: --result-timeout 10000000000000000000 is not a positive number of seconds up to 2592000");
     let (code, stderr) = run("--timeout", "1e19");
     assert_eq!(code, Some(1), "{stderr}");
-    assert_eq!(stderr, "stillmap-client: --timeout 10000000000000000000 is not a number of seconds from 0 to 2592000");
+    assert_eq!(stderr, "stillmap-client: --timeout 10000000000000000000 is not a positive number of seconds up to 2592000");
+    let (code, stderr) = run("--timeout", "0");
+    assert_eq!(code, Some(1), "{stderr}");
+    assert_eq!(stderr, "stillmap-client: --timeout 0 is not a positive number of seconds up to 2592000");
     let (code, stderr) = run("--rate", "1e-20");
     assert_eq!(code, Some(2), "clap's usage error: {stderr}");
     assert!(stderr.contains("rate \"1e-20\" is not realtime, max or a number of Hz from 0.001 to 1000000"), "{stderr}");

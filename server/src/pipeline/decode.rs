@@ -56,6 +56,8 @@ pub struct Decoder {
     jumps: JumpCount,
     last_sequence: Option<u64>,
     last_capture_time_ns: Option<u64>,
+    /// The (sequence, capture time) of the frame taken before the last one.
+    before_last: Option<(u64, u64)>,
 }
 
 /// Frames in a row that jump past the order window before the decoder takes the
@@ -117,6 +119,7 @@ impl Decoder {
             jumps: JumpCount::default(),
             last_sequence: None,
             last_capture_time_ns: None,
+            before_last: None,
         }
     }
 
@@ -128,13 +131,17 @@ impl Decoder {
         // A robot that really jumped (it paused for more than a day, its clock was
         // set, it restarted its count) sends more frames after the jump: after
         // `RESYNC_AFTER_JUMPS` in a row the next is taken, and the session goes on
-        // from there. A frame behind the previous one counts as a jump too: one
-        // forged frame beyond the order window is rejected and changes nothing, one
-        // within it (taken) costs the robot `RESYNC_AFTER_JUMPS` frames, not the
-        // session.
+        // from there. A frame behind the previous one but after the one before it
+        // counts as a jump too (the previous one jumped ahead): one forged frame
+        // beyond the order window is rejected and changes nothing, one within it
+        // (taken) costs the robot `RESYNC_AFTER_JUMPS` frames, not the session. A
+        // frame behind both is a resend of one already taken, and never starts a
+        // timeline.
         let behind = self.last_sequence.is_some_and(|last| frame.sequence <= last)
             || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns <= last);
-        let jumped = behind
+        let after_the_one_before = self.last_sequence != Some(frame.sequence)
+            && self.before_last.is_none_or(|(sequence, time)| frame.sequence > sequence && frame.capture_time_ns > time);
+        let jumped = (behind && after_the_one_before)
             || !self.window.sequence_fits(self.last_sequence, frame.sequence)
             || self.last_capture_time_ns.is_some_and(|last| frame.capture_time_ns.saturating_sub(last) > self.window.max_capture_gap_ns);
         if self.jumps.restart(jumped) {
@@ -144,6 +151,7 @@ impl Decoder {
             );
             self.last_sequence = None;
             self.last_capture_time_ns = None;
+            self.before_last = None;
         }
         if let Some(last) = self.last_sequence
             && frame.sequence <= last
@@ -185,6 +193,7 @@ impl Decoder {
                 ),
             ));
         }
+        self.before_last = self.last_sequence.zip(self.last_capture_time_ns);
         self.last_sequence = Some(frame.sequence);
         self.last_capture_time_ns = Some(frame.capture_time_ns);
         if let Some(a) = frame.accel_in_camera
@@ -404,6 +413,17 @@ mod tests {
             assert!(p.decode(&frame(7 + behind, 700 + behind)).is_ok(), "the robot's timeline again");
             assert!(p.decode(&frame(8 + behind, 701 + behind)).is_ok());
         }
+        // Resends of frames taken before (behind the one before the last too) are
+        // rejected however many come: no old frame is taken twice.
+        let mut p = Decoder::new(camera(), window);
+        for k in 1..=6 {
+            assert!(p.decode(&frame(k, 100 * k)).is_ok());
+        }
+        for k in 1..=5 {
+            assert!(p.decode(&frame(k, 100 * k)).is_err(), "resend of frame {k}");
+        }
+        assert!(p.decode(&frame(6, 600)).is_err(), "resend of the last");
+        assert!(p.decode(&frame(7, 700)).is_ok());
         // A single frame behind (a duplicate) is rejected and the next goes on.
         let mut p = Decoder::new(camera(), window);
         assert!(p.decode(&frame(5, 500)).is_ok());
