@@ -129,7 +129,7 @@ impl Decoder {
     pub fn decode(&mut self, frame: &pb::Frame) -> Result<Decoded, Rejection> {
         let reject = |reason, message: String| Rejection { reason, code: Code::InvalidArgument, message };
         // A robot that really jumped (it paused for more than a day, its clock was
-        // set, it restarted its count) sends more frames after the jump: after
+        // set) sends more frames after the jump: after
         // `RESYNC_AFTER_JUMPS` in a row the next is taken, and the session goes on
         // from there. A frame behind the previous one but after the one before it
         // counts as a jump too (the previous one jumped ahead): one forged frame
