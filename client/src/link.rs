@@ -627,10 +627,10 @@ async fn rejoin(
         // Resumed where it was: frames sent after the last one the server received
         // never reached it, and the Zenoh link keeps no frame to send again.
         let received = again.last_received_sequence;
-        let lost: Vec<u64> = in_flight.iter().copied().filter(|&q| received.is_none_or(|r| q > r)).collect();
+        let (kept, lost): (VecDeque<u64>, VecDeque<u64>) = in_flight.drain(..).partition(|&q| received.is_some_and(|r| q <= r));
+        *in_flight = kept;
         if !lost.is_empty() {
-            in_flight.retain(|q| !lost.contains(q));
-            let _ = events.send(LinkEvent::Unanswered(lost)).await;
+            let _ = events.send(LinkEvent::Unanswered(lost.into())).await;
         }
     }
     Ok((again, answered))

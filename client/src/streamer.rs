@@ -103,25 +103,29 @@ pub struct ReturnedPose {
 /// again from that frame.
 const MAX_REALTIME_GAP_NS: u64 = 10_000_000_000;
 
-/// When to send the frame captured at `capture_ns` at the recording's own pace:
-/// `anchor` is the (capture time, wall time) pacing counts from, and the last frame's
-/// capture time; `now`, the wall clock. A gap over [`MAX_REALTIME_GAP_NS`] from the
-/// last frame, or a frame before it, moves the anchor to this frame (sent now).
-fn realtime_send_at(
-    anchor: &mut Option<((u64, tokio::time::Instant), u64)>,
+/// What `--rate realtime` paces from: a frame's capture time and the wall time it
+/// was sent at, and the last frame's capture time.
+#[derive(Debug, Clone, Copy)]
+struct RealtimeAnchor {
     capture_ns: u64,
-    now: tokio::time::Instant,
-) -> tokio::time::Instant {
+    wall: tokio::time::Instant,
+    last_ns: u64,
+}
+
+/// When to send the frame captured at `capture_ns` at the recording's own pace;
+/// `now`, the wall clock. A gap over [`MAX_REALTIME_GAP_NS`] from the last frame, or
+/// a frame before it, moves the anchor to this frame (sent now).
+fn realtime_send_at(anchor: &mut Option<RealtimeAnchor>, capture_ns: u64, now: tokio::time::Instant) -> tokio::time::Instant {
     match anchor {
-        Some(((t0, wall0), last)) if capture_ns >= *last && capture_ns - *last <= MAX_REALTIME_GAP_NS => {
-            *last = capture_ns;
-            *wall0 + Duration::from_nanos(capture_ns - *t0)
+        Some(a) if capture_ns >= a.last_ns && capture_ns - a.last_ns <= MAX_REALTIME_GAP_NS => {
+            a.last_ns = capture_ns;
+            a.wall + Duration::from_nanos(capture_ns - a.capture_ns)
         }
         _ => {
-            if let Some((_, last)) = anchor {
-                tracing::warn!("capture times jump from {last} ns to {capture_ns} ns: realtime pacing starts again from this frame");
+            if let Some(a) = anchor {
+                tracing::warn!("capture times jump from {} ns to {capture_ns} ns: realtime pacing starts again from this frame", a.last_ns);
             }
-            *anchor = Some(((capture_ns, now), capture_ns));
+            *anchor = Some(RealtimeAnchor { capture_ns, wall: now, last_ns: capture_ns });
             now
         }
     }
@@ -297,8 +301,7 @@ pub async fn stream(
     let mut max_message_bytes: Option<u64> = None;
     let mut pending: Option<Encoded> = None;
     let mut source_done = false;
-    // Realtime pacing's anchor (capture time, wall time) and the last capture time.
-    let mut first_capture: Option<((u64, tokio::time::Instant), u64)> = None;
+    let mut realtime: Option<RealtimeAnchor> = None;
     let mut next_send = tokio::time::Instant::now();
     let started = Instant::now();
 
@@ -374,7 +377,7 @@ pub async fn stream(
                     next_send = match options.rate {
                         Rate::Max => tokio::time::Instant::now(),
                         Rate::Fixed(_) => next_send.max(tokio::time::Instant::now() - Duration::from_secs(1)),
-                        Rate::Realtime => realtime_send_at(&mut first_capture, enc.frame.capture_time_ns, tokio::time::Instant::now()),
+                        Rate::Realtime => realtime_send_at(&mut realtime, enc.frame.capture_time_ns, tokio::time::Instant::now()),
                     };
                     pending = Some(enc);
                 }
