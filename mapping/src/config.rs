@@ -96,6 +96,10 @@ impl Default for MappingConfig {
     }
 }
 
+/// Largest `max_depth_m`: the reach of a keyframe's rays, which also sizes the
+/// blocks brought back from the store around it.
+const MAX_DEPTH_M: f64 = 20.0;
+
 impl MappingConfig {
     /// (Comparisons are negated so that NaN fails them too.)
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -104,11 +108,11 @@ impl MappingConfig {
         if !(self.voxel_size_m > 0.001 && self.voxel_size_m <= 1.0) {
             return bad("voxel_size_m must be in (0.001, 1] metres");
         }
-        if !(self.min_depth_m >= 0.0 && self.max_depth_m > self.min_depth_m) {
-            return bad("need 0 <= min_depth_m < max_depth_m");
+        if !(self.min_depth_m >= 0.0 && self.max_depth_m > self.min_depth_m && self.max_depth_m <= MAX_DEPTH_M) {
+            return bad("need 0 <= min_depth_m < max_depth_m <= 20 metres");
         }
-        if self.pixel_stride == 0 {
-            return bad("pixel_stride must be at least 1");
+        if !(1..=16).contains(&self.pixel_stride) {
+            return bad("pixel_stride must be within 1..=16");
         }
         if !(self.log_odds_hit > 0.0 && self.log_odds_miss < 0.0) {
             return bad("log_odds_hit must be positive and log_odds_miss negative");
@@ -116,11 +120,35 @@ impl MappingConfig {
         if !(self.log_odds_min < 0.0 && self.log_odds_max > self.occupied_log_odds && self.occupied_log_odds >= 0.0) {
             return bad("need log_odds_min < 0 <= occupied_log_odds < log_odds_max");
         }
-        if !(self.occupancy_resolution_m >= self.voxel_size_m) {
-            return bad("occupancy_resolution_m must be at least voxel_size_m");
+        if !(self.occupancy_resolution_m >= self.voxel_size_m && self.occupancy_resolution_m <= 1.0) {
+            return bad("occupancy_resolution_m must be within voxel_size_m..=1 metre");
         }
-        if self.occupancy_max_height_m <= self.occupancy_min_height_m {
-            return bad("occupancy_max_height_m must exceed occupancy_min_height_m");
+        let (low, high) = (self.occupancy_min_height_m, self.occupancy_max_height_m);
+        if !(low.is_finite() && high.is_finite() && high > low) {
+            return bad("occupancy_min_height_m and occupancy_max_height_m must be finite, the maximum above the minimum");
+        }
+        if !(self.carve_sigmas > 0.0 && self.carve_sigmas <= 100.0) {
+            return bad("carve_sigmas must be within (0, 100]");
+        }
+        if !(self.depth_noise_a >= 0.0 && self.depth_noise_a.is_finite() && self.depth_noise_b >= 0.0 && self.depth_noise_b.is_finite()) {
+            return bad("depth_noise_a and depth_noise_b must be finite and at least 0");
+        }
+        if !(self.refuse_translation_m >= 0.0
+            && self.refuse_translation_m.is_finite()
+            && self.refuse_rotation_deg >= 0.0
+            && self.refuse_rotation_deg.is_finite())
+        {
+            return bad("refuse_translation_m and refuse_rotation_deg must be finite and at least 0");
+        }
+        let up = nalgebra::Vector3::from(self.fallback_up_in_camera);
+        if !(up.iter().all(|v| v.is_finite()) && up.norm() >= 1e-3 && up.norm() <= 1e3) {
+            return bad("fallback_up_in_camera must be finite, with a length within 0.001..=1000");
+        }
+        if !self.tiles_max_height_m.is_finite() {
+            return bad("tiles_max_height_m must be finite");
+        }
+        if !(self.objects_min_confidence >= 0.0 && self.objects_min_confidence <= 1.0) {
+            return bad("objects_min_confidence must be within [0, 1]");
         }
         if self.max_resident_blocks == 0 {
             return bad("max_resident_blocks must be at least 1");

@@ -341,8 +341,11 @@ impl PerceptionConfig {
         if s.deterministic_every_frames > 0 && s.deterministic_delay_frames >= s.max_mask_age_frames {
             return Err("perception.segmentation.deterministic_delay_frames must be below max_mask_age_frames".into());
         }
-        if s.workers == 0 {
-            return Err("perception.segmentation.workers must be at least 1".into());
+        if !(1..=64).contains(&s.workers) {
+            return Err(format!("perception.segmentation.workers must be within 1..=64 (each loads the model), got {}", s.workers));
+        }
+        if s.intra_threads > 1024 {
+            return Err(format!("perception.segmentation.intra_threads must be within 0..=1024, got {}", s.intra_threads));
         }
         if !(0..=19).contains(&s.worker_nice) {
             return Err(format!("perception.segmentation.worker_nice must be in 0..=19, got {}", s.worker_nice));
@@ -366,8 +369,19 @@ impl PerceptionConfig {
         if !(1..=8).contains(&f.subsample) {
             return Err(format!("perception.flow.subsample must be in 1..=8, got {}", f.subsample));
         }
-        if !(f.pyr_scale > 0.0 && f.pyr_scale < 1.0) || f.levels < 1 || f.winsize < 3 || f.iterations < 1 {
-            return Err("perception.flow: pyr_scale must be in (0, 1), levels and iterations ≥ 1, winsize ≥ 3".into());
+        let flow_ok = f.pyr_scale > 0.0
+            && f.pyr_scale < 1.0
+            && (1..=10).contains(&f.levels)
+            && (3..=101).contains(&f.winsize)
+            && (1..=20).contains(&f.iterations);
+        if !flow_ok {
+            return Err(format!(
+                "perception.flow: pyr_scale must be within (0, 1), levels within 1..=10, winsize within 3..=101 and iterations within 1..=20, got {}, {}, {} and {}",
+                f.pyr_scale, f.levels, f.winsize, f.iterations
+            ));
+        }
+        if !(f.poly_sigma > 0.0 && f.poly_sigma <= 5.0) {
+            return Err(format!("perception.flow.poly_sigma must be within (0, 5], got {}", f.poly_sigma));
         }
         if f.poly_n != 5 && f.poly_n != 7 {
             return Err(format!("perception.flow.poly_n must be 5 or 7, got {}", f.poly_n));

@@ -208,8 +208,18 @@ impl Default for FleetConfig {
     }
 }
 
-/// Largest `session.pipeline_threads` and `session.map_threads`.
+/// Largest `session.pipeline_threads`, `session.map_threads` and `http.worker_threads`.
 const MAX_POOL_THREADS: usize = 1024;
+/// Largest `http.max_connections` (a semaphore's permits; tokio panics beyond 2^61).
+const MAX_HTTP_CONNECTIONS: usize = 1 << 20;
+/// Largest `session.result_buffer` (a channel's capacity per stream).
+const MAX_RESULT_BUFFER: usize = 65_536;
+/// Largest `store.import_max_bytes` (4 GiB: an import may hold 16 times as much).
+const MAX_IMPORT_BYTES: usize = 4 << 30;
+/// Largest `limits.frame_cpu_ms`: an hour (a `Duration` holds no more than 2^64 s).
+const MAX_FRAME_CPU_MS: f64 = 3_600_000.0;
+/// Largest `fleet.max_places` (about 60 KB each).
+const MAX_FLEET_PLACES: usize = 1_000_000;
 /// Largest `session.keyframe_images` (about 50 MB per session).
 const MAX_KEYFRAME_IMAGES: usize = 1024;
 
@@ -587,14 +597,21 @@ impl ServerConfig {
         if !(1..=MAX_POOL_THREADS).contains(&self.http.blocking_threads) {
             return bad(format!("http.blocking_threads must be in 1..={MAX_POOL_THREADS}, got {}", self.http.blocking_threads));
         }
-        if !(self.http.header_timeout_s >= 0.1 && self.http.header_timeout_s <= 3600.0) || self.http.max_connections == 0 {
+        let header_timeout = self.http.header_timeout_s >= 0.1 && self.http.header_timeout_s <= 3600.0;
+        if !(header_timeout && (1..=MAX_HTTP_CONNECTIONS).contains(&self.http.max_connections)) {
             return bad(format!(
-                "http.header_timeout_s must be within 0.1..=3600 and http.max_connections at least 1, got {} and {}",
+                "http.header_timeout_s must be within 0.1..=3600 and http.max_connections within 1..={MAX_HTTP_CONNECTIONS}, got {} and {}",
                 self.http.header_timeout_s, self.http.max_connections
             ));
         }
-        if self.session.result_buffer == 0 {
-            return bad("session.result_buffer must be at least 1".into());
+        if !(1..=MAX_RESULT_BUFFER).contains(&self.session.result_buffer) {
+            return bad(format!("session.result_buffer must be within 1..={MAX_RESULT_BUFFER}, got {}", self.session.result_buffer));
+        }
+        if !(1..=86_400).contains(&self.grpc.keepalive_interval_s) || !(1..=3600).contains(&self.grpc.keepalive_timeout_s) {
+            return bad(format!(
+                "grpc.keepalive_interval_s must be within 1..=86400 and grpc.keepalive_timeout_s within 1..=3600 seconds, got {} and {}",
+                self.grpc.keepalive_interval_s, self.grpc.keepalive_timeout_s
+            ));
         }
         if self.grpc.max_message_bytes < 1024 {
             return bad(format!("grpc.max_message_bytes {} is below 1024", self.grpc.max_message_bytes));
@@ -645,18 +662,18 @@ impl ServerConfig {
         if self.store.cache_bytes < 1 << 20 {
             return bad(format!("store.cache_bytes {} is below 1 MiB", self.store.cache_bytes));
         }
-        if self.store.import_max_bytes < 1024 {
-            return bad(format!("store.import_max_bytes {} is below 1024", self.store.import_max_bytes));
+        if !(1024..=MAX_IMPORT_BYTES).contains(&self.store.import_max_bytes) {
+            return bad(format!("store.import_max_bytes must be within 1024..={MAX_IMPORT_BYTES}, got {}", self.store.import_max_bytes));
         }
         let f = &self.fleet;
         stillmap_proto::validate_fleet(&f.default_fleet).map_err(|e| ServerError::Config(format!("fleet.default_fleet: {e}")))?;
         if !(1..=MAX_FLEET_CANDIDATES).contains(&f.candidates)
             || !(1..=MAX_FLEET_QUEUE).contains(&f.queue)
-            || f.max_places == 0
+            || !(1..=MAX_FLEET_PLACES).contains(&f.max_places)
             || f.max_fleets == 0
         {
             return bad(format!(
-                "fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE}, fleet.max_places and fleet.max_fleets at least 1"
+                "fleet.candidates must be in 1..={MAX_FLEET_CANDIDATES}, fleet.queue in 1..={MAX_FLEET_QUEUE}, fleet.max_places in 1..={MAX_FLEET_PLACES} and fleet.max_fleets at least 1"
             ));
         }
         if !(1..=MAX_FLEET_QUEUE).contains(&f.pending_keyframes) || !(1..=16).contains(&f.consistent_matches) || f.min_inliers < 6 {
@@ -673,9 +690,10 @@ impl ServerConfig {
                 f.agreement_m, f.agreement_deg
             ));
         }
-        if !(f.graph_interval_s >= 0.0 && f.graph_interval_s <= 3600.0 && f.loop_min_age_s >= 0.0 && f.loop_min_age_s <= 3600.0) {
+        let graph_interval = f.graph_interval_s == 0.0 || (f.graph_interval_s >= 0.05 && f.graph_interval_s <= 3600.0);
+        if !(graph_interval && f.loop_min_age_s >= 0.0 && f.loop_min_age_s <= 3600.0) {
             return bad(format!(
-                "fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600 seconds, got {} and {}",
+                "fleet.graph_interval_s must be 0 (off) or within 0.05..=3600 seconds and fleet.loop_min_age_s within 0..=3600, got {} and {}",
                 f.graph_interval_s, f.loop_min_age_s
             ));
         }
@@ -731,15 +749,15 @@ impl ServerConfig {
         if !(20..=5000).contains(&self.http.pose_event_interval_ms) {
             return bad(format!("http.pose_event_interval_ms must be within 20..=5000, got {}", self.http.pose_event_interval_ms));
         }
-        if self.http.worker_threads == 0 || !(0..=19).contains(&self.http.nice) {
+        if !(1..=MAX_POOL_THREADS).contains(&self.http.worker_threads) || !(0..=19).contains(&self.http.nice) {
             return bad(format!(
-                "http.worker_threads must be at least 1 and http.nice within 0..=19; got {} and {}",
+                "http.worker_threads must be within 1..={MAX_POOL_THREADS} and http.nice within 0..=19; got {} and {}",
                 self.http.worker_threads, self.http.nice
             ));
         }
-        if !(l.frame_cpu_ms.is_finite() && l.frame_cpu_ms >= 0.0) || l.frame_cpu_strikes == 0 {
+        if !(l.frame_cpu_ms >= 0.0 && l.frame_cpu_ms <= MAX_FRAME_CPU_MS) || l.frame_cpu_strikes == 0 {
             return bad(format!(
-                "limits.frame_cpu_ms must be 0 (no budget) or a positive number of milliseconds, and limits.frame_cpu_strikes at least 1; got {} and {}",
+                "limits.frame_cpu_ms must be 0 (no budget) or a number of milliseconds up to {MAX_FRAME_CPU_MS}, and limits.frame_cpu_strikes at least 1; got {} and {}",
                 l.frame_cpu_ms, l.frame_cpu_strikes
             ));
         }
@@ -895,7 +913,7 @@ mod tests {
         );
         assert!(err("[fleet]\ncandidates = 0\n").contains("fleet.candidates must be in 1..=32"));
         assert!(err("[fleet]\nagreement_m = -1.0\n").contains("fleet.agreement_m must be in (0, 1]"));
-        assert!(err("[fleet]\ngraph_interval_s = -1.0\n").contains("fleet.graph_interval_s and fleet.loop_min_age_s must be in 0..=3600"));
+        assert!(err("[fleet]\ngraph_interval_s = -1.0\n").contains("fleet.graph_interval_s must be 0 (off) or within 0.05..=3600 seconds"));
         assert!(err("[fleet]\nmap_save_interval_s = 0.0\n").contains("fleet.map_save_interval_s must be in (0, 3600] seconds, got 0"));
         assert!(err("[fleet]\nplace_sigma_m = 0.0\n").contains("place_sigma_m and place_sigma_deg must be in (0, 10]"));
         assert!(
@@ -929,9 +947,74 @@ mod tests {
         );
         assert_eq!(
             err("[fleet]\nmax_fleets = 0\n"),
-            "invalid configuration: fleet.candidates must be in 1..=32, fleet.queue in 1..=4096, fleet.max_places and fleet.max_fleets at least 1"
+            "invalid configuration: fleet.candidates must be in 1..=32, fleet.queue in 1..=4096, fleet.max_places in 1..=1000000 and fleet.max_fleets at least 1"
         );
         let c = ServerConfig::from_toml("[session]\npipeline_threads = 3\nmax_connected = 0\n").unwrap();
         assert_eq!((c.session.pipeline_threads, c.session.max_connected), (3, 0));
+    }
+
+    /// Values the server would take and then panic on, spin on or allocate without
+    /// bound at run time (a `Duration` beyond 2^64 s, a semaphore beyond tokio's
+    /// permits, a keepalive deadline of now, a pose-graph thread woken every
+    /// nanosecond, a 34 GB pyramid, a dense Hessian of every keyframe, NaN flow):
+    /// each is refused at start-up by its key.
+    #[test]
+    fn values_that_would_break_at_run_time_are_refused_at_start() {
+        let err = |toml: &str| ServerConfig::from_toml(toml).expect_err(toml).to_string();
+        assert_eq!(
+            err("[limits]\nframe_cpu_ms = 1e30\n"),
+            "invalid configuration: limits.frame_cpu_ms must be 0 (no budget) or a number of milliseconds up to 3600000, and limits.frame_cpu_strikes at least 1; got 1000000000000000000000000000000 and 3"
+        );
+        assert_eq!(
+            err("[session]\nresult_buffer = 4611686018427387904\n"),
+            "invalid configuration: session.result_buffer must be within 1..=65536, got 4611686018427387904"
+        );
+        assert!(err("[http]\nmax_connections = 4611686018427387904\n").contains("http.max_connections within 1..=1048576"));
+        assert!(err("[http]\nworker_threads = 100000\n").contains("http.worker_threads must be within 1..=1024"));
+        for toml in [
+            "[grpc]\nkeepalive_timeout_s = 0\n",
+            "[grpc]\nkeepalive_interval_s = 0\n",
+            "[grpc]\nkeepalive_interval_s = 9223372036854775807\n",
+        ] {
+            assert!(
+                err(toml).contains("grpc.keepalive_interval_s must be within 1..=86400 and grpc.keepalive_timeout_s within 1..=3600"),
+                "{toml}"
+            );
+        }
+        assert!(err("[fleet]\ngraph_interval_s = 1e-9\n").contains("fleet.graph_interval_s must be 0 (off) or within 0.05..=3600"));
+        assert_eq!(ServerConfig::from_toml("[fleet]\ngraph_interval_s = 0.0\n").expect("off").fleet.graph_interval_s, 0.0);
+        assert!(err("[fleet]\nmax_places = 4611686018427387904\n").contains("fleet.max_places in 1..=1000000"));
+        assert!(err("[store]\nimport_max_bytes = 1099511627776\n").contains("store.import_max_bytes must be within 1024..=4294967296"));
+        // The algorithms' own keys, checked by their crates.
+        for (toml, message) in [
+            ("[tracking]\npyramid_levels = 4000000000\n", "tracking.pyramid_levels within 1..=16"),
+            ("[tracking]\nscale_factor = inf\n", "tracking.scale_factor must be within (1, 2]"),
+            ("[tracking]\nba_window = 1000000000\n", "tracking.ba_window must be within 0..=64"),
+            ("[tracking]\nba_iterations = 4294967295\n", "tracking.ba_iterations within 1..=100"),
+            ("[tracking]\ndepth_edge_ratio = -1.0\n", "tracking.depth_edge_ratio must be within [0, 1]"),
+            (
+                "[tracking]\nlocal_map_search_radius_px = nan\n",
+                "tracking.motion_search_radius_px and tracking.local_map_search_radius_px must be within (0, 200] pixels",
+            ),
+            ("[tracking]\nkeyframe_tracked_ratio = nan\n", "tracking.keyframe_tracked_ratio must be within [0, 1]"),
+            ("[tracking]\nmax_descriptor_distance = 300\n", "tracking.max_descriptor_distance within 0..=256"),
+            ("[tracking]\nfast_threshold = 300\n", "tracking.fast_threshold must be within 1..=254"),
+            ("[perception.flow]\niterations = 2147483647\n", "iterations within 1..=20"),
+            ("[perception.flow]\npoly_sigma = nan\n", "perception.flow.poly_sigma must be within (0, 5]"),
+            ("[perception.segmentation]\nworkers = 100000\n", "perception.segmentation.workers must be within 1..=64"),
+            ("[perception.segmentation]\nintra_threads = 4294967298\n", "perception.segmentation.intra_threads must be within 0..=1024"),
+            ("[mapping]\npixel_stride = 4294967296\n", "pixel_stride must be within 1..=16"),
+            ("[mapping]\nmax_depth_m = inf\n", "need 0 <= min_depth_m < max_depth_m <= 20"),
+            ("[mapping]\noccupancy_min_height_m = nan\n", "occupancy_min_height_m and occupancy_max_height_m must be finite"),
+            ("[mapping]\noccupancy_resolution_m = 5.0\n", "occupancy_resolution_m must be within voxel_size_m..=1"),
+            ("[mapping]\nfallback_up_in_camera = [inf, 0.0, 0.0]\n", "fallback_up_in_camera must be finite"),
+            ("[mapping]\nfallback_up_in_camera = [0.0, 0.0, 0.0]\n", "fallback_up_in_camera must be finite"),
+            ("[mapping]\ncarve_sigmas = inf\n", "carve_sigmas must be within (0, 100]"),
+            ("[mapping]\nrefuse_translation_m = nan\n", "refuse_translation_m and refuse_rotation_deg must be finite and at least 0"),
+            ("[mapping]\nobjects_min_confidence = nan\n", "objects_min_confidence must be within [0, 1]"),
+            ("[mapping]\ntiles_max_height_m = nan\n", "tiles_max_height_m must be finite"),
+        ] {
+            assert!(err(toml).contains(message), "{toml}: {}", err(toml));
+        }
     }
 }

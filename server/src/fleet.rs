@@ -329,8 +329,18 @@ impl FleetService {
     }
 
     /// The fleet of a hello that named `requested` (empty: the default fleet).
+    /// The fleet a session belongs to: the one it named, the default where it named
+    /// none. A name no hello could give (read from a store or the shared storage)
+    /// is not made a fleet: the session goes to the default fleet, logged.
     pub fn fleet_for(&self, requested: &str) -> String {
-        if requested.is_empty() { self.shared.config.default_fleet.clone() } else { requested.to_string() }
+        if requested.is_empty() {
+            return self.shared.config.default_fleet.clone();
+        }
+        if let Err(e) = stillmap_proto::validate_fleet(requested) {
+            tracing::error!("a stored session names no fleet a robot could ({e}): it goes to the default fleet");
+            return self.shared.config.default_fleet.clone();
+        }
+        requested.to_string()
     }
 
     /// Hands a committed keyframe to place recognition; a full queue leaves it out.
@@ -413,7 +423,9 @@ impl FleetService {
         if f.members.iter().any(|m| m.session_id == session_id) {
             return false;
         }
-        let Some(mut frame) = carried.filter(|fr| fr.fleet == fleet) else {
+        // A frame read from the shared storage is used only if a merge could have
+        // written it (finite, a unit rotation); else the session merges again here.
+        let Some(mut frame) = carried.filter(|fr| fr.fleet == fleet && valid_pose7(&fr.fleet_from_session)) else {
             self.shared.member(f, fleet, session_id, robot_id);
             return false;
         };
@@ -443,12 +455,7 @@ impl FleetService {
         // Only what a solve could have written: finite, unit rotations, in time
         // order, at most one per place the fleet may index.
         if f.members[m].corrections.is_empty() {
-            let mut corrections: Vec<(u64, Isometry3<f64>)> =
-                graph.corrections.iter().filter(|(_, c)| valid_pose7(c)).map(|(t, c)| (*t, exact_isometry(c))).collect();
-            corrections.sort_by_key(|(t, _)| *t);
-            corrections.dedup_by_key(|(t, _)| *t);
-            let skip = corrections.len().saturating_sub(max);
-            f.members[m].corrections = Arc::new(corrections.split_off(skip));
+            f.members[m].corrections = Arc::new(checked_corrections(&graph.corrections, max));
         }
         let mut known: std::collections::HashSet<EdgeKey> = f.carried_edges.iter().map(edge_key).collect();
         for e in graph.edges.into_iter().filter(|e| valid_pose7(&e.a_from_b)).take(max) {
@@ -467,19 +474,29 @@ impl FleetService {
     /// Rebuilds the fleets from the store: sessions with a frame in their fleet,
     /// then the others, each in the order they started; their merges, and the
     /// keyframes of merged sessions in the index.
+    /// A fleet that was already here (an import into a running server) keeps its
+    /// live pose graph: only fleets this call brings get their stored one.
     pub fn restore(&self, stored: &[SessionHead]) {
-        let frames = match &self.shared.store {
+        let mut frames = match &self.shared.store {
             Some(store) => store.fleet_frames().unwrap_or_else(|e| {
                 tracing::error!("fleet merges cannot be read from the store: {e}");
                 HashMap::new()
             }),
             None => HashMap::new(),
         };
+        frames.retain(|session, frame| {
+            let valid = valid_pose7(&frame.fleet_from_session);
+            if !valid {
+                tracing::error!(session = session.as_str(), "a stored fleet merge is not a pose: left out, the session merges again");
+            }
+            valid
+        });
         let mut order: Vec<&SessionHead> = stored.iter().collect();
         // Sessions with a frame first: one without, coming back before them, would
         // otherwise anchor a fleet whose frame came with a resumed session's merge.
         order.sort_by_key(|s| (!frames.contains_key(&s.id), s.meta.started_unix_ns, s.id.clone()));
         let mut fleets = lock(&self.shared.fleets);
+        let live: std::collections::HashSet<String> = fleets.keys().cloned().collect();
         for s in order {
             let name = self.fleet_for(&s.meta.fleet);
             let camera = crate::convert::camera_of(&s.camera);
@@ -502,9 +519,12 @@ impl FleetService {
             }),
             None => HashMap::new(),
         };
+        let max = self.shared.config.max_places;
         for (name, graph) in graphs {
-            if let Some(f) = fleets.get_mut(&name) {
-                restore_graph(f, graph);
+            if !live.contains(&name)
+                && let Some(f) = fleets.get_mut(&name)
+            {
+                restore_graph(f, graph, max);
             }
         }
     }
@@ -592,12 +612,16 @@ fn stored_graph(f: &Fleet) -> FleetGraph {
 }
 
 /// Puts a stored pose graph back: its edges and corrections for the sessions the
-/// fleet has (merged ones: a correction is relative to the merge).
-fn restore_graph(f: &mut Fleet, g: FleetGraph) {
+/// fleet has (merged ones: a correction is relative to the merge). Only what a
+/// solve could have written comes back, as for a carried share
+/// ([`checked_corrections`]; edges with a pose, at most `max` of them).
+fn restore_graph(f: &mut Fleet, g: FleetGraph, max: usize) {
     let member = |f: &Fleet, session: &str| f.members.iter().position(|m| m.session_id == session && m.frame.is_some());
     f.edges = g
         .edges
         .iter()
+        .filter(|e| valid_pose7(&e.a_from_b))
+        .take(max)
         .filter_map(|e| {
             let a = (member(f, &e.a.0)? as u32, e.a.1);
             let b = (member(f, &e.b.0)? as u32, e.b.1);
@@ -607,10 +631,22 @@ fn restore_graph(f: &mut Fleet, g: FleetGraph) {
         .collect();
     for (session, list) in &g.corrections {
         if let Some(m) = member(f, session) {
-            f.members[m].corrections = Arc::new(list.iter().map(|(t, c)| (*t, exact_isometry(c))).collect());
+            f.members[m].corrections = Arc::new(checked_corrections(list, max));
         }
     }
     f.last_correction = g.last_solve;
+}
+
+/// A session's corrections as a solve could have written them, from stored or
+/// carried numbers: poses only ([`valid_pose7`]), in time order (served by a binary
+/// search), one per time, the latest `max` (one per place the fleet may index).
+fn checked_corrections(list: &[(u64, [f64; 7])], max: usize) -> Vec<(u64, Isometry3<f64>)> {
+    let mut corrections: Vec<(u64, Isometry3<f64>)> =
+        list.iter().filter(|(_, c)| valid_pose7(c)).map(|(t, c)| (*t, exact_isometry(c))).collect();
+    corrections.sort_by_key(|(t, _)| *t);
+    corrections.dedup_by_key(|(t, _)| *t);
+    let skip = corrections.len().saturating_sub(max);
+    corrections.split_off(skip)
 }
 
 /// An edge's two ends, in either order.
@@ -1358,10 +1394,28 @@ mod tests {
         let mut fresh = Fleet::default();
         fresh.members.push(service.shared.new_member("a", "alpha", Some(frame(true, &Isometry3::identity()))));
         fresh.members.push(service.shared.new_member("b", "beta", Some(frame(false, &wrong))));
-        restore_graph(&mut fresh, stored.clone());
+        restore_graph(&mut fresh, stored.clone(), 100);
         assert_eq!(fresh.edges.len(), 5);
         assert_eq!(stored_graph(&fresh).corrections, stored.corrections);
         assert_eq!(fresh.last_correction, stored.last_solve);
+        // Stored numbers no solve could write stay out (an edge without a pose, a
+        // correction whose rotation is not a unit one), as they do from a carried
+        // share; the rest comes back in time order, one per time, at most `max`.
+        let mut damaged = stored.clone();
+        damaged.edges[0].a_from_b[0] = f64::NAN;
+        let list = damaged.corrections.get_mut("b").expect("b's corrections");
+        list.reverse();
+        list.push(list[0]);
+        list.push((1_005, [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]));
+        let mut again = Fleet::default();
+        again.members.push(service.shared.new_member("a", "alpha", Some(frame(true, &Isometry3::identity()))));
+        again.members.push(service.shared.new_member("b", "beta", Some(frame(false, &wrong))));
+        restore_graph(&mut again, damaged, 3);
+        assert_eq!(again.edges.len(), 3, "four edges with a pose, three kept");
+        assert!(again.edges.iter().all(|e| e.a_from_b.translation.vector.iter().all(|v| v.is_finite())));
+        let times: Vec<u64> = again.members[1].corrections.iter().map(|(t, _)| *t).collect();
+        assert_eq!(times, vec![1_002, 1_003, 1_004]);
+        assert_eq!(again.members[1].corrections[2], b.corrections[4]);
         // Nothing new: no solve, none pending.
         service.solve_now();
         let view = service.get("lab").expect("fleet");
@@ -1397,6 +1451,12 @@ mod tests {
         assert_eq!(frame_of("lab", "d1"), None);
         assert!(!service.join_carried("lab", "e1", "robot-e", Some(FleetFrame { fleet: "other".into(), ..carried(false, "a0") })));
         assert_eq!(frame_of("lab", "e1"), None);
+        // A frame from the shared storage that no merge could have written (not a
+        // pose) is dropped too: the session merges again here.
+        let mut not_a_pose = carried(false, "a0");
+        not_a_pose.fleet_from_session[0] = f64::NAN;
+        assert!(!service.join_carried("lab", "n1", "robot-n", Some(not_a_pose)));
+        assert_eq!(frame_of("lab", "n1"), None);
         // Without a carried frame, a fleet's first session anchors it, as a new one does.
         assert!(!service.join_carried("yard", "y1", "robot-y", None));
         assert_eq!(frame_of("yard", "y1").map(|f| (f.anchor, f.lineage)), Some((true, "y1".to_string())));
@@ -1600,6 +1660,69 @@ mod tests {
         let frame_of = |id: &str| view.members.iter().find(|m| m.session_id == id).and_then(|m| m.frame.clone());
         assert_eq!(frame_of("b1").map(|f| (f.anchor, f.lineage)), Some((false, "a0".to_string())));
         assert_eq!(frame_of("c0"), None, "not an anchor of another frame");
+        service.close();
+        let _ = std::fs::remove_file(&path);
+    }
+
+    /// What is read back at a restart, or with an import into a running server,
+    /// never replaces a live fleet's state nor comes back when no merge or solve
+    /// could have written it.
+    #[test]
+    fn stored_fleet_state_comes_back_checked_and_leaves_live_fleets_alone() {
+        let path = std::env::temp_dir().join(format!("stillmap-fleet-checked-{}.redb", std::process::id()));
+        let _ = std::fs::remove_file(&path);
+        let store = Arc::new(Store::open(&path).expect("store"));
+        let solve = |solved_unix_ns: u64| crate::store::GraphSolve {
+            solved_unix_ns,
+            keyframes: 0,
+            odometry_edges: 0,
+            loop_edges: 0,
+            inter_session_edges: 0,
+            moved_keyframes: 0,
+            max_translation_m: 0.0,
+            max_rotation_deg: 0.0,
+            solve_ms: 0.0,
+        };
+        store.put_fleet_graph("lab", &FleetGraph { last_solve: Some(solve(1)), ..Default::default() }).expect("graph");
+        let mut not_a_pose = frame(false, &Isometry3::identity());
+        not_a_pose.fleet_from_session[6] = 0.0;
+        store.put_fleet_frame("n1", &not_a_pose).expect("frame");
+        let head = |id: &str, fleet: &str| SessionHead {
+            id: id.into(),
+            meta: crate::store::SessionMeta {
+                robot_id: format!("robot-{id}"),
+                transport: "grpc".into(),
+                started_unix_ns: 1,
+                class_names: vec![],
+                up_in_world: None,
+                up_source: None,
+                keyframes: 0,
+                map_stamp: 0,
+                fleet: fleet.into(),
+            },
+            camera: stillmap_proto::pb::CameraInfo::default(),
+            pose_count: 0,
+            latest: None,
+            keyframes: vec![],
+        };
+        let service =
+            FleetService::start(&FleetConfig::default(), &MappingConfig::default(), Some(store.clone()), Arc::default()).expect("started");
+        // At start: the fleet's graph comes back; a stored merge that is not a pose does not.
+        service.restore(&[head("a0", "lab"), head("n1", "lab"), head("q9", "lab/../x")]);
+        let view = service.get("lab").expect("the fleet");
+        assert_eq!(view.last_correction.map(|c| c.solved_unix_ns), Some(1));
+        let member = |id: &str| view.members.iter().find(|m| m.session_id == id).cloned();
+        assert!(member("n1").is_some_and(|m| m.frame.is_none()), "merges again");
+        // A stored session naming a fleet no robot could name goes to the default fleet.
+        assert!(service.get("lab/../x").is_none());
+        assert!(service.get("default").is_some_and(|v| v.members.iter().any(|m| m.session_id == "q9")));
+        // An import while the server runs: the live fleet keeps its own graph, even
+        // where the store holds another (its next solve writes the live one).
+        store.put_fleet_graph("lab", &FleetGraph { last_solve: Some(solve(2)), ..Default::default() }).expect("graph");
+        service.restore(&[head("i2", "lab")]);
+        let view = service.get("lab").expect("the fleet");
+        assert_eq!(view.last_correction.map(|c| c.solved_unix_ns), Some(1), "not the stored graph's");
+        assert!(view.members.iter().any(|m| m.session_id == "i2"));
         service.close();
         let _ = std::fs::remove_file(&path);
     }

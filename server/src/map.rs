@@ -230,8 +230,12 @@ impl SessionMap {
                 }
             }
         }
+        // Keys whose stored block is merged into memory now: no longer only in the
+        // store, whether this commit lands or not.
+        let mut merged = Vec::with_capacity(stored.len());
         for (i, block) in stored {
             evicted[i].1.merge_older(&block, min, max);
+            merged.push(evicted[i].0);
         }
         // What this commit would make true; `p.meta` keeps what the store holds
         // until it has (committed_keyframes must not count a failed commit's).
@@ -265,6 +269,11 @@ impl SessionMap {
             Err(e) => {
                 for (k, b) in evicted {
                     self.builder.restore_block(k, b);
+                }
+                // Back in memory with the stored data merged in: the next commit must
+                // not merge it a second time.
+                for key in merged {
+                    p.cold.remove(&key);
                 }
                 Err(e)
             }

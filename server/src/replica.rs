@@ -727,7 +727,8 @@ fn read_session(
     records.reverse();
     let mut blocks = Vec::new();
     for r in client.query("SELECT x, y, z, block FROM stillmap_blocks WHERE session_id = $1", &[&id]).map_err(read)? {
-        let key = [r.get::<_, i32>(0), r.get::<_, i32>(1), r.get::<_, i32>(2)];
+        let key = crate::store::checked_block_key([r.get::<_, i32>(0), r.get::<_, i32>(1), r.get::<_, i32>(2)])
+            .map_err(|e| corrupt("map block", &e))?;
         blocks.push((key, decode_block(r.get::<_, &[u8]>(3)).map_err(|e| corrupt("map block", &e))?));
     }
     let session = Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks });

@@ -579,8 +579,8 @@ impl Store {
             let (k, v) = entry.map_err(|e| self.err(e))?;
             let (fleet, x, y, z) = k.value();
             let Some((_, blocks)) = out.get_mut(fleet) else { continue };
-            match decode_block(v.value()) {
-                Ok(block) => blocks.push(([x, y, z], block)),
+            match checked_block_key([x, y, z]).and_then(|key| Ok((key, decode_block(v.value())?))) {
+                Ok((key, block)) => blocks.push((key, block)),
                 Err(e) => {
                     tracing::error!(fleet, "the stored fused fleet map is left out: {e}");
                     out.remove(fleet);
@@ -609,7 +609,9 @@ impl Store {
     }
 
     /// Every JSON value of `table` by key (none when a store older than the table
-    /// was opened read-only); `what` names a value that does not parse.
+    /// was opened read-only). A value that does not parse is left out, logged with
+    /// `what` and its key: one damaged row costs its own fleet or session, not every
+    /// other's (whose state the server would otherwise start afresh and overwrite).
     fn all_json<T: serde::de::DeserializeOwned>(
         &self,
         table: TableDefinition<&str, &[u8]>,
@@ -624,8 +626,12 @@ impl Store {
         let mut out = std::collections::HashMap::new();
         for entry in table.iter().map_err(|e| self.err(e))? {
             let (k, v) = entry.map_err(|e| self.err(e))?;
-            let value: T = serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt(format!("{what} {}: {e}", k.value())))?;
-            out.insert(k.value().to_string(), value);
+            match serde_json::from_slice::<T>(v.value()) {
+                Ok(value) => {
+                    out.insert(k.value().to_string(), value);
+                }
+                Err(e) => tracing::error!(path = %self.path.display(), "the stored {what} {} is left out: {e}", k.value()),
+            }
         }
         Ok(out)
     }
@@ -764,7 +770,7 @@ impl Store {
         for b in blocks.range((id, i32::MIN, i32::MIN, i32::MIN)..=(id, i32::MAX, i32::MAX, i32::MAX)).map_err(|e| self.err(e))? {
             let (k, v) = b.map_err(|e| self.err(e))?;
             let (_, x, y, z) = k.value();
-            bl.push(([x, y, z], decode_block(v.value())?));
+            bl.push((checked_block_key([x, y, z])?, decode_block(v.value())?));
         }
         Ok(Some(StoredSession { id: id.to_string(), meta, camera, poses: trajectory, keyframes: kfs, blocks: bl }))
     }
@@ -917,6 +923,18 @@ pub const IMPORT_MEMORY_FACTOR: usize = 16;
 const BLOCK_IN_MEMORY: usize =
     std::mem::size_of::<Block>() + std::mem::size_of::<[stillmap_mapping::voxel::Voxel; stillmap_mapping::voxel::VOXELS_PER_BLOCK]>();
 
+/// A block key read back (from this store, a map file or the shared storage):
+/// within the map's range, as every key the mapper makes is
+/// ([`MAX_BLOCK_INDEX`](stillmap_mapping::voxel::MAX_BLOCK_INDEX)); beyond it a
+/// voxel's index would overflow.
+pub fn checked_block_key(key: BlockKey) -> Result<BlockKey, StoreError> {
+    if stillmap_mapping::voxel::block_in_range(key) {
+        Ok(key)
+    } else {
+        Err(StoreError::Corrupt(format!("map block key {key:?} lies outside the map's range")))
+    }
+}
+
 /// Reads a file [`export`] wrote, decompressing at most `max_bytes`; every problem
 /// is named, block keys outside the map's range
 /// ([`MAX_BLOCK_INDEX`](stillmap_mapping::voxel::MAX_BLOCK_INDEX)) or repeated are
@@ -930,6 +948,9 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
     let id = header["session_id"].as_str().ok_or_else(|| file_error("header has no session_id"))?.to_string();
     stillmap_proto::validate_robot_id(&id).map_err(|e| file_error(format!("session id: {e}")))?;
     let meta: SessionMeta = serde_json::from_value(header["meta"].clone()).map_err(|e| file_error(format!("header: {e}")))?;
+    if !meta.fleet.is_empty() {
+        stillmap_proto::validate_fleet(&meta.fleet).map_err(|e| file_error(format!("header: {e}")))?;
+    }
     let camera = pb::CameraInfo::decode(r.section()?).map_err(|e| file_error(format!("camera: {e}")))?;
     crate::pipeline::decode::validate_camera(Some(&camera)).map_err(|e| file_error(format!("camera: {e}")))?;
     // What the parsed file takes in memory, checked before each item is made.
@@ -1079,6 +1100,13 @@ mod tests {
         };
         store.put_fleet_frame("s1", &frame).unwrap();
         assert_eq!(store.fleet_frames().unwrap().get("s1"), Some(&frame));
+        // One damaged row is left out; the others come back (before, the whole
+        // table failed and every fleet started afresh, overwriting its state).
+        store.put_json(FLEET_FRAMES, "s0", &"not a frame").unwrap();
+        store.put_json(FLEET_GRAPHS, "broken", &[1, 2, 3]).unwrap();
+        let frames = store.fleet_frames().unwrap();
+        assert_eq!((frames.len(), frames.get("s1")), (1, Some(&frame)));
+        assert!(store.fleet_graphs().unwrap().is_empty());
         // The one-file export round-trips exactly, and bad files are named.
         let file = export(s).unwrap();
         let back = import_file(&file, 1 << 20).unwrap();
@@ -1086,6 +1114,14 @@ mod tests {
         assert!(back.blocks == s.blocks && back.poses == s.poses && back.meta == s.meta && back.camera == s.camera, "import differs");
         assert!(export(&back).unwrap() == file, "re-export differs");
         assert_eq!(import_file(b"PK\x03\x04", 1 << 20).unwrap_err().to_string(), "bad map file: not a stillmap map file (bad magic)");
+        // A fleet no robot could name (it would be made a fleet nobody can join,
+        // and its name written into headers and URLs).
+        let mut named = s.clone();
+        named.meta.fleet = "lab\"/x".into();
+        assert_eq!(
+            import_file(&export(&named).unwrap(), 1 << 20).unwrap_err().to_string(),
+            "bad map file: header: fleet \"lab\\\"/x\" contains '\"'; allowed are A-Z a-z 0-9 _ -"
+        );
         let mut cut = file.clone();
         cut.truncate(cut.len() - 5);
         assert!(import_file(&cut, 1 << 20).unwrap_err().to_string().starts_with("bad map file: "));

@@ -421,6 +421,9 @@ async fn robot_b_joins_robot_as_frame_and_the_merge_survives_a_restart() {
     assert!(http_t.iter().zip([t.x, t.y, t.z]).all(|(h, g)| (h - g).abs() <= 1e-12 * g.abs().max(1.0)), "HTTP {http_t:?}, gRPC {t:?}");
     let status = q.get_fleet_poses(pb::FleetRef { fleet: "nobody".into() }).await.expect_err("unknown fleet");
     assert_eq!(status.code(), tonic::Code::NotFound);
+    // A name no robot could give is refused as such, before any lookup or forwarding.
+    let status = q.get_fleet_poses(pb::FleetRef { fleet: "x".repeat(1 << 20) }).await.expect_err("not a fleet name");
+    assert_eq!((status.code(), status.message()), (tonic::Code::InvalidArgument, "fleet: fleet must be 1-64 characters, got 1048576"));
 
     // Frames are named; bad ones are refused.
     let (status, body) = server.get_json(&format!("/api/v1/sessions/{b_id}/pose?frame=fleet")).await;

@@ -155,16 +155,64 @@ pub struct TrackerConfig {
     pub coast_min_agreement: f64,
 }
 
+/// Largest `tracking.candidate_features` (ORB's corners before the grid keeps `features`).
+const MAX_CANDIDATE_FEATURES: usize = 100_000;
+/// Largest `tracking.ba_window`: local BA's Hessian is dense in the window's poses.
+const MAX_BA_WINDOW: usize = 64;
+/// Largest `tracking.ba_iterations` (each a linearisation of the whole window).
+const MAX_BA_ITERATIONS: u32 = 100;
+/// Largest `tracking.local_keyframes` and `tracking.relocalization_candidates`.
+const MAX_LOCAL_KEYFRAMES: usize = 200;
+
 impl TrackerConfig {
     /// Rejects values the tracker cannot run with; the message names the key.
     /// (Comparisons are negated so that NaN fails them too.)
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn validate(&self) -> Result<(), String> {
-        if self.features == 0 || self.candidate_features < self.features {
-            return Err("tracking.features must be at least 1 and at most tracking.candidate_features".into());
+        if self.features == 0 || self.candidate_features < self.features || self.candidate_features > MAX_CANDIDATE_FEATURES {
+            return Err(format!(
+                "tracking.features must be at least 1 and at most tracking.candidate_features, itself at most {MAX_CANDIDATE_FEATURES}"
+            ));
         }
-        if !(self.scale_factor > 1.0) || self.pyramid_levels == 0 {
-            return Err("tracking.scale_factor must be above 1 and tracking.pyramid_levels at least 1".into());
+        if !(self.scale_factor > 1.0 && self.scale_factor <= 2.0 && (1..=16).contains(&self.pyramid_levels)) {
+            return Err(format!(
+                "tracking.scale_factor must be within (1, 2] and tracking.pyramid_levels within 1..=16, got {} and {}",
+                self.scale_factor, self.pyramid_levels
+            ));
+        }
+        if !(1..=254).contains(&self.fast_threshold) || self.max_descriptor_distance > 256 {
+            return Err(format!(
+                "tracking.fast_threshold must be within 1..=254 and tracking.max_descriptor_distance within 0..=256, got {} and {}",
+                self.fast_threshold, self.max_descriptor_distance
+            ));
+        }
+        if !(self.depth_edge_ratio >= 0.0 && self.depth_edge_ratio <= 1.0) {
+            return Err(format!("tracking.depth_edge_ratio must be within [0, 1], got {}", self.depth_edge_ratio));
+        }
+        let radius = |r: f64| r > 0.0 && r <= 200.0;
+        if !(radius(self.motion_search_radius_px) && radius(self.local_map_search_radius_px)) {
+            return Err(format!(
+                "tracking.motion_search_radius_px and tracking.local_map_search_radius_px must be within (0, 200] pixels, got {} and {}",
+                self.motion_search_radius_px, self.local_map_search_radius_px
+            ));
+        }
+        if !(self.keyframe_tracked_ratio >= 0.0 && self.keyframe_tracked_ratio <= 1.0) || self.keyframe_max_interval == 0 {
+            return Err(format!(
+                "tracking.keyframe_tracked_ratio must be within [0, 1] and tracking.keyframe_max_interval at least 1, got {} and {}",
+                self.keyframe_tracked_ratio, self.keyframe_max_interval
+            ));
+        }
+        if self.ba_window > MAX_BA_WINDOW || !(1..=MAX_BA_ITERATIONS).contains(&self.ba_iterations) {
+            return Err(format!(
+                "tracking.ba_window must be within 0..={MAX_BA_WINDOW} and tracking.ba_iterations within 1..={MAX_BA_ITERATIONS}, got {} and {}",
+                self.ba_window, self.ba_iterations
+            ));
+        }
+        if self.local_keyframes == 0 || self.local_keyframes > MAX_LOCAL_KEYFRAMES || self.relocalization_candidates > MAX_LOCAL_KEYFRAMES {
+            return Err(format!(
+                "tracking.local_keyframes must be within 1..={MAX_LOCAL_KEYFRAMES} and tracking.relocalization_candidates within 0..={MAX_LOCAL_KEYFRAMES}, got {} and {}",
+                self.local_keyframes, self.relocalization_candidates
+            ));
         }
         if !(self.min_depth_m > 0.0 && self.max_depth_m > self.min_depth_m) {
             return Err("tracking.min_depth_m must be positive and below tracking.max_depth_m".into());

@@ -139,6 +139,8 @@ impl QueryService {
     }
 
     fn fleet(&self, name: &str) -> Result<(Arc<crate::fleet::FleetService>, crate::fleet::FleetView), Status> {
+        // A name no hello could give is refused before it is looked up or forwarded.
+        stillmap_proto::validate_fleet(name).map_err(|e| Status::invalid_argument(format!("fleet: {e}")))?;
         let fleets = self.registry.fleets().ok_or_else(|| Status::not_found("fleets are off on this server (fleet.enabled)"))?;
         let fleet = fleets.get(name).ok_or_else(|| Status::not_found(format!("unknown fleet {name:?}")))?;
         Ok((fleets.clone(), fleet))
@@ -170,9 +172,9 @@ impl Query for QueryService {
                 out.unmerged_session_ids.push(m.session_id.clone());
                 continue;
             };
-            let Some(session) = self.registry.get(&m.session_id) else { continue };
-            let latest = session.tracking().latest;
-            if let Some(p) = latest {
+            // The latest pose alone: a stored member's info holds it, without
+            // loading its map and trajectory back into memory.
+            if let Some(p) = self.registry.info(&m.session_id).and_then(|i| i.latest) {
                 out.poses.push(pb::FleetPose {
                     session_id: m.session_id.clone(),
                     robot_id: m.robot_id.clone(),

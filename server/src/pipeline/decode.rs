@@ -260,8 +260,10 @@ pub fn validate_camera(camera: Option<&pb::CameraInfo>) -> Result<&pb::CameraInf
             ));
         }
     }
-    if !c.cx.is_finite() || !c.cy.is_finite() {
-        return Err("camera principal point is not finite".into());
+    // Within the image, as every calibration has it: cx = 1e6 with fx = 500 passes
+    // the field of view, yet shears each depth sample kilometres sideways.
+    if !((0.0..=f64::from(c.width)).contains(&c.cx) && (0.0..=f64::from(c.height)).contains(&c.cy)) {
+        return Err(format!("camera principal point ({}, {}) lies outside the {}x{} image", c.cx, c.cy, c.width, c.height));
     }
     if !(c.nominal_rate_hz.is_finite() && (0.0..=MAX_NOMINAL_RATE_HZ).contains(&c.nominal_rate_hz)) {
         return Err(format!("nominal_rate_hz must be within 0..={MAX_NOMINAL_RATE_HZ} (0: unknown), got {}", c.nominal_rate_hz));
@@ -487,6 +489,14 @@ mod tests {
                 validate_camera(Some(&c)).unwrap_err(),
                 format!("distortion coefficients must be finite and within ±1000, got {bad}")
             );
+        }
+        // The principal point lies in the image (at its edges too).
+        let mut c = hello_camera();
+        (c.cx, c.cy) = (0.0, 32.0);
+        assert!(validate_camera(Some(&c)).is_ok());
+        for (cx, cy) in [(1e6, 16.0), (16.0, -0.5), (f64::NAN, 16.0), (16.0, f64::INFINITY)] {
+            (c.cx, c.cy) = (cx, cy);
+            assert_eq!(validate_camera(Some(&c)).unwrap_err(), format!("camera principal point ({cx}, {cy}) lies outside the 32x32 image"));
         }
         // Without a model, a million coefficients would be stored with the session.
         let mut c = hello_camera();
