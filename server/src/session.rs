@@ -90,6 +90,25 @@ pub struct TrackState {
     pub trajectory: Vec<pb::PoseStamped>,
 }
 
+/// Poses a trajectory query answers with when it names no limit on gRPC (about
+/// 2 MB, under a client's default 4 MiB message limit).
+pub const DEFAULT_TRAJECTORY_PAGE: usize = 20_000;
+/// The most poses one trajectory answer holds (HTTP's default): about 1.9 hours
+/// at 30 Hz, 18 MB as TUM text.
+pub const MAX_TRAJECTORY_PAGE: usize = 200_000;
+
+impl TrackState {
+    /// The poses captured within `start_ns..=end_ns`, in the order they came, at
+    /// most `limit` of them, and where the next page starts (one nanosecond after
+    /// the latest capture time given) when more of the range follow.
+    pub fn page(&self, start_ns: u64, end_ns: u64, limit: usize) -> (Vec<pb::PoseStamped>, Option<u64>) {
+        let mut in_range = self.trajectory.iter().filter(|p| (start_ns..=end_ns).contains(&p.capture_time_ns));
+        let poses: Vec<pb::PoseStamped> = in_range.by_ref().take(limit).cloned().collect();
+        let next = in_range.next().map(|_| poses.iter().map(|p| p.capture_time_ns).max().unwrap_or(start_ns).saturating_add(1));
+        (poses, next)
+    }
+}
+
 pub struct Session {
     pub id: String,
     pub robot_id: String,
@@ -1899,6 +1918,23 @@ impl Registry {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A trajectory answered in pages: the range, the limit, and where the next
+    /// page starts exactly when more of the range follow.
+    #[test]
+    fn a_trajectory_is_answered_in_pages() {
+        let pose = |sequence: u64, capture_time_ns: u64| pb::PoseStamped { sequence, capture_time_ns, ..Default::default() };
+        let track = TrackState { trajectory: (0..10).map(|i| pose(i, 100 + 10 * i)).collect(), ..Default::default() };
+        let times =
+            |(poses, next): (Vec<pb::PoseStamped>, Option<u64>)| (poses.iter().map(|p| p.capture_time_ns).collect::<Vec<_>>(), next);
+        assert_eq!(times(track.page(0, u64::MAX, 4)), (vec![100, 110, 120, 130], Some(131)));
+        assert_eq!(times(track.page(131, u64::MAX, 4)), (vec![140, 150, 160, 170], Some(171)));
+        assert_eq!(times(track.page(171, u64::MAX, 4)), (vec![180, 190], None));
+        assert_eq!(times(track.page(0, u64::MAX, 10)), ((100..=190).step_by(10).collect(), None), "exactly the limit: no next page");
+        assert_eq!(times(track.page(120, 150, 2)), (vec![120, 130], Some(131)));
+        assert_eq!(times(track.page(140, 150, 2)), (vec![140, 150], None), "the rest is out of the range");
+        assert_eq!(times(track.page(191, u64::MAX, 2)), (vec![], None));
+    }
 
     fn small_camera() -> pb::CameraInfo {
         pb::CameraInfo {

@@ -600,6 +600,41 @@ async fn camera_timing_is_checked_and_reaches_the_session() {
         let capture_ns = p["capture_time_ns"].as_u64().expect("capture time");
         assert_eq!(p["pose_time_ns"].as_u64(), Some(capture_ns - 4_000_000), "{p}");
     }
+    assert!(trajectory.get("next_start_ns").is_none(), "everything in one answer: {trajectory}");
+
+    // Paged: at most `limit` poses an answer, and where the next starts.
+    let captured: Vec<u64> = poses.iter().filter_map(|p| p["capture_time_ns"].as_u64()).collect();
+    assert!(captured.len() >= 2, "{trajectory}");
+    let path = format!("/api/v1/sessions/{id}/trajectory");
+    let (status, first) = server.get_json(&format!("{path}?limit=1")).await;
+    assert_eq!(status, 200);
+    assert_eq!(first["poses"].as_array().map(|p| p.len()), Some(1));
+    assert_eq!(first["next_start_ns"].as_u64(), Some(captured[0] + 1));
+    let (_, rest) = server.get_json(&format!("{path}?start_ns={}", captured[0] + 1)).await;
+    let rest: Vec<u64> = rest["poses"].as_array().expect("poses").iter().filter_map(|p| p["capture_time_ns"].as_u64()).collect();
+    assert_eq!(rest, captured[1..]);
+    let text = server.get_text(&format!("{path}?format=tum&limit=1")).await;
+    assert!(text.ends_with(&format!("# more poses follow: ask again with start_ns={}\n", captured[0] + 1)), "{text}");
+    for (query, message) in [
+        ("limit=0", "limit must be within 1..=200000 poses (page with start_ns), got 0"),
+        ("limit=200001", "limit must be within 1..=200000 poses (page with start_ns), got 200001"),
+        ("start_ns=5&end_ns=4", "start_ns 5 is after end_ns 4"),
+    ] {
+        let (status, body) = server.get_json(&format!("{path}?{query}")).await;
+        assert_eq!((status, body["error"].as_str()), (400, Some(message)), "{query}");
+    }
+    let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
+    let page = q
+        .get_trajectory(pb::TrajectoryRequest { session_id: id.clone(), limit: 1, ..Default::default() })
+        .await
+        .expect("a page")
+        .into_inner();
+    assert_eq!((page.poses.len(), page.next_start_ns), (1, captured[0] + 1));
+    let status = q
+        .get_trajectory(pb::TrajectoryRequest { session_id: id.clone(), limit: 200_001, ..Default::default() })
+        .await
+        .expect_err("too many");
+    assert_eq!(status.code(), Code::InvalidArgument);
 }
 
 /// Rates and durations out of range are one-line errors before anything starts

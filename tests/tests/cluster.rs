@@ -536,7 +536,7 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
             assert!(latest.pose.is_some(), "{id}: {latest:?}");
             // The trajectory up to the latest pose answered there is the holder's own.
             let until = latest.pose.as_ref().map_or(0, |p| p.capture_time_ns);
-            let range = pb::TrajectoryRequest { session_id: id.clone(), start_ns: 0, end_ns: until };
+            let range = pb::TrajectoryRequest { session_id: id.clone(), start_ns: 0, end_ns: until, ..Default::default() };
             let forwarded = there.get_trajectory(range.clone()).await.expect("trajectory from the other server").into_inner();
             let own = here.get_trajectory(range).await.expect("trajectory").into_inner();
             assert!(

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use axum::Extension;
 use axum::extract::DefaultBodyLimit;
 use axum::extract::{Path, Query, State};
-use axum::http::{HeaderMap, StatusCode, header};
+use axum::http::{HeaderMap, HeaderName, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
@@ -191,7 +191,6 @@ const FLEET_FRAME: &str = "fleet = the world of the session that anchors the fle
 pub(crate) struct FrameQuery {
     /// `world` (the session's own, the default) or `fleet`.
     frame: Option<String>,
-    format: Option<String>,
 }
 
 /// The transform taking this session's poses into the asked frame, and that frame's description.
@@ -265,9 +264,12 @@ pub(crate) async fn get_pose(
         ("id" = String, Path, description = "Session id"),
         ("frame" = Option<String>, Query, description = "world (the session's own, default) or fleet"),
         ("format" = Option<String>, Query, description = "json (default) or tum (text: timestamp tx ty tz qx qy qz qw)"),
+        ("start_ns" = Option<u64>, Query, description = "Capture times from (inclusive, ns; default 0)"),
+        ("end_ns" = Option<u64>, Query, description = "Capture times up to (inclusive, ns; default: all)"),
+        ("limit" = Option<usize>, Query, description = "Poses per answer, at most and by default 200000; where more follow, `next_start_ns` (JSON), a last comment line (TUM) and the `x-stillmap-next-start-ns` header say where to ask from"),
     ),
     responses(
-        (status = 200, description = "Every pose, oldest first", body = Trajectory, content_type = "application/json"),
+        (status = 200, description = "The poses, oldest first", body = Trajectory, content_type = "application/json"),
         (status = 200, description = "TUM trajectory text", body = String, content_type = "text/plain"),
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown session or no map", body = ApiError),
@@ -277,8 +279,19 @@ pub(crate) async fn get_pose(
 pub(crate) async fn get_trajectory(
     State(registry): State<Arc<Registry>>,
     Path(id): Path<String>,
-    JsonQuery(q): JsonQuery<FrameQuery>,
+    JsonQuery(q): JsonQuery<TrajectoryQuery>,
 ) -> Response {
+    let (start_ns, end_ns) = (q.start_ns.unwrap_or(0), q.end_ns.unwrap_or(u64::MAX));
+    if start_ns > end_ns {
+        return error(StatusCode::BAD_REQUEST, format!("start_ns {start_ns} is after end_ns {end_ns}"));
+    }
+    let limit = q.limit.unwrap_or(crate::session::MAX_TRAJECTORY_PAGE);
+    if !(1..=crate::session::MAX_TRAJECTORY_PAGE).contains(&limit) {
+        return error(
+            StatusCode::BAD_REQUEST,
+            format!("limit must be within 1..={} poses (page with start_ns), got {limit}", crate::session::MAX_TRAJECTORY_PAGE),
+        );
+    }
     let Some(s) = registry.get(&id) else {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     };
@@ -286,12 +299,17 @@ pub(crate) async fn get_trajectory(
         Ok(f) => f,
         Err((code, message)) => return error(code, message),
     };
-    let poses: Vec<pb::PoseStamped> = s.tracking().trajectory.iter().map(|p| in_frame(p, transform.as_ref())).collect();
-    match q.format.as_deref() {
-        None | Some("json") => {
-            Json(Trajectory { session_id: s.id.clone(), frame: frame.to_string(), poses: poses.iter().map(PoseView::from).collect() })
-                .into_response()
-        }
+    let (poses, next) = s.tracking().page(start_ns, end_ns, limit);
+    let poses: Vec<pb::PoseStamped> = poses.iter().map(|p| in_frame(p, transform.as_ref())).collect();
+    let next_header = next.map(|n| [(HeaderName::from_static(NEXT_START_HEADER), HeaderValue::from(n))]);
+    let body = match q.format.as_deref() {
+        None | Some("json") => Json(Trajectory {
+            session_id: s.id.clone(),
+            frame: frame.to_string(),
+            poses: poses.iter().map(PoseView::from).collect(),
+            next_start_ns: next,
+        })
+        .into_response(),
         Some("tum") => {
             let mut text = format!("# timestamp tx ty tz qx qy qz qw ({frame}; timestamp = pose_time_ns)\n");
             for p in &poses {
@@ -299,10 +317,28 @@ pub(crate) async fn get_trajectory(
                 let (t, r) = (pose.translation.unwrap_or_default(), pose.rotation.unwrap_or_default());
                 stillmap_dataset::trajectory::push_line_ns(&mut text, p.time_ns(), [t.x, t.y, t.z], [r.x, r.y, r.z, r.w]);
             }
+            if let Some(n) = next {
+                text.push_str(&format!("# more poses follow: ask again with start_ns={n}\n"));
+            }
             ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response()
         }
-        Some(other) => error(StatusCode::BAD_REQUEST, format!("unknown trajectory format {other:?}; use json or tum")),
-    }
+        Some(other) => return error(StatusCode::BAD_REQUEST, format!("unknown trajectory format {other:?}; use json or tum")),
+    };
+    (next_header, body).into_response()
+}
+
+/// The header naming where a trajectory's next page starts (when more poses follow).
+const NEXT_START_HEADER: &str = "x-stillmap-next-start-ns";
+
+/// `GET /api/v1/sessions/{id}/trajectory`'s query.
+#[derive(Debug, serde::Deserialize)]
+pub(crate) struct TrajectoryQuery {
+    /// `world` (the session's own, the default) or `fleet`.
+    frame: Option<String>,
+    format: Option<String>,
+    start_ns: Option<u64>,
+    end_ns: Option<u64>,
+    limit: Option<usize>,
 }
 
 fn fleet_json(f: &crate::fleet::FleetView, detail: bool) -> Value {
@@ -418,17 +454,25 @@ fn fleet_parts(registry: &Registry, name: &str) -> Result<FleetParts, Response> 
     Ok(FleetParts { maps, fused: fleets.map_state(name) })
 }
 
-/// Builds the fleet map off the runtime.
-async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap, usize), Response> {
+/// Fleet maps built and in use at once, over every fleet: each is a copy of its
+/// members' maps (hundreds of MB for a large fleet), so that many requests at
+/// once wait for a turn rather than each holding its own copy.
+static FLEET_MAP_BUILDS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
+
+/// Builds the fleet map off the runtime, once one of [`FLEET_MAP_BUILDS`] is
+/// free: keep the permit returned until the map is no longer used.
+async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap, usize, tokio::sync::SemaphorePermit<'static>), Response> {
     let mut parts = fleet_parts(registry, name)?;
     let n = parts.maps.len();
+    let permit =
+        FLEET_MAP_BUILDS.acquire().await.map_err(|_| error(StatusCode::SERVICE_UNAVAILABLE, "the server is stopping".to_string()))?;
     match blocking(move || {
         parts.drop_incomplete_fused();
         mapping::fleet_map(&parts)
     })
     .await?
     {
-        Some(m) => Ok((m, n)),
+        Some(m) => Ok((m, n, permit)),
         None => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
     }
 }
@@ -448,7 +492,7 @@ async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap
     )
 )]
 pub(crate) async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
-    let (fleet, n) = match fleet_map(&registry, &name).await {
+    let (fleet, n, _turn) = match fleet_map(&registry, &name).await {
         Ok(f) => f,
         Err(r) => return r,
     };
@@ -467,7 +511,7 @@ pub(crate) async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name
 }
 
 async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
-    let (fleet, _) = fleet_map(registry, name).await?;
+    let (fleet, _, _turn) = fleet_map(registry, name).await?;
     blocking(move || mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution))
         .await?
         .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
@@ -539,7 +583,7 @@ pub(crate) async fn fleet_occupancy_yaml(
     )
 )]
 pub(crate) async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
-    let (fleet, _) = match fleet_map(&registry, &name).await {
+    let (fleet, _, _turn) = match fleet_map(&registry, &name).await {
         Ok(f) => f,
         Err(r) => return r,
     };

@@ -178,6 +178,10 @@ pub struct Trajectory {
     pub session_id: String,
     pub frame: String,
     pub poses: Vec<PoseView>,
+    /// Where more poses of the range follow (at most `limit` per answer): ask
+    /// again with `start_ns` = this.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next_start_ns: Option<u64>,
 }
 
 /// `GET /healthz`.

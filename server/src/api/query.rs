@@ -247,8 +247,18 @@ impl Query for QueryService {
         if r.start_ns > end {
             return Err(Status::invalid_argument(format!("start_ns {} is after end_ns {}", r.start_ns, r.end_ns)));
         }
-        let poses = session.tracking().trajectory.iter().filter(|p| (r.start_ns..=end).contains(&p.capture_time_ns)).cloned().collect();
-        Ok(Response::new(pb::Trajectory { poses }))
+        let limit = match r.limit as usize {
+            0 => crate::session::DEFAULT_TRAJECTORY_PAGE,
+            n if n > crate::session::MAX_TRAJECTORY_PAGE => {
+                return Err(Status::invalid_argument(format!(
+                    "limit {n} is over the {} poses one answer holds: page with start_ns",
+                    crate::session::MAX_TRAJECTORY_PAGE
+                )));
+            }
+            n => n,
+        };
+        let (poses, next) = session.tracking().page(r.start_ns, end, limit);
+        Ok(Response::new(pb::Trajectory { poses, next_start_ns: next.unwrap_or(0) }))
     }
 
     async fn subscribe_poses(&self, request: Request<pb::SessionRef>) -> Result<Response<Self::SubscribePosesStream>, Status> {
