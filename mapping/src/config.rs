@@ -61,6 +61,11 @@ pub struct MappingConfig {
     /// Voxel blocks kept in memory per session; beyond it the blocks farthest from
     /// the camera go to the store (they come back when a query or the camera needs them).
     pub max_resident_blocks: usize,
+    /// New voxel blocks one keyframe may start (each ~12 KiB): a real camera's
+    /// keyframe starts a few hundred; the samples that would start more are left
+    /// out and counted, so that a camera declaring a huge view (a 170° pinhole over
+    /// 2 megapixels: one block per sample) cannot allocate gigabytes at once.
+    pub max_new_blocks_per_keyframe: usize,
 }
 
 impl Default for MappingConfig {
@@ -92,6 +97,7 @@ impl Default for MappingConfig {
             occupancy_min_height_m: -0.5,
             occupancy_max_height_m: 0.5,
             max_resident_blocks: 16384,
+            max_new_blocks_per_keyframe: 8192,
         }
     }
 }
@@ -152,6 +158,9 @@ impl MappingConfig {
         }
         if self.max_resident_blocks == 0 {
             return bad("max_resident_blocks must be at least 1");
+        }
+        if !(1..=1 << 20).contains(&self.max_new_blocks_per_keyframe) {
+            return bad("max_new_blocks_per_keyframe must be within 1..=1048576");
         }
         Ok(())
     }

@@ -203,6 +203,9 @@ pub struct FuseStats {
     pub voxels_hit: usize,
     pub voxels_carved: usize,
     pub blocks_allocated: usize,
+    /// Samples left out because they would have started more than
+    /// `max_new_blocks_per_keyframe` blocks.
+    pub samples_over_block_budget: usize,
 }
 
 /// Totals over the map.
@@ -405,6 +408,10 @@ impl VoxelMap {
             let (bkey, index) = block_of(vkey);
             let block = match self.blocks.get_mut(&bkey) {
                 Some(b) => b,
+                None if sign > 0 && stats.blocks_allocated >= cfg.max_new_blocks_per_keyframe => {
+                    stats.samples_over_block_budget += group.len();
+                    continue;
+                }
                 None if sign > 0 => {
                     stats.blocks_allocated += 1;
                     self.blocks.entry(bkey).or_default()
@@ -848,6 +855,32 @@ mod tests {
         let map = VoxelMap::new(MappingConfig::default()).unwrap();
         let err = map.prepare(&rays, &DepthView { depth: &[0; 10], rgb: &[0; 30], exclude: None, classes: None }).unwrap_err();
         assert_eq!(err.to_string(), "bad map input: depth has 10 values, expected 19200 for 160x120");
+    }
+
+    /// A keyframe starts at most `max_new_blocks_per_keyframe` blocks; the samples
+    /// beyond are counted, and the blocks it may start take them as before.
+    #[test]
+    fn a_keyframe_starts_no_more_blocks_than_its_budget() {
+        let config = MappingConfig { max_new_blocks_per_keyframe: 50, ..MappingConfig::default() };
+        let block_m = config.voxel_size_m * f64::from(BLOCK_EDGE);
+        let mut map = VoxelMap::new(config).unwrap();
+        // 80 samples 1.5 blocks apart: one block each; two more in the first block.
+        let mut samples: Vec<SurfaceSample> = (0..80)
+            .map(|i| SurfaceSample {
+                point_in_camera: [(f64::from(i) * 1.5 * block_m) as f32, 0.01, 1.01],
+                rgb: [9, 9, 9],
+                class: None,
+                pixel: i,
+            })
+            .collect();
+        samples.extend([0.05, 0.09].map(|x| SurfaceSample { point_in_camera: [x, 0.01, 1.01], rgb: [9, 9, 9], class: None, pixel: 0 }));
+        let stats = map.apply_hits(&samples, &Isometry3::identity(), 1);
+        assert_eq!((stats.blocks_allocated, map.block_count()), (50, 50));
+        assert_eq!(stats.samples_over_block_budget, 30);
+        assert_eq!(stats.voxels_hit, 52, "50 blocks' first samples and the two beside the first");
+        // The next keyframe has a budget of its own, and existing blocks take any number.
+        let stats = map.apply_hits(&samples, &Isometry3::identity(), 1);
+        assert_eq!((stats.blocks_allocated, map.block_count(), stats.samples_over_block_budget), (30, 80, 0));
     }
 
     #[test]

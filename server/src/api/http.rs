@@ -239,8 +239,9 @@ pub(crate) async fn get_pose(
     Path(id): Path<String>,
     JsonQuery(q): JsonQuery<FrameQuery>,
 ) -> Response {
-    let Some(s) = registry.get(&id) else {
-        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    let s = match session_of(&registry, &id).await {
+        Ok(s) => s,
+        Err(response) => return response,
     };
     let (transform, frame) = match frame_of(&registry, &s, q.frame.as_deref()) {
         Ok(f) => f,
@@ -292,8 +293,9 @@ pub(crate) async fn get_trajectory(
             format!("limit must be within 1..={} poses (page with start_ns), got {limit}", crate::session::MAX_TRAJECTORY_PAGE),
         );
     }
-    let Some(s) = registry.get(&id) else {
-        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    let s = match session_of(&registry, &id).await {
+        Ok(s) => s,
+        Err(response) => return response,
     };
     let (transform, frame) = match frame_of(&registry, &s, q.frame.as_deref()) {
         Ok(f) => f,
@@ -764,8 +766,9 @@ pub(crate) async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
     )
 )]
 pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
-    let Some(s) = registry.get(&id) else {
-        return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
+    let s = match session_of(&registry, &id).await {
+        Ok(s) => s,
+        Err(response) => return response,
     };
     let trajectory: Vec<pb::PoseStamped> = s.tracking().trajectory.to_vec();
     let map = s.map().cloned();
@@ -822,11 +825,18 @@ pub(crate) async fn metrics(State(registry): State<Arc<Registry>>) -> Response {
 /// The session's map, or the 404 to answer.
 // The error is the finished HTTP response, handed straight back by the handlers.
 #[allow(clippy::result_large_err)]
-fn session_map(registry: &Registry, id: &str) -> Result<SharedMap, Response> {
-    let Some(s) = registry.get(id) else {
-        return Err(error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")));
-    };
+async fn session_map(registry: &Arc<Registry>, id: &str) -> Result<SharedMap, Response> {
+    let s = session_of(registry, id).await?;
     s.map().cloned().ok_or_else(|| error(StatusCode::NOT_FOUND, format!("session {id:?} has no map (mapping is disabled)")))
+}
+
+/// The session, or the 404 to answer. Looked up off the async runtime: a stored
+/// session is read back from the store (its map and trajectory), which would hold
+/// one of the runtime's few threads, and with it every other request, meanwhile.
+#[allow(clippy::result_large_err)]
+async fn session_of(registry: &Arc<Registry>, id: &str) -> Result<Arc<Session>, Response> {
+    let (registry, owned) = (registry.clone(), id.to_string());
+    blocking(move || registry.get(&owned)).await?.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")))
 }
 
 /// Runs a map query off the async runtime (fusion may hold the map for a few ms).
@@ -849,7 +859,7 @@ const MAP_FRAME: &str = "map = world rotated so that +z is up (gravity); origin 
     )
 )]
 pub(crate) async fn map_info(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
-    let map = match session_map(&registry, &id) {
+    let map = match session_map(&registry, &id).await {
         Ok(m) => m,
         Err(r) => return r,
     };
@@ -921,7 +931,7 @@ pub(crate) async fn map_tile(
     Path((id, z, x, y)): Path<(String, String, String, String)>,
     headers: HeaderMap,
 ) -> Response {
-    let map = match session_map(&registry, &id) {
+    let map = match session_map(&registry, &id).await {
         Ok(m) => m,
         Err(r) => return r,
     };
@@ -977,7 +987,7 @@ fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) ->
     )
 )]
 pub(crate) async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
-    let map = match session_map(&registry, &id) {
+    let map = match session_map(&registry, &id).await {
         Ok(m) => m,
         Err(r) => return r,
     };
@@ -1016,7 +1026,7 @@ pub(crate) struct TilePath {
 }
 
 async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
-    let map = session_map(&registry, &id)?;
+    let map = session_map(&registry, &id).await?;
     blocking(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution))
         .await?
         .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
@@ -1096,7 +1106,7 @@ pub(crate) async fn map_cloud(
     Path(id): Path<String>,
     JsonQuery(q): JsonQuery<CloudQuery>,
 ) -> Response {
-    let map = match session_map(&registry, &id) {
+    let map = match session_map(&registry, &id).await {
         Ok(m) => m,
         Err(r) => return r,
     };
@@ -1148,7 +1158,7 @@ fn objects_json(objects: &[stillmap_mapping::export::MapObject], names: &[String
     )
 )]
 pub(crate) async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
-    let map = match session_map(&registry, &id) {
+    let map = match session_map(&registry, &id).await {
         Ok(m) => m,
         Err(r) => return r,
     };
@@ -1255,7 +1265,7 @@ impl<S: Send + Sync> axum::extract::FromRequestParts<S> for AdminOnly {
     )
 )]
 pub(crate) async fn map_export(State(registry): State<Arc<Registry>>, AdminOnly(_): AdminOnly, Path(id): Path<String>) -> Response {
-    if registry.get(&id).is_none() {
+    if registry.info(&id).is_none() {
         return error(StatusCode::NOT_FOUND, format!("unknown session {id:?}"));
     }
     let Some(store) = registry.store().cloned() else {

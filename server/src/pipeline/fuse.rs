@@ -126,7 +126,16 @@ pub fn apply(map: &SharedMap, job: &MapJob) -> Option<Duration> {
     let fused = job.keyframe.as_ref().and_then(|k| {
         let view = DepthView { depth: &k.depth.data, rgb: &k.color.data, exclude: k.exclude.as_deref(), classes: k.classes.as_deref() };
         match m.builder.add_keyframe(k.id, &job.world_from_camera, &view) {
-            Ok(report) => Some(report.fuse_time),
+            Ok(report) => {
+                if report.stats.samples_over_block_budget > 0 {
+                    tracing::warn!(
+                        keyframe = k.id,
+                        left_out = report.stats.samples_over_block_budget,
+                        "the keyframe would start more than mapping.max_new_blocks_per_keyframe map blocks: samples left out"
+                    );
+                }
+                Some(report.fuse_time)
+            }
             Err(e) => {
                 tracing::warn!(keyframe = k.id, "map fusion failed: {e}");
                 None
