@@ -138,7 +138,12 @@ impl MapBuilder {
         }
         let stats = self.map.integrate(&self.rays, &input, world_from_camera);
         self.keyframes += 1;
-        self.window.push_back(Fused { id, world_from_camera: *world_from_camera, input });
+        // A keyframe some of whose samples were left out (over
+        // `max_new_blocks_per_keyframe`) is never re-fused nor retracted: taking its
+        // samples back out would take hits it never added from blocks made since.
+        if stats.samples_over_block_budget == 0 {
+            self.window.push_back(Fused { id, world_from_camera: *world_from_camera, input });
+        }
         while self.window.len() > self.map.config().refuse_window {
             self.window.pop_front();
         }
@@ -205,8 +210,12 @@ impl MapBuilder {
             let Some(k) = self.window.iter().position(|f| f.id == *id) else { continue };
             let f = &self.window[k];
             self.map.deintegrate(&f.input, &f.world_from_camera);
-            self.map.integrate(&self.rays, &f.input, now);
+            let stats = self.map.integrate(&self.rays, &f.input, now);
             self.window[k].world_from_camera = *now;
+            if stats.samples_over_block_budget > 0 {
+                // As for a new keyframe: what was left out must never be taken out.
+                self.window.remove(k);
+            }
             n += 1;
         }
         self.refused += n as u64;

@@ -989,6 +989,10 @@ mod tests {
         for (toml, message) in [
             ("[tracking]\npyramid_levels = 4000000000\n", "tracking.pyramid_levels within 1..=16"),
             ("[tracking]\nscale_factor = inf\n", "tracking.scale_factor must be within (1, 2]"),
+            (
+                "[tracking]\npyramid_levels = 16\nscale_factor = 2.0\n",
+                "tracking.scale_factor^(tracking.pyramid_levels - 1) must be at most 32",
+            ),
             ("[tracking]\nba_window = 1000000000\n", "tracking.ba_window must be within 0..=64"),
             ("[tracking]\nba_iterations = 4294967295\n", "tracking.ba_iterations within 1..=100"),
             ("[tracking]\ndepth_edge_ratio = -1.0\n", "tracking.depth_edge_ratio must be within [0, 1]"),

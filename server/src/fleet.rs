@@ -519,12 +519,12 @@ impl FleetService {
             }),
             None => HashMap::new(),
         };
-        let max = self.shared.config.max_places;
+        let (max_places, max_edges) = (self.shared.config.max_places, self.shared.max_edges());
         for (name, graph) in graphs {
             if !live.contains(&name)
                 && let Some(f) = fleets.get_mut(&name)
             {
-                restore_graph(f, graph, max);
+                restore_graph(f, graph, max_places, max_edges);
             }
         }
     }
@@ -613,15 +613,15 @@ fn stored_graph(f: &Fleet) -> FleetGraph {
 
 /// Puts a stored pose graph back: its edges and corrections for the sessions the
 /// fleet has (merged ones: a correction is relative to the merge). Only what a
-/// solve could have written comes back, as for a carried share
-/// ([`checked_corrections`]; edges with a pose, at most `max` of them).
-fn restore_graph(f: &mut Fleet, g: FleetGraph, max: usize) {
+/// solve could have written comes back, as for a carried share: edges with a pose,
+/// the newest `max_edges` of them (as many as a live fleet keeps), and
+/// [`checked_corrections`] (at most `max_places` per session).
+fn restore_graph(f: &mut Fleet, g: FleetGraph, max_places: usize, max_edges: usize) {
     let member = |f: &Fleet, session: &str| f.members.iter().position(|m| m.session_id == session && m.frame.is_some());
-    f.edges = g
+    let mut edges: Vec<PlaceEdge> = g
         .edges
         .iter()
         .filter(|e| valid_pose7(&e.a_from_b))
-        .take(max)
         .filter_map(|e| {
             let a = (member(f, &e.a.0)? as u32, e.a.1);
             let b = (member(f, &e.b.0)? as u32, e.b.1);
@@ -629,9 +629,12 @@ fn restore_graph(f: &mut Fleet, g: FleetGraph, max: usize) {
             Some(PlaceEdge { a, b, a_from_b: isometry(&e.a_from_b), kind })
         })
         .collect();
+    // Stored in the order they were found: the oldest go first.
+    let skip = edges.len().saturating_sub(max_edges);
+    f.edges = edges.split_off(skip);
     for (session, list) in &g.corrections {
         if let Some(m) = member(f, session) {
-            f.members[m].corrections = Arc::new(checked_corrections(list, max));
+            f.members[m].corrections = Arc::new(checked_corrections(list, max_places));
         }
     }
     f.last_correction = g.last_solve;
@@ -768,6 +771,12 @@ fn view(name: &str, f: &Fleet) -> FleetView {
 }
 
 impl Shared {
+    /// The place edges a fleet keeps at most before it drops those of forgotten
+    /// keyframes (each keyframe brings at most 2 × `fleet.candidates`).
+    fn max_edges(&self) -> usize {
+        4 * self.config.max_places * self.config.candidates
+    }
+
     fn transform(&self, fleet: &str, session_id: &str) -> Option<FleetTransform> {
         let fleets = lock(&self.fleets);
         let member = fleets.get(fleet)?.members.iter().find(|m| m.session_id == session_id)?;
@@ -928,7 +937,7 @@ impl Shared {
             f.dirty = true;
             // Bounded: edges of forgotten keyframes go (each keyframe brings at most
             // 2 × `fleet.candidates`).
-            if f.edges.len() > 4 * self.config.max_places * self.config.candidates {
+            if f.edges.len() > self.max_edges() {
                 let places = &f.places;
                 f.edges.retain(|e| places.contains_key(&e.a) && places.contains_key(&e.b));
             }
@@ -1394,7 +1403,7 @@ mod tests {
         let mut fresh = Fleet::default();
         fresh.members.push(service.shared.new_member("a", "alpha", Some(frame(true, &Isometry3::identity()))));
         fresh.members.push(service.shared.new_member("b", "beta", Some(frame(false, &wrong))));
-        restore_graph(&mut fresh, stored.clone(), 100);
+        restore_graph(&mut fresh, stored.clone(), 100, 100);
         assert_eq!(fresh.edges.len(), 5);
         assert_eq!(stored_graph(&fresh).corrections, stored.corrections);
         assert_eq!(fresh.last_correction, stored.last_solve);
@@ -1410,8 +1419,10 @@ mod tests {
         let mut again = Fleet::default();
         again.members.push(service.shared.new_member("a", "alpha", Some(frame(true, &Isometry3::identity()))));
         again.members.push(service.shared.new_member("b", "beta", Some(frame(false, &wrong))));
-        restore_graph(&mut again, damaged, 3);
-        assert_eq!(again.edges.len(), 3, "four edges with a pose, three kept");
+        restore_graph(&mut again, damaged, 3, 3);
+        assert_eq!(again.edges.len(), 3, "four edges with a pose, the newest three kept");
+        let ends = |edges: &[PlaceEdge]| edges.iter().map(|e| (e.a, e.b)).collect::<Vec<_>>();
+        assert_eq!(ends(&again.edges), ends(&fresh.edges[2..]), "the oldest (and the one without a pose) left out");
         assert!(again.edges.iter().all(|e| e.a_from_b.translation.vector.iter().all(|v| v.is_finite())));
         let times: Vec<u64> = again.members[1].corrections.iter().map(|(t, _)| *t).collect();
         assert_eq!(times, vec![1_002, 1_003, 1_004]);

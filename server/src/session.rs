@@ -98,14 +98,23 @@ pub const DEFAULT_TRAJECTORY_PAGE: usize = 20_000;
 pub const MAX_TRAJECTORY_PAGE: usize = 200_000;
 
 impl TrackState {
-    /// The poses captured within `start_ns..=end_ns`, in the order they came, at
-    /// most `limit` of them, and where the next page starts (one nanosecond after
-    /// the latest capture time given) when more of the range follow.
+    /// The poses captured within `start_ns..=end_ns`, in capture-time order (the
+    /// order they came, unless a robot's clock went back and its timeline was
+    /// taken again), `limit` of them and any more of the last one's capture time,
+    /// and where the next page starts (the next pose's capture time) when more of
+    /// the range follow: asking again from there skips and repeats nothing.
     pub fn page(&self, start_ns: u64, end_ns: u64, limit: usize) -> (Vec<pb::PoseStamped>, Option<u64>) {
-        let mut in_range = self.trajectory.iter().filter(|p| (start_ns..=end_ns).contains(&p.capture_time_ns));
-        let poses: Vec<pb::PoseStamped> = in_range.by_ref().take(limit).cloned().collect();
-        let next = in_range.next().map(|_| poses.iter().map(|p| p.capture_time_ns).max().unwrap_or(start_ns).saturating_add(1));
-        (poses, next)
+        let mut in_range: Vec<&pb::PoseStamped> =
+            self.trajectory.iter().filter(|p| (start_ns..=end_ns).contains(&p.capture_time_ns)).collect();
+        if !in_range.is_sorted_by_key(|p| p.capture_time_ns) {
+            in_range.sort_by_key(|p| p.capture_time_ns);
+        }
+        let mut cut = limit.min(in_range.len());
+        while cut > 0 && cut < in_range.len() && in_range[cut].capture_time_ns == in_range[cut - 1].capture_time_ns {
+            cut += 1;
+        }
+        let next = in_range.get(cut).map(|p| p.capture_time_ns);
+        (in_range[..cut].iter().map(|p| **p).collect(), next)
     }
 }
 
@@ -1927,13 +1936,22 @@ mod tests {
         let track = TrackState { trajectory: (0..10).map(|i| pose(i, 100 + 10 * i)).collect(), ..Default::default() };
         let times =
             |(poses, next): (Vec<pb::PoseStamped>, Option<u64>)| (poses.iter().map(|p| p.capture_time_ns).collect::<Vec<_>>(), next);
-        assert_eq!(times(track.page(0, u64::MAX, 4)), (vec![100, 110, 120, 130], Some(131)));
-        assert_eq!(times(track.page(131, u64::MAX, 4)), (vec![140, 150, 160, 170], Some(171)));
-        assert_eq!(times(track.page(171, u64::MAX, 4)), (vec![180, 190], None));
+        assert_eq!(times(track.page(0, u64::MAX, 4)), (vec![100, 110, 120, 130], Some(140)));
+        assert_eq!(times(track.page(140, u64::MAX, 4)), (vec![140, 150, 160, 170], Some(180)));
+        assert_eq!(times(track.page(180, u64::MAX, 4)), (vec![180, 190], None));
         assert_eq!(times(track.page(0, u64::MAX, 10)), ((100..=190).step_by(10).collect(), None), "exactly the limit: no next page");
-        assert_eq!(times(track.page(120, 150, 2)), (vec![120, 130], Some(131)));
+        assert_eq!(times(track.page(120, 150, 2)), (vec![120, 130], Some(140)));
         assert_eq!(times(track.page(140, 150, 2)), (vec![140, 150], None), "the rest is out of the range");
         assert_eq!(times(track.page(191, u64::MAX, 2)), (vec![], None));
+        // A clock that went back (the timeline taken again): pages follow capture
+        // time, and poses of one capture time stay on one page.
+        let track = TrackState {
+            trajectory: [100, 110, 120, 40, 50, 110].iter().zip(0..).map(|(&t, i)| pose(i, t)).collect(),
+            ..Default::default()
+        };
+        assert_eq!(times(track.page(0, u64::MAX, 2)), (vec![40, 50], Some(100)));
+        assert_eq!(times(track.page(100, u64::MAX, 2)), (vec![100, 110, 110], Some(120)));
+        assert_eq!(times(track.page(120, u64::MAX, 2)), (vec![120], None));
     }
 
     fn small_camera() -> pb::CameraInfo {

@@ -609,12 +609,12 @@ async fn camera_timing_is_checked_and_reaches_the_session() {
     let (status, first) = server.get_json(&format!("{path}?limit=1")).await;
     assert_eq!(status, 200);
     assert_eq!(first["poses"].as_array().map(|p| p.len()), Some(1));
-    assert_eq!(first["next_start_ns"].as_u64(), Some(captured[0] + 1));
-    let (_, rest) = server.get_json(&format!("{path}?start_ns={}", captured[0] + 1)).await;
+    assert_eq!(first["next_start_ns"].as_u64(), Some(captured[1]));
+    let (_, rest) = server.get_json(&format!("{path}?start_ns={}", captured[1])).await;
     let rest: Vec<u64> = rest["poses"].as_array().expect("poses").iter().filter_map(|p| p["capture_time_ns"].as_u64()).collect();
     assert_eq!(rest, captured[1..]);
     let text = server.get_text(&format!("{path}?format=tum&limit=1")).await;
-    assert!(text.ends_with(&format!("# more poses follow: ask again with start_ns={}\n", captured[0] + 1)), "{text}");
+    assert!(text.ends_with(&format!("# more poses follow: ask again with start_ns={}\n", captured[1])), "{text}");
     for (query, message) in [
         ("limit=0", "limit must be within 1..=200000 poses (page with start_ns), got 0"),
         ("limit=200001", "limit must be within 1..=200000 poses (page with start_ns), got 200001"),
@@ -629,7 +629,7 @@ async fn camera_timing_is_checked_and_reaches_the_session() {
         .await
         .expect("a page")
         .into_inner();
-    assert_eq!((page.poses.len(), page.next_start_ns), (1, captured[0] + 1));
+    assert_eq!((page.poses.len(), page.next_start_ns), (1, captured[1]));
     let status = q
         .get_trajectory(pb::TrajectoryRequest { session_id: id.clone(), limit: 200_001, ..Default::default() })
         .await

@@ -134,6 +134,11 @@ async fn the_streamed_clip_is_mapped_and_served() {
         (format!("/api/v1/maps/{id}/tiles/3/0/0.jpg"), 400, "tile \"0.jpg\" must end in .png"),
         (format!("/api/v1/maps/{id}/tiles/3/99999999/0.png"), 400, "tile index (99999999, 0) is out of range ±1048576"),
         (format!("/api/v1/maps/{id}/cloud.ply?bbox=1,2,3"), 400, "bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got 3"),
+        (
+            format!("/api/v1/maps/{id}/cloud.ply?bbox=0,0,0,inf,1,1"),
+            400,
+            "bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got inf",
+        ),
         (format!("/api/v1/maps/{id}/occupancy.pgm?min_height=1&max_height=0"), 400, "height band [1, 0] is empty"),
         (
             format!("/api/v1/maps/{id}/occupancy.pgm?resolution=fine"),

@@ -180,6 +180,13 @@ impl TrackerConfig {
                 self.scale_factor, self.pyramid_levels
             ));
         }
+        // The coarsest level must keep some pixels (VGA's at 20×15 at the bound).
+        let coarsest = f64::from(self.scale_factor).powi(self.pyramid_levels as i32 - 1);
+        if !(coarsest <= 32.0) {
+            return Err(format!(
+                "tracking.scale_factor^(tracking.pyramid_levels - 1) must be at most 32 (the coarsest level's shrink), got {coarsest}"
+            ));
+        }
         if !(1..=254).contains(&self.fast_threshold) || self.max_descriptor_distance > 256 {
             return Err(format!(
                 "tracking.fast_threshold must be within 1..=254 and tracking.max_descriptor_distance within 0..=256, got {} and {}",

@@ -434,6 +434,14 @@ pub(crate) async fn list_fleets(State(registry): State<Arc<Registry>>) -> Respon
     .into_response()
 }
 
+/// [`fleet_parts`] off the async runtime: a stored member is read back from the
+/// store.
+#[allow(clippy::result_large_err)]
+async fn fleet_parts_of(registry: &Arc<Registry>, name: &str) -> Result<FleetParts, Response> {
+    let (registry, name) = (registry.clone(), name.to_string());
+    blocking(move || fleet_parts(&registry, &name)).await?
+}
+
 /// The fleet's merged sessions' maps, the anchor's first, and the fused fleet map
 /// when it holds every keyframe of them (the error is the finished HTTP response,
 /// as for `session_map`).
@@ -462,20 +470,24 @@ fn fleet_parts(registry: &Registry, name: &str) -> Result<FleetParts, Response> 
 static FLEET_MAP_BUILDS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
 
 /// Builds the fleet map off the runtime, once one of [`FLEET_MAP_BUILDS`] is
-/// free: keep the permit returned until the map is no longer used.
-async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap, usize, tokio::sync::SemaphorePermit<'static>), Response> {
-    let mut parts = fleet_parts(registry, name)?;
+/// free: move the permit returned into the blocking work that uses the map (held
+/// by a blocking thread, it outlives a request whose client hung up).
+async fn fleet_map(
+    registry: &Arc<Registry>,
+    name: &str,
+) -> Result<(mapping::FleetMap, usize, tokio::sync::SemaphorePermit<'static>), Response> {
+    let mut parts = fleet_parts_of(registry, name).await?;
     let n = parts.maps.len();
     let permit =
         FLEET_MAP_BUILDS.acquire().await.map_err(|_| error(StatusCode::SERVICE_UNAVAILABLE, "the server is stopping".to_string()))?;
     match blocking(move || {
         parts.drop_incomplete_fused();
-        mapping::fleet_map(&parts)
+        (mapping::fleet_map(&parts), permit)
     })
     .await?
     {
-        Some(m) => Ok((m, n, permit)),
-        None => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
+        (Some(m), permit) => Ok((m, n, permit)),
+        (None, _) => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
     }
 }
 
@@ -494,12 +506,17 @@ async fn fleet_map(registry: &Registry, name: &str) -> Result<(mapping::FleetMap
     )
 )]
 pub(crate) async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
-    let (fleet, n, _turn) = match fleet_map(&registry, &name).await {
+    let (fleet, n, turn) = match fleet_map(&registry, &name).await {
         Ok(f) => f,
         Err(r) => return r,
     };
     let fleet_name = name.clone();
-    match blocking(move || mapping::fleet_ply(&fleet, &fleet_name, n)).await {
+    match blocking(move || {
+        let _turn = turn;
+        mapping::fleet_ply(&fleet, &fleet_name, n)
+    })
+    .await
+    {
         Ok(ply) => (
             [
                 (header::CONTENT_TYPE, "application/octet-stream".to_string()),
@@ -512,11 +529,18 @@ pub(crate) async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name
     }
 }
 
-async fn fleet_occupancy(registry: &Registry, name: &str, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
-    let (fleet, _, _turn) = fleet_map(registry, name).await?;
-    blocking(move || mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution))
-        .await?
-        .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
+async fn fleet_occupancy(
+    registry: &Arc<Registry>,
+    name: &str,
+    q: OccupancyQuery,
+) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
+    let (fleet, _, turn) = fleet_map(registry, name).await?;
+    blocking(move || {
+        let _turn = turn;
+        mapping::fleet_occupancy(&fleet, q.min_height, q.max_height, q.resolution)
+    })
+    .await?
+    .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
 }
 
 #[utoipa::path(
@@ -585,11 +609,16 @@ pub(crate) async fn fleet_occupancy_yaml(
     )
 )]
 pub(crate) async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
-    let (fleet, _, _turn) = match fleet_map(&registry, &name).await {
+    let (fleet, _, turn) = match fleet_map(&registry, &name).await {
         Ok(f) => f,
         Err(r) => return r,
     };
-    match blocking(move || (stillmap_mapping::export::objects(&fleet.map, &fleet.map_from_fleet), fleet.class_names)).await {
+    match blocking(move || {
+        let _turn = turn;
+        (stillmap_mapping::export::objects(&fleet.map, &fleet.map_from_fleet), fleet.class_names)
+    })
+    .await
+    {
         Ok((objects, names)) => {
             Json(json!({ "fleet": name, "frame": FLEET_MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response()
         }
@@ -599,8 +628,8 @@ pub(crate) async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(na
 
 /// Fleet `name`'s merged members and the tag of the state their maps are in (off
 /// the runtime: it locks every member's map).
-async fn fleet_state(registry: &Registry, name: &str) -> Result<(FleetParts, u64), Response> {
-    let mut parts = fleet_parts(registry, name)?;
+async fn fleet_state(registry: &Arc<Registry>, name: &str) -> Result<(FleetParts, u64), Response> {
+    let mut parts = fleet_parts_of(registry, name).await?;
     blocking(move || {
         parts.drop_incomplete_fused();
         let tag = mapping::fleet_tag(&parts);

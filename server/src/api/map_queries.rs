@@ -107,8 +107,11 @@ pub fn parse_bbox(text: &str) -> Result<Aabb, BadQuery> {
         .split(',')
         .map(|s| s.trim().parse::<f64>().map_err(|_| BadQuery(format!("bbox value {s:?} is not a number"))))
         .collect::<Result<_, _>>()?;
-    if v.len() != 6 || v.iter().any(|x| !x.is_finite()) {
+    if v.len() != 6 {
         return Err(BadQuery(format!("bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got {}", v.len())));
+    }
+    if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+        return Err(BadQuery(format!("bbox needs 6 finite numbers min_x,min_y,min_z,max_x,max_y,max_z; got {x}")));
     }
     if v[0] > v[3] || v[1] > v[4] || v[2] > v[5] {
         return Err(BadQuery("bbox minimum exceeds its maximum".into()));

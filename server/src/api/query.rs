@@ -48,8 +48,15 @@ fn authorization<T>(request: &Request<T>) -> Option<String> {
 }
 
 impl QueryService {
-    fn session(&self, id: &str) -> Result<Arc<Session>, Status> {
-        self.registry.get(id).ok_or_else(|| Self::unknown(id))
+    async fn session(&self, id: &str) -> Result<Arc<Session>, Status> {
+        self.lookup(id).await.ok_or_else(|| Self::unknown(id))
+    }
+
+    /// Session `id` if this server holds it, looked up off the async runtime (which
+    /// also takes the robots' frames): a stored session is read back from the store.
+    async fn lookup(&self, id: &str) -> Option<Arc<Session>> {
+        let (registry, id) = (self.registry.clone(), id.to_string());
+        tokio::task::spawn_blocking(move || registry.get(&id)).await.ok().flatten()
     }
 
     fn unknown(id: &str) -> Status {
@@ -146,8 +153,8 @@ impl QueryService {
         Ok((fleets.clone(), fleet))
     }
 
-    fn map(&self, id: &str) -> Result<crate::map::SharedMap, Status> {
-        self.session(id)?.map().cloned().ok_or_else(|| Status::not_found(format!("session {id:?} has no map (mapping is disabled)")))
+    async fn map(&self, id: &str) -> Result<crate::map::SharedMap, Status> {
+        self.session(id).await?.map().cloned().ok_or_else(|| Status::not_found(format!("session {id:?} has no map (mapping is disabled)")))
     }
 }
 
@@ -235,14 +242,14 @@ impl Query for QueryService {
 
     async fn get_latest_pose(&self, request: Request<pb::SessionRef>) -> Result<Response<pb::LatestPose>, Status> {
         let id = &request.get_ref().session_id;
-        let Some(session) = self.registry.get(id) else { return self.forwarded("GetLatestPose", id, &request).await };
+        let Some(session) = self.lookup(id).await else { return self.forwarded("GetLatestPose", id, &request).await };
         let track = session.tracking();
         Ok(Response::new(pb::LatestPose { tracking_state: track.state as i32, pose: track.latest }))
     }
 
     async fn get_trajectory(&self, request: Request<pb::TrajectoryRequest>) -> Result<Response<pb::Trajectory>, Status> {
         let r = request.get_ref();
-        let Some(session) = self.registry.get(&r.session_id) else { return self.forwarded("GetTrajectory", &r.session_id, &request).await };
+        let Some(session) = self.lookup(&r.session_id).await else { return self.forwarded("GetTrajectory", &r.session_id, &request).await };
         let end = if r.end_ns == 0 { u64::MAX } else { r.end_ns };
         if r.start_ns > end {
             return Err(Status::invalid_argument(format!("start_ns {} is after end_ns {}", r.start_ns, r.end_ns)));
@@ -263,7 +270,7 @@ impl Query for QueryService {
 
     async fn subscribe_poses(&self, request: Request<pb::SessionRef>) -> Result<Response<Self::SubscribePosesStream>, Status> {
         let id = request.get_ref().session_id.clone();
-        let here = self.registry.get(&id);
+        let here = self.lookup(&id).await;
         // A lagging subscriber skips poses rather than holding the pipeline.
         let local = |session: &Session| BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
         if let Some(session) = here.as_ref().filter(|s| !s.is_archived()) {
@@ -293,11 +300,11 @@ impl Query for QueryService {
     }
 
     async fn get_map_tile(&self, request: Request<pb::MapTileRequest>) -> Result<Response<pb::MapTile>, Status> {
-        if self.registry.get(&request.get_ref().session_id).is_none() {
+        if self.registry.info(&request.get_ref().session_id).is_none() {
             return self.forwarded("GetMapTile", &request.get_ref().session_id, &request).await;
         }
         let r = request.into_inner();
-        let map = self.map(&r.session_id)?;
+        let map = self.map(&r.session_id).await?;
         let zoom = u8::try_from(r.zoom)
             .map_err(|_| Status::invalid_argument(format!("zoom {} is out of range 0..={}", r.zoom, stillmap_mapping::tiles::MAX_ZOOM)))?;
         let tile = tokio::task::spawn_blocking(move || crate::api::map_queries::tile(&map, zoom, r.x, r.y))
@@ -308,7 +315,7 @@ impl Query for QueryService {
     }
 
     async fn get_map_cloud(&self, request: Request<pb::MapCloudRequest>) -> Result<Response<Self::GetMapCloudStream>, Status> {
-        if self.registry.get(&request.get_ref().session_id).is_none() {
+        if self.registry.info(&request.get_ref().session_id).is_none() {
             let id = request.get_ref().session_id.clone();
             let answer = self.forwarded_bytes("GetMapCloud", &request, || Self::unknown(&id)).await?;
             let (mut rest, mut chunks) = (answer.as_slice(), Vec::new());
@@ -320,7 +327,7 @@ impl Query for QueryService {
             return Ok(Response::new(Box::pin(tokio_stream::iter(chunks))));
         }
         let r = request.into_inner();
-        let map = self.map(&r.session_id)?;
+        let map = self.map(&r.session_id).await?;
         let bbox = match r.bbox {
             None => None,
             Some(b) => {
