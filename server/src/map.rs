@@ -399,3 +399,86 @@ pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
     };
     (version, m.builder.keyframes(), occupied)
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::Ordering;
+
+    use nalgebra::{Isometry3, Translation3};
+    use stillmap_mapping::DepthView;
+
+    use super::*;
+    use crate::store::memory_disk::{Disk, store_on};
+
+    /// A commit that fails after blocks that were evicted, started again and evicted
+    /// again had their stored copies merged in: the next commit stores each
+    /// voxel's hits once (it merged the stored copies a second time before).
+    #[test]
+    fn a_failed_commit_merges_no_stored_block_twice() {
+        let camera = pb::CameraInfo {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 32.0,
+            cy: 24.0,
+            depth_units_per_metre: 1000.0,
+            ..Default::default()
+        };
+        let config = MappingConfig { max_resident_blocks: 4, ..MappingConfig::default() };
+        let map = SessionMap::new(&camera, config, Vec::new()).expect("map");
+        let disk = Disk::default();
+        let store = Arc::new(store_on(&disk));
+        let meta = SessionMeta {
+            robot_id: "r".into(),
+            transport: "grpc".into(),
+            started_unix_ns: 1,
+            class_names: Vec::new(),
+            up_in_world: None,
+            up_source: None,
+            keyframes: 0,
+            map_stamp: 0,
+            fleet: String::new(),
+        };
+        store.put_session("s", &meta, &camera, "").expect("session");
+        let mut m = lock(&map);
+        m.attach_store(store.clone(), "s", meta);
+        let (depth, rgb) = (vec![1000u16; 64 * 48], vec![100u8; 64 * 48 * 3]);
+        let view = DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None };
+        let here = Isometry3::identity();
+        let far = Isometry3::from_parts(Translation3::new(100.0, 0.0, 0.0), nalgebra::UnitQuaternion::identity());
+        let fuse = |m: &mut SessionMap, id: u64, pose: &Isometry3<f64>| {
+            m.builder.add_keyframe(id, pose, &view).expect("fused");
+        };
+        // The wall here, committed; then far away, which evicts it to the store.
+        fuse(&mut m, 1, &here);
+        let wall: Vec<BlockKey> = m.builder.map().blocks().map(|(k, _)| *k).collect();
+        assert!(!wall.is_empty());
+        m.persist(&[], None).expect("committed");
+        fuse(&mut m, 2, &far);
+        m.persist(&[], None).expect("committed");
+        assert!(wall.iter().all(|k| m.builder.map().blocks().all(|(b, _)| b != k)), "the wall went to the store");
+        // The wall again (its blocks start anew, without the store's restore), and
+        // far away again before the commit: evicted again at once.
+        fuse(&mut m, 3, &here);
+        fuse(&mut m, 4, &far);
+        disk.full.store(true, Ordering::SeqCst);
+        assert!(m.persist(&[], None).is_err(), "a full disk");
+        disk.full.store(false, Ordering::SeqCst);
+        std::thread::sleep(std::time::Duration::from_millis(2_100));
+        m.persist(&[], None).expect("committed after the disk has room");
+        // Every wall voxel was hit by keyframes 1 and 3: twice, not three times.
+        let mut seen = 0;
+        for key in &wall {
+            let block = match m.builder.map().blocks().find(|(b, _)| *b == key) {
+                Some((_, b)) => b.clone(),
+                None => store.block("s", *key).expect("read").expect("stored"),
+            };
+            for v in block.voxels.iter().filter(|v| v.hits > 0) {
+                assert_eq!(v.hits, 2, "block {key:?}");
+                seen += 1;
+            }
+        }
+        assert!(seen > 0);
+    }
+}

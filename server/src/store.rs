@@ -1006,8 +1006,72 @@ pub(crate) fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
     Block::from_bytes(&raw).map_err(|e| StoreError::Corrupt(e.to_string()))
 }
 
+/// A store on a disk in memory that can be full (tests of failing writes).
+#[cfg(test)]
+pub(crate) mod memory_disk {
+    use std::path::Path;
+    use std::sync::{Arc, RwLock};
+
+    use super::Store;
+
+    /// A disk in memory that can be full: every write fails with ENOSPC while it is.
+    #[derive(Debug, Default, Clone)]
+    pub(crate) struct Disk {
+        bytes: Arc<RwLock<Vec<u8>>>,
+        /// While set, every write fails with ENOSPC.
+        pub(crate) full: Arc<std::sync::atomic::AtomicBool>,
+    }
+
+    impl Disk {
+        fn check(&self) -> std::io::Result<()> {
+            if self.full.load(std::sync::atomic::Ordering::SeqCst) { Err(std::io::Error::from_raw_os_error(28)) } else { Ok(()) }
+        }
+    }
+
+    impl redb::StorageBackend for Disk {
+        fn len(&self) -> std::io::Result<u64> {
+            Ok(self.bytes.read().unwrap().len() as u64)
+        }
+        fn read(&self, offset: u64, out: &mut [u8]) -> std::io::Result<()> {
+            let bytes = self.bytes.read().unwrap();
+            let at = offset as usize;
+            out.copy_from_slice(bytes.get(at..at + out.len()).ok_or_else(|| std::io::Error::other("read beyond the end"))?);
+            Ok(())
+        }
+        fn set_len(&self, len: u64) -> std::io::Result<()> {
+            self.check()?;
+            self.bytes.write().unwrap().resize(len as usize, 0);
+            Ok(())
+        }
+        fn sync_data(&self) -> std::io::Result<()> {
+            self.check()
+        }
+        fn write(&self, offset: u64, data: &[u8]) -> std::io::Result<()> {
+            self.check()?;
+            let mut bytes = self.bytes.write().unwrap();
+            let at = offset as usize;
+            if bytes.len() < at + data.len() {
+                bytes.resize(at + data.len(), 0);
+            }
+            bytes[at..at + data.len()].copy_from_slice(data);
+            Ok(())
+        }
+    }
+
+    /// A store on `disk`.
+    pub(crate) fn store_on(disk: &Disk) -> Store {
+        let backend = disk.clone();
+        Store::with_opener(
+            Path::new("memory"),
+            Box::new(move || redb::Builder::new().create_with_backend(backend.clone()).map_err(|e| e.to_string())),
+        )
+        .expect("a store in memory")
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    use super::memory_disk::Disk;
     use super::*;
 
     #[test]
@@ -1129,58 +1193,10 @@ mod tests {
         let _ = std::fs::remove_file(&path);
     }
 
-    /// A disk in memory that can be full: every write fails with ENOSPC while it is.
-    #[derive(Debug, Default, Clone)]
-    struct Disk {
-        bytes: Arc<RwLock<Vec<u8>>>,
-        full: Arc<std::sync::atomic::AtomicBool>,
-    }
-
-    impl Disk {
-        fn check(&self) -> std::io::Result<()> {
-            if self.full.load(std::sync::atomic::Ordering::SeqCst) { Err(std::io::Error::from_raw_os_error(28)) } else { Ok(()) }
-        }
-    }
-
-    impl redb::StorageBackend for Disk {
-        fn len(&self) -> std::io::Result<u64> {
-            Ok(self.bytes.read().unwrap().len() as u64)
-        }
-        fn read(&self, offset: u64, out: &mut [u8]) -> std::io::Result<()> {
-            let bytes = self.bytes.read().unwrap();
-            let at = offset as usize;
-            out.copy_from_slice(bytes.get(at..at + out.len()).ok_or_else(|| std::io::Error::other("read beyond the end"))?);
-            Ok(())
-        }
-        fn set_len(&self, len: u64) -> std::io::Result<()> {
-            self.check()?;
-            self.bytes.write().unwrap().resize(len as usize, 0);
-            Ok(())
-        }
-        fn sync_data(&self) -> std::io::Result<()> {
-            self.check()
-        }
-        fn write(&self, offset: u64, data: &[u8]) -> std::io::Result<()> {
-            self.check()?;
-            let mut bytes = self.bytes.write().unwrap();
-            let at = offset as usize;
-            if bytes.len() < at + data.len() {
-                bytes.resize(at + data.len(), 0);
-            }
-            bytes[at..at + data.len()].copy_from_slice(data);
-            Ok(())
-        }
-    }
-
     #[test]
     fn a_full_disk_marks_the_store_failing_until_a_retried_write_goes_through() {
         let disk = Disk::default();
-        let backend = disk.clone();
-        let store = Store::with_opener(
-            Path::new("memory"),
-            Box::new(move || redb::Builder::new().create_with_backend(backend.clone()).map_err(|e| e.to_string())),
-        )
-        .unwrap();
+        let store = super::memory_disk::store_on(&disk);
         let meta = SessionMeta {
             robot_id: "r".into(),
             transport: "grpc".into(),
