@@ -127,10 +127,26 @@ async function select(id) {
 async function loadTrajectory(id) {
   if (state.loadedTrajectory.has(id)) return;
   try {
-    const t = await getJson(`/api/v1/sessions/${encodeURIComponent(id)}/trajectory`);
+    // Answered in pages (200,000 poses each): follow next_start_ns. It is a
+    // nanosecond count beyond a JS number's exact range, so each next page is
+    // asked from a microsecond earlier and poses already seen are skipped.
+    const path = `/api/v1/sessions/${encodeURIComponent(id)}/trajectory`;
+    const poses = [];
+    const seen = new Set();
+    let t = await getJson(path);
+    for (;;) {
+      for (const p of t.poses) {
+        if (!seen.has(p.sequence)) {
+          seen.add(p.sequence);
+          poses.push(p);
+        }
+      }
+      if (t.next_start_ns == null) break;
+      t = await getJson(`${path}?start_ns=${BigInt(Math.max(0, t.next_start_ns - 1000)).toString()}`);
+    }
     const live = state.trajectories.get(id) || [];
     const first = live.length ? live[0].sequence : Infinity;
-    const stored = t.poses.filter((p) => p.sequence < first).map((p) => ({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw }));
+    const stored = poses.filter((p) => p.sequence < first).map((p) => ({ sequence: p.sequence, t: p.translation, q: p.rotation_xyzw }));
     state.trajectories.set(id, stored.concat(live));
     state.loadedTrajectory.add(id);
   } catch (e) {
