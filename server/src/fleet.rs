@@ -1649,15 +1649,10 @@ mod tests {
         let head = |id: &str, started_unix_ns: u64| SessionHead {
             id: id.into(),
             meta: crate::store::SessionMeta {
-                robot_id: format!("robot-{id}"),
                 transport: "zenoh".into(),
                 started_unix_ns,
-                class_names: vec![],
-                up_in_world: None,
-                up_source: None,
-                keyframes: 0,
-                map_stamp: 0,
                 fleet: "lab".into(),
+                ..crate::store::SessionMeta::for_tests(&format!("robot-{id}"))
             },
             camera: stillmap_proto::pb::CameraInfo::default(),
             pose_count: 0,
@@ -1700,17 +1695,7 @@ mod tests {
         store.put_fleet_frame("n1", &not_a_pose).expect("frame");
         let head = |id: &str, fleet: &str| SessionHead {
             id: id.into(),
-            meta: crate::store::SessionMeta {
-                robot_id: format!("robot-{id}"),
-                transport: "grpc".into(),
-                started_unix_ns: 1,
-                class_names: vec![],
-                up_in_world: None,
-                up_source: None,
-                keyframes: 0,
-                map_stamp: 0,
-                fleet: fleet.into(),
-            },
+            meta: crate::store::SessionMeta { fleet: fleet.into(), ..crate::store::SessionMeta::for_tests(&format!("robot-{id}")) },
             camera: stillmap_proto::pb::CameraInfo::default(),
             pose_count: 0,
             latest: None,

@@ -429,17 +429,7 @@ mod tests {
         let map = SessionMap::new(&camera, config, Vec::new()).expect("map");
         let disk = Disk::default();
         let store = Arc::new(store_on(&disk));
-        let meta = SessionMeta {
-            robot_id: "r".into(),
-            transport: "grpc".into(),
-            started_unix_ns: 1,
-            class_names: Vec::new(),
-            up_in_world: None,
-            up_source: None,
-            keyframes: 0,
-            map_stamp: 0,
-            fleet: String::new(),
-        };
+        let meta = SessionMeta::for_tests("r");
         store.put_session("s", &meta, &camera, "").expect("session");
         let mut m = lock(&map);
         m.attach_store(store.clone(), "s", meta);

@@ -1082,6 +1082,20 @@ impl Registry {
         self.fleet.subscribe()
     }
 
+    /// [`get`](Self::get) for async code: off the runtime, as a stored session is
+    /// read back from the store (its map and trajectory), which would hold one of
+    /// the runtime's few threads, and every request or stream on it, meanwhile.
+    pub async fn get_off_runtime(self: &Arc<Self>, id: &str) -> Option<Arc<Session>> {
+        let (registry, id) = (self.clone(), id.to_string());
+        match tokio::task::spawn_blocking(move || registry.get(&id)).await {
+            Ok(found) => found,
+            Err(e) => {
+                tracing::error!("looking a session up failed (a server bug): {e}");
+                None
+            }
+        }
+    }
+
     /// The session `id`, brought back from the store when it is not in memory
     /// (read-only; counted in `stillmap_sessions_loaded_total`). A use: it resets
     /// the session's idle time.

@@ -923,8 +923,8 @@ pub const IMPORT_MEMORY_FACTOR: usize = 16;
 const BLOCK_IN_MEMORY: usize =
     std::mem::size_of::<Block>() + std::mem::size_of::<[stillmap_mapping::voxel::Voxel; stillmap_mapping::voxel::VOXELS_PER_BLOCK]>();
 
-/// A block key read back (from this store, a map file or the shared storage):
-/// within the map's range, as every key the mapper makes is
+/// A block key read back from this store or the shared storage (a map file's
+/// are checked as it is read, `import_file`): within the map's range, as every key the mapper makes is
 /// ([`MAX_BLOCK_INDEX`](stillmap_mapping::voxel::MAX_BLOCK_INDEX)); beyond it a
 /// voxel's index would overflow.
 pub fn checked_block_key(key: BlockKey) -> Result<BlockKey, StoreError> {
@@ -1004,6 +1004,24 @@ pub(crate) fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
     let raw =
         zstd::bulk::decompress(bytes, stillmap_mapping::voxel::BLOCK_BYTES).map_err(|e| StoreError::Corrupt(format!("map block: {e}")))?;
     Block::from_bytes(&raw).map_err(|e| StoreError::Corrupt(e.to_string()))
+}
+
+#[cfg(test)]
+impl SessionMeta {
+    /// A session of robot `robot_id` over gRPC, started at 1 ns, with nothing mapped.
+    pub(crate) fn for_tests(robot_id: &str) -> Self {
+        Self {
+            robot_id: robot_id.into(),
+            transport: "grpc".into(),
+            started_unix_ns: 1,
+            class_names: Vec::new(),
+            up_in_world: None,
+            up_source: None,
+            keyframes: 0,
+            map_stamp: 0,
+            fleet: String::new(),
+        }
+    }
 }
 
 /// A store on a disk in memory that can be full (tests of failing writes).
@@ -1197,17 +1215,7 @@ mod tests {
     fn a_full_disk_marks_the_store_failing_until_a_retried_write_goes_through() {
         let disk = Disk::default();
         let store = super::memory_disk::store_on(&disk);
-        let meta = SessionMeta {
-            robot_id: "r".into(),
-            transport: "grpc".into(),
-            started_unix_ns: 1,
-            class_names: Vec::new(),
-            up_in_world: None,
-            up_source: None,
-            keyframes: 1,
-            map_stamp: 1,
-            fleet: String::new(),
-        };
+        let meta = SessionMeta { keyframes: 1, map_stamp: 1, ..SessionMeta::for_tests("r") };
         let camera = pb::CameraInfo { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5, ..Default::default() };
         store.put_session("s", &meta, &camera, "").unwrap();
         assert_eq!((store.failing(), store.errors()), (None, 0));

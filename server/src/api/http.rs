@@ -859,13 +859,10 @@ async fn session_map(registry: &Arc<Registry>, id: &str) -> Result<SharedMap, Re
     s.map().cloned().ok_or_else(|| error(StatusCode::NOT_FOUND, format!("session {id:?} has no map (mapping is disabled)")))
 }
 
-/// The session, or the 404 to answer. Looked up off the async runtime: a stored
-/// session is read back from the store (its map and trajectory), which would hold
-/// one of the runtime's few threads, and with it every other request, meanwhile.
+/// The session ([`Registry::get_off_runtime`]), or the 404 to answer.
 #[allow(clippy::result_large_err)]
 async fn session_of(registry: &Arc<Registry>, id: &str) -> Result<Arc<Session>, Response> {
-    let (registry, owned) = (registry.clone(), id.to_string());
-    blocking(move || registry.get(&owned)).await?.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")))
+    registry.get_off_runtime(id).await.ok_or_else(|| error(StatusCode::NOT_FOUND, format!("unknown session {id:?}")))
 }
 
 /// Runs a map query off the async runtime (fusion may hold the map for a few ms).

@@ -49,14 +49,7 @@ fn authorization<T>(request: &Request<T>) -> Option<String> {
 
 impl QueryService {
     async fn session(&self, id: &str) -> Result<Arc<Session>, Status> {
-        self.lookup(id).await.ok_or_else(|| Self::unknown(id))
-    }
-
-    /// Session `id` if this server holds it, looked up off the async runtime (which
-    /// also takes the robots' frames): a stored session is read back from the store.
-    async fn lookup(&self, id: &str) -> Option<Arc<Session>> {
-        let (registry, id) = (self.registry.clone(), id.to_string());
-        tokio::task::spawn_blocking(move || registry.get(&id)).await.ok().flatten()
+        self.registry.get_off_runtime(id).await.ok_or_else(|| Self::unknown(id))
     }
 
     fn unknown(id: &str) -> Status {
@@ -242,14 +235,16 @@ impl Query for QueryService {
 
     async fn get_latest_pose(&self, request: Request<pb::SessionRef>) -> Result<Response<pb::LatestPose>, Status> {
         let id = &request.get_ref().session_id;
-        let Some(session) = self.lookup(id).await else { return self.forwarded("GetLatestPose", id, &request).await };
+        let Some(session) = self.registry.get_off_runtime(id).await else { return self.forwarded("GetLatestPose", id, &request).await };
         let track = session.tracking();
         Ok(Response::new(pb::LatestPose { tracking_state: track.state as i32, pose: track.latest }))
     }
 
     async fn get_trajectory(&self, request: Request<pb::TrajectoryRequest>) -> Result<Response<pb::Trajectory>, Status> {
         let r = request.get_ref();
-        let Some(session) = self.lookup(&r.session_id).await else { return self.forwarded("GetTrajectory", &r.session_id, &request).await };
+        let Some(session) = self.registry.get_off_runtime(&r.session_id).await else {
+            return self.forwarded("GetTrajectory", &r.session_id, &request).await;
+        };
         let end = if r.end_ns == 0 { u64::MAX } else { r.end_ns };
         if r.start_ns > end {
             return Err(Status::invalid_argument(format!("start_ns {} is after end_ns {}", r.start_ns, r.end_ns)));
@@ -270,7 +265,7 @@ impl Query for QueryService {
 
     async fn subscribe_poses(&self, request: Request<pb::SessionRef>) -> Result<Response<Self::SubscribePosesStream>, Status> {
         let id = request.get_ref().session_id.clone();
-        let here = self.lookup(&id).await;
+        let here = self.registry.get_off_runtime(&id).await;
         // A lagging subscriber skips poses rather than holding the pipeline.
         let local = |session: &Session| BroadcastStream::new(session.subscribe_poses()).filter_map(|r| r.ok().map(Ok));
         if let Some(session) = here.as_ref().filter(|s| !s.is_archived()) {
