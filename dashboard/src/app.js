@@ -388,7 +388,10 @@ function connect() {
   events.onerror = () => { $("#link").textContent = "server unreachable, retrying…"; $("#link").className = "badge bad"; };
   events.addEventListener("sessions", (e) => {
     window.__stillmap.events++;
-    const { sessions } = JSON.parse(e.data);
+    const { sessions, stored_not_shown: notShown = 0 } = JSON.parse(e.data);
+    // The snapshot lists every session in memory and the newest stored ones.
+    $("#not-shown").hidden = notShown === 0;
+    $("#not-shown").textContent = `${notShown} older stored sessions not shown (GET /api/v1/sessions lists them all, page by page)`;
     const seen = new Set();
     for (const s of sessions) {
       seen.add(s.session_id);

@@ -529,8 +529,10 @@ async fn merged_list(forwarder: &Forwarder, request: Forwarded, local: Response,
     };
     let mut all: Vec<serde_json::Value> = list[list_key].as_array().cloned().unwrap_or_default();
     tag(&mut all, &forwarder.membership.own);
+    let mut next_tokens = usize::from(list.get("next_page_token").is_some_and(|t| t.is_string()));
     for (server, body) in forwarder.gather(&request).await {
         let Ok(theirs) = serde_json::from_slice::<serde_json::Value>(&body) else { continue };
+        next_tokens += usize::from(theirs.get("next_page_token").is_some_and(|t| t.is_string()));
         let mut items = theirs[list_key].as_array().cloned().unwrap_or_default();
         tag(&mut items, &server);
         if list_key == "fleets" {
@@ -540,6 +542,30 @@ async fn merged_list(forwarder: &Forwarder, request: Forwarded, local: Response,
             items.retain(|f| !all.iter().any(|a| a["fleet"] == f["fleet"]));
         }
         all.extend(items);
+    }
+    if list_key == "sessions" {
+        // A page of every server's sessions: each answered its first `limit` after
+        // the token (the query was passed on), so the merged page's are among them.
+        let query = request.path_and_query.split_once('?').map_or("", |(_, q)| q);
+        let limit = serde_urlencoded::from_str::<crate::api::http::ListQuery>(query)
+            .ok()
+            .and_then(|q| q.checked().ok())
+            .map_or(crate::session::DEFAULT_SESSIONS_PAGE, |(_, limit)| limit);
+        let cursor =
+            |s: &serde_json::Value| (s["started_unix_ns"].as_u64().unwrap_or(0), s["session_id"].as_str().unwrap_or("").to_string());
+        all.sort_by_cached_key(cursor);
+        let more = all.len() > limit || next_tokens > 0;
+        all.truncate(limit);
+        match all.last().map(cursor) {
+            Some((started_unix_ns, session_id)) if more => {
+                list["next_page_token"] = crate::session::ListCursor { started_unix_ns, session_id }.token().into();
+            }
+            _ => {
+                if let Some(o) = list.as_object_mut() {
+                    o.remove("next_page_token");
+                }
+            }
+        }
     }
     list[list_key] = serde_json::Value::Array(all);
     let mut response = axum::Json(list).into_response();

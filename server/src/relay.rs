@@ -200,7 +200,7 @@ pub async fn run(
                 poses_watched = poses_out.matching_status().await.is_ok_and(|m| m.matching());
                 if sessions_out.matching_status().await.is_ok_and(|m| m.matching()) {
                     let r = registry.clone();
-                    let Ok((list, seen)) = tokio::task::spawn_blocking(move || crate::api::dashboard::session_list(&r, previous)).await else { break };
+                    let Ok((list, seen, _)) = tokio::task::spawn_blocking(move || crate::api::dashboard::session_list(&r, previous)).await else { break };
                     previous = seen;
                     if let Ok(bytes) = serde_json::to_vec(&list)
                         && let Err(e) = sessions_out.put(bytes).await

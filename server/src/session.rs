@@ -90,6 +90,44 @@ pub struct TrackState {
     pub trajectory: Vec<pb::PoseStamped>,
 }
 
+/// Sessions a list answers with when the request names no limit: about 0.5 MB of
+/// JSON or protobuf.
+pub const DEFAULT_SESSIONS_PAGE: usize = 1_000;
+/// The most sessions one list answer holds (about 2.5 MB: under a gRPC client's
+/// default 4 MiB message limit).
+pub const MAX_SESSIONS_PAGE: usize = 5_000;
+
+/// A place in the sessions list, which is ordered by start time, then id: a page
+/// starts after it. Its token (`<started_unix_ns>:<session_id>`) is what the lists
+/// answer as `next_page_token` and take back as `page_token`; it stays right
+/// while sessions come and go, and over several servers' lists merged.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub struct ListCursor {
+    pub started_unix_ns: u64,
+    pub session_id: String,
+}
+
+impl ListCursor {
+    pub fn of(summary: &pb::SessionSummary) -> Self {
+        Self { started_unix_ns: summary.started_unix_ns, session_id: summary.session_id.clone() }
+    }
+
+    pub fn token(&self) -> String {
+        format!("{}:{}", self.started_unix_ns, self.session_id)
+    }
+
+    /// Reads a token that [`token`](Self::token) wrote.
+    pub fn parse(token: &str) -> Result<Self, String> {
+        let bad = || format!("page_token {token:?} is not one a sessions list gave (<started_unix_ns>:<session_id>)");
+        let (started, id) = token.split_once(':').ok_or_else(bad)?;
+        let started_unix_ns = started.parse().map_err(|_| bad())?;
+        if id.is_empty() {
+            return Err(bad());
+        }
+        Ok(Self { started_unix_ns, session_id: id.to_string() })
+    }
+}
+
 /// Poses a trajectory query answers with when it names no limit on gRPC (about
 /// 2 MB, under a client's default 4 MiB message limit).
 pub const DEFAULT_TRAJECTORY_PAGE: usize = 20_000;
@@ -1187,6 +1225,19 @@ impl Registry {
         all
     }
 
+    /// A page of the sessions list (oldest first, as [`list_info`](Self::list_info)):
+    /// at most `limit` sessions after `after`, and where the next page starts when
+    /// more follow.
+    pub fn list_page(&self, after: Option<&ListCursor>, limit: usize) -> (Vec<SessionInfo>, Option<ListCursor>) {
+        let mut all = self.list_info();
+        if let Some(after) = after {
+            all.retain(|s| &ListCursor::of(&s.summary) > after);
+        }
+        let next = (all.len() > limit).then(|| ListCursor::of(&all[limit - 1].summary));
+        all.truncate(limit);
+        (all, next)
+    }
+
     /// What the list shows of session `id` (nothing is loaded).
     pub fn info(&self, id: &str) -> Option<SessionInfo> {
         match self.resident(id) {
@@ -2020,6 +2071,65 @@ mod tests {
             assert_eq!((parts.len(), parts[0], parts[2]), (3, "r", "1"), "{id}");
             assert!(parts[1].len() > 8 && parts[1].chars().all(|c| c.is_ascii_hexdigit()), "{id}");
         }
+    }
+
+    /// The sessions list comes in pages, oldest first: each page starts after the
+    /// token the previous one gave, a session opened meanwhile comes on a later
+    /// page, and a token no list gave is refused by name.
+    #[test]
+    fn sessions_are_listed_in_pages() {
+        let registry = registry_with(None, SessionConfig::default(), LimitsConfig::default());
+        let (sink, _rx) = mpsc::channel(4);
+        let mut opened = Vec::new();
+        for robot in ["a", "b", "c", "d", "e"] {
+            opened.push(registry.open(&hello(robot), Transport::Grpc, sink.clone()).expect("open").session.id.clone());
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        let ids = |page: &[SessionInfo]| page.iter().map(|s| s.summary.session_id.clone()).collect::<Vec<_>>();
+        let (first, next) = registry.list_page(None, 2);
+        assert_eq!(ids(&first), opened[..2]);
+        let next = next.expect("more follow");
+        assert_eq!(next, ListCursor::of(&first[1].summary));
+        let token = next.token();
+        assert_eq!(ListCursor::parse(&token), Ok(next.clone()), "{token}");
+        opened.push(registry.open(&hello("f"), Transport::Grpc, sink.clone()).expect("open").session.id.clone());
+        let (second, next) = registry.list_page(Some(&next), 2);
+        assert_eq!(ids(&second), opened[2..4]);
+        let (last, end) = registry.list_page(next.as_ref(), 2);
+        assert_eq!((ids(&last), end), (opened[4..].to_vec(), None), "the session opened meanwhile is on the last page");
+        let (all, end) = registry.list_page(None, 6);
+        assert_eq!((ids(&all), end), (opened.clone(), None), "exactly the limit: no next page");
+        for bad in ["", "12", "x:r-1", "12:", "-1:r-1"] {
+            let message = ListCursor::parse(bad).expect_err(bad);
+            assert!(message.starts_with(&format!("page_token {bad:?} is not one a sessions list gave")), "{message}");
+        }
+        registry.close_all();
+    }
+
+    /// The dashboard's snapshot (to every viewer and every other server, twice a
+    /// second) lists every session in memory and only the newest stored ones, and
+    /// says how many it leaves out.
+    #[test]
+    fn the_dashboard_lists_the_sessions_in_memory_and_the_newest_stored_ones() {
+        let config = SessionConfig { idle_evict_s: 0.001, ..SessionConfig::default() };
+        let registry = registry_with(Some("snapshot"), config, LimitsConfig::default());
+        let (sink, _rx) = mpsc::channel(4);
+        let stored = crate::api::dashboard::SNAPSHOT_STORED_SESSIONS + 2;
+        let mut ids = Vec::new();
+        for i in 0..stored {
+            let s = registry.open(&hello(&format!("r{i}")), Transport::Grpc, sink.clone()).expect("open").session;
+            ids.push(s.id.clone());
+            s.detach(&sink);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), stored);
+        let live = registry.open(&hello("live"), Transport::Grpc, sink.clone()).expect("open").session;
+        let (listed, _, not_shown) = crate::api::dashboard::session_list(&registry, HashMap::new());
+        let listed: Vec<&str> = listed.iter().filter_map(|s| s["session_id"].as_str()).collect();
+        let expected: Vec<&str> = std::iter::once(live.id.as_str()).chain(ids[2..].iter().map(String::as_str)).collect();
+        assert_eq!((listed, not_shown), (expected, 2));
+        assert_eq!(registry.list_info().len(), stored + 1, "the API lists them all");
+        registry.close_all();
     }
 
     /// A frame that panicked the pipeline (the pool reports it to the session's

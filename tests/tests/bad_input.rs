@@ -328,10 +328,45 @@ async fn queries_answer_for_a_live_session() {
     s.send(ClientMsg::Frame(tum_frame(0, 10))).await;
     assert_eq!(s.result().await.status(), FrameStatus::Ok);
     let mut q = QueryClient::connect(server.grpc_url()).await.expect("connect");
-    let list = q.list_sessions(pb::ListSessionsRequest {}).await.expect("list").into_inner();
+    let list = q.list_sessions(pb::ListSessionsRequest::default()).await.expect("list").into_inner();
     assert_eq!(list.sessions.len(), 1);
     assert_eq!(list.sessions[0].frames_processed, 1);
     assert!(list.sessions[0].connected);
+    assert_eq!(list.next_page_token, "", "one page");
+
+    // The lists come in pages; a bad size or token is named.
+    let (_s2, second) = Stream::hello(&server, tum_hello("q2")).await;
+    let page = q.list_sessions(pb::ListSessionsRequest { page_size: 1, ..Default::default() }).await.expect("page").into_inner();
+    let token = format!("{}:{}", list.sessions[0].started_unix_ns, accepted.session_id);
+    assert_eq!((page.sessions.len(), page.next_page_token.as_str()), (1, token.as_str()));
+    let rest = q.list_sessions(pb::ListSessionsRequest { page_size: 1, page_token: token.clone() }).await.expect("page").into_inner();
+    assert_eq!(rest.sessions.iter().map(|s| s.session_id.as_str()).collect::<Vec<_>>(), [second.session_id.as_str()]);
+    assert_eq!(rest.next_page_token, "");
+    for (request, message) in [
+        (
+            pb::ListSessionsRequest { page_size: 5001, ..Default::default() },
+            "limit must be within 1..=5000 sessions (page with page_token), got 5001",
+        ),
+        (
+            pb::ListSessionsRequest { page_token: "nope".into(), ..Default::default() },
+            "page_token \"nope\" is not one a sessions list gave (<started_unix_ns>:<session_id>)",
+        ),
+    ] {
+        let status = q.list_sessions(request).await.expect_err("refused");
+        assert_eq!((status.code(), status.message()), (Code::InvalidArgument, message));
+    }
+    let (status, page) = server.get_json("/api/v1/sessions?limit=1").await;
+    assert_eq!((status, page["next_page_token"].as_str()), (200, Some(token.as_str())), "{page}");
+    let (_, rest) = server.get_json(&format!("/api/v1/sessions?limit=1&page_token={token}")).await;
+    assert_eq!(rest["sessions"][0]["session_id"].as_str(), Some(second.session_id.as_str()), "{rest}");
+    assert!(rest.get("next_page_token").is_none(), "{rest}");
+    for (query, message) in [
+        ("limit=0", "limit must be within 1..=5000 sessions (page with page_token), got 0"),
+        ("page_token=12", "page_token \"12\" is not one a sessions list gave (<started_unix_ns>:<session_id>)"),
+    ] {
+        let (status, body) = server.get_json(&format!("/api/v1/sessions?{query}")).await;
+        assert_eq!((status, body["error"].as_str()), (400, Some(message)), "{query}");
+    }
     let latest = q.get_latest_pose(pb::SessionRef { session_id: accepted.session_id.clone() }).await.expect("pose").into_inner();
     // The first real frame starts the map: it defines the world frame.
     assert_eq!(latest.tracking_state(), pb::TrackingState::Tracking);

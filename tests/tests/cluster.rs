@@ -570,10 +570,34 @@ async fn robots_are_placed_on_one_server_each_and_move_when_theirs_is_killed() {
                 (forwarded, own) => panic!("{id}: cloud forwarded {:?}, at the holder {:?} (mapping is on)", forwarded.err(), own.err()),
             }
         }
-        let listed = there.list_sessions(pb::ListSessionsRequest {}).await.expect("sessions").into_inner();
+        let listed = there.list_sessions(pb::ListSessionsRequest::default()).await.expect("sessions").into_inner();
         let mut robots: Vec<String> = listed.sessions.iter().map(|s| s.robot_id.clone()).collect();
         robots.sort();
         assert_eq!(robots, robots_all, "every server's sessions, listed by {}", if other.pid() == a.pid() { id_a } else { id_b });
+        // Page by page (one session a page), over both servers' lists merged: each
+        // session once, oldest first, on gRPC and HTTP alike.
+        let whole: Vec<String> = listed.sessions.iter().map(|s| s.session_id.clone()).collect();
+        let (mut paged, mut token) = (Vec::new(), String::new());
+        loop {
+            let request = pb::ListSessionsRequest { page_size: 1, page_token: token.clone() };
+            let page = there.list_sessions(request).await.expect("a page").into_inner();
+            paged.extend(page.sessions.iter().map(|s| s.session_id.clone()));
+            if page.next_page_token.is_empty() || paged.len() > whole.len() {
+                break;
+            }
+            token = page.next_page_token;
+        }
+        assert_eq!(paged, whole, "gRPC pages");
+        let (mut paged, mut path) = (Vec::new(), "/api/v1/sessions?limit=1".to_string());
+        loop {
+            let (_, page) = other.get_json(&path).await;
+            paged.extend(page["sessions"].as_array().expect("sessions").iter().filter_map(|s| s["session_id"].as_str().map(str::to_owned)));
+            match page["next_page_token"].as_str() {
+                Some(token) if paged.len() <= whole.len() => path = format!("/api/v1/sessions?limit=1&page_token={token}"),
+                _ => break,
+            }
+        }
+        assert_eq!(paged, whole, "HTTP pages");
     }
     let mut q = QueryClient::connect(a.grpc_url()).await.expect("connect");
     let missing = q.get_latest_pose(pb::SessionRef { session_id: "nobody-1".into() }).await.expect_err("no such session");

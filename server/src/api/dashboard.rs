@@ -223,14 +223,20 @@ impl EventFeed {
                         continue;
                     }
                     let registry = feed.registry.clone();
-                    let Ok((mut sessions, seen)) = tokio::task::spawn_blocking(move || session_list(&registry, previous)).await else {
+                    let Ok((mut sessions, seen, not_shown)) = tokio::task::spawn_blocking(move || session_list(&registry, previous)).await
+                    else {
                         break;
                     };
                     previous = seen;
                     if let Some(remote) = &feed.remote {
                         sessions = with_remote(sessions, remote.own_id(), remote.sessions());
                     }
-                    feed.snapshot.send_replace(Arc::from(json!({ "sessions": sessions }).to_string()));
+                    let snapshot = if not_shown > 0 {
+                        json!({ "sessions": sessions, "stored_not_shown": not_shown })
+                    } else {
+                        json!({ "sessions": sessions })
+                    };
+                    feed.snapshot.send_replace(Arc::from(snapshot.to_string()));
                 }
             });
             let feed = self.clone();
@@ -319,13 +325,23 @@ fn with_remote(mut sessions: Vec<Value>, own: &str, remote: Vec<Value>) -> Vec<V
     sessions
 }
 
-/// The sessions event's list, and each session's processed count and time (for
-/// the next list's frames/s).
+/// The stored sessions (not in memory) the dashboard's snapshot lists: the newest.
+/// The snapshot goes to every viewer and every other server twice a second; a
+/// store that has kept thousands of sessions is listed page by page by
+/// `GET /api/v1/sessions`.
+pub const SNAPSHOT_STORED_SESSIONS: usize = 100;
+
+/// The sessions event's list (every session in memory, then the newest
+/// [`SNAPSHOT_STORED_SESSIONS`] stored ones, oldest first), each session's
+/// processed count and time (for the next list's frames/s), and how many stored
+/// sessions are not listed.
 pub(crate) fn session_list(
     registry: &Registry,
     mut previous: HashMap<String, (u64, Instant)>,
-) -> (Vec<Value>, HashMap<String, (u64, Instant)>) {
+) -> (Vec<Value>, HashMap<String, (u64, Instant)>, usize) {
     let now = Instant::now();
+    let dormant = registry.dormant();
+    let not_shown = dormant.len().saturating_sub(SNAPSHOT_STORED_SESSIONS);
     let list = registry.list();
     let mut seen = HashMap::with_capacity(list.len());
     let sessions: Vec<Value> = list
@@ -339,9 +355,9 @@ pub(crate) fn session_list(
             seen.insert(s.id.clone(), (processed, now));
             session_json(s, fps)
         })
-        .chain(registry.dormant().iter().map(|d| listed_json(d, 0.0, json!({}), Value::Null)))
+        .chain(dormant[not_shown..].iter().map(|d| listed_json(d, 0.0, json!({}), Value::Null)))
         .collect();
-    (sessions, seen)
+    (sessions, seen, not_shown)
 }
 
 /// Counts a viewer for as long as its stream lives.

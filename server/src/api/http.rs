@@ -153,12 +153,46 @@ async fn json_errors(response: Response) -> Response {
     get,
     path = "/api/v1/sessions",
     tag = "sessions",
+    params(
+        ("limit" = Option<usize>, Query, description = "Sessions per answer: 1000 by default, at most 5000; where more follow, `next_page_token` says where to ask from"),
+        ("page_token" = Option<String>, Query, description = "Where the page starts: a `next_page_token` an earlier answer gave"),
+    ),
     responses(
-        (status = 200, description = "Every session, live and stored", body = SessionList),
+        (status = 200, description = "The sessions, live and stored, oldest first (by start time, then id)", body = SessionList),
+        (status = 400, description = "Bad limit or page token", body = ApiError),
     )
 )]
-pub(crate) async fn list_sessions(State(registry): State<Arc<Registry>>) -> Json<SessionList> {
-    Json(SessionList { sessions: registry.list_info().iter().map(|s| SessionView::from(s, false)).collect() })
+pub(crate) async fn list_sessions(State(registry): State<Arc<Registry>>, JsonQuery(q): JsonQuery<ListQuery>) -> Response {
+    let (after, limit) = match q.checked() {
+        Ok(page) => page,
+        Err(message) => return error(StatusCode::BAD_REQUEST, message),
+    };
+    let listed = tokio::task::spawn_blocking(move || registry.list_page(after.as_ref(), limit)).await;
+    let Ok((sessions, next)) = listed else { return error(StatusCode::INTERNAL_SERVER_ERROR, "the sessions list failed".into()) };
+    Json(SessionList { sessions: sessions.iter().map(|s| SessionView::from(s, false)).collect(), next_page_token: next.map(|c| c.token()) })
+        .into_response()
+}
+
+/// `GET /api/v1/sessions`'s query.
+#[derive(Debug, Default, serde::Deserialize)]
+pub(crate) struct ListQuery {
+    pub(crate) limit: Option<usize>,
+    pub(crate) page_token: Option<String>,
+}
+
+impl ListQuery {
+    /// Where the page starts and how long it is, or what is wrong with them.
+    pub(crate) fn checked(&self) -> Result<(Option<crate::session::ListCursor>, usize), String> {
+        let limit = self.limit.unwrap_or(crate::session::DEFAULT_SESSIONS_PAGE);
+        if !(1..=crate::session::MAX_SESSIONS_PAGE).contains(&limit) {
+            return Err(format!(
+                "limit must be within 1..={} sessions (page with page_token), got {limit}",
+                crate::session::MAX_SESSIONS_PAGE
+            ));
+        }
+        let after = self.page_token.as_deref().filter(|t| !t.is_empty()).map(crate::session::ListCursor::parse).transpose()?;
+        Ok((after, limit))
+    }
 }
 
 #[utoipa::path(

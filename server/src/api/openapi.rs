@@ -88,6 +88,9 @@ pub struct ApiError {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct SessionList {
     pub sessions: Vec<SessionView>,
+    /// Where more sessions follow: the `page_token` of the next page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next_page_token: Option<String>,
 }
 
 /// A session: live, archived (restored from the store) or imported.

@@ -220,17 +220,43 @@ impl Query for QueryService {
     }
 
     /// This server's sessions, then every other live server's.
+    /// A page of every server's sessions merged: each server answers its first
+    /// `page_size` after the token, so the merged list's first `page_size` are
+    /// among them.
     async fn list_sessions(&self, request: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
-        let mut sessions: Vec<pb::SessionSummary> = self.registry.list_info().into_iter().map(|s| s.summary).collect();
+        let page = crate::api::http::ListQuery {
+            limit: Some(match request.get_ref().page_size {
+                0 => crate::session::DEFAULT_SESSIONS_PAGE,
+                n => usize::try_from(n).unwrap_or(usize::MAX),
+            }),
+            page_token: Some(request.get_ref().page_token.clone()),
+        };
+        let (after, limit) = page.checked().map_err(Status::invalid_argument)?;
+        let registry = self.registry.clone();
+        let (listed, next) = tokio::task::spawn_blocking(move || registry.list_page(after.as_ref(), limit))
+            .await
+            .map_err(|_| Status::internal("the sessions list failed"))?;
+        let mut sessions: Vec<pb::SessionSummary> = listed.into_iter().map(|s| s.summary).collect();
+        let mut more = next.is_some();
         if let Some(remote) = &self.remote {
             for answer in remote.gather("ListSessions", request.get_ref().encode_to_vec(), authorization(&request)).await {
                 match pb::ListSessionsResponse::decode(answer.as_slice()) {
-                    Ok(theirs) => sessions.extend(theirs.sessions),
+                    Ok(theirs) => {
+                        more |= !theirs.next_page_token.is_empty();
+                        sessions.extend(theirs.sessions);
+                    }
                     Err(e) => tracing::warn!("another server's sessions list is not a ListSessionsResponse: {e}"),
                 }
             }
+            sessions.sort_by_cached_key(crate::session::ListCursor::of);
+            more |= sessions.len() > limit;
+            sessions.truncate(limit);
         }
-        Ok(Response::new(pb::ListSessionsResponse { sessions }))
+        let next_page_token = match sessions.last() {
+            Some(last) if more => crate::session::ListCursor::of(last).token(),
+            _ => String::new(),
+        };
+        Ok(Response::new(pb::ListSessionsResponse { sessions, next_page_token }))
     }
 
     async fn get_latest_pose(&self, request: Request<pb::SessionRef>) -> Result<Response<pb::LatestPose>, Status> {
