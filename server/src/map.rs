@@ -12,6 +12,7 @@ use std::sync::{Arc, Mutex};
 
 use rustc_hash::FxHashSet;
 use stillmap_mapping::VoxelMap;
+use stillmap_mapping::export::Aabb;
 use stillmap_mapping::voxel::{BLOCK_EDGE, Block, BlockKey};
 
 use nalgebra::{UnitQuaternion, Vector3};
@@ -22,6 +23,11 @@ use stillmap_proto::pb;
 use crate::convert::camera_of;
 use crate::lock;
 use crate::store::{Commit, KeyframeRecord, SessionMeta, Store, StoreError};
+
+/// Part of a map cannot be read back from the store (HTTP 503, gRPC UNAVAILABLE).
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("{0}")]
+pub struct MapUnreadable(pub String);
 
 pub struct SessionMap {
     pub(crate) builder: MapBuilder,
@@ -312,23 +318,46 @@ impl SessionMap {
         }
     }
 
-    /// The whole map, stored blocks included (a copy when some are evicted).
-    pub(crate) fn full_map(&self) -> Cow<'_, VoxelMap> {
+    /// The whole map, stored blocks included (a copy when some are evicted), or
+    /// [`MapUnreadable`] when the store cannot give one of them back: a map with
+    /// a hole is never answered as the map.
+    pub(crate) fn full_map(&self) -> Result<Cow<'_, VoxelMap>, MapUnreadable> {
+        self.map_within(None)
+    }
+
+    /// The map with the stored blocks that may hold surfaces inside `bbox` (map
+    /// frame; all of them without one): a query about a box reads only the blocks
+    /// around it back from the store.
+    pub(crate) fn map_within(&self, bbox: Option<&Aabb>) -> Result<Cow<'_, VoxelMap>, MapUnreadable> {
         let Some(p) = self.persistence.as_ref().filter(|p| !p.cold.is_empty()) else {
-            return Cow::Borrowed(self.builder.map());
+            return Ok(Cow::Borrowed(self.builder.map()));
         };
-        let loaded: Vec<(BlockKey, Block)> = p
-            .cold
-            .iter()
-            .filter_map(|k| match p.store.block(&p.session_id, *k) {
-                Ok(b) => b.map(|b| (*k, b)),
-                Err(e) => {
-                    tracing::error!(session = %p.session_id, "cannot read a map block: {e}");
-                    None
-                }
+        let block_m = self.builder.config().voxel_size_m * f64::from(BLOCK_EDGE);
+        let map_from_world = self.map_from_world();
+        let near_box = |k: &BlockKey| {
+            bbox.is_none_or(|b| {
+                // The block's bounding sphere against the box, in the map frame.
+                let centre = map_from_world * (Vector3::new(f64::from(k[0]) + 0.5, f64::from(k[1]) + 0.5, f64::from(k[2]) + 0.5) * block_m);
+                let radius = block_m * 3f64.sqrt() / 2.0;
+                (0..3).all(|i| centre[i] + radius >= b.min[i] && centre[i] - radius <= b.max[i])
             })
-            .collect();
-        Cow::Owned(self.builder.map().with_blocks(loaded))
+        };
+        let mut loaded: Vec<(BlockKey, Block)> = Vec::new();
+        for k in p.cold.iter().filter(|k| near_box(k)) {
+            match p.store.block(&p.session_id, *k) {
+                Ok(Some(b)) => loaded.push((*k, b)),
+                // Gone from the store: `restore_near` logs it and forgets it.
+                Ok(None) => {}
+                Err(e) => {
+                    tracing::error!(session = %p.session_id, ?k, "cannot read a map block back: {e}");
+                    return Err(MapUnreadable(format!(
+                        "session {}: a map block evicted to the store cannot be read back ({e})",
+                        p.session_id
+                    )));
+                }
+            }
+        }
+        Ok(Cow::Owned(self.builder.map().with_blocks(loaded)))
     }
 
     pub fn class_names(&self) -> &[String] {
@@ -347,21 +376,22 @@ impl SessionMap {
         self.builder.map_from_world().map_or_else(UnitQuaternion::identity, |(r, _)| r)
     }
 
-    pub(crate) fn top_down(&mut self) -> Arc<TopDown> {
+    pub(crate) fn top_down(&mut self) -> Result<Arc<TopDown>, MapUnreadable> {
         let version = self.builder.map().version();
         match &self.top {
-            Some(t) if t.map_version == version => t.clone(),
+            Some(t) if t.map_version == version => Ok(t.clone()),
             _ => {
-                let t = Arc::new(TopDown::build(&self.full_map(), &self.map_from_world()));
+                let t = Arc::new(TopDown::build(&*self.full_map()?, &self.map_from_world()));
                 self.top = Some(t.clone());
-                t
+                Ok(t)
             }
         }
     }
 
     pub fn info(&mut self) -> MapInfo {
         let stats = self.builder.map().stats();
-        let bounds = self.top_down().bounds();
+        // Unknown while a stored block cannot be read back (logged).
+        let bounds = self.top_down().ok().and_then(|t| t.bounds());
         MapInfo {
             voxel_size_m: self.builder.map().voxel_size(),
             keyframes: self.builder.keyframes(),
@@ -409,6 +439,63 @@ mod tests {
 
     use super::*;
     use crate::store::memory_disk::{Disk, store_on};
+
+    /// A stored block the store cannot give back makes every map query on the
+    /// whole map an error naming it, not a map with a hole; a query about a box
+    /// reads only the stored blocks around it, and is answered.
+    #[test]
+    fn a_stored_block_that_cannot_be_read_fails_the_query_not_the_map() {
+        use crate::api::map_queries::{self as q, QueryError};
+        let camera = pb::CameraInfo {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 32.0,
+            cy: 24.0,
+            depth_units_per_metre: 1000.0,
+            ..Default::default()
+        };
+        let config = MappingConfig { max_resident_blocks: 4, ..MappingConfig::default() };
+        let map = SessionMap::new(&camera, config, Vec::new()).expect("map");
+        let store = Arc::new(store_on(&Disk::default()));
+        let meta = SessionMeta::for_tests("r");
+        store.put_session("s", &meta, &camera, "").expect("session");
+        let wall = {
+            let mut m = lock(&map);
+            m.attach_store(store.clone(), "s", meta);
+            let (depth, rgb) = (vec![1000u16; 64 * 48], vec![100u8; 64 * 48 * 3]);
+            let view = DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None };
+            m.builder.add_keyframe(1, &Isometry3::identity(), &view).expect("fused");
+            let wall: Vec<BlockKey> = m.builder.map().blocks().map(|(k, _)| *k).collect();
+            m.persist(&[], None).expect("committed");
+            let far = Isometry3::from_parts(Translation3::new(100.0, 0.0, 0.0), nalgebra::UnitQuaternion::identity());
+            m.builder.add_keyframe(2, &far, &view).expect("fused");
+            m.persist(&[], None).expect("committed");
+            assert!(wall.iter().all(|k| m.builder.map().blocks().all(|(b, _)| b != k)), "the wall went to the store");
+            wall
+        };
+        let whole = q::points(&map, None).expect("every block reads back").0.len();
+        store.put_raw_block("s", wall[0], b"not a block").expect("damaged");
+        lock(&map).top = None;
+        let unreadable = |e: QueryError| match e {
+            QueryError::Unreadable(u) => u.0,
+            QueryError::Bad(b) => panic!("not a bad query: {}", b.0),
+        };
+        let message = unreadable(q::points(&map, None).expect_err("a hole").into());
+        assert!(message.starts_with("session s: a map block evicted to the store cannot be read back ("), "{message}");
+        unreadable(q::ply(&map, "s", None).expect_err("a hole").into());
+        unreadable(q::map_objects(&map).expect_err("a hole").into());
+        unreadable(q::legend(&map).expect_err("a hole").into());
+        unreadable(q::tile(&map, 0, 0, 0).expect_err("a hole"));
+        unreadable(q::occupancy(&map, None, None, None).expect_err("a hole"));
+        assert_eq!(lock(&map).info().bounds, None, "unknown, not the bounds of part of the map");
+        // The far wall's box (map frame: x forward of the far camera, z up) reads
+        // no stored block, and holds the far wall's points.
+        let far_box = q::parse_bbox("90,-50,-50,110,50,50").expect("bbox");
+        let (near_far, _) = q::points(&map, Some(&far_box)).expect("only blocks around the box are read");
+        assert!(!near_far.is_empty() && near_far.len() < whole, "{} of {whole}", near_far.len());
+    }
 
     /// A commit that fails after blocks that were evicted, started again and evicted
     /// again had their stored copies merged in: the next commit stores each

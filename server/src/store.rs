@@ -704,6 +704,14 @@ impl Store {
         decode_block(v.value()).map(Some)
     }
 
+    /// Overwrites a stored map block with `bytes` (a damaged block, for tests).
+    #[cfg(test)]
+    pub(crate) fn put_raw_block(&self, session_id: &str, key: BlockKey, bytes: &[u8]) -> Result<(), StoreError> {
+        let tx = self.db()?.begin_write().map_err(|e| self.err(e))?;
+        tx.open_table(BLOCKS).map_err(|e| self.err(e))?.insert((session_id, key[0], key[1], key[2]), bytes).map_err(|e| self.err(e))?;
+        tx.commit().map_err(|e| self.err(e))
+    }
+
     /// What the server keeps of every stored session while it is not in memory:
     /// description, camera, pose count and latest pose, and (`with_keyframes`) the
     /// keyframe records place recognition needs. No map block and no trajectory

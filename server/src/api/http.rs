@@ -520,8 +520,9 @@ async fn fleet_map(
     })
     .await?
     {
-        (Some(m), permit) => Ok((m, n, permit)),
-        (None, _) => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
+        (Ok(Some(m)), permit) => Ok((m, n, permit)),
+        (Ok(None), _) => Err(error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet"))),
+        (Err(e), _) => Err(query_error(e)),
     }
 }
 
@@ -537,6 +538,7 @@ async fn fleet_map(
         (status = 200, description = "The fleet map as a binary PLY, class colours", content_type = "application/octet-stream"),
         (status = 404, description = "Unknown fleet", body = ApiError),
         (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn fleet_cloud(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
@@ -590,6 +592,7 @@ async fn fleet_occupancy(
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown fleet", body = ApiError),
         (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn fleet_occupancy_pgm(
@@ -616,6 +619,7 @@ pub(crate) async fn fleet_occupancy_pgm(
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown fleet", body = ApiError),
         (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn fleet_occupancy_yaml(
@@ -640,6 +644,7 @@ pub(crate) async fn fleet_occupancy_yaml(
         (status = 200, description = "Objects of the fleet map with class and box", body = Object),
         (status = 404, description = "Unknown fleet", body = ApiError),
         (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn fleet_objects(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
@@ -675,7 +680,7 @@ async fn fleet_state(registry: &Arc<Registry>, name: &str) -> Result<(FleetParts
 /// The fleet map's top-down view for `parts` in the state `tag` (cached per fleet until a part changes).
 async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: u64) -> Result<Arc<mapping::FleetTop>, Response> {
     let fleet = name.to_string();
-    blocking(move || registry.fleet_tops().get(&fleet, &parts, tag))
+    blocking_query(move || registry.fleet_tops().get(&fleet, &parts, tag))
         .await?
         .ok_or_else(|| error(StatusCode::NOT_FOUND, format!("fleet {name:?} has no map yet")))
 }
@@ -695,6 +700,7 @@ async fn fleet_top(registry: Arc<Registry>, name: &str, parts: FleetParts, tag: 
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown fleet", body = ApiError),
         (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn fleet_tile(
@@ -732,6 +738,7 @@ pub(crate) async fn fleet_tile(
         (status = 200, description = "Classes and colours of the fleet tiles, and their extent", body = Object),
         (status = 404, description = "Unknown fleet", body = ApiError),
         (status = 409, description = "Fleets off, or nothing merged yet", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn fleet_legend(State(registry): State<Arc<Registry>>, Path(name): Path<String>) -> Response {
@@ -826,6 +833,7 @@ pub(crate) async fn healthz(State(registry): State<Arc<Registry>>) -> Response {
     responses(
         (status = 200, description = "The session for Foxglove: poses, trajectory, tracking states, the map as a point cloud, keyframe images with the mask (MCAP, JSON-encoded Foxglove schemas)", content_type = "application/octet-stream"),
         (status = 404, description = "Unknown session", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
@@ -837,16 +845,18 @@ pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id)
     let map = s.map().cloned();
     let key = id.clone();
     let file = blocking(move || {
-        let map = map.map(|m| {
-            let points = mapping::points(&m, None).0;
-            let locked = crate::lock(&m);
-            crate::api::foxglove::MapExport { points, map_from_world: locked.map_from_world(), images: locked.images() }
-        });
-        crate::api::foxglove::session_mcap(&key, &trajectory, map.as_ref())
+        let map = map
+            .map(|m| {
+                let points = mapping::points(&m, None)?.0;
+                let locked = crate::lock(&m);
+                Ok(crate::api::foxglove::MapExport { points, map_from_world: locked.map_from_world(), images: locked.images() })
+            })
+            .transpose()?;
+        Ok::<_, crate::map::MapUnreadable>(crate::api::foxglove::session_mcap(&key, &trajectory, map.as_ref()))
     })
     .await;
     match file {
-        Ok(Ok(bytes)) => (
+        Ok(Ok(Ok(bytes))) => (
             [
                 (header::CONTENT_TYPE, "application/octet-stream".to_string()),
                 (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.mcap\"")),
@@ -854,7 +864,8 @@ pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id)
             bytes,
         )
             .into_response(),
-        Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, format!("writing the MCAP file failed: {e}")),
+        Ok(Ok(Err(e))) => error(StatusCode::INTERNAL_SERVER_ERROR, format!("writing the MCAP file failed: {e}")),
+        Ok(Err(e)) => query_error(e),
         Err(r) => r,
     }
 }
@@ -902,6 +913,22 @@ async fn session_of(registry: &Arc<Registry>, id: &str) -> Result<Arc<Session>, 
 /// Runs a map query off the async runtime (fusion may hold the map for a few ms).
 async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T, Response> {
     tokio::task::spawn_blocking(f).await.map_err(|e| error(StatusCode::INTERNAL_SERVER_ERROR, format!("map query failed: {e}")))
+}
+
+/// A map query's error as the response: 400 for the query, 503 for a part of the
+/// map the store cannot give back.
+fn query_error(e: impl Into<mapping::QueryError>) -> Response {
+    match e.into() {
+        mapping::QueryError::Bad(b) => error(StatusCode::BAD_REQUEST, b.0),
+        mapping::QueryError::Unreadable(u) => error(StatusCode::SERVICE_UNAVAILABLE, u.0),
+    }
+}
+
+/// [`blocking`] for a map query that may fail ([`query_error`]).
+async fn blocking_query<T: Send + 'static, E: Into<mapping::QueryError> + Send + 'static>(
+    f: impl FnOnce() -> Result<T, E> + Send + 'static,
+) -> Result<T, Response> {
+    blocking(f).await?.map_err(query_error)
 }
 
 const MAP_FRAME: &str = "map = world rotated so that +z is up (gravity); origin at the first camera's centre; metres";
@@ -984,6 +1011,7 @@ fn tile_coordinates(z: &str, x: &str, y: &str) -> Result<(u8, i64, i64), BadQuer
         (status = 304, description = "Not modified (If-None-Match)"),
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn map_tile(
@@ -1018,7 +1046,7 @@ fn not_modified(headers: &HeaderMap, etag: String) -> Option<Response> {
 }
 
 /// A rendered tile as the response (PNG with its ETag), or its error.
-fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) -> Response {
+fn tile_response(rendered: Result<Result<mapping::Tile, mapping::QueryError>, Response>) -> Response {
     match rendered {
         Ok(Ok(tile)) => (
             [
@@ -1029,7 +1057,7 @@ fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) ->
             tile.png,
         )
             .into_response(),
-        Ok(Err(e)) => error(StatusCode::BAD_REQUEST, e.0),
+        Ok(Err(e)) => query_error(e),
         Err(r) => r,
     }
 }
@@ -1044,6 +1072,7 @@ fn tile_response(rendered: Result<Result<mapping::Tile, BadQuery>, Response>) ->
     responses(
         (status = 200, description = "Classes and colours of the tiles", body = Object),
         (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
@@ -1051,7 +1080,7 @@ pub(crate) async fn map_legend(State(registry): State<Arc<Registry>>, Path(id): 
         Ok(m) => m,
         Err(r) => return r,
     };
-    match blocking(move || mapping::legend(&map)).await {
+    match blocking_query(move || mapping::legend(&map)).await {
         Ok(entries) => Json(json!({
             "session_id": id,
             "classes": legend_json(&entries),
@@ -1087,9 +1116,7 @@ pub(crate) struct TilePath {
 
 async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Result<stillmap_mapping::tiles::OccupancyGrid, Response> {
     let map = session_map(&registry, &id).await?;
-    blocking(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution))
-        .await?
-        .map_err(|e| error(StatusCode::BAD_REQUEST, e.0))
+    blocking_query(move || mapping::occupancy(&map, q.min_height, q.max_height, q.resolution)).await
 }
 
 #[utoipa::path(
@@ -1104,6 +1131,7 @@ async fn occupancy(registry: Arc<Registry>, id: String, q: OccupancyQuery) -> Re
         (status = 200, description = "ROS map_server occupancy image", content_type = "image/x-portable-graymap"),
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn map_occupancy_pgm(
@@ -1129,6 +1157,7 @@ pub(crate) async fn map_occupancy_pgm(
         (status = 200, description = "ROS map_server parameters", body = String, content_type = "application/yaml"),
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn map_occupancy_yaml(
@@ -1159,6 +1188,7 @@ pub(crate) struct CloudQuery {
         (status = 200, description = "Binary PLY point cloud with class colours", content_type = "application/octet-stream"),
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn map_cloud(
@@ -1175,7 +1205,7 @@ pub(crate) async fn map_cloud(
         Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
     };
     let session = id.clone();
-    match blocking(move || mapping::ply(&map, &session, bbox.as_ref())).await {
+    match blocking_query(move || mapping::ply(&map, &session, bbox.as_ref())).await {
         Ok(ply) => (
             [
                 (header::CONTENT_TYPE, "application/octet-stream".to_string()),
@@ -1215,6 +1245,7 @@ fn objects_json(objects: &[stillmap_mapping::export::MapObject], names: &[String
     responses(
         (status = 200, description = "Objects of the map with class and box", body = Object),
         (status = 404, description = "Unknown session or no map", body = ApiError),
+        (status = 503, description = "Part of the map cannot be read back from the store (no map with a hole is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn map_objects(State(registry): State<Arc<Registry>>, Path(id): Path<String>) -> Response {
@@ -1222,7 +1253,7 @@ pub(crate) async fn map_objects(State(registry): State<Arc<Registry>>, Path(id):
         Ok(m) => m,
         Err(r) => return r,
     };
-    match blocking(move || mapping::map_objects(&map)).await {
+    match blocking_query(move || mapping::map_objects(&map)).await {
         Ok((objects, names)) => {
             Json(json!({ "session_id": id, "frame": MAP_FRAME, "objects": objects_json(&objects, &names) })).into_response()
         }

@@ -13,7 +13,7 @@ use stillmap_mapping::NO_CLASS;
 use stillmap_mapping::tiles::{OccupancyGrid, TILE_PX, TopDown, class_color, encode_png_rgba};
 
 use crate::lock;
-use crate::map::SharedMap;
+use crate::map::{MapUnreadable, SharedMap};
 
 /// Bad query parameters (HTTP 400 / INVALID_ARGUMENT).
 #[derive(Debug, thiserror::Error)]
@@ -29,7 +29,34 @@ impl From<MappingError> for BadQuery {
     }
 }
 
+/// Why a map query has no answer: the query (HTTP 400 / INVALID_ARGUMENT), or a
+/// part of the map the store cannot give back (HTTP 503 / UNAVAILABLE: answering
+/// without it would serve a map with a hole).
+#[derive(Debug, thiserror::Error)]
+pub enum QueryError {
+    #[error(transparent)]
+    Bad(#[from] BadQuery),
+    #[error(transparent)]
+    Unreadable(#[from] MapUnreadable),
+}
+
+impl From<MappingError> for QueryError {
+    fn from(e: MappingError) -> Self {
+        Self::Bad(e.into())
+    }
+}
+
+impl From<QueryError> for tonic::Status {
+    fn from(e: QueryError) -> Self {
+        match e {
+            QueryError::Bad(b) => tonic::Status::invalid_argument(b.0),
+            QueryError::Unreadable(u) => tonic::Status::unavailable(u.0),
+        }
+    }
+}
+
 /// A rendered tile and its entity tag (changes whenever the map does).
+#[derive(Debug)]
 pub struct Tile {
     pub png: Vec<u8>,
     pub etag: String,
@@ -40,10 +67,10 @@ pub fn tile_etag(map: &SharedMap, z: u8, x: i64, y: i64) -> String {
     format!("\"m{}-{z}-{x}-{y}\"", lock(map).builder.map().version())
 }
 
-pub fn tile(map: &SharedMap, z: u8, x: i64, y: i64) -> Result<Tile, BadQuery> {
+pub fn tile(map: &SharedMap, z: u8, x: i64, y: i64) -> Result<Tile, QueryError> {
     let (top, version) = {
         let mut m = lock(map);
-        (m.top_down(), m.builder.map().version())
+        (m.top_down()?, m.builder.map().version())
     };
     let rgba = top.render(z, x, y)?;
     let png = encode_png_rgba(&rgba, TILE_PX as u32, TILE_PX as u32).map_err(|e| BadQuery(e.to_string()))?;
@@ -51,6 +78,7 @@ pub fn tile(map: &SharedMap, z: u8, x: i64, y: i64) -> Result<Tile, BadQuery> {
 }
 
 /// One legend entry: a class drawn on the tiles.
+#[derive(Debug)]
 pub struct LegendEntry {
     pub class: u16,
     pub name: String,
@@ -59,10 +87,10 @@ pub struct LegendEntry {
 }
 
 /// The classes the tiles draw now (most cells first), plus "unlabelled".
-pub fn legend(map: &SharedMap) -> Vec<LegendEntry> {
+pub fn legend(map: &SharedMap) -> Result<Vec<LegendEntry>, MapUnreadable> {
     let mut m = lock(map);
-    let top = m.top_down();
-    legend_of(&top, &m.class_names)
+    let top = m.top_down()?;
+    Ok(legend_of(&top, &m.class_names))
 }
 
 /// The legend of a top-down view whose classes are named by `class_names`.
@@ -88,11 +116,11 @@ pub fn occupancy(
     min_height: Option<f64>,
     max_height: Option<f64>,
     resolution: Option<f64>,
-) -> Result<OccupancyGrid, BadQuery> {
+) -> Result<OccupancyGrid, QueryError> {
     let m = lock(map);
     let cfg = m.builder.config();
     let grid = OccupancyGrid::build(
-        &m.full_map(),
+        &*m.full_map()?,
         &m.map_from_world(),
         min_height.unwrap_or(cfg.occupancy_min_height_m),
         max_height.unwrap_or(cfg.occupancy_max_height_m),
@@ -119,16 +147,16 @@ pub fn parse_bbox(text: &str) -> Result<Aabb, BadQuery> {
     Ok(Aabb { min: [v[0], v[1], v[2]], max: [v[3], v[4], v[5]] })
 }
 
-pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Vec<u8> {
+pub fn ply(map: &SharedMap, session_id: &str, bbox: Option<&Aabb>) -> Result<Vec<u8>, MapUnreadable> {
     let m = lock(map);
     let up = m.map_from_world();
-    let points = cloud(&m.full_map(), &up, bbox);
+    let points = cloud(&*m.map_within(bbox)?, &up, bbox);
     let q = up.coords;
     let comment = format!(
         "stillmap static semantic map, session {session_id}\nmap frame: z up (gravity), origin at the first camera; map_from_world rotation xyzw {:.9} {:.9} {:.9} {:.9}\nclass 65535 = unlabelled surface",
         q.x, q.y, q.z, q.w
     );
-    to_ply(&points, &m.class_names, &comment)
+    Ok(to_ply(&points, &m.class_names, &comment))
 }
 
 /// A fleet's map in the anchor's map frame: the fleet map fused from every merged
@@ -170,16 +198,16 @@ impl FleetParts {
     }
 }
 
-/// Builds the fleet map from its parts.
-pub fn fleet_map(parts: &FleetParts) -> Option<FleetMap> {
-    let (_, anchor, _) = parts.maps.first()?;
+/// Builds the fleet map from its parts (`None` without an anchor).
+pub fn fleet_map(parts: &FleetParts) -> Result<Option<FleetMap>, MapUnreadable> {
+    let Some((_, anchor, _)) = parts.maps.first() else { return Ok(None) };
     let fused = parts.fused.as_ref();
     let mut fleet = {
         let m = lock(anchor);
         let cfg = m.builder.config();
         let map = match fused {
             Some(fused) => lock(&fused.state).map().clone(),
-            None => m.full_map().into_owned(),
+            None => m.full_map()?.into_owned(),
         };
         FleetMap {
             map,
@@ -191,11 +219,11 @@ pub fn fleet_map(parts: &FleetParts) -> Option<FleetMap> {
     };
     if fused.is_none() {
         for (_, map, fleet_from_session) in &parts.maps[1..] {
-            let other = lock(map).full_map().into_owned();
+            let other = lock(map).full_map()?.into_owned();
             fleet.map.merge_map(&other, fleet_from_session);
         }
     }
-    Some(fleet)
+    Ok(Some(fleet))
 }
 
 /// The fleet map as one PLY in the anchor's map frame.
@@ -271,19 +299,19 @@ impl FleetTops {
     /// Fleet `name`'s top-down view of `parts` in the state `tag` ([`fleet_tag`]; see
     /// [`fleet_map`]), from the cache when nothing changed since it was built;
     /// `None` when there is no anchor map.
-    pub fn get(&self, name: &str, parts: &FleetParts, tag: u64) -> Option<Arc<FleetTop>> {
+    pub fn get(&self, name: &str, parts: &FleetParts, tag: u64) -> Result<Option<Arc<FleetTop>>, MapUnreadable> {
         let cached = || lock(&self.built).get(name).filter(|t| t.tag == tag).cloned();
         if let Some(top) = cached() {
-            return Some(top);
+            return Ok(Some(top));
         }
         let _one_build = lock(&self.building);
         if let Some(top) = cached() {
-            return Some(top);
+            return Ok(Some(top));
         }
-        let fleet = fleet_map(parts)?;
+        let Some(fleet) = fleet_map(parts)? else { return Ok(None) };
         let top = Arc::new(FleetTop { top: TopDown::build(&fleet.map, &fleet.map_from_fleet), class_names: fleet.class_names, tag });
         lock(&self.built).insert(name.to_string(), top.clone());
-        Some(top)
+        Ok(Some(top))
     }
 }
 
@@ -293,18 +321,20 @@ pub fn fleet_tile_etag(tag: u64, z: u8, x: i64, y: i64) -> String {
 }
 
 /// Renders a fleet tile (same scheme as a session's, in the anchor's map frame).
-pub fn fleet_tile(top: &FleetTop, z: u8, x: i64, y: i64) -> Result<Tile, BadQuery> {
+pub fn fleet_tile(top: &FleetTop, z: u8, x: i64, y: i64) -> Result<Tile, QueryError> {
     let rgba = top.top.render(z, x, y)?;
     let png = encode_png_rgba(&rgba, TILE_PX as u32, TILE_PX as u32).map_err(|e| BadQuery(e.to_string()))?;
     Ok(Tile { png, etag: fleet_tile_etag(top.tag, z, x, y) })
 }
 
-pub fn points(map: &SharedMap, bbox: Option<&Aabb>) -> (Vec<stillmap_mapping::export::CloudPoint>, Vec<String>) {
+pub type Points = (Vec<stillmap_mapping::export::CloudPoint>, Vec<String>);
+
+pub fn points(map: &SharedMap, bbox: Option<&Aabb>) -> Result<Points, MapUnreadable> {
     let m = lock(map);
-    (cloud(&m.full_map(), &m.map_from_world(), bbox), m.class_names.clone())
+    Ok((cloud(&*m.map_within(bbox)?, &m.map_from_world(), bbox), m.class_names.clone()))
 }
 
-pub fn map_objects(map: &SharedMap) -> (Vec<MapObject>, Vec<String>) {
+pub fn map_objects(map: &SharedMap) -> Result<(Vec<MapObject>, Vec<String>), MapUnreadable> {
     let m = lock(map);
-    (objects(&m.full_map(), &m.map_from_world()), m.class_names.clone())
+    Ok((objects(&*m.full_map()?, &m.map_from_world()), m.class_names.clone()))
 }

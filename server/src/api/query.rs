@@ -330,8 +330,7 @@ impl Query for QueryService {
             .map_err(|_| Status::invalid_argument(format!("zoom {} is out of range 0..={}", r.zoom, stillmap_mapping::tiles::MAX_ZOOM)))?;
         let tile = tokio::task::spawn_blocking(move || crate::api::map_queries::tile(&map, zoom, r.x, r.y))
             .await
-            .map_err(|e| Status::internal(format!("map query failed: {e}")))?
-            .map_err(|e| Status::invalid_argument(e.0))?;
+            .map_err(|e| Status::internal(format!("map query failed: {e}")))??;
         Ok(Response::new(pb::MapTile { png: tile.png, etag: tile.etag }))
     }
 
@@ -359,7 +358,8 @@ impl Query for QueryService {
         };
         let (points, names) = tokio::task::spawn_blocking(move || crate::api::map_queries::points(&map, bbox.as_ref()))
             .await
-            .map_err(|e| Status::internal(format!("map query failed: {e}")))?;
+            .map_err(|e| Status::internal(format!("map query failed: {e}")))?
+            .map_err(|e| Status::from(crate::api::map_queries::QueryError::from(e)))?;
         let mut chunks: Vec<Result<pb::MapCloudChunk, Status>> = points
             .chunks(CLOUD_CHUNK_POINTS)
             .map(|c| {
