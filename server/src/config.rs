@@ -220,6 +220,10 @@ const MAX_IMPORT_BYTES: usize = 4 << 30;
 const MAX_FRAME_CPU_MS: f64 = 3_600_000.0;
 /// Largest `fleet.max_places` (about 60 KB each).
 const MAX_FLEET_PLACES: usize = 1_000_000;
+/// Fewest poses `session.trajectory_in_memory` keeps (a few seconds: the poses
+/// since the last keyframe stay in memory until they are committed anyway).
+pub const MIN_TRAJECTORY_IN_MEMORY: usize = 100;
+
 /// Largest `session.keyframe_images` (about 50 MB per session).
 const MAX_KEYFRAME_IMAGES: usize = 1024;
 
@@ -447,6 +451,14 @@ pub struct SessionConfig {
     /// (`/api/v1/sessions/{id}/export.mcap`): the newest ones, colour with the pixels
     /// perception kept out of the map tinted, JPEG (about 50 KB each). 0 = none.
     pub keyframe_images: usize,
+    /// Poses of a session's trajectory kept in memory: the newest. With a store,
+    /// older poses, once committed, leave memory (when a quarter more than this
+    /// are held, down to this many) and the trajectory queries and the export read
+    /// them back from the store; a session streaming for hours holds about 130
+    /// bytes per pose otherwise (110 MB in 8 hours at 30 Hz). Default 36,000 (20
+    /// minutes at 30 Hz, about 5 MB); 0 = every pose. Without a store every pose
+    /// stays in memory (nothing else holds it).
+    pub trajectory_in_memory: usize,
     /// Largest camera a hello may declare, in pixels (width × height; default
     /// 2,097,152 = 2 MP, a 1920×1080 camera fits). A session's buffers grow with
     /// it (about 8 bytes of camera rays per pixel before any frame), so a larger
@@ -553,6 +565,7 @@ impl Default for SessionConfig {
             opencv_threads: 1,
             map_queue: 16,
             keyframe_images: 32,
+            trajectory_in_memory: 36_000,
             max_camera_pixels: 1 << 21,
             max_sequence_jump: 1_000_000,
             max_capture_gap_s: 86_400.0,
@@ -587,6 +600,12 @@ impl ServerConfig {
         }
         if self.session.opencv_threads > MAX_POOL_THREADS {
             return bad(format!("session.opencv_threads must be at most {MAX_POOL_THREADS}, got {}", self.session.opencv_threads));
+        }
+        if self.session.trajectory_in_memory != 0 && self.session.trajectory_in_memory < MIN_TRAJECTORY_IN_MEMORY {
+            return bad(format!(
+                "session.trajectory_in_memory must be 0 (every pose) or at least {MIN_TRAJECTORY_IN_MEMORY} poses, got {}",
+                self.session.trajectory_in_memory
+            ));
         }
         if self.session.keyframe_images > MAX_KEYFRAME_IMAGES {
             return bad(format!("session.keyframe_images must be at most {MAX_KEYFRAME_IMAGES}, got {}", self.session.keyframe_images));
@@ -971,6 +990,11 @@ mod tests {
         );
         assert!(err("[http]\nmax_connections = 4611686018427387904\n").contains("http.max_connections within 1..=1048576"));
         assert!(err("[http]\nworker_threads = 100000\n").contains("http.worker_threads must be within 1..=1024"));
+        assert!(
+            err("[session]\ntrajectory_in_memory = 10\n")
+                .contains("session.trajectory_in_memory must be 0 (every pose) or at least 100 poses, got 10")
+        );
+        assert_eq!(ServerConfig::from_toml("[session]\ntrajectory_in_memory = 0\n").expect("every pose").session.trajectory_in_memory, 0);
         for toml in [
             "[grpc]\nkeepalive_timeout_s = 0\n",
             "[grpc]\nkeepalive_interval_s = 0\n",

@@ -188,15 +188,27 @@ impl SessionMap {
         self.persistence.is_some()
     }
 
+    /// Poses of the trajectory the store holds (0 without a store).
+    pub fn committed_poses(&self) -> usize {
+        self.persistence.as_ref().map_or(0, |p| p.committed_poses)
+    }
+
+    /// The store this map commits to, and the session's id there.
+    pub(crate) fn stored_as(&self) -> Option<(Arc<Store>, String)> {
+        self.persistence.as_ref().map(|p| (p.store.clone(), p.session_id.clone()))
+    }
+
     /// Keyframes covered by the last commit (what a crash keeps).
     pub fn committed_keyframes(&self) -> Option<u64> {
         self.persistence.as_ref().map(|p| p.meta.keyframes)
     }
 
-    /// Commits the poses since the last commit, the keyframe, changed and evicted
-    /// blocks. On failure the evicted blocks come back into memory (nothing is lost).
-    /// Returns whether there is a store (and so a commit happened).
-    pub fn persist(&mut self, poses: &[pb::PoseStamped], keyframe: Option<KeyframeRecord>) -> Result<bool, StoreError> {
+    /// Commits the poses since the last commit (`poses` are the trajectory's from
+    /// index `first` on: those before left memory, committed), the keyframe,
+    /// changed and evicted blocks. On failure the evicted blocks come back into
+    /// memory (nothing is lost). Returns whether there is a store (and so a
+    /// commit happened).
+    pub fn persist(&mut self, poses: &[pb::PoseStamped], first: usize, keyframe: Option<KeyframeRecord>) -> Result<bool, StoreError> {
         let Some(p) = &mut self.persistence else { return Ok(false) };
         // Kept for the next commit whatever happens below.
         p.pending.extend(keyframe);
@@ -256,7 +268,7 @@ impl SessionMap {
         let commit = Commit {
             session_id: &p.session_id,
             meta: &meta,
-            poses: poses.get(p.committed_poses..).unwrap_or_default(),
+            poses: poses.get(p.committed_poses.saturating_sub(first)..).unwrap_or_default(),
             keyframes: &p.pending,
             camera: p.unrecorded_camera.as_ref(),
             blocks: self.builder.map().changed_since(since).map(|(k, b)| (*k, b)).collect(),
@@ -264,7 +276,7 @@ impl SessionMap {
         };
         match p.store.commit(&commit) {
             Ok(()) => {
-                p.committed_poses = poses.len();
+                p.committed_poses = first + poses.len();
                 p.committed_stamp = meta.map_stamp;
                 p.meta = meta;
                 p.pending.clear();
@@ -468,10 +480,10 @@ mod tests {
             let view = DepthView { depth: &depth, rgb: &rgb, exclude: None, classes: None };
             m.builder.add_keyframe(1, &Isometry3::identity(), &view).expect("fused");
             let wall: Vec<BlockKey> = m.builder.map().blocks().map(|(k, _)| *k).collect();
-            m.persist(&[], None).expect("committed");
+            m.persist(&[], 0, None).expect("committed");
             let far = Isometry3::from_parts(Translation3::new(100.0, 0.0, 0.0), nalgebra::UnitQuaternion::identity());
             m.builder.add_keyframe(2, &far, &view).expect("fused");
-            m.persist(&[], None).expect("committed");
+            m.persist(&[], 0, None).expect("committed");
             assert!(wall.iter().all(|k| m.builder.map().blocks().all(|(b, _)| b != k)), "the wall went to the store");
             wall
         };
@@ -531,19 +543,19 @@ mod tests {
         fuse(&mut m, 1, &here);
         let wall: Vec<BlockKey> = m.builder.map().blocks().map(|(k, _)| *k).collect();
         assert!(!wall.is_empty());
-        m.persist(&[], None).expect("committed");
+        m.persist(&[], 0, None).expect("committed");
         fuse(&mut m, 2, &far);
-        m.persist(&[], None).expect("committed");
+        m.persist(&[], 0, None).expect("committed");
         assert!(wall.iter().all(|k| m.builder.map().blocks().all(|(b, _)| b != k)), "the wall went to the store");
         // The wall again (its blocks start anew, without the store's restore), and
         // far away again before the commit: evicted again at once.
         fuse(&mut m, 3, &here);
         fuse(&mut m, 4, &far);
         disk.full.store(true, Ordering::SeqCst);
-        assert!(m.persist(&[], None).is_err(), "a full disk");
+        assert!(m.persist(&[], 0, None).is_err(), "a full disk");
         disk.full.store(false, Ordering::SeqCst);
         std::thread::sleep(std::time::Duration::from_millis(2_100));
-        m.persist(&[], None).expect("committed after the disk has room");
+        m.persist(&[], 0, None).expect("committed after the disk has room");
         // Every wall voxel was hit by keyframes 1 and 3: twice, not three times.
         let mut seen = 0;
         for key in &wall {

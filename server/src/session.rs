@@ -35,7 +35,7 @@ use crate::pipeline::segmentation::SegmentationService;
 use crate::pipeline::{FrameOutcome, SessionPipeline, micros, stage};
 use crate::pool::{Lane, Pool};
 use crate::queue::{FrameQueue, PushOutcome, QueueError, QueuedFrame, Work};
-use crate::store::{SessionHead, SessionMeta, Store, StoredSession};
+use crate::store::{SessionHead, SessionMeta, Store, StoreError, StoredSession};
 use crate::{lock, read, write};
 
 /// Where a connection's results go: the gRPC response stream, or the Zenoh
@@ -87,7 +87,12 @@ pub struct Counters {
 pub struct TrackState {
     pub state: TrackingState,
     pub latest: Option<pb::PoseStamped>,
+    /// The newest poses, in the order they came (every pose unless older ones
+    /// left memory: `earlier`).
     pub trajectory: Vec<pb::PoseStamped>,
+    /// Poses before `trajectory[0]`: committed to the store and out of memory
+    /// (`session.trajectory_in_memory`).
+    pub earlier: usize,
 }
 
 /// Sessions a list answers with when the request names no limit: about 0.5 MB of
@@ -136,23 +141,85 @@ pub const DEFAULT_TRAJECTORY_PAGE: usize = 20_000;
 pub const MAX_TRAJECTORY_PAGE: usize = 200_000;
 
 impl TrackState {
-    /// The poses captured within `start_ns..=end_ns`, in capture-time order (the
-    /// order they came, unless a robot's clock went back and its timeline was
-    /// taken again), `limit` of them and any more of the last one's capture time,
-    /// and where the next page starts (the next pose's capture time) when more of
-    /// the range follow: asking again from there skips and repeats nothing.
+    /// Poses of the whole trajectory, in memory or not.
+    pub fn len(&self) -> usize {
+        self.earlier + self.trajectory.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The poses in memory captured within `start_ns..=end_ns`, a page of
+    /// them as [`Page`] says.
     pub fn page(&self, start_ns: u64, end_ns: u64, limit: usize) -> (Vec<pb::PoseStamped>, Option<u64>) {
-        let mut in_range: Vec<&pb::PoseStamped> =
-            self.trajectory.iter().filter(|p| (start_ns..=end_ns).contains(&p.capture_time_ns)).collect();
-        if !in_range.is_sorted_by_key(|p| p.capture_time_ns) {
-            in_range.sort_by_key(|p| p.capture_time_ns);
+        let mut page = Page::new(start_ns, end_ns, limit);
+        self.trajectory.iter().for_each(|p| page.push(*p));
+        page.finish()
+    }
+
+    /// Leaves the oldest poses out of memory once more than `keep` · 5/4 are
+    /// held, down to `keep`, but only the first `committed` of the trajectory
+    /// (those the store holds); `keep` 0 keeps every pose. Returns how many left.
+    pub fn trim(&mut self, committed: usize, keep: usize) -> usize {
+        if keep == 0 || self.trajectory.len() <= keep + keep / 4 {
+            return 0;
         }
-        let mut cut = limit.min(in_range.len());
-        while cut > 0 && cut < in_range.len() && in_range[cut].capture_time_ns == in_range[cut - 1].capture_time_ns {
+        let out = (self.trajectory.len() - keep).min(committed.saturating_sub(self.earlier));
+        self.trajectory.drain(..out);
+        self.earlier += out;
+        out
+    }
+}
+
+/// One page of a trajectory, built from its poses in any order with bounded
+/// memory (about twice the limit): the poses captured within `start_ns..=end_ns`
+/// in capture-time order (the order they came, unless a robot's clock went back
+/// and its timeline was taken again), `limit` of them and any more of the last
+/// one's capture time, and where the next page starts (the next pose's capture
+/// time) when more of the range follow: asking again from there skips and
+/// repeats nothing.
+pub struct Page {
+    range: std::ops::RangeInclusive<u64>,
+    limit: usize,
+    kept: Vec<pb::PoseStamped>,
+}
+
+impl Page {
+    pub fn new(start_ns: u64, end_ns: u64, limit: usize) -> Self {
+        Self { range: start_ns..=end_ns, limit: limit.max(1), kept: Vec::new() }
+    }
+
+    pub fn push(&mut self, pose: pb::PoseStamped) {
+        if self.range.contains(&pose.capture_time_ns) {
+            self.kept.push(pose);
+            if self.kept.len() > 2 * self.limit + 1 {
+                self.compact();
+            }
+        }
+    }
+
+    /// Sorts what is kept and keeps the page and the first pose after it: no
+    /// pose after that one can be on the page or start the next.
+    fn compact(&mut self) -> Option<u64> {
+        if !self.kept.is_sorted_by_key(|p| p.capture_time_ns) {
+            self.kept.sort_by_key(|p| p.capture_time_ns);
+        }
+        let mut cut = self.limit.min(self.kept.len());
+        while cut > 0 && cut < self.kept.len() && self.kept[cut].capture_time_ns == self.kept[cut - 1].capture_time_ns {
             cut += 1;
         }
-        let next = in_range.get(cut).map(|p| p.capture_time_ns);
-        (in_range[..cut].iter().map(|p| **p).collect(), next)
+        let next = self.kept.get(cut).map(|p| p.capture_time_ns);
+        self.kept.truncate(cut + usize::from(next.is_some()));
+        next
+    }
+
+    pub fn finish(mut self) -> (Vec<pb::PoseStamped>, Option<u64>) {
+        let next = self.compact();
+        if next.is_some() {
+            self.kept.pop();
+        }
+        (self.kept, next)
     }
 }
 
@@ -185,6 +252,8 @@ pub struct Session {
     /// `limits.frame_cpu_ms`: what one frame may cost on a pipeline thread.
     cpu_budget: CpuBudget,
     track: Mutex<TrackState>,
+    /// `session.trajectory_in_memory`.
+    trajectory_in_memory: usize,
     poses: broadcast::Sender<pb::PoseStamped>,
     fleet: broadcast::Sender<FleetPose>,
     /// The last processed frame's stage latencies (the dashboard's sparklines).
@@ -498,6 +567,53 @@ impl Session {
         lock(&self.track)
     }
 
+    /// A page of the trajectory ([`Page`]): the poses in memory, and those that
+    /// left memory (`session.trajectory_in_memory`) read back from the store.
+    /// It may read the store: call it off the async runtimes.
+    pub fn trajectory_page(&self, start_ns: u64, end_ns: u64, limit: usize) -> Result<(Vec<pb::PoseStamped>, Option<u64>), StoreError> {
+        let mut page = Page::new(start_ns, end_ns, limit);
+        let Some(in_memory) = self.poses_in_memory(|p| page.push(*p)) else { return Ok(page.finish()) };
+        self.stored_poses(|p| {
+            if !in_memory.contains(&p.sequence) {
+                page.push(p);
+            }
+        })?;
+        Ok(page.finish())
+    }
+
+    /// The whole trajectory, in the order it came: the poses that left memory
+    /// read back from the store, then those in memory. Off the async runtimes.
+    pub fn whole_trajectory(&self) -> Result<Vec<pb::PoseStamped>, StoreError> {
+        let mut tail = Vec::new();
+        let Some(in_memory) = self.poses_in_memory(|p| tail.push(*p)) else { return Ok(tail) };
+        let mut all = Vec::new();
+        self.stored_poses(|p| {
+            if !in_memory.contains(&p.sequence) {
+                all.push(p);
+            }
+        })?;
+        all.append(&mut tail);
+        Ok(all)
+    }
+
+    /// Calls `f` with each pose in memory; where older poses left memory, the
+    /// sequence numbers of those in memory (the store holds them too).
+    fn poses_in_memory(&self, mut f: impl FnMut(&pb::PoseStamped)) -> Option<rustc_hash::FxHashSet<u64>> {
+        let track = self.tracking();
+        track.trajectory.iter().for_each(&mut f);
+        (track.earlier > 0).then(|| track.trajectory.iter().map(|p| p.sequence).collect())
+    }
+
+    /// Calls `f` with each pose of this session the store holds (outside the
+    /// tracking and map locks).
+    fn stored_poses(&self, f: impl FnMut(pb::PoseStamped)) -> Result<(), StoreError> {
+        let stored = self.map.as_ref().and_then(|m| lock(m).stored_as());
+        let Some((store, id)) = stored else {
+            return Err(StoreError::Corrupt(format!("session {}: poses left memory but there is no store", self.id)));
+        };
+        store.each_pose(&id, f)
+    }
+
     pub fn map(&self) -> Option<&SharedMap> {
         self.map.as_ref()
     }
@@ -579,7 +695,7 @@ impl Session {
         }
         let track = self.tracking();
         let m = lock(map);
-        m.has_store() && !m.uncommitted(track.trajectory.len())
+        m.has_store() && !m.uncommitted(track.len())
     }
 
     /// Records the connection state; the gauge moves only when it changes.
@@ -787,8 +903,13 @@ impl Session {
     fn persist(&self, map: &SharedMap, keyframe: Option<crate::store::KeyframeRecord>) {
         let start = Instant::now();
         // Lock order: tracking, then map (nothing takes them the other way round).
-        let track = self.tracking();
-        let outcome = lock(map).persist(&track.trajectory, keyframe);
+        let mut track = self.tracking();
+        let outcome = {
+            let mut m = lock(map);
+            let outcome = m.persist(&track.trajectory, track.earlier, keyframe);
+            track.trim(m.committed_poses(), self.trajectory_in_memory);
+            outcome
+        };
         drop(track);
         match outcome {
             Ok(true) => self.metrics.stage(stage::STORE_COMMIT, micros(start.elapsed())),
@@ -803,12 +924,14 @@ impl Session {
     pub fn flush(&self) -> bool {
         let Some(map) = self.map.as_ref().filter(|_| !self.archived) else { return false };
         // Lock order: tracking, then map (as the map lane).
-        let track = self.tracking();
+        let mut track = self.tracking();
         let mut m = lock(map);
-        if !m.uncommitted(track.trajectory.len()) {
+        if !m.uncommitted(track.len()) {
             return false;
         }
-        match m.persist(&track.trajectory, None) {
+        let outcome = m.persist(&track.trajectory, track.earlier, None);
+        track.trim(m.committed_poses(), self.trajectory_in_memory);
+        match outcome {
             Ok(committed) => committed,
             Err(e) => {
                 tracing::debug!(session = %self.id, "flush not committed: {e}");
@@ -1752,7 +1875,7 @@ impl Registry {
                     counters,
                     queue: FrameQueue::new(self.config.queue_capacity, self.config.max_pending_drop_notices, self.config.overload_policy),
                     last_received_sequence: latest.map(|p| p.sequence),
-                    track: TrackState { state: TrackingState::Lost, latest, trajectory: s.poses },
+                    track: TrackState { state: TrackingState::Lost, latest, trajectory: s.poses, earlier: 0 },
                     perception: self.perception.clone(),
                     map,
                     archived: false,
@@ -1851,7 +1974,7 @@ impl Registry {
                     counters,
                     queue,
                     last_received_sequence: latest.map(|p| p.sequence),
-                    track: TrackState { state, latest, trajectory: s.poses },
+                    track: TrackState { state, latest, trajectory: s.poses, earlier: 0 },
                     perception: None,
                     map,
                     archived: true,
@@ -1947,7 +2070,15 @@ impl Registry {
             received_jumps: Mutex::default(),
             received_before_last: Mutex::new(None),
             cpu_budget: CpuBudget::new(&self.limits, self.metrics.clone()),
-            track: Mutex::new(p.track),
+            track: Mutex::new({
+                // A session read back from the store: its older poses stay there.
+                let mut track = p.track;
+                if let Some(map) = p.map.as_ref().filter(|_| p.archived) {
+                    track.trim(lock(map).committed_poses(), self.config.trajectory_in_memory);
+                }
+                track
+            }),
+            trajectory_in_memory: self.config.trajectory_in_memory,
             poses: broadcast::channel(POSE_SUBSCRIBER_BUFFER).0,
             fleet: self.fleet.clone(),
             last_latency: Mutex::new(Vec::new()),
@@ -2017,6 +2148,94 @@ mod tests {
         assert_eq!(times(track.page(0, u64::MAX, 2)), (vec![40, 50], Some(100)));
         assert_eq!(times(track.page(100, u64::MAX, 2)), (vec![100, 110, 110], Some(120)));
         assert_eq!(times(track.page(120, u64::MAX, 2)), (vec![120], None));
+    }
+
+    /// A page built from poses in any order, compacted as it goes (bounded
+    /// memory), is the page of the whole range sorted: checked against sorting
+    /// everything, over shuffled poses with repeated capture times.
+    #[test]
+    fn a_page_built_in_bounded_memory_is_the_page_of_everything_sorted() {
+        let mut state = 12345u64;
+        let mut next_random = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            state >> 33
+        };
+        let poses: Vec<pb::PoseStamped> =
+            (0..500).map(|i| pb::PoseStamped { sequence: i, capture_time_ns: next_random() % 300, ..Default::default() }).collect();
+        let sorted_page = |start: u64, end: u64, limit: usize| {
+            let mut in_range: Vec<pb::PoseStamped> = poses.iter().filter(|p| (start..=end).contains(&p.capture_time_ns)).copied().collect();
+            in_range.sort_by_key(|p| p.capture_time_ns);
+            let mut cut = limit.min(in_range.len());
+            while cut > 0 && cut < in_range.len() && in_range[cut].capture_time_ns == in_range[cut - 1].capture_time_ns {
+                cut += 1;
+            }
+            let next = in_range.get(cut).map(|p| p.capture_time_ns);
+            in_range.truncate(cut);
+            (in_range, next)
+        };
+        for (start, end, limit) in
+            [(0, u64::MAX, 1), (0, u64::MAX, 7), (50, 120, 10), (0, u64::MAX, 499), (0, u64::MAX, 500), (299, 299, 3)]
+        {
+            let mut page = Page::new(start, end, limit);
+            poses.iter().for_each(|p| page.push(*p));
+            assert_eq!(page.finish(), sorted_page(start, end, limit), "{start}..={end}, {limit}");
+        }
+    }
+
+    /// With a store, the oldest committed poses leave memory (a quarter over
+    /// `session.trajectory_in_memory`, down to it), and the pages and the whole
+    /// trajectory read them back: nothing is lost, nothing repeated.
+    #[test]
+    fn older_poses_leave_memory_and_come_back_from_the_store() {
+        let config = SessionConfig { trajectory_in_memory: 100, idle_evict_s: 0.001, ..SessionConfig::default() };
+        let registry = registry_with(Some("trajectory"), config, LimitsConfig::default());
+        let (sink, _rx) = mpsc::channel(4);
+        let session = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
+        let pose = |i: u64| pb::PoseStamped {
+            sequence: i,
+            capture_time_ns: 1_000 + 10 * i,
+            world_from_camera: Some(pb::Pose::from_parts([i as f64, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])),
+            ..Default::default()
+        };
+        for chunk in 0..10 {
+            session.tracking().trajectory.extend((chunk * 50..(chunk + 1) * 50).map(pose));
+            let held = session.tracking().trajectory.len();
+            assert!(held <= 150, "only committed poses leave: {held}");
+            assert!(session.flush(), "committed");
+        }
+        {
+            let track = session.tracking();
+            assert_eq!((track.trajectory.len(), track.earlier, track.len()), (100, 400, 500));
+        }
+        let all: Vec<pb::PoseStamped> = (0..500).map(pose).collect();
+        assert_eq!(session.whole_trajectory().expect("read back"), all);
+        let (first, next) = session.trajectory_page(0, u64::MAX, 200).expect("a page");
+        assert_eq!((first, next), (all[..200].to_vec(), Some(all[200].capture_time_ns)));
+        let (mut paged, mut start) = (Vec::new(), 0);
+        loop {
+            let (page, next) = session.trajectory_page(start, u64::MAX, 60).expect("a page");
+            paged.extend(page);
+            match next {
+                Some(n) => start = n,
+                None => break,
+            }
+        }
+        assert_eq!(paged, all, "pages across the poses out of memory and in it");
+        let inside = session.trajectory_page(all[10].capture_time_ns, all[19].capture_time_ns, 100).expect("a page");
+        assert_eq!(inside, (all[10..20].to_vec(), None));
+        // Out of memory and read back: only the newest poses come into memory.
+        let id = session.id.clone();
+        session.detach(&sink);
+        drop(session);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(registry.evict_idle(), 1);
+        let back = registry.get(&id).expect("read back from the store");
+        {
+            let track = back.tracking();
+            assert_eq!((track.trajectory.len(), track.earlier), (100, 400));
+        }
+        assert_eq!(back.whole_trajectory().expect("read back"), all);
+        registry.close_all();
     }
 
     fn small_camera() -> pb::CameraInfo {

@@ -712,6 +712,18 @@ impl Store {
         tx.commit().map_err(|e| self.err(e))
     }
 
+    /// Calls `f` with each stored pose of session `id`, in sequence order (one read
+    /// transaction; nothing is collected here).
+    pub fn each_pose(&self, id: &str, mut f: impl FnMut(pb::PoseStamped)) -> Result<(), StoreError> {
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
+        let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
+        for p in poses.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
+            let (_, v) = p.map_err(|e| self.err(e))?;
+            f(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
+        }
+        Ok(())
+    }
+
     /// What the server keeps of every stored session while it is not in memory:
     /// description, camera, pose count and latest pose, and (`with_keyframes`) the
     /// keyframe records place recognition needs. No map block and no trajectory

@@ -335,7 +335,12 @@ pub(crate) async fn get_trajectory(
         Ok(f) => f,
         Err((code, message)) => return error(code, message),
     };
-    let (poses, next) = s.tracking().page(start_ns, end_ns, limit);
+    let session = s.clone();
+    let (poses, next) = match blocking(move || session.trajectory_page(start_ns, end_ns, limit)).await {
+        Ok(Ok(page)) => page,
+        Ok(Err(e)) => return trajectory_unreadable(&e),
+        Err(r) => return r,
+    };
     let poses: Vec<pb::PoseStamped> = poses.iter().map(|p| in_frame(p, transform.as_ref())).collect();
     let next_header = next.map(|n| [(HeaderName::from_static(NEXT_START_HEADER), HeaderValue::from(n))]);
     let body = match q.format.as_deref() {
@@ -361,6 +366,16 @@ pub(crate) async fn get_trajectory(
         Some(other) => return error(StatusCode::BAD_REQUEST, format!("unknown trajectory format {other:?}; use json or tum")),
     };
     (next_header, body).into_response()
+}
+
+/// A trajectory whose older poses (out of memory) the store cannot give back:
+/// 503, not a trajectory with a gap.
+fn trajectory_unreadable(e: &crate::store::StoreError) -> Response {
+    error(StatusCode::SERVICE_UNAVAILABLE, trajectory_unreadable_message(e))
+}
+
+fn trajectory_unreadable_message(e: &crate::store::StoreError) -> String {
+    format!("the trajectory's older poses cannot be read back from the store: {e}")
 }
 
 /// The header naming where a trajectory's next page starts (when more poses follow).
@@ -841,10 +856,11 @@ pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id)
         Ok(s) => s,
         Err(response) => return response,
     };
-    let trajectory: Vec<pb::PoseStamped> = s.tracking().trajectory.to_vec();
     let map = s.map().cloned();
     let key = id.clone();
+    let session = s.clone();
     let file = blocking(move || {
+        let trajectory = session.whole_trajectory().map_err(|e| crate::map::MapUnreadable(trajectory_unreadable_message(&e)))?;
         let map = map
             .map(|m| {
                 let points = mapping::points(&m, None)?.0;
