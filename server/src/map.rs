@@ -269,6 +269,7 @@ impl SessionMap {
             session_id: &p.session_id,
             meta: &meta,
             poses: poses.get(p.committed_poses.saturating_sub(first)..).unwrap_or_default(),
+            first_pose: p.committed_poses as u64,
             keyframes: &p.pending,
             camera: p.unrecorded_camera.as_ref(),
             blocks: self.builder.map().changed_since(since).map(|(k, b)| (*k, b)).collect(),
@@ -356,18 +357,19 @@ impl SessionMap {
         };
         let mut loaded: Vec<(BlockKey, Block)> = Vec::new();
         for k in p.cold.iter().filter(|k| near_box(k)) {
-            match p.store.block(&p.session_id, *k) {
-                Ok(Some(b)) => loaded.push((*k, b)),
-                // Gone from the store: `restore_near` logs it and forgets it.
-                Ok(None) => {}
-                Err(e) => {
-                    tracing::error!(session = %p.session_id, ?k, "cannot read a map block back: {e}");
-                    return Err(MapUnreadable(format!(
-                        "session {}: a map block evicted to the store cannot be read back ({e})",
-                        p.session_id
-                    )));
+            let why = match p.store.block(&p.session_id, *k) {
+                Ok(Some(b)) => {
+                    loaded.push((*k, b));
+                    continue;
                 }
-            }
+                Ok(None) => "missing from the store".to_string(),
+                Err(e) => e.to_string(),
+            };
+            tracing::error!(session = %p.session_id, ?k, "cannot read a map block back: {why}");
+            return Err(MapUnreadable(format!("session {}: a map block evicted to the store cannot be read back ({why})", p.session_id)));
+        }
+        if loaded.is_empty() {
+            return Ok(Cow::Borrowed(self.builder.map()));
         }
         Ok(Cow::Owned(self.builder.map().with_blocks(loaded)))
     }

@@ -31,7 +31,7 @@ pub struct ReplicaCommit {
     pub meta_json: Vec<u8>,
     /// The session's camera (`CameraInfo`, protobuf), with its first commit.
     pub camera: Option<Vec<u8>>,
-    /// New poses: sequence and `PoseStamped` (protobuf).
+    /// New poses: place in the trajectory and `PoseStamped` (protobuf).
     pub poses: Vec<(u64, Vec<u8>)>,
     /// New keyframe records: id and bytes (the store's encoding).
     pub keyframes: Vec<(u64, Vec<u8>)>,
@@ -97,8 +97,9 @@ pub struct ReplicaCounters {
 }
 
 /// The tables, created when missing. Keys are the store's; values its encodings.
-/// A pose's `sequence` is the robot's `u64` with its bits kept (`as i64`: above
-/// 2⁶³ it reads negative).
+/// A pose's `sequence` column is its place in the session's trajectory (the order
+/// poses came; stores before 2026-12-07 wrote the robot's sequence number, which
+/// starts again when a robot's timeline is taken again and so overwrote poses).
 pub const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS stillmap_sessions (
     id text PRIMARY KEY,

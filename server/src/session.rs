@@ -91,8 +91,12 @@ pub struct TrackState {
     /// left memory: `earlier`).
     pub trajectory: Vec<pb::PoseStamped>,
     /// Poses before `trajectory[0]`: committed to the store and out of memory
-    /// (`session.trajectory_in_memory`).
+    /// (`session.trajectory_in_memory`); the store holds them first, in the order
+    /// they came.
     pub earlier: usize,
+    /// The latest capture time among the poses out of memory: a page starting
+    /// after it needs no store read.
+    pub earlier_until_ns: u64,
 }
 
 /// Sessions a list answers with when the request names no limit: about 0.5 MB of
@@ -166,8 +170,13 @@ impl TrackState {
             return 0;
         }
         let out = (self.trajectory.len() - keep).min(committed.saturating_sub(self.earlier));
-        self.trajectory.drain(..out);
+        let until = self.trajectory.drain(..out).map(|p| p.capture_time_ns).max();
+        self.earlier_until_ns = self.earlier_until_ns.max(until.unwrap_or(0));
         self.earlier += out;
+        // A session read back from the store drops most of its poses at once.
+        if self.trajectory.capacity() > 2 * self.trajectory.len().max(keep) {
+            self.trajectory.shrink_to_fit();
+        }
         out
     }
 }
@@ -572,46 +581,45 @@ impl Session {
     /// It may read the store: call it off the async runtimes.
     pub fn trajectory_page(&self, start_ns: u64, end_ns: u64, limit: usize) -> Result<(Vec<pb::PoseStamped>, Option<u64>), StoreError> {
         let mut page = Page::new(start_ns, end_ns, limit);
-        let Some(in_memory) = self.poses_in_memory(|p| page.push(*p)) else { return Ok(page.finish()) };
-        self.stored_poses(|p| {
-            if !in_memory.contains(&p.sequence) {
-                page.push(p);
-            }
-        })?;
+        let (earlier, until) = {
+            let track = self.tracking();
+            track.trajectory.iter().for_each(|p| page.push(*p));
+            (track.earlier, track.earlier_until_ns)
+        };
+        if earlier > 0 && start_ns <= until {
+            self.stored_poses(earlier, |p| page.push(p))?;
+        }
         Ok(page.finish())
     }
 
     /// The whole trajectory, in the order it came: the poses that left memory
     /// read back from the store, then those in memory. Off the async runtimes.
     pub fn whole_trajectory(&self) -> Result<Vec<pb::PoseStamped>, StoreError> {
-        let mut tail = Vec::new();
-        let Some(in_memory) = self.poses_in_memory(|p| tail.push(*p)) else { return Ok(tail) };
-        let mut all = Vec::new();
-        self.stored_poses(|p| {
-            if !in_memory.contains(&p.sequence) {
-                all.push(p);
-            }
-        })?;
+        let (mut tail, earlier) = {
+            let track = self.tracking();
+            (track.trajectory.clone(), track.earlier)
+        };
+        let mut all = Vec::with_capacity(earlier + tail.len());
+        if earlier > 0 {
+            self.stored_poses(earlier, |p| all.push(p))?;
+        }
         all.append(&mut tail);
         Ok(all)
     }
 
-    /// Calls `f` with each pose in memory; where older poses left memory, the
-    /// sequence numbers of those in memory (the store holds them too).
-    fn poses_in_memory(&self, mut f: impl FnMut(&pb::PoseStamped)) -> Option<rustc_hash::FxHashSet<u64>> {
-        let track = self.tracking();
-        track.trajectory.iter().for_each(&mut f);
-        (track.earlier > 0).then(|| track.trajectory.iter().map(|p| p.sequence).collect())
-    }
-
-    /// Calls `f` with each pose of this session the store holds (outside the
-    /// tracking and map locks).
-    fn stored_poses(&self, f: impl FnMut(pb::PoseStamped)) -> Result<(), StoreError> {
+    /// Calls `f` with the first `n` poses of this session the store holds, those
+    /// out of memory (outside the tracking and map locks). Fewer is an error: a
+    /// trajectory with a gap is not answered.
+    fn stored_poses(&self, n: usize, f: impl FnMut(pb::PoseStamped)) -> Result<(), StoreError> {
         let stored = self.map.as_ref().and_then(|m| lock(m).stored_as());
         let Some((store, id)) = stored else {
             return Err(StoreError::Corrupt(format!("session {}: poses left memory but there is no store", self.id)));
         };
-        store.each_pose(&id, f)
+        let read = store.first_poses(&id, n, f)?;
+        if read < n {
+            return Err(StoreError::Corrupt(format!("session {}: {n} poses left memory but the store holds {read}", self.id)));
+        }
+        Ok(())
     }
 
     pub fn map(&self) -> Option<&SharedMap> {
@@ -1341,9 +1349,17 @@ impl Registry {
 
     /// Every session, in memory or not, oldest first (nothing is loaded).
     pub fn list_info(&self) -> Vec<SessionInfo> {
-        let mut all: Vec<SessionInfo> = self.list().iter().map(|s| s.info()).collect();
+        // Both read at once (locks: dormant, then sessions, as every writer that
+        // moves a session between them): one moving in or out of memory meanwhile
+        // is in one of them, never in neither.
+        let (resident, dormant): (Vec<Arc<Session>>, Vec<SessionInfo>) = {
+            let dormant = read(&self.dormant);
+            let sessions = read(&self.sessions);
+            (sessions.values().cloned().collect(), dormant.values().cloned().collect())
+        };
+        let mut all: Vec<SessionInfo> = resident.iter().map(|s| s.info()).collect();
         let resident: std::collections::HashSet<String> = all.iter().map(|s| s.summary.session_id.clone()).collect();
-        all.extend(read(&self.dormant).values().filter(|d| !resident.contains(&d.summary.session_id)).cloned());
+        all.extend(dormant.into_iter().filter(|d| !resident.contains(&d.summary.session_id)));
         all.sort_by_key(|s| (s.summary.started_unix_ns, s.summary.session_id.clone()));
         all
     }
@@ -1388,14 +1404,18 @@ impl Registry {
                 return false;
             }
         }
-        if write(&self.sessions).remove(&s.id).is_none() {
-            return false;
-        }
         let mut info = s.info();
         info.archived = true;
         info.resident = false;
         info.summary.connected = false;
-        write(&self.dormant).insert(s.id.clone(), info);
+        {
+            // Out of memory and listed as stored at once (locks: dormant, then sessions).
+            let mut dormant = write(&self.dormant);
+            if write(&self.sessions).remove(&s.id).is_none() {
+                return false;
+            }
+            dormant.insert(s.id.clone(), info);
+        }
         if let Some(replica) = self.store.as_ref().and_then(|store| store.replica()) {
             replica.forget(&s.id);
         }
@@ -1818,8 +1838,13 @@ impl Registry {
             });
         }
         if let Some(store) = &self.store {
+            // Its map and trajectory are taken as committed here (blocks evicted,
+            // older poses out of memory): without the copy they would be lost.
             if copy && let Err(e) = store.import(&s) {
-                tracing::error!(session = id, "the resumed session is not in this server's store yet (the store failed): {e}");
+                tracing::error!(session = id, "the resumed session cannot be copied into this server's store: {e}");
+                return Err(BadHello::Unavailable(format!(
+                    "session {id} cannot be taken over now (this server's store failed: {e}): try again"
+                )));
             }
             if let Some(replica) = store.replica() {
                 replica.remember(id, crate::replica::secret_hash(&hello.resume_secret));
@@ -1875,7 +1900,7 @@ impl Registry {
                     counters,
                     queue: FrameQueue::new(self.config.queue_capacity, self.config.max_pending_drop_notices, self.config.overload_policy),
                     last_received_sequence: latest.map(|p| p.sequence),
-                    track: TrackState { state: TrackingState::Lost, latest, trajectory: s.poses, earlier: 0 },
+                    track: TrackState { state: TrackingState::Lost, latest, trajectory: s.poses, ..Default::default() },
                     perception: self.perception.clone(),
                     map,
                     archived: false,
@@ -1885,8 +1910,12 @@ impl Registry {
             )
         });
         session.attach(sink);
-        write(&self.sessions).insert(id.to_string(), session.clone());
-        write(&self.dormant).remove(id);
+        {
+            // Locks: dormant, then sessions (a listing sees it in one of them).
+            let mut dormant = write(&self.dormant);
+            write(&self.sessions).insert(id.to_string(), session.clone());
+            dormant.remove(id);
+        }
         self.metrics.session_opened();
         self.metrics.resident_delta(1);
         tracing::info!(session = id, robot = %session.robot_id, "session resumed from the shared storage");
@@ -1974,7 +2003,7 @@ impl Registry {
                     counters,
                     queue,
                     last_received_sequence: latest.map(|p| p.sequence),
-                    track: TrackState { state, latest, trajectory: s.poses, earlier: 0 },
+                    track: TrackState { state, latest, trajectory: s.poses, ..Default::default() },
                     perception: None,
                     map,
                     archived: true,
@@ -2184,7 +2213,9 @@ mod tests {
 
     /// With a store, the oldest committed poses leave memory (a quarter over
     /// `session.trajectory_in_memory`, down to it), and the pages and the whole
-    /// trajectory read them back: nothing is lost, nothing repeated.
+    /// trajectory read them back: nothing is lost, nothing repeated, also where the
+    /// robot's sequence numbers started again (the store keeps poses by their
+    /// place, which the robot's numbers would have overwritten).
     #[test]
     fn older_poses_leave_memory_and_come_back_from_the_store() {
         let config = SessionConfig { trajectory_in_memory: 100, idle_evict_s: 0.001, ..SessionConfig::default() };
@@ -2192,7 +2223,7 @@ mod tests {
         let (sink, _rx) = mpsc::channel(4);
         let session = registry.open(&hello("r"), Transport::Grpc, sink.clone()).expect("open").session;
         let pose = |i: u64| pb::PoseStamped {
-            sequence: i,
+            sequence: i % 250,
             capture_time_ns: 1_000 + 10 * i,
             world_from_camera: Some(pb::Pose::from_parts([i as f64, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])),
             ..Default::default()
@@ -2233,6 +2264,7 @@ mod tests {
         {
             let track = back.tracking();
             assert_eq!((track.trajectory.len(), track.earlier), (100, 400));
+            assert!(track.trajectory.capacity() <= 200, "the poses read back and left out are freed: {}", track.trajectory.capacity());
         }
         assert_eq!(back.whole_trajectory().expect("read back"), all);
         registry.close_all();

@@ -237,6 +237,10 @@ pub struct Commit<'a> {
     pub session_id: &'a str,
     pub meta: &'a SessionMeta,
     pub poses: &'a [pb::PoseStamped],
+    /// The place of `poses[0]` in the session's trajectory: poses are stored by
+    /// their place (the order they came), not by the robot's sequence number,
+    /// which starts again when a robot's timeline is taken again.
+    pub first_pose: u64,
     /// Keyframes not committed yet (a failed commit's come again with the next).
     pub keyframes: &'a [KeyframeRecord],
     /// The session's camera, when the session was not recorded yet.
@@ -650,7 +654,7 @@ impl Store {
                 session_id: c.session_id.to_string(),
                 meta_json: json,
                 camera: c.camera.map(prost::Message::encode_to_vec),
-                poses: c.poses.iter().map(|p| (p.sequence, p.encode_to_vec())).collect(),
+                poses: c.poses.iter().zip(c.first_pose..).map(|(p, place)| (place, p.encode_to_vec())).collect(),
                 keyframes: c.keyframes.iter().map(|k| (k.id, k.to_bytes())).collect(),
                 blocks,
                 resume_secret_sha256: None,
@@ -678,8 +682,8 @@ impl Store {
                 .map_err(|e| self.err(e))?;
         }
         let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
-        for p in c.poses {
-            poses.insert((c.session_id, p.sequence), p.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
+        for (p, place) in c.poses.iter().zip(c.first_pose..) {
+            poses.insert((c.session_id, place), p.encode_to_vec().as_slice()).map_err(|e| self.err(e))?;
         }
         if !c.keyframes.is_empty() {
             let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
@@ -712,16 +716,19 @@ impl Store {
         tx.commit().map_err(|e| self.err(e))
     }
 
-    /// Calls `f` with each stored pose of session `id`, in sequence order (one read
-    /// transaction; nothing is collected here).
-    pub fn each_pose(&self, id: &str, mut f: impl FnMut(pb::PoseStamped)) -> Result<(), StoreError> {
+    /// Calls `f` with the first `n` stored poses of session `id`, in the order
+    /// they came (one read transaction; nothing is collected here); returns how
+    /// many there were.
+    pub fn first_poses(&self, id: &str, n: usize, mut f: impl FnMut(pb::PoseStamped)) -> Result<usize, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
-        for p in poses.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
+        let mut read = 0;
+        for p in poses.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))?.take(n) {
             let (_, v) = p.map_err(|e| self.err(e))?;
             f(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
+            read += 1;
         }
-        Ok(())
+        Ok(read)
     }
 
     /// What the server keeps of every stored session while it is not in memory:
@@ -835,6 +842,7 @@ impl Store {
                 session_id: &s.id,
                 meta: &s.meta,
                 poses: &s.poses,
+                first_pose: 0,
                 keyframes: &[],
                 camera: None,
                 blocks: s.blocks.iter().map(|(k, b)| (*k, b)).collect(),
@@ -1157,6 +1165,7 @@ mod tests {
                     session_id: "s1",
                     meta: &meta,
                     poses: &[pose],
+                    first_pose: 0,
                     keyframes: std::slice::from_ref(&kf),
                     camera: None,
                     blocks: vec![([1, -2, 3], &block)],
@@ -1245,6 +1254,7 @@ mod tests {
             session_id: "s",
             meta: &meta,
             poses: std::slice::from_ref(&pose),
+            first_pose: 0,
             keyframes: std::slice::from_ref(&kf),
             camera: None,
             blocks: Vec::new(),

@@ -1043,11 +1043,18 @@ pub(crate) async fn map_tile(
         Ok(c) => c,
         Err(e) => return error(StatusCode::BAD_REQUEST, e.0),
     };
-    let etag = mapping::tile_etag(&map, z, x, y);
-    if let Some(r) = not_modified(&headers, etag) {
-        return r;
+    // The map's lock may be held for long (a fusion, a PLY of a large map): taken
+    // off the runtime, for the ETag as for the tile.
+    let rendered = blocking(move || match not_modified(&headers, mapping::tile_etag(&map, z, x, y)) {
+        Some(unchanged) => Err(Box::new(unchanged)),
+        None => Ok(mapping::tile(&map, z, x, y)),
+    })
+    .await;
+    match rendered {
+        Ok(Err(unchanged)) => *unchanged,
+        Ok(Ok(tile)) => tile_response(Ok(tile)),
+        Err(r) => r,
     }
-    tile_response(blocking(move || mapping::tile(&map, z, x, y)).await)
 }
 
 /// Tiles change as the map grows: caches may keep them but must revalidate (ETag).
