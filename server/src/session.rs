@@ -2270,6 +2270,59 @@ mod tests {
         registry.close_all();
     }
 
+    /// What an 8-hour session's trajectory costs with the default
+    /// `session.trajectory_in_memory` (a measurement, not a check):
+    /// `cargo test --release -p stillmap-server --lib -- --ignored --nocapture trajectory_of_eight_hours`.
+    #[test]
+    #[ignore]
+    fn trajectory_of_eight_hours() {
+        let config = SessionConfig::default();
+        let keep = config.trajectory_in_memory;
+        let registry = registry_with(Some("eight-hours"), config, LimitsConfig::default());
+        let (sink, _rx) = mpsc::channel(4);
+        let session = registry.open(&hello("r"), Transport::Grpc, sink).expect("open").session;
+        let n: u64 = 8 * 3600 * 30;
+        let pose = |i: u64| pb::PoseStamped {
+            sequence: i,
+            capture_time_ns: 1_000_000_000 + 33_333_333 * i,
+            world_from_camera: Some(pb::Pose::from_parts([i as f64 * 1e-3, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])),
+            tracking_state: pb::TrackingState::Tracking as i32,
+            pose_time_ns: None,
+        };
+        let started = Instant::now();
+        for chunk in 0..n / 300 {
+            session.tracking().trajectory.extend((chunk * 300..(chunk + 1) * 300).map(pose));
+            assert!(session.flush());
+        }
+        let committing = started.elapsed();
+        let (held, earlier, capacity) = {
+            let t = session.tracking();
+            (t.trajectory.len(), t.earlier, t.trajectory.capacity())
+        };
+        let time = |f: &dyn Fn() -> usize| {
+            let t = Instant::now();
+            let got = f();
+            (got, t.elapsed().as_secs_f64() * 1e3)
+        };
+        let first = time(&|| session.trajectory_page(0, u64::MAX, DEFAULT_TRAJECTORY_PAGE).expect("page").0.len());
+        let last_start = pose(n - 1000).capture_time_ns;
+        let last = time(&|| session.trajectory_page(last_start, u64::MAX, DEFAULT_TRAJECTORY_PAGE).expect("page").0.len());
+        let whole = time(&|| session.whole_trajectory().expect("whole").len());
+        println!(
+            "| {n} poses, committed 300 at a time in {:.1} s | in memory | out of memory | Vec capacity |\n|---|---|---|---|",
+            committing.as_secs_f64()
+        );
+        println!(
+            "| | {held} (keep {keep}) | {earlier} | {capacity} ({:.1} MB) |",
+            (capacity * std::mem::size_of::<pb::PoseStamped>()) as f64 / 1e6
+        );
+        println!("| query | poses | ms |\n|---|---|---|");
+        println!("| first page (20,000, from the store) | {} | {:.0} |", first.0, first.1);
+        println!("| last 1,000 poses (memory only) | {} | {:.1} |", last.0, last.1);
+        println!("| whole trajectory (MCAP export's read) | {} | {:.0} |", whole.0, whole.1);
+        registry.close_all();
+    }
+
     fn small_camera() -> pb::CameraInfo {
         pb::CameraInfo {
             width: 64,
