@@ -228,6 +228,11 @@ fn finish(c: FileCalibration) -> Result<FileCalibration, String> {
     if !c.cx.is_finite() || !c.cy.is_finite() {
         return Err("principal point is not finite".into());
     }
+    // As the server's hello checks it: a principal point off the image is a
+    // calibration of another camera (or of pixels in another unit).
+    if !((0.0..=f64::from(c.width)).contains(&c.cx) && (0.0..=f64::from(c.height)).contains(&c.cy)) {
+        return Err(format!("principal point ({}, {}) lies outside the {}x{} image", c.cx, c.cy, c.width, c.height));
+    }
     Ok(c)
 }
 
@@ -382,6 +387,10 @@ Camera.height: 480
             "focal lengths must be positive, got fx=517.3 fy=-516.5"
         );
         assert_eq!(parse(&ROS.replace("image_width: 640\n", "")).unwrap_err(), "no image_width");
+        assert_eq!(
+            parse(&ROS.replace("image_width: 640", "image_width: 300")).unwrap_err(),
+            "principal point (318.6, 255.3) lies outside the 300x480 image"
+        );
         assert_eq!(
             parse(&ROS.replace("image_height: 480", "image_height: -4")).unwrap_err(),
             "image_height must be a positive integer, got Number(-4)"

@@ -55,6 +55,8 @@ struct Persistence {
     meta: SessionMeta,
     /// Poses of the trajectory already committed.
     committed_poses: usize,
+    /// Where the next pose is stored (`Commit::first_pose`).
+    next_pose_place: u64,
     /// The map's change stamp at the last commit.
     committed_stamp: u64,
     /// Blocks evicted to the store (not in memory).
@@ -128,6 +130,7 @@ impl SessionMap {
             session_id: session_id.to_string(),
             meta,
             committed_poses: 0,
+            next_pose_place: 0,
             committed_stamp: 0,
             cold: FxHashSet::default(),
             pending: Vec::new(),
@@ -150,6 +153,7 @@ impl SessionMap {
         blocks: Vec<(BlockKey, Block)>,
         meta: &SessionMeta,
         poses: usize,
+        next_pose_place: u64,
         last_camera: Option<nalgebra::Point3<f64>>,
     ) {
         for (k, b) in blocks {
@@ -167,6 +171,7 @@ impl SessionMap {
             // Already in the store: just forget them here.
             p.cold.extend(evicted.into_iter().map(|(k, _)| k));
             p.committed_poses = poses;
+            p.next_pose_place = next_pose_place;
             p.committed_stamp = meta.map_stamp;
             p.meta = meta.clone();
         }
@@ -269,14 +274,16 @@ impl SessionMap {
             session_id: &p.session_id,
             meta: &meta,
             poses: poses.get(p.committed_poses.saturating_sub(first)..).unwrap_or_default(),
-            first_pose: p.committed_poses as u64,
+            first_pose: p.next_pose_place,
             keyframes: &p.pending,
             camera: p.unrecorded_camera.as_ref(),
             blocks: self.builder.map().changed_since(since).map(|(k, b)| (*k, b)).collect(),
             evicted: &evicted,
         };
+        let new_poses = commit.poses.len() as u64;
         match p.store.commit(&commit) {
             Ok(()) => {
+                p.next_pose_place += new_poses;
                 p.committed_poses = first + poses.len();
                 p.committed_stamp = meta.map_stamp;
                 p.meta = meta;

@@ -713,9 +713,10 @@ fn read_session(
             .inspect_err(|e| tracing::warn!(session = id, "its pose-graph share in the shared storage is unreadable (left out): {e}"))
             .ok()
     });
-    let mut poses = Vec::new();
-    for r in client.query("SELECT pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
-        poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(0)).map_err(|e| corrupt("pose", &e))?);
+    let (mut poses, mut next_pose_place) = (Vec::new(), 0u64);
+    for r in client.query("SELECT sequence, pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
+        next_pose_place = next_pose_place.max((r.get::<_, i64>(0) as u64).saturating_add(1));
+        poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(1)).map_err(|e| corrupt("pose", &e))?);
     }
     let limit = i64::try_from(keyframes).unwrap_or(i64::MAX);
     let mut records = Vec::new();
@@ -732,7 +733,7 @@ fn read_session(
             .map_err(|e| corrupt("map block", &e))?;
         blocks.push((key, decode_block(r.get::<_, &[u8]>(3)).map_err(|e| corrupt("map block", &e))?));
     }
-    let session = Box::new(StoredSession { id: id.to_string(), meta, camera, poses, keyframes: records, blocks });
+    let session = Box::new(StoredSession { id: id.to_string(), meta, camera, poses, next_pose_place, keyframes: records, blocks });
     Ok(ReplicaSession::Found { session, server_id, fleet_frame, fleet_graph })
 }
 

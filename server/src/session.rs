@@ -1507,9 +1507,21 @@ impl Registry {
         }
         if let Some((stored, copy, fleet_frame, fleet_graph)) = from_replica
             && self.resident(&stored.id).is_none()
-            && let Some(opened) = self.resume_stored(stored, copy, (fleet_frame, fleet_graph), hello, transport, sink.clone())?
         {
-            return Ok(opened);
+            let id = stored.id.clone();
+            match self.resume_stored(stored, copy, (fleet_frame, fleet_graph), hello, transport, sink.clone()) {
+                Ok(Some(opened)) => return Ok(opened),
+                Ok(None) => {}
+                Err(refused) => {
+                    // Claimed in the shared storage, and not taken up here: another
+                    // server may take it over (it would wait for a handover from
+                    // this one, which never comes).
+                    if let Some(replica) = self.store.as_ref().and_then(|s| s.replica()) {
+                        replica.release(&id);
+                    }
+                    return Err(refused);
+                }
+            }
         }
         let camera = validate_new_hello(hello, self.config.max_camera_pixels)?.clone();
         let pixels = u64::from(camera.width) * u64::from(camera.height);
@@ -1967,7 +1979,7 @@ impl Registry {
                         .keyframes
                         .last()
                         .map(|k| nalgebra::Point3::new(k.world_from_camera[0], k.world_from_camera[1], k.world_from_camera[2]));
-                    m.restore(s.blocks.clone(), &s.meta, s.poses.len(), last_camera);
+                    m.restore(s.blocks.clone(), &s.meta, s.poses.len(), s.next_pose_place, last_camera);
                 }
                 Some(map)
             }

@@ -259,6 +259,10 @@ pub struct StoredSession {
     pub meta: SessionMeta,
     pub camera: pb::CameraInfo,
     pub poses: Vec<pb::PoseStamped>,
+    /// The place the session's next pose is stored at: after the last stored one
+    /// (more than the count where places are missing: a copy dropped, or a store
+    /// that kept poses by the robot's sequence numbers).
+    pub next_pose_place: u64,
     pub keyframes: Vec<KeyframeRecord>,
     pub blocks: Vec<(BlockKey, Block)>,
 }
@@ -784,9 +788,10 @@ impl Store {
         let blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
         let camera = cameras.get(id).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
         let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
-        let mut trajectory = Vec::new();
+        let (mut trajectory, mut next_pose_place) = (Vec::new(), 0);
         for p in poses.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
-            let (_, v) = p.map_err(|e| self.err(e))?;
+            let (k, v) = p.map_err(|e| self.err(e))?;
+            next_pose_place = k.value().1.saturating_add(1);
             trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
         }
         let mut kfs = Vec::new();
@@ -799,7 +804,7 @@ impl Store {
             let (_, x, y, z) = k.value();
             bl.push((checked_block_key([x, y, z])?, decode_block(v.value())?));
         }
-        Ok(Some(StoredSession { id: id.to_string(), meta, camera, poses: trajectory, keyframes: kfs, blocks: bl }))
+        Ok(Some(StoredSession { id: id.to_string(), meta, camera, poses: trajectory, next_pose_place, keyframes: kfs, blocks: bl }))
     }
 
     pub fn contains(&self, id: &str) -> Result<bool, StoreError> {
@@ -1025,7 +1030,8 @@ pub fn import_file(bytes: &[u8], max_bytes: usize) -> Result<StoredSession, Stor
     if r.at != body.len() {
         return Err(file_error(format!("{} bytes after the last block", body.len() - r.at)));
     }
-    Ok(StoredSession { id, meta, camera, poses, keyframes, blocks })
+    let next_pose_place = poses.len() as u64;
+    Ok(StoredSession { id, meta, camera, poses, next_pose_place, keyframes, blocks })
 }
 
 pub(crate) fn decode_block(bytes: &[u8]) -> Result<Block, StoreError> {
@@ -1178,6 +1184,7 @@ mod tests {
         assert_eq!(all.len(), 1);
         let s = &all[0];
         assert_eq!((s.id.as_str(), &s.meta, &s.camera, s.poses.as_slice()), ("s1", &meta, &camera, &[pose][..]));
+        assert_eq!(s.next_pose_place, 1);
         assert_eq!(s.keyframes[0].features[1], kf.features[1]);
         assert!(s.keyframes[0].features[0].2.is_nan());
         assert_eq!(s.blocks.len(), 2);
@@ -1312,6 +1319,32 @@ mod tests {
         );
     }
 
+    /// Poses are kept by their place in the trajectory: a robot's sequence numbers
+    /// starting again overwrite nothing, they come back in the order they came, and
+    /// where places are missing (a copy dropped) the next place is after the last.
+    #[test]
+    fn poses_are_kept_by_their_place_not_the_robots_sequence() {
+        let store = memory_disk::store_on(&Disk::default());
+        let meta = SessionMeta::for_tests("r");
+        let camera = pb::CameraInfo { width: 64, height: 48, ..Default::default() };
+        store.put_session("s", &meta, &camera, "").expect("session");
+        let pose = |sequence: u64, t: u64| pb::PoseStamped { sequence, capture_time_ns: t, ..Default::default() };
+        let commit = |poses: &[pb::PoseStamped], first_pose: u64| {
+            let c = Commit { session_id: "s", meta: &meta, poses, first_pose, keyframes: &[], camera: None, blocks: vec![], evicted: &[] };
+            store.commit(&c).expect("committed");
+        };
+        commit(&[pose(7, 10), pose(8, 20)], 0);
+        commit(&[pose(7, 30), pose(1, 40)], 2);
+        commit(&[pose(2, 50)], 9);
+        let s = store.load("s").expect("read").expect("stored");
+        assert_eq!(s.poses.iter().map(|p| p.capture_time_ns).collect::<Vec<_>>(), [10, 20, 30, 40, 50]);
+        assert_eq!(s.next_pose_place, 10);
+        let mut first = Vec::new();
+        assert_eq!(store.first_poses("s", 3, |p| first.push(p.capture_time_ns)).expect("read"), 3);
+        assert_eq!(first, [10, 20, 30]);
+        assert_eq!(store.first_poses("s", 9, |_| {}).expect("read"), 5, "fewer than asked: the caller names the gap");
+    }
+
     #[test]
     fn a_map_block_beyond_the_maps_range_is_refused() {
         let s = StoredSession {
@@ -1340,6 +1373,7 @@ mod tests {
                 ..Default::default()
             },
             poses: Vec::new(),
+            next_pose_place: 0,
             keyframes: Vec::new(),
             blocks: vec![([1 << 27, 0, -(1 << 27)], Block::default())],
         };
