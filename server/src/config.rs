@@ -454,10 +454,10 @@ pub struct SessionConfig {
     /// Poses of a session's trajectory kept in memory: the newest. With a store,
     /// older poses, once committed, leave memory (when a quarter more than this
     /// are held, down to this many) and the trajectory queries and the export read
-    /// them back from the store; a session streaming for hours holds about 130
-    /// bytes per pose otherwise (110 MB in 8 hours at 30 Hz). Default 36,000 (20
-    /// minutes at 30 Hz, about 5 MB); 0 = every pose. Without a store every pose
-    /// stays in memory (nothing else holds it).
+    /// them back from the store; a session streaming for hours holds 112 bytes
+    /// per pose otherwise (97 MB in 8 hours at 30 Hz). Default 36,000 (20 minutes
+    /// at 30 Hz: 4 MB of poses, up to 8 MB with the list's spare room); 0 = every
+    /// pose. Without a store every pose stays in memory (nothing else holds it).
     pub trajectory_in_memory: usize,
     /// Largest camera a hello may declare, in pixels (width × height; default
     /// 2,097,152 = 2 MP, a 1920×1080 camera fits). A session's buffers grow with

@@ -518,6 +518,37 @@ mod tests {
         assert!(!near_far.is_empty() && near_far.len() < whole, "{} of {whole}", near_far.len());
     }
 
+    /// A map restored with its next pose's place (after the last stored one, past
+    /// places missing) writes its new poses there, not at the count of poses.
+    #[test]
+    fn new_poses_are_stored_after_the_last_stored_place() {
+        let camera = pb::CameraInfo {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 32.0,
+            cy: 24.0,
+            depth_units_per_metre: 1000.0,
+            ..Default::default()
+        };
+        let map = SessionMap::new(&camera, MappingConfig::default(), Vec::new()).expect("map");
+        let store = Arc::new(store_on(&Disk::default()));
+        let meta = SessionMeta::for_tests("r");
+        store.put_session("s", &meta, &camera, "").expect("session");
+        let pose = |t: u64| pb::PoseStamped { sequence: t, capture_time_ns: t, ..Default::default() };
+        let mut m = lock(&map);
+        m.attach_store(store.clone(), "s", meta.clone());
+        // Three poses restored (stored elsewhere at places up to 9), a fourth new.
+        m.restore(Vec::new(), &meta, 3, 10, None);
+        let poses: Vec<pb::PoseStamped> = (1..=4).map(pose).collect();
+        assert!(m.persist(&poses, 0, None).expect("committed"));
+        let mut stored = Vec::new();
+        assert_eq!(store.first_poses("s", 5, |p| stored.push(p.capture_time_ns)).expect("read"), 1);
+        assert_eq!((stored, store.load("s").expect("read").expect("stored").next_pose_place), (vec![4], 11));
+        assert_eq!(crate::store::next_place_after(11, u64::MAX - 3), 11, "a sequence number of an older store takes no place");
+    }
+
     /// A commit that fails after blocks that were evicted, started again and evicted
     /// again had their stored copies merged in: the next commit stores each
     /// voxel's hits once (it merged the stored copies a second time before).

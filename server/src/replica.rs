@@ -715,7 +715,7 @@ fn read_session(
     });
     let (mut poses, mut next_pose_place) = (Vec::new(), 0u64);
     for r in client.query("SELECT sequence, pose FROM stillmap_poses WHERE session_id = $1 ORDER BY sequence", &[&id]).map_err(read)? {
-        next_pose_place = next_pose_place.max((r.get::<_, i64>(0) as u64).saturating_add(1));
+        next_pose_place = crate::store::next_place_after(next_pose_place, r.get::<_, i64>(0) as u64);
         poses.push(stillmap_proto::pb::PoseStamped::decode(r.get::<_, &[u8]>(1)).map_err(|e| corrupt("pose", &e))?);
     }
     let limit = i64::try_from(keyframes).unwrap_or(i64::MAX);

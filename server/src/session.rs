@@ -1508,19 +1508,12 @@ impl Registry {
         if let Some((stored, copy, fleet_frame, fleet_graph)) = from_replica
             && self.resident(&stored.id).is_none()
         {
-            let id = stored.id.clone();
-            match self.resume_stored(stored, copy, (fleet_frame, fleet_graph), hello, transport, sink.clone()) {
-                Ok(Some(opened)) => return Ok(opened),
-                Ok(None) => {}
-                Err(refused) => {
-                    // Claimed in the shared storage, and not taken up here: another
-                    // server may take it over (it would wait for a handover from
-                    // this one, which never comes).
-                    if let Some(replica) = self.store.as_ref().and_then(|s| s.replica()) {
-                        replica.release(&id);
-                    }
-                    return Err(refused);
-                }
+            // A refusal keeps the claim in the shared storage: the robot tries this
+            // server again (a release, queued behind commits, could undo the claim
+            // of that retry and let a second server write the session); resuming
+            // elsewhere, it waits `session.handover_wait_s`, then gets a new session.
+            if let Some(opened) = self.resume_stored(stored, copy, (fleet_frame, fleet_graph), hello, transport, sink.clone())? {
+                return Ok(opened);
             }
         }
         let camera = validate_new_hello(hello, self.config.max_camera_pixels)?.clone();
@@ -1796,9 +1789,12 @@ impl Registry {
             }
         }
         if let Some(store) = &self.store
-            && let Ok(Some(local)) = store.load(id)
+            && let Ok(Some(mut local)) = store.load(id)
             && local.poses.len() >= s.poses.len()
         {
+            // After every place the shared storage holds too (another server may
+            // have written beyond this copy where a copy of this one's was dropped).
+            local.next_pose_place = local.next_pose_place.max(s.next_pose_place);
             return Ok(Some((local, false, fleet_frame, fleet_graph)));
         }
         Ok(Some((s, true, fleet_frame, fleet_graph)))

@@ -249,6 +249,13 @@ pub struct Commit<'a> {
     pub evicted: &'a [(BlockKey, Block)],
 }
 
+/// The next pose's place once a pose is stored at `key`: places are counted from 0,
+/// and a key beyond 2⁶² is a robot's sequence number (stores before 2026-12-07 kept
+/// poses by it), after which no place is taken (the count would run out).
+pub(crate) fn next_place_after(next: u64, key: u64) -> u64 {
+    if key < 1 << 62 { next.max(key + 1) } else { next }
+}
+
 /// Map blocks as stored: key and zstd-compressed bytes.
 type CompressedBlocks = Vec<(BlockKey, Vec<u8>)>;
 
@@ -791,7 +798,7 @@ impl Store {
         let (mut trajectory, mut next_pose_place) = (Vec::new(), 0);
         for p in poses.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
             let (k, v) = p.map_err(|e| self.err(e))?;
-            next_pose_place = k.value().1.saturating_add(1);
+            next_pose_place = next_place_after(next_pose_place, k.value().1);
             trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
         }
         let mut kfs = Vec::new();
@@ -837,6 +844,20 @@ impl Store {
                 .map_err(|e| self.err(e))?
                 .insert(s.id.as_str(), s.camera.encode_to_vec().as_slice())
                 .map_err(|e| self.err(e))?;
+            {
+                // The copy's poses replace those of an earlier copy (numbered from 0
+                // here, or by sequence numbers in an older store).
+                let mut poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
+                let old: Vec<u64> = poses
+                    .range((s.id.as_str(), 0)..=(s.id.as_str(), u64::MAX))
+                    .map_err(|e| self.err(e))?
+                    .map(|p| p.map(|(k, _)| k.value().1))
+                    .collect::<Result<_, _>>()
+                    .map_err(|e| self.err(e))?;
+                for place in old {
+                    poses.remove((s.id.as_str(), place)).map_err(|e| self.err(e))?;
+                }
+            }
             {
                 let mut table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
                 for k in &s.keyframes {
@@ -1343,6 +1364,12 @@ mod tests {
         assert_eq!(store.first_poses("s", 3, |p| first.push(p.capture_time_ns)).expect("read"), 3);
         assert_eq!(first, [10, 20, 30]);
         assert_eq!(store.first_poses("s", 9, |_| {}).expect("read"), 5, "fewer than asked: the caller names the gap");
+        // A copy taken again (a session resumed from the shared storage) replaces
+        // the poses of the earlier one, wherever they were stored.
+        let copy = StoredSession { poses: vec![pose(3, 60), pose(4, 70)], next_pose_place: 12, ..s };
+        store.import(&copy).expect("copied");
+        let back = store.load("s").expect("read").expect("stored");
+        assert_eq!(back.poses.iter().map(|p| p.capture_time_ns).collect::<Vec<_>>(), [60, 70]);
     }
 
     #[test]
