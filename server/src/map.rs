@@ -452,7 +452,7 @@ pub fn summary(map: &SharedMap) -> (u64, u64, usize) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use std::sync::atomic::Ordering;
 
     use nalgebra::{Isometry3, Translation3};
@@ -461,13 +461,9 @@ mod tests {
     use super::*;
     use crate::store::memory_disk::{Disk, store_on};
 
-    /// A stored block the store cannot give back makes every map query on the
-    /// whole map an error naming it, not a map with a hole; a query about a box
-    /// reads only the stored blocks around it, and is answered.
-    #[test]
-    fn a_stored_block_that_cannot_be_read_fails_the_query_not_the_map() {
-        use crate::api::map_queries::{self as q, QueryError};
-        let camera = pb::CameraInfo {
+    /// A 64×48 pinhole camera for the tests (no encodings).
+    pub(crate) fn small_camera() -> pb::CameraInfo {
+        pb::CameraInfo {
             width: 64,
             height: 48,
             fx: 60.0,
@@ -476,7 +472,16 @@ mod tests {
             cy: 24.0,
             depth_units_per_metre: 1000.0,
             ..Default::default()
-        };
+        }
+    }
+
+    /// A stored block the store cannot give back makes every map query on the
+    /// whole map an error naming it, not a map with a hole; a query about a box
+    /// reads only the stored blocks around it, and is answered.
+    #[test]
+    fn a_stored_block_that_cannot_be_read_fails_the_query_not_the_map() {
+        use crate::api::map_queries::{self as q, QueryError};
+        let camera = small_camera();
         let config = MappingConfig { max_resident_blocks: 4, ..MappingConfig::default() };
         let map = SessionMap::new(&camera, config, Vec::new()).expect("map");
         let store = Arc::new(store_on(&Disk::default()));
@@ -522,16 +527,7 @@ mod tests {
     /// places missing) writes its new poses there, not at the count of poses.
     #[test]
     fn new_poses_are_stored_after_the_last_stored_place() {
-        let camera = pb::CameraInfo {
-            width: 64,
-            height: 48,
-            fx: 60.0,
-            fy: 60.0,
-            cx: 32.0,
-            cy: 24.0,
-            depth_units_per_metre: 1000.0,
-            ..Default::default()
-        };
+        let camera = small_camera();
         let map = SessionMap::new(&camera, MappingConfig::default(), Vec::new()).expect("map");
         let store = Arc::new(store_on(&Disk::default()));
         let meta = SessionMeta::for_tests("r");
@@ -554,16 +550,7 @@ mod tests {
     /// voxel's hits once (it merged the stored copies a second time before).
     #[test]
     fn a_failed_commit_merges_no_stored_block_twice() {
-        let camera = pb::CameraInfo {
-            width: 64,
-            height: 48,
-            fx: 60.0,
-            fy: 60.0,
-            cx: 32.0,
-            cy: 24.0,
-            depth_units_per_metre: 1000.0,
-            ..Default::default()
-        };
+        let camera = small_camera();
         let config = MappingConfig { max_resident_blocks: 4, ..MappingConfig::default() };
         let map = SessionMap::new(&camera, config, Vec::new()).expect("map");
         let disk = Disk::default();

@@ -2333,16 +2333,9 @@ mod tests {
 
     fn small_camera() -> pb::CameraInfo {
         pb::CameraInfo {
-            width: 64,
-            height: 48,
-            fx: 60.0,
-            fy: 60.0,
-            cx: 32.0,
-            cy: 24.0,
-            depth_units_per_metre: 1000.0,
             color_encoding: pb::ColorEncoding::Rgb8 as i32,
             depth_encoding: pb::DepthEncoding::Zstd as i32,
-            ..Default::default()
+            ..crate::map::tests::small_camera()
         }
     }
 
