@@ -309,6 +309,7 @@ pub(crate) async fn get_pose(
         (status = 400, description = "Bad query", body = ApiError),
         (status = 404, description = "Unknown session or no map", body = ApiError),
         (status = 409, description = "Not merged into its fleet yet (frame=fleet)", body = ApiError),
+        (status = 503, description = "Poses out of memory (session.trajectory_in_memory) cannot be read back from the store (no trajectory with a gap is answered)", body = ApiError),
     )
 )]
 pub(crate) async fn get_trajectory(
