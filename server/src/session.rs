@@ -154,14 +154,6 @@ impl TrackState {
         self.len() == 0
     }
 
-    /// The poses in memory captured within `start_ns..=end_ns`, a page of
-    /// them as [`Page`] says.
-    pub fn page(&self, start_ns: u64, end_ns: u64, limit: usize) -> (Vec<pb::PoseStamped>, Option<u64>) {
-        let mut page = Page::new(start_ns, end_ns, limit);
-        self.trajectory.iter().for_each(|p| page.push(*p));
-        page.finish()
-    }
-
     /// Leaves the oldest poses out of memory once more than `keep` · 5/4 are
     /// held, down to `keep`, but only the first `committed` of the trajectory
     /// (those the store holds); `keep` 0 keeps every pose. Returns how many left.
@@ -607,6 +599,12 @@ impl Session {
         Ok(all)
     }
 
+    /// Why a trajectory query has no answer (HTTP 503, gRPC UNAVAILABLE): poses
+    /// out of memory the store cannot give back.
+    pub fn poses_unreadable(e: &StoreError) -> String {
+        format!("the trajectory's older poses cannot be read back from the store: {e}")
+    }
+
     /// Calls `f` with the first `n` poses of this session the store holds, those
     /// out of memory (outside the tracking and map locks). Fewer is an error: a
     /// trajectory with a gap is not answered.
@@ -912,18 +910,27 @@ impl Session {
         let start = Instant::now();
         // Lock order: tracking, then map (nothing takes them the other way round).
         let mut track = self.tracking();
-        let outcome = {
-            let mut m = lock(map);
-            let outcome = m.persist(&track.trajectory, track.earlier, keyframe);
-            track.trim(m.committed_poses(), self.trajectory_in_memory);
-            outcome
-        };
+        let outcome = self.commit(&mut track, &mut lock(map), keyframe);
         drop(track);
         match outcome {
             Ok(true) => self.metrics.stage(stage::STORE_COMMIT, micros(start.elapsed())),
             Ok(false) => {}
             Err(e) => tracing::error!(session = %self.id, "cannot commit to the store (the map stays in memory): {e}"),
         }
+    }
+
+    /// Commits the poses and map changes since the last commit (`SessionMap::persist`),
+    /// then leaves the oldest committed poses out of memory
+    /// (`session.trajectory_in_memory`). Call it holding both locks.
+    fn commit(
+        &self,
+        track: &mut TrackState,
+        m: &mut crate::map::SessionMap,
+        keyframe: Option<crate::store::KeyframeRecord>,
+    ) -> Result<bool, StoreError> {
+        let outcome = m.persist(&track.trajectory, track.earlier, keyframe);
+        track.trim(m.committed_poses(), self.trajectory_in_memory);
+        outcome
     }
 
     /// Commits what is not committed yet (the poses after the last keyframe, what
@@ -937,9 +944,7 @@ impl Session {
         if !m.uncommitted(track.len()) {
             return false;
         }
-        let outcome = m.persist(&track.trajectory, track.earlier, None);
-        track.trim(m.committed_poses(), self.trajectory_in_memory);
-        match outcome {
+        match self.commit(&mut track, &mut m, None) {
             Ok(committed) => committed,
             Err(e) => {
                 tracing::debug!(session = %self.id, "flush not committed: {e}");
@@ -2166,25 +2171,31 @@ mod tests {
     #[test]
     fn a_trajectory_is_answered_in_pages() {
         let pose = |sequence: u64, capture_time_ns: u64| pb::PoseStamped { sequence, capture_time_ns, ..Default::default() };
+        // A page of the poses in memory.
+        let page_of = |track: &TrackState, start_ns: u64, end_ns: u64, limit: usize| {
+            let mut page = Page::new(start_ns, end_ns, limit);
+            track.trajectory.iter().for_each(|p| page.push(*p));
+            page.finish()
+        };
         let track = TrackState { trajectory: (0..10).map(|i| pose(i, 100 + 10 * i)).collect(), ..Default::default() };
         let times =
             |(poses, next): (Vec<pb::PoseStamped>, Option<u64>)| (poses.iter().map(|p| p.capture_time_ns).collect::<Vec<_>>(), next);
-        assert_eq!(times(track.page(0, u64::MAX, 4)), (vec![100, 110, 120, 130], Some(140)));
-        assert_eq!(times(track.page(140, u64::MAX, 4)), (vec![140, 150, 160, 170], Some(180)));
-        assert_eq!(times(track.page(180, u64::MAX, 4)), (vec![180, 190], None));
-        assert_eq!(times(track.page(0, u64::MAX, 10)), ((100..=190).step_by(10).collect(), None), "exactly the limit: no next page");
-        assert_eq!(times(track.page(120, 150, 2)), (vec![120, 130], Some(140)));
-        assert_eq!(times(track.page(140, 150, 2)), (vec![140, 150], None), "the rest is out of the range");
-        assert_eq!(times(track.page(191, u64::MAX, 2)), (vec![], None));
+        assert_eq!(times(page_of(&track, 0, u64::MAX, 4)), (vec![100, 110, 120, 130], Some(140)));
+        assert_eq!(times(page_of(&track, 140, u64::MAX, 4)), (vec![140, 150, 160, 170], Some(180)));
+        assert_eq!(times(page_of(&track, 180, u64::MAX, 4)), (vec![180, 190], None));
+        assert_eq!(times(page_of(&track, 0, u64::MAX, 10)), ((100..=190).step_by(10).collect(), None), "exactly the limit: no next page");
+        assert_eq!(times(page_of(&track, 120, 150, 2)), (vec![120, 130], Some(140)));
+        assert_eq!(times(page_of(&track, 140, 150, 2)), (vec![140, 150], None), "the rest is out of the range");
+        assert_eq!(times(page_of(&track, 191, u64::MAX, 2)), (vec![], None));
         // A clock that went back (the timeline taken again): pages follow capture
         // time, and poses of one capture time stay on one page.
         let track = TrackState {
             trajectory: [100, 110, 120, 40, 50, 110].iter().zip(0..).map(|(&t, i)| pose(i, t)).collect(),
             ..Default::default()
         };
-        assert_eq!(times(track.page(0, u64::MAX, 2)), (vec![40, 50], Some(100)));
-        assert_eq!(times(track.page(100, u64::MAX, 2)), (vec![100, 110, 110], Some(120)));
-        assert_eq!(times(track.page(120, u64::MAX, 2)), (vec![120], None));
+        assert_eq!(times(page_of(&track, 0, u64::MAX, 2)), (vec![40, 50], Some(100)));
+        assert_eq!(times(page_of(&track, 100, u64::MAX, 2)), (vec![100, 110, 110], Some(120)));
+        assert_eq!(times(page_of(&track, 120, u64::MAX, 2)), (vec![120], None));
     }
 
     /// A page built from poses in any order, compacted as it goes (bounded

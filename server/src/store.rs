@@ -1376,17 +1376,7 @@ mod tests {
     fn a_map_block_beyond_the_maps_range_is_refused() {
         let s = StoredSession {
             id: "far".into(),
-            meta: SessionMeta {
-                robot_id: "far".into(),
-                transport: "grpc".into(),
-                started_unix_ns: 5,
-                class_names: Vec::new(),
-                up_in_world: None,
-                up_source: None,
-                keyframes: 0,
-                map_stamp: 0,
-                fleet: String::new(),
-            },
+            meta: SessionMeta { started_unix_ns: 5, ..SessionMeta::for_tests("far") },
             camera: pb::CameraInfo {
                 width: 640,
                 height: 480,

@@ -372,11 +372,7 @@ pub(crate) async fn get_trajectory(
 /// A trajectory whose older poses (out of memory) the store cannot give back:
 /// 503, not a trajectory with a gap.
 fn trajectory_unreadable(e: &crate::store::StoreError) -> Response {
-    error(StatusCode::SERVICE_UNAVAILABLE, trajectory_unreadable_message(e))
-}
-
-fn trajectory_unreadable_message(e: &crate::store::StoreError) -> String {
-    format!("the trajectory's older poses cannot be read back from the store: {e}")
+    error(StatusCode::SERVICE_UNAVAILABLE, Session::poses_unreadable(e))
 }
 
 /// The header naming where a trajectory's next page starts (when more poses follow).
@@ -861,7 +857,7 @@ pub(crate) async fn session_mcap(State(registry): State<Arc<Registry>>, Path(id)
     let key = id.clone();
     let session = s.clone();
     let file = blocking(move || {
-        let trajectory = session.whole_trajectory().map_err(|e| crate::map::MapUnreadable(trajectory_unreadable_message(&e)))?;
+        let trajectory = session.whole_trajectory().map_err(|e| crate::map::MapUnreadable(Session::poses_unreadable(&e)))?;
         let map = map
             .map(|m| {
                 let points = mapping::points(&m, None)?.0;

@@ -289,7 +289,7 @@ impl Query for QueryService {
         let (poses, next) = tokio::task::spawn_blocking(move || session.trajectory_page(start_ns, end, limit))
             .await
             .map_err(|e| Status::internal(format!("trajectory query failed: {e}")))?
-            .map_err(|e| Status::unavailable(format!("the trajectory's older poses cannot be read back from the store: {e}")))?;
+            .map_err(|e| Status::unavailable(Session::poses_unreadable(&e)))?;
         Ok(Response::new(pb::Trajectory { poses, next_start_ns: next.unwrap_or(0) }))
     }
 
