@@ -117,6 +117,17 @@ pub struct TrackerConfig {
     pub keyframe_tracked_ratio: f64,
     /// A new keyframe is taken at least every this many frames.
     pub keyframe_max_interval: u32,
+    /// Keyframes the tracker keeps, at most (0: every one). A keyframe every few
+    /// frames for hours would hold them all in memory (about 100 KB each with their
+    /// features and point links: 2.2 GB an hour at 30 Hz) and rank them all for every
+    /// frame's local map. Beyond this number one is forgotten for each new one,
+    /// never the bundle-adjustment window, the reference, nor the `local_keyframes`
+    /// nearest the new one (the next frames track on them): of the 50 oldest others,
+    /// the oldest whose points three other keyframes see as well (90 % of them,
+    /// ORB-SLAM's redundancy), else the oldest. Forgotten keyframes are no longer
+    /// relocalization candidates; the server's store keeps every keyframe record
+    /// (place recognition, the map). At least `local_keyframes + ba_window + 1`.
+    pub max_keyframes: usize,
     /// New map points created per keyframe, at most.
     pub max_new_points_per_keyframe: usize,
     /// New map points are made spread over the image, from the unmatched features
@@ -221,6 +232,13 @@ impl TrackerConfig {
                 self.local_keyframes, self.relocalization_candidates
             ));
         }
+        let fewest = self.local_keyframes + self.ba_window + 1;
+        if self.max_keyframes != 0 && self.max_keyframes < fewest {
+            return Err(format!(
+                "tracking.max_keyframes must be 0 (every keyframe kept) or at least local_keyframes + ba_window + 1 = {fewest}, got {}",
+                self.max_keyframes
+            ));
+        }
         if !(self.min_depth_m > 0.0 && self.max_depth_m > self.min_depth_m) {
             return Err("tracking.min_depth_m must be positive and below tracking.max_depth_m".into());
         }
@@ -293,6 +311,7 @@ impl Default for TrackerConfig {
             local_keyframes: 10,
             keyframe_tracked_ratio: 0.75,
             keyframe_max_interval: 5,
+            max_keyframes: 500,
             max_new_points_per_keyframe: 400,
             new_point_cell_px: 64,
             ba_window: 6,
@@ -322,6 +341,11 @@ mod tests {
             assert!(err.starts_with("tracking.coast_s must be in [0, 60]"), "{bad}: {err}");
         }
         assert_eq!(TrackerConfig { coast_s: 0.0, ..TrackerConfig::default() }.validate(), Ok(()), "0 turns coasting off");
+        let err = TrackerConfig { max_keyframes: 16, ..TrackerConfig::default() }.validate().expect_err("rejected");
+        assert_eq!(err, "tracking.max_keyframes must be 0 (every keyframe kept) or at least local_keyframes + ba_window + 1 = 17, got 16");
+        for fine in [0, 17] {
+            assert_eq!(TrackerConfig { max_keyframes: fine, ..TrackerConfig::default() }.validate(), Ok(()), "{fine}");
+        }
         let err = TrackerConfig { coast_min_agreement: 1.5, ..TrackerConfig::default() }.validate().expect_err("rejected");
         assert_eq!(err, "tracking.coast_min_agreement must be in [0, 1], got 1.5");
         for bad in [-0.1, 1.01, f64::NAN] {

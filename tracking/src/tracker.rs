@@ -100,6 +100,9 @@ const WIDE_SEARCH_FACTOR: f64 = 3.0;
 const WEAK_REPLACEMENT_FACTOR: usize = 2;
 /// Keyframes created since a point's birth after which it must have ≥ 2 observations.
 const CULL_AFTER_KEYFRAMES: u64 = 3;
+/// Keyframes (the oldest not kept) searched for a redundant one to forget
+/// (`tracking.max_keyframes`).
+const FORGET_SCAN: usize = 50;
 /// Points matched in fewer than this fraction of the frames predicting them are culled.
 const CULL_FOUND_RATIO: f64 = 0.25;
 /// Visibility count before the found ratio is trusted.
@@ -142,6 +145,8 @@ pub struct Tracker {
     /// dense step with no tracked velocity), whose keypoints a rolling shutter still
     /// distorts: rectified with the next frame's step.
     unrectified_keyframe: Option<KeyframeId>,
+    /// Keyframes forgotten beyond `max_keyframes`.
+    forgotten_keyframes: u64,
 }
 
 /// The grey image of an RGB8 image: BT.601 luma, rounded to 8 bits.
@@ -195,6 +200,7 @@ impl Tracker {
             last_tracked_ns: None,
             coasting: false,
             unrectified_keyframe: None,
+            forgotten_keyframes: 0,
             scales: level_scales(&config),
             camera,
             extractor,
@@ -213,6 +219,11 @@ impl Tracker {
 
     pub fn camera(&self) -> &Camera {
         &self.camera
+    }
+
+    /// Keyframes forgotten so far beyond `tracking.max_keyframes`.
+    pub fn forgotten_keyframes(&self) -> u64 {
+        self.forgotten_keyframes
     }
 
     pub fn map(&self) -> &Map {
@@ -533,8 +544,23 @@ impl Tracker {
     /// Points of the keyframes nearest in covisibility to `pose`: the most recent
     /// keyframes plus the reference, up to `local_keyframes`.
     fn local_points(&self, camera_from_world: Isometry3<f64>) -> Vec<PointId> {
-        let world_from_camera = camera_from_world.inverse();
-        // Rank keyframes by viewpoint distance: translation plus rotation (1 rad ≈ 1 m).
+        let mut seen = HashSet::new();
+        let mut points = Vec::new();
+        for id in self.nearest_keyframes(&camera_from_world.inverse()) {
+            if let Some(kf) = self.map.keyframes.get(&id) {
+                for p in kf.points.iter().flatten() {
+                    if seen.insert(*p) {
+                        points.push(*p);
+                    }
+                }
+            }
+        }
+        points
+    }
+
+    /// The `local_keyframes` keyframes nearest in viewpoint to `world_from_camera`:
+    /// translation plus rotation (1 rad ≈ 1 m), the older first among equals.
+    fn nearest_keyframes(&self, world_from_camera: &Isometry3<f64>) -> Vec<KeyframeId> {
         let mut kfs: Vec<(f64, KeyframeId)> = self
             .map
             .keyframes
@@ -545,18 +571,24 @@ impl Tracker {
             })
             .collect();
         kfs.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let mut seen = HashSet::new();
-        let mut points = Vec::new();
-        for (_, id) in kfs.iter().take(self.config.local_keyframes) {
-            if let Some(kf) = self.map.keyframes.get(id) {
-                for p in kf.points.iter().flatten() {
-                    if seen.insert(*p) {
-                        points.push(*p);
-                    }
-                }
-            }
+        kfs.into_iter().take(self.config.local_keyframes).map(|(_, id)| id).collect()
+    }
+
+    /// Keeps at most `tracking.max_keyframes` keyframes after keyframe `newest` was
+    /// made at `world_from_camera` (see the option for which are forgotten).
+    fn forget_keyframes(&mut self, newest: KeyframeId, world_from_camera: Isometry3<f64>) {
+        let cap = self.config.max_keyframes;
+        if cap == 0 || self.map.keyframes.len() <= cap {
+            return;
         }
-        points
+        let mut kept: HashSet<KeyframeId> = self.map.keyframes.keys().rev().take(self.config.ba_window).copied().collect();
+        kept.extend(self.nearest_keyframes(&world_from_camera));
+        kept.extend([Some(newest), self.reference, self.unrectified_keyframe].into_iter().flatten());
+        while self.map.keyframes.len() > cap {
+            let Some(id) = self.map.keyframe_to_forget(&kept, FORGET_SCAN) else { break };
+            self.map.forget_keyframe(id);
+            self.forgotten_keyframes += 1;
+        }
     }
 
     /// Matches map points projected with `camera_from_world` to features within
@@ -778,6 +810,7 @@ impl Tracker {
         self.frames_since_keyframe = 0;
         self.local_bundle_adjustment();
         self.cull_points(id);
+        self.forget_keyframes(id, world_from_camera);
         self.map.keyframes.get(&id).map(|kf| kf.points.iter().flatten().copied().collect()).unwrap_or_default()
     }
 
