@@ -265,9 +265,11 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     let replica = store.as_ref().and_then(|s| s.replica().cloned());
     // What is stored is listed, not loaded: a query brings a session's map and
     // trajectory into memory when it needs them. Place recognition needs the
-    // keyframe records (bounded per fleet by fleet.max_places).
+    // keyframe records: a fleet's index holds its newest fleet.max_places, so no
+    // older ones of any session are read.
+    let places = if config.fleet.enabled && config.mapping.enabled { config.fleet.max_places } else { 0 };
     let stored = match &store {
-        Some(s) => s.heads(config.fleet.enabled && config.mapping.enabled)?,
+        Some(s) => s.heads(places)?,
         None => Vec::new(),
     };
     if config.fleet.enabled && !config.mapping.enabled {

@@ -1287,7 +1287,8 @@ impl Registry {
             return Some(s);
         }
         let store = self.store.as_ref()?;
-        let stored = match store.load(id) {
+        // Its newest keyframe only: the map's eviction starts around its camera.
+        let stored = match store.load_with(id, 1) {
             Ok(Some(stored)) => stored,
             Ok(None) => {
                 tracing::error!(session = id, "listed as stored, but the store does not hold it");
@@ -1794,7 +1795,7 @@ impl Registry {
             }
         }
         if let Some(store) = &self.store
-            && let Ok(Some(mut local)) = store.load(id)
+            && let Ok(Some(mut local)) = store.load_with(id, RESUME_KEYFRAMES)
             && local.poses.len() >= s.poses.len()
         {
             // After every place the shared storage holds too (another server may

@@ -280,7 +280,9 @@ pub struct SessionHead {
     pub id: String,
     pub meta: SessionMeta,
     pub camera: pb::CameraInfo,
-    /// Poses stored, and the latest of them.
+    /// Poses stored (the place after the last stored one: more than the count
+    /// where places are missing, as with a copy that dropped a commit), and the
+    /// latest of them.
     pub pose_count: usize,
     pub latest: Option<pb::PoseStamped>,
     /// Empty unless asked for.
@@ -743,15 +745,17 @@ impl Store {
     }
 
     /// What the server keeps of every stored session while it is not in memory:
-    /// description, camera, pose count and latest pose, and (`with_keyframes`) the
-    /// keyframe records place recognition needs. No map block and no trajectory
-    /// is read: start-up stays fast and small however much the store holds.
-    pub fn heads(&self, with_keyframes: bool) -> Result<Vec<SessionHead>, StoreError> {
+    /// description, camera, pose count and latest pose, and the newest `keyframes`
+    /// keyframe records of each (what place recognition can hold of one session,
+    /// `fleet.max_places`; 0: none). No map block, no trajectory and no older
+    /// keyframe is read: start-up stays fast and small however much the store holds
+    /// (a robot's hour is about 20,000 keyframes of 45 KB and 100,000 poses).
+    pub fn heads(&self, keyframes: usize) -> Result<Vec<SessionHead>, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
         let cameras = tx.open_table(CAMERAS).map_err(|e| self.err(e))?;
         let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
-        let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+        let keyframes_table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
         let mut out = Vec::new();
         for entry in sessions.iter().map_err(|e| self.err(e))? {
             let (id, meta) = entry.map_err(|e| self.err(e))?;
@@ -763,35 +767,54 @@ impl Store {
                 .ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
             let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
             let range = (id.as_str(), 0)..=(id.as_str(), u64::MAX);
-            let (mut pose_count, mut last) = (0, None);
-            for p in poses.range(range.clone()).map_err(|e| self.err(e))? {
-                pose_count += 1;
-                last = Some(p.map_err(|e| self.err(e))?.1);
-            }
-            let latest = match last {
-                Some(v) => Some(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?),
-                None => None,
+            let last = poses.range(range.clone()).map_err(|e| self.err(e))?.next_back().transpose().map_err(|e| self.err(e))?;
+            let (pose_count, latest) = match last {
+                Some((key, v)) => {
+                    let latest = pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?;
+                    // Poses are kept by their place, counted from 0; a key beyond
+                    // 2⁶² is an older store's sequence number: counted one by one.
+                    let place = key.value().1;
+                    let count = if place < 1 << 62 {
+                        place + 1
+                    } else {
+                        let mut n = 0;
+                        for p in poses.range(range.clone()).map_err(|e| self.err(e))? {
+                            p.map_err(|e| self.err(e))?;
+                            n += 1;
+                        }
+                        n
+                    };
+                    (usize::try_from(count).unwrap_or(usize::MAX), Some(latest))
+                }
+                None => (0, None),
             };
             let mut kfs = Vec::new();
-            if with_keyframes {
-                for k in keyframes.range(range).map_err(|e| self.err(e))? {
-                    kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
-                }
+            for k in keyframes_table.range(range).map_err(|e| self.err(e))?.rev().take(keyframes) {
+                kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
             }
+            kfs.reverse();
             out.push(SessionHead { id, meta, camera, pose_count, latest, keyframes: kfs });
         }
         Ok(out)
     }
 
-    /// One stored session, everything committed about it.
+    /// One stored session, everything committed about it (an export).
     pub fn load(&self, id: &str) -> Result<Option<StoredSession>, StoreError> {
+        self.load_with(id, usize::MAX)
+    }
+
+    /// One stored session with only its newest `keyframes` keyframe records (its
+    /// poses and map blocks all): what a query or a resume needs of a session that
+    /// ran for hours, whose keyframes (about 45 KB each, 20,000 an hour) would not
+    /// fit in memory.
+    pub fn load_with(&self, id: &str, keyframes: usize) -> Result<Option<StoredSession>, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
         let Some(meta) = sessions.get(id).map_err(|e| self.err(e))? else { return Ok(None) };
         let meta: SessionMeta = serde_json::from_slice(meta.value()).map_err(|e| StoreError::Corrupt(format!("session {id}: {e}")))?;
         let cameras = tx.open_table(CAMERAS).map_err(|e| self.err(e))?;
         let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
-        let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+        let keyframes_table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
         let blocks = tx.open_table(BLOCKS).map_err(|e| self.err(e))?;
         let camera = cameras.get(id).map_err(|e| self.err(e))?.ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
         let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
@@ -802,9 +825,10 @@ impl Store {
             trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
         }
         let mut kfs = Vec::new();
-        for k in keyframes.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))? {
+        for k in keyframes_table.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))?.rev().take(keyframes) {
             kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
         }
+        kfs.reverse();
         let mut bl = Vec::new();
         for b in blocks.range((id, i32::MIN, i32::MIN, i32::MIN)..=(id, i32::MAX, i32::MAX, i32::MAX)).map_err(|e| self.err(e))? {
             let (k, v) = b.map_err(|e| self.err(e))?;
@@ -1201,7 +1225,7 @@ mod tests {
                 .unwrap();
         }
         let store = Store::open(&path).unwrap();
-        let all: Vec<StoredSession> = store.heads(false).unwrap().iter().map(|h| store.load(&h.id).unwrap().expect("listed")).collect();
+        let all: Vec<StoredSession> = store.heads(0).unwrap().iter().map(|h| store.load(&h.id).unwrap().expect("listed")).collect();
         assert_eq!(all.len(), 1);
         let s = &all[0];
         assert_eq!((s.id.as_str(), &s.meta, &s.camera, s.poses.as_slice()), ("s1", &meta, &camera, &[pose][..]));
@@ -1213,7 +1237,7 @@ mod tests {
         assert_eq!(store.block("s1", [9, 9, 9]).unwrap(), Some(block));
         assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
         // Heads: no blocks, no trajectory; the count and the latest pose.
-        let heads = store.heads(false).unwrap();
+        let heads = store.heads(0).unwrap();
         assert_eq!(
             heads,
             vec![SessionHead {
@@ -1225,7 +1249,7 @@ mod tests {
                 keyframes: vec![]
             }]
         );
-        assert_eq!(store.heads(true).unwrap()[0].keyframes.len(), 1);
+        assert_eq!(store.heads(usize::MAX).unwrap()[0].keyframes.len(), 1);
         let frame = FleetFrame {
             fleet: "lab".into(),
             fleet_from_session: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0],
@@ -1370,6 +1394,54 @@ mod tests {
         store.import(&copy).expect("copied");
         let back = store.load("s").expect("read").expect("stored");
         assert_eq!(back.poses.iter().map(|p| p.capture_time_ns).collect::<Vec<_>>(), [60, 70]);
+    }
+
+    #[test]
+    fn heads_and_loads_read_the_newest_keyframes_and_heads_count_poses_without_reading_them() {
+        let store = memory_disk::store_on(&Disk::default());
+        let meta = SessionMeta::for_tests("r");
+        let camera = pb::CameraInfo { width: 64, height: 48, ..Default::default() };
+        store.put_session("s", &meta, &camera, "").expect("session");
+        let pose = |t: u64| pb::PoseStamped { sequence: t, capture_time_ns: t, ..Default::default() };
+        let keyframe =
+            |id: u64| KeyframeRecord { id, timestamp_ns: id, world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], features: vec![] };
+        for k in 0..5u64 {
+            let poses: Vec<_> = (3 * k..3 * k + 3).map(pose).collect();
+            let c = Commit {
+                session_id: "s",
+                meta: &meta,
+                poses: &poses,
+                first_pose: 3 * k,
+                keyframes: &[keyframe(k)],
+                camera: None,
+                blocks: vec![],
+                evicted: &[],
+            };
+            store.commit(&c).expect("committed");
+        }
+        let head = |keyframes: usize| store.heads(keyframes).expect("heads").remove(0);
+        let h = head(2);
+        assert_eq!((h.pose_count, h.latest.map(|p| p.capture_time_ns)), (15, Some(14)));
+        assert_eq!(h.keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), [3, 4], "the newest, oldest first");
+        assert_eq!(head(0).keyframes.len(), 0);
+        assert_eq!(head(9).keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), [0, 1, 2, 3, 4]);
+        let ids = |s: StoredSession| (s.keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), s.poses.len());
+        assert_eq!(ids(store.load_with("s", 1).expect("read").expect("stored")), (vec![4], 15), "the newest keyframe, every pose");
+        assert_eq!(ids(store.load("s").expect("read").expect("stored")), (vec![0, 1, 2, 3, 4], 15));
+        // A store that kept poses by sequence numbers beyond 2⁶² is counted pose by pose.
+        let old = [pose(1 << 62), pose((1 << 62) + 1)];
+        let c = Commit {
+            session_id: "s",
+            meta: &meta,
+            poses: &old,
+            first_pose: 1 << 62,
+            keyframes: &[],
+            camera: None,
+            blocks: vec![],
+            evicted: &[],
+        };
+        store.commit(&c).expect("committed");
+        assert_eq!(head(0).pose_count, 17);
     }
 
     #[test]
