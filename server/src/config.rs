@@ -54,7 +54,9 @@ pub struct TlsConfig {
 pub struct LimitsConfig {
     /// Sessions in memory at once: live ones (streaming or recently disconnected)
     /// and stored ones a query brought back. About 70 MB each at 640×480 once
-    /// streaming (tracker, perception buffers, the map's window). Default 128.
+    /// streaming (tracker, perception buffers, the map's window), and up to 58 MB
+    /// more as its tracker's keyframes reach `tracking.max_keyframes` (500 of about
+    /// 115 KB). Default 128.
     pub max_sessions: usize,
     /// Live sessions in memory per robot id (a robot that reconnects without
     /// resuming opens a new one each time). Default 4.

@@ -471,12 +471,23 @@ impl FleetService {
         tracing::info!(fleet, session = session_id, carried, promoted, "resumed with its share of the fleet's pose graph");
     }
 
+    /// [`restore_with`](Self::restore_with) the keyframe records the heads carry
+    /// (an imported session's).
+    pub fn restore(&self, stored: &[SessionHead]) {
+        self.restore_with(stored, |s, n| s.keyframes[s.keyframes.len().saturating_sub(n)..].to_vec());
+    }
+
     /// Rebuilds the fleets from the store: sessions with a frame in their fleet,
     /// then the others, each in the order they started; their merges, and the
     /// keyframes of merged sessions in the index.
     /// A fleet that was already here (an import into a running server) keeps its
     /// live pose graph: only fleets this call brings get their stored one.
-    pub fn restore(&self, stored: &[SessionHead]) {
+    /// `keyframes(s, n)` gives the newest `n` keyframe records of session `s`,
+    /// oldest first; only those the index keeps are asked for (it keeps a fleet's
+    /// newest `fleet.max_places`, and of an unmerged session its newest
+    /// `fleet.pending_keyframes`), the newest sessions first: start-up holds at
+    /// most `max_places` records a fleet however many sessions the store has.
+    pub fn restore_with(&self, stored: &[SessionHead], keyframes: impl Fn(&SessionHead, usize) -> Vec<KeyframeRecord>) {
         let mut frames = match &self.shared.store {
             Some(store) => store.fleet_frames().unwrap_or_else(|e| {
                 tracing::error!("fleet merges cannot be read from the store: {e}");
@@ -497,9 +508,9 @@ impl FleetService {
         order.sort_by_key(|s| (!frames.contains_key(&s.id), s.meta.started_unix_ns, s.id.clone()));
         let mut fleets = lock(&self.shared.fleets);
         let live: std::collections::HashSet<String> = fleets.keys().cloned().collect();
-        for s in order {
+        let mut members = Vec::with_capacity(order.len());
+        for s in &order {
             let name = self.fleet_for(&s.meta.fleet);
-            let camera = crate::convert::camera_of(&s.camera);
             let f = fleets.entry(name.clone()).or_default();
             let m = match frames.get(&s.id).filter(|frame| frame.fleet == name) {
                 Some(frame) => {
@@ -508,8 +519,29 @@ impl FleetService {
                 }
                 None => self.shared.member(f, &name, &s.id, &s.meta.robot_id),
             };
-            for k in &s.keyframes {
-                self.shared.add_keyframe(f, m, &camera, k);
+            members.push((name, m));
+        }
+        // What the index would keep of them, added in this order: the last
+        // max_places of each fleet, an unmerged session's last pending_keyframes.
+        // Read from the newest session back until each fleet has them.
+        let (max_places, pending) = (self.shared.config.max_places, self.shared.config.pending_keyframes);
+        let mut left: HashMap<&str, usize> = HashMap::new();
+        let mut records = vec![Vec::new(); order.len()];
+        for (i, (name, m)) in members.iter().enumerate().rev() {
+            let room = left.entry(name.as_str()).or_insert(max_places);
+            let merged = fleets.get(name).is_some_and(|f| f.members[*m].frame.is_some());
+            let n = if merged { *room } else { pending.min(*room) };
+            if n > 0 {
+                records[i] = keyframes(order[i], n);
+                *room = room.saturating_sub(records[i].len());
+            }
+        }
+        for ((s, (name, m)), records) in order.iter().zip(&members).zip(records) {
+            let camera = crate::convert::camera_of(&s.camera);
+            if let Some(f) = fleets.get_mut(name) {
+                for k in &records {
+                    self.shared.add_keyframe(f, *m, &camera, k);
+                }
             }
         }
         let graphs = match &self.shared.store {
@@ -1668,6 +1700,58 @@ mod tests {
         assert_eq!(frame_of("c0"), None, "not an anchor of another frame");
         service.close();
         let _ = std::fs::remove_file(&path);
+    }
+
+    /// A restart reads only the keyframe records the place index keeps, the newest
+    /// sessions first, and the index is the one every record would have given.
+    #[test]
+    fn a_restart_reads_only_the_keyframes_the_index_keeps() {
+        let config = FleetConfig { max_places: 7, pending_keyframes: 3, ..FleetConfig::default() };
+        let head = |id: &str, started_unix_ns: u64, keyframes: u64| SessionHead {
+            id: id.into(),
+            meta: crate::store::SessionMeta { started_unix_ns, fleet: "lab".into(), ..crate::store::SessionMeta::for_tests(id) },
+            camera: stillmap_proto::pb::CameraInfo::default(),
+            pose_count: 0,
+            latest: None,
+            keyframes: (0..keyframes)
+                .map(|id| KeyframeRecord { id, timestamp_ns: id, world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], features: vec![] })
+                .collect(),
+        };
+        // The first anchors the fleet (merged: no cap of its own); the others wait
+        // unmerged, each with its latest three.
+        let heads = [head("s0", 1, 6), head("s1", 2, 5), head("s2", 3, 2)];
+        let index = |service: &FleetService| {
+            let fleets = lock(&service.shared.fleets);
+            let f = &fleets["lab"];
+            let mut places: Vec<(String, u64)> = f.places.keys().map(|(m, id)| (f.members[*m as usize].session_id.clone(), *id)).collect();
+            places.sort();
+            let indexed: Vec<(String, Vec<u64>)> =
+                f.members.iter().map(|m| (m.session_id.clone(), m.indexed.iter().copied().collect())).collect();
+            (places, indexed)
+        };
+        // As before: every record of each session added, one session after another.
+        let every = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
+        for h in &heads {
+            every.restore_with(std::slice::from_ref(h), |s, _| s.keyframes.clone());
+        }
+        let newest = FleetService::start(&config, &MappingConfig::default(), None, Arc::default()).expect("started");
+        let asked = Mutex::new(Vec::new());
+        newest.restore_with(&heads, |s, n| {
+            lock(&asked).push((s.id.clone(), n));
+            s.keyframes[s.keyframes.len().saturating_sub(n)..].to_vec()
+        });
+        let (places, indexed) = index(&every);
+        let s = |id: &str, ids: &[u64]| (id.to_string(), ids.to_vec());
+        assert_eq!(indexed, [s("s0", &[4, 5]), s("s1", &[2, 3, 4]), s("s2", &[0, 1])]);
+        assert_eq!(places.len(), 7);
+        assert_eq!(index(&newest), (places, indexed));
+        assert_eq!(
+            *lock(&asked),
+            [("s2".to_string(), 3), ("s1".to_string(), 3), ("s0".to_string(), 2)],
+            "the newest first, no more than kept"
+        );
+        every.close();
+        newest.close();
     }
 
     /// What is read back at a restart, or with an import into a running server,

@@ -264,12 +264,10 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
     };
     let replica = store.as_ref().and_then(|s| s.replica().cloned());
     // What is stored is listed, not loaded: a query brings a session's map and
-    // trajectory into memory when it needs them. Place recognition needs the
-    // keyframe records: a fleet's index holds its newest fleet.max_places, so no
-    // older ones of any session are read.
-    let places = if config.fleet.enabled && config.mapping.enabled { config.fleet.max_places } else { 0 };
+    // trajectory into memory when it needs them. Place recognition reads the
+    // keyframe records its index holds (a fleet's newest fleet.max_places).
     let stored = match &store {
-        Some(s) => s.heads(places)?,
+        Some(s) => s.heads()?,
         None => Vec::new(),
     };
     if config.fleet.enabled && !config.mapping.enabled {
@@ -283,7 +281,15 @@ pub async fn run(config: ServerConfig, mut shutdown: watch::Receiver<bool>, on_r
         None
     };
     if let Some(f) = &fleets {
-        f.restore(&stored);
+        // Place recognition looks at the keyframes the map lane commits.
+        let records = store.as_ref().filter(|_| config.mapping.enabled);
+        f.restore_with(&stored, |s, n| match records {
+            Some(store) => store.newest_keyframes(&s.id, n).unwrap_or_else(|e| {
+                tracing::error!(session = %s.id, "stored keyframe records cannot be read: left out of its fleet's place index: {e}");
+                Vec::new()
+            }),
+            None => Vec::new(),
+        });
     }
     let registry = Arc::new(
         Registry::new(config.session.clone(), config.tracking.clone(), perception, config.mapping.clone(), store, metrics, pools)

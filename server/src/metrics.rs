@@ -30,6 +30,7 @@ pub struct Metrics {
     features_eliminated: Counter,
     masks: Family<Labels, Counter>,
     keyframes_fused: Counter,
+    keyframes_forgotten: Counter,
     sessions_connected: Gauge,
     sessions_total: Counter,
     segmentation_batch_size: Histogram,
@@ -77,6 +78,12 @@ impl Default for Metrics {
         registry.register("masks", "Dynamic masks computed, by segmentation source (fresh, warped, none)", masks.clone());
         let keyframes_fused = Counter::default();
         registry.register("keyframes_fused", "Keyframes fused into the static semantic maps", keyframes_fused.clone());
+        let keyframes_forgotten = Counter::default();
+        registry.register(
+            "tracker_keyframes_forgotten",
+            "Keyframes the sessions' trackers forgot beyond tracking.max_keyframes (the store keeps their records)",
+            keyframes_forgotten.clone(),
+        );
         registry.register("sessions_connected", "Sessions with a connected robot", sessions_connected.clone());
         registry.register("sessions", "Sessions opened", sessions_total.clone());
         let segmentation_batch_size = Histogram::new(exponential_buckets(1.0, 2.0, 7));
@@ -178,6 +185,7 @@ impl Default for Metrics {
             features_eliminated,
             masks,
             keyframes_fused,
+            keyframes_forgotten,
             sessions_connected,
             sessions_total,
             segmentation_batch_size,
@@ -240,6 +248,10 @@ impl Metrics {
 
     pub fn keyframe_fused(&self) {
         self.keyframes_fused.inc();
+    }
+
+    pub fn keyframes_forgotten(&self, n: u64) {
+        self.keyframes_forgotten.inc_by(n);
     }
 
     pub fn segmentation_batch(&self, frames: usize, elapsed: std::time::Duration) {

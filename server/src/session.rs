@@ -818,8 +818,11 @@ impl Session {
     /// returns its result.
     fn account(&self, outcome: &FrameOutcome) -> pb::FrameResult {
         let result = pb::FrameResult::from(outcome);
-        if outcome.track.is_some() {
+        if let Some(track) = &outcome.track {
             self.record_pose(&result);
+            if track.forgotten_keyframes > 0 {
+                self.metrics.keyframes_forgotten(track.forgotten_keyframes);
+            }
         }
         if let Some(mask) = &outcome.mask {
             self.metrics.perception(mask.label(), mask.dynamic_features);

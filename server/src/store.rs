@@ -280,12 +280,10 @@ pub struct SessionHead {
     pub id: String,
     pub meta: SessionMeta,
     pub camera: pb::CameraInfo,
-    /// Poses stored (the place after the last stored one: more than the count
-    /// where places are missing, as with a copy that dropped a commit), and the
-    /// latest of them.
+    /// Poses stored, and the latest of them.
     pub pose_count: usize,
     pub latest: Option<pb::PoseStamped>,
-    /// Empty unless asked for.
+    /// Empty from [`Store::heads`]; an imported session's, for its fleet.
     pub keyframes: Vec<KeyframeRecord>,
 }
 
@@ -745,17 +743,16 @@ impl Store {
     }
 
     /// What the server keeps of every stored session while it is not in memory:
-    /// description, camera, pose count and latest pose, and the newest `keyframes`
-    /// keyframe records of each (what place recognition can hold of one session,
-    /// `fleet.max_places`; 0: none). No map block, no trajectory and no older
-    /// keyframe is read: start-up stays fast and small however much the store holds
-    /// (a robot's hour is about 20,000 keyframes of 45 KB and 100,000 poses).
-    pub fn heads(&self, keyframes: usize) -> Result<Vec<SessionHead>, StoreError> {
+    /// description, camera, pose count and latest pose. No map block, no keyframe
+    /// record and no pose but the latest is read (place recognition reads what it
+    /// can hold with [`Store::newest_keyframes`]): start-up memory stays small
+    /// however much the store holds (a robot's hour is about 20,000 keyframe
+    /// records of 45 KB and 100,000 poses). The poses are counted by their keys.
+    pub fn heads(&self) -> Result<Vec<SessionHead>, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;
         let cameras = tx.open_table(CAMERAS).map_err(|e| self.err(e))?;
         let poses = tx.open_table(POSES).map_err(|e| self.err(e))?;
-        let keyframes_table = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
         let mut out = Vec::new();
         for entry in sessions.iter().map_err(|e| self.err(e))? {
             let (id, meta) = entry.map_err(|e| self.err(e))?;
@@ -767,34 +764,29 @@ impl Store {
                 .ok_or_else(|| StoreError::Corrupt(format!("session {id} has no camera")))?;
             let camera = pb::CameraInfo::decode(camera.value()).map_err(|e| StoreError::Corrupt(format!("session {id} camera: {e}")))?;
             let range = (id.as_str(), 0)..=(id.as_str(), u64::MAX);
-            let last = poses.range(range.clone()).map_err(|e| self.err(e))?.next_back().transpose().map_err(|e| self.err(e))?;
-            let (pose_count, latest) = match last {
-                Some((key, v)) => {
-                    let latest = pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?;
-                    // Poses are kept by their place, counted from 0; a key beyond
-                    // 2⁶² is an older store's sequence number: counted one by one.
-                    let place = key.value().1;
-                    let count = if place < 1 << 62 {
-                        place + 1
-                    } else {
-                        let mut n = 0;
-                        for p in poses.range(range.clone()).map_err(|e| self.err(e))? {
-                            p.map_err(|e| self.err(e))?;
-                            n += 1;
-                        }
-                        n
-                    };
-                    (usize::try_from(count).unwrap_or(usize::MAX), Some(latest))
-                }
-                None => (0, None),
-            };
-            let mut kfs = Vec::new();
-            for k in keyframes_table.range(range).map_err(|e| self.err(e))?.rev().take(keyframes) {
-                kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
+            let (mut pose_count, mut last) = (0, None);
+            for p in poses.range(range).map_err(|e| self.err(e))? {
+                pose_count += 1;
+                last = Some(p.map_err(|e| self.err(e))?.1);
             }
-            kfs.reverse();
-            out.push(SessionHead { id, meta, camera, pose_count, latest, keyframes: kfs });
+            let latest = match last {
+                Some(v) => Some(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?),
+                None => None,
+            };
+            out.push(SessionHead { id, meta, camera, pose_count, latest, keyframes: Vec::new() });
         }
+        Ok(out)
+    }
+
+    /// The newest `n` keyframe records of session `id`, oldest first.
+    pub fn newest_keyframes(&self, id: &str, n: usize) -> Result<Vec<KeyframeRecord>, StoreError> {
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
+        let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+        let mut out = Vec::new();
+        for k in keyframes.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))?.rev().take(n) {
+            out.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
+        }
+        out.reverse();
         Ok(out)
     }
 
@@ -1225,7 +1217,7 @@ mod tests {
                 .unwrap();
         }
         let store = Store::open(&path).unwrap();
-        let all: Vec<StoredSession> = store.heads(0).unwrap().iter().map(|h| store.load(&h.id).unwrap().expect("listed")).collect();
+        let all: Vec<StoredSession> = store.heads().unwrap().iter().map(|h| store.load(&h.id).unwrap().expect("listed")).collect();
         assert_eq!(all.len(), 1);
         let s = &all[0];
         assert_eq!((s.id.as_str(), &s.meta, &s.camera, s.poses.as_slice()), ("s1", &meta, &camera, &[pose][..]));
@@ -1237,7 +1229,7 @@ mod tests {
         assert_eq!(store.block("s1", [9, 9, 9]).unwrap(), Some(block));
         assert_eq!(store.block("s1", [0, 0, 0]).unwrap(), None);
         // Heads: no blocks, no trajectory; the count and the latest pose.
-        let heads = store.heads(0).unwrap();
+        let heads = store.heads().unwrap();
         assert_eq!(
             heads,
             vec![SessionHead {
@@ -1249,7 +1241,7 @@ mod tests {
                 keyframes: vec![]
             }]
         );
-        assert_eq!(store.heads(usize::MAX).unwrap()[0].keyframes.len(), 1);
+        assert_eq!(store.newest_keyframes("s1", 9).unwrap().len(), 1);
         let frame = FleetFrame {
             fleet: "lab".into(),
             fleet_from_session: [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0],
@@ -1397,7 +1389,7 @@ mod tests {
     }
 
     #[test]
-    fn heads_and_loads_read_the_newest_keyframes_and_heads_count_poses_without_reading_them() {
+    fn only_the_newest_keyframe_records_are_read_where_only_they_are_used() {
         let store = memory_disk::store_on(&Disk::default());
         let meta = SessionMeta::for_tests("r");
         let camera = pb::CameraInfo { width: 64, height: 48, ..Default::default() };
@@ -1419,29 +1411,16 @@ mod tests {
             };
             store.commit(&c).expect("committed");
         }
-        let head = |keyframes: usize| store.heads(keyframes).expect("heads").remove(0);
-        let h = head(2);
-        assert_eq!((h.pose_count, h.latest.map(|p| p.capture_time_ns)), (15, Some(14)));
-        assert_eq!(h.keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), [3, 4], "the newest, oldest first");
-        assert_eq!(head(0).keyframes.len(), 0);
-        assert_eq!(head(9).keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), [0, 1, 2, 3, 4]);
+        let h = store.heads().expect("heads").remove(0);
+        assert_eq!((h.pose_count, h.latest.map(|p| p.capture_time_ns), h.keyframes.len()), (15, Some(14), 0));
+        let newest = |n: usize| store.newest_keyframes("s", n).expect("read").iter().map(|k| k.id).collect::<Vec<_>>();
+        assert_eq!(newest(2), [3, 4], "the newest, oldest first");
+        assert_eq!(newest(0), [0u64; 0]);
+        assert_eq!(newest(9), [0, 1, 2, 3, 4]);
+        assert_eq!(store.newest_keyframes("unknown", 9).expect("read").len(), 0);
         let ids = |s: StoredSession| (s.keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), s.poses.len());
         assert_eq!(ids(store.load_with("s", 1).expect("read").expect("stored")), (vec![4], 15), "the newest keyframe, every pose");
         assert_eq!(ids(store.load("s").expect("read").expect("stored")), (vec![0, 1, 2, 3, 4], 15));
-        // A store that kept poses by sequence numbers beyond 2⁶² is counted pose by pose.
-        let old = [pose(1 << 62), pose((1 << 62) + 1)];
-        let c = Commit {
-            session_id: "s",
-            meta: &meta,
-            poses: &old,
-            first_pose: 1 << 62,
-            keyframes: &[],
-            camera: None,
-            blocks: vec![],
-            evicted: &[],
-        };
-        store.commit(&c).expect("committed");
-        assert_eq!(head(0).pose_count, 17);
     }
 
     #[test]

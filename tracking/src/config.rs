@@ -118,15 +118,17 @@ pub struct TrackerConfig {
     /// A new keyframe is taken at least every this many frames.
     pub keyframe_max_interval: u32,
     /// Keyframes the tracker keeps, at most (0: every one). A keyframe every few
-    /// frames for hours would hold them all in memory (about 100 KB each with their
-    /// features and point links: 2.2 GB an hour at 30 Hz) and rank them all for every
-    /// frame's local map. Beyond this number one is forgotten for each new one,
-    /// never the bundle-adjustment window, the reference, nor the `local_keyframes`
-    /// nearest the new one (the next frames track on them): of the 50 oldest others,
-    /// the oldest whose points three other keyframes see as well (90 % of them,
-    /// ORB-SLAM's redundancy), else the oldest. Forgotten keyframes are no longer
-    /// relocalization candidates; the server's store keeps every keyframe record
-    /// (place recognition, the map). At least `local_keyframes + ba_window + 1`.
+    /// frames for hours would hold them all in memory (about 115 KB each with their
+    /// features, point links and points: 2.6 GB an hour at 30 Hz) and rank them all
+    /// for every frame's local map. Beyond this number one is forgotten for each new
+    /// one, never the bundle-adjustment window, the reference, nor the
+    /// `local_keyframes` nearest the new one (the next frames track on them): of the
+    /// 50 newest others, the newest whose points three other keyframes see as well
+    /// (90 % of them, ORB-SLAM's redundancy), else the oldest. Forgotten keyframes
+    /// are no longer relocalization candidates (500 keyframes are about 80 s of new
+    /// ground at 30 Hz: a robot exploring cannot relocalize where it began; the
+    /// fleet's place recognition still can); the server's store keeps every keyframe
+    /// record. At least `local_keyframes + ba_window + 1` (`ba_window` at least 1).
     pub max_keyframes: usize,
     /// New map points created per keyframe, at most.
     pub max_new_points_per_keyframe: usize,
@@ -232,10 +234,12 @@ impl TrackerConfig {
                 self.local_keyframes, self.relocalization_candidates
             ));
         }
-        let fewest = self.local_keyframes + self.ba_window + 1;
+        // Never forgotten: the BA window (the new keyframe at least), the local
+        // map around the new one and a keyframe still to rectify.
+        let fewest = self.local_keyframes + self.ba_window.max(1) + 1;
         if self.max_keyframes != 0 && self.max_keyframes < fewest {
             return Err(format!(
-                "tracking.max_keyframes must be 0 (every keyframe kept) or at least local_keyframes + ba_window + 1 = {fewest}, got {}",
+                "tracking.max_keyframes must be 0 (every keyframe kept) or at least local_keyframes + ba_window (at least 1) + 1 = {fewest}, got {}",
                 self.max_keyframes
             ));
         }
@@ -342,10 +346,17 @@ mod tests {
         }
         assert_eq!(TrackerConfig { coast_s: 0.0, ..TrackerConfig::default() }.validate(), Ok(()), "0 turns coasting off");
         let err = TrackerConfig { max_keyframes: 16, ..TrackerConfig::default() }.validate().expect_err("rejected");
-        assert_eq!(err, "tracking.max_keyframes must be 0 (every keyframe kept) or at least local_keyframes + ba_window + 1 = 17, got 16");
+        assert_eq!(
+            err,
+            "tracking.max_keyframes must be 0 (every keyframe kept) or at least local_keyframes + ba_window (at least 1) + 1 = 17, got 16"
+        );
         for fine in [0, 17] {
             assert_eq!(TrackerConfig { max_keyframes: fine, ..TrackerConfig::default() }.validate(), Ok(()), "{fine}");
         }
+        // Without BA the new keyframe is kept besides the local map and one to rectify.
+        let no_ba = |max_keyframes| TrackerConfig { max_keyframes, ba_window: 0, ..TrackerConfig::default() }.validate();
+        assert!(no_ba(11).expect_err("rejected").ends_with("= 12, got 11"));
+        assert_eq!(no_ba(12), Ok(()));
         let err = TrackerConfig { coast_min_agreement: 1.5, ..TrackerConfig::default() }.validate().expect_err("rejected");
         assert_eq!(err, "tracking.coast_min_agreement must be in [0, 1], got 1.5");
         for bad in [-0.1, 1.01, f64::NAN] {

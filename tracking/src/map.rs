@@ -86,6 +86,11 @@ impl Map {
         }
         keyframe.points[feature] = Some(point);
         mp.observations.push((kf, feature));
+        // Not among the oldest that choose the descriptor: nothing to choose again.
+        if mp.observations.len() > DESCRIPTOR_OBSERVATIONS && mp.observations.iter().filter(|o| o.0 < kf).count() >= DESCRIPTOR_OBSERVATIONS
+        {
+            return;
+        }
         self.update_descriptor(point);
     }
 
@@ -128,8 +133,9 @@ impl Map {
 
     /// Forgets keyframe `id`: its observations are removed, and the points only it
     /// saw are erased with it. The others keep their descriptors (chosen among
-    /// observations that included this one, still one of theirs): recomputing
-    /// them costs the square of their observations each, for a thousand points.
+    /// observations that included this one: a copy, still a descriptor the point
+    /// was seen with); recomputing them costs the square of their observations
+    /// each, for a thousand points.
     pub fn forget_keyframe(&mut self, id: KeyframeId) {
         let Some(kf) = self.keyframes.remove(&id) else { return };
         for point in kf.points.into_iter().flatten() {
@@ -166,7 +172,8 @@ impl Map {
 
     /// Picks the observation descriptor with the least median distance to the others,
     /// among the observations of the [`DESCRIPTOR_OBSERVATIONS`] oldest keyframes
-    /// (those that first saw the point, which forgetting keeps longest).
+    /// (those that first saw the point; where a place is seen again, forgetting
+    /// takes the newest redundant keyframes first).
     fn update_descriptor(&mut self, point: PointId) {
         let Some(mp) = self.points.get(&point) else { return };
         // The newest keyframe taken (a point has one observation per keyframe); the

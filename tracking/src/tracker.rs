@@ -100,7 +100,7 @@ const WIDE_SEARCH_FACTOR: f64 = 3.0;
 const WEAK_REPLACEMENT_FACTOR: usize = 2;
 /// Keyframes created since a point's birth after which it must have ≥ 2 observations.
 const CULL_AFTER_KEYFRAMES: u64 = 3;
-/// Keyframes (the oldest not kept) searched for a redundant one to forget
+/// Keyframes (the newest not kept) searched for a redundant one to forget
 /// (`tracking.max_keyframes`).
 const FORGET_SCAN: usize = 50;
 /// Points matched in fewer than this fraction of the frames predicting them are culled.

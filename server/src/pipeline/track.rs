@@ -24,6 +24,8 @@ pub struct TrackOutcome {
     pub masked_features: u32,
     /// The keyframe this frame became, if it did.
     pub new_keyframe: Option<u64>,
+    /// Keyframes the tracker forgot on this frame (`tracking.max_keyframes`).
+    pub forgotten_keyframes: u64,
     /// A resumed session not found in its stored world within
     /// `ResumeAnchor::find_within_s`: the session is to be given up.
     pub resume_abandoned: bool,
@@ -158,6 +160,7 @@ impl SessionTracker {
     ) -> TrackOutcome {
         let input = stillmap_tracking::FrameInput { timestamp_ns: capture_time_ns, rgb: &color.data, depth: &depth.data, dynamic_mask };
         let previous_pose = self.last_pose.take();
+        let forgotten_before = self.tracker.forgotten_keyframes();
         let out = match self.tracker.track(&input) {
             Ok(out) => out,
             Err(e) => {
@@ -169,12 +172,14 @@ impl SessionTracker {
                     features: 0,
                     masked_features: 0,
                     new_keyframe: None,
+                    forgotten_keyframes: 0,
                     resume_abandoned: self.resume_overdue(capture_time_ns),
                     previous_from_current: None,
                     times: StageTimes::default(),
                 };
             }
         };
+        let forgotten_keyframes = self.tracker.forgotten_keyframes() - forgotten_before;
         // Keyframe ids only grow: the newest is the one just made.
         let new_keyframe =
             if out.keyframe { self.tracker.map().keyframes.keys().next_back().map(|id| id + self.keyframe_id_offset) } else { None };
@@ -192,6 +197,7 @@ impl SessionTracker {
                 features: out.tracked_points as u32,
                 masked_features: out.masked_features as u32,
                 new_keyframe: None,
+                forgotten_keyframes,
                 resume_abandoned: self.resume_overdue(capture_time_ns),
                 previous_from_current,
                 times: out.times,
@@ -205,6 +211,7 @@ impl SessionTracker {
             features: out.tracked_points as u32,
             masked_features: out.masked_features as u32,
             new_keyframe,
+            forgotten_keyframes,
             resume_abandoned: false,
             previous_from_current,
             times: out.times,
