@@ -1260,6 +1260,16 @@ impl Shared {
     /// Indexes a keyframe of member `m`; an unmerged member keeps only its latest
     /// `fleet.pending_keyframes` there.
     fn add_place(&self, f: &mut Fleet, m: usize, id: u64, indexed: Indexed, bow: BowVector) {
+        // Room among its own first: the fleet-wide limit then takes no other
+        // member's place for one this member lets go of at once.
+        if f.members[m].frame.is_none() && !f.places.contains_key(&(m as u32, id)) {
+            while f.members[m].indexed.len() >= self.config.pending_keyframes.max(1) {
+                if let Some(old) = f.members[m].indexed.pop_front() {
+                    f.index.remove(&(m as u32, old));
+                    f.places.remove(&(m as u32, old));
+                }
+            }
+        }
         self.index_at(f, m, id, indexed, bow, false);
         if f.members[m].frame.is_none() {
             while f.members[m].indexed.len() > self.config.pending_keyframes {
@@ -1719,7 +1729,7 @@ mod tests {
         };
         // The first anchors the fleet (merged: no cap of its own); the others wait
         // unmerged, each with its latest three.
-        let heads = [head("s0", 1, 6), head("s1", 2, 5), head("s2", 3, 2)];
+        let heads = [head("s0", 1, 6), head("s1", 2, 5), head("s2", 3, 5)];
         let index = |service: &FleetService| {
             let fleets = lock(&service.shared.fleets);
             let f = &fleets["lab"];
@@ -1742,12 +1752,12 @@ mod tests {
         });
         let (places, indexed) = index(&every);
         let s = |id: &str, ids: &[u64]| (id.to_string(), ids.to_vec());
-        assert_eq!(indexed, [s("s0", &[4, 5]), s("s1", &[2, 3, 4]), s("s2", &[0, 1])]);
+        assert_eq!(indexed, [s("s0", &[5]), s("s1", &[2, 3, 4]), s("s2", &[2, 3, 4])]);
         assert_eq!(places.len(), 7);
         assert_eq!(index(&newest), (places, indexed));
         assert_eq!(
             *lock(&asked),
-            [("s2".to_string(), 3), ("s1".to_string(), 3), ("s0".to_string(), 2)],
+            [("s2".to_string(), 3), ("s1".to_string(), 3), ("s0".to_string(), 1)],
             "the newest first, no more than kept"
         );
         every.close();

@@ -743,11 +743,12 @@ impl Store {
     }
 
     /// What the server keeps of every stored session while it is not in memory:
-    /// description, camera, pose count and latest pose. No map block, no keyframe
-    /// record and no pose but the latest is read (place recognition reads what it
-    /// can hold with [`Store::newest_keyframes`]): start-up memory stays small
-    /// however much the store holds (a robot's hour is about 20,000 keyframe
-    /// records of 45 KB and 100,000 poses). The poses are counted by their keys.
+    /// description, camera, pose count and latest pose. No map block and no keyframe
+    /// record is read (place recognition reads what it can hold with
+    /// [`Store::newest_keyframes`]), and of the poses only the latest is decoded
+    /// (the others are counted, key by key): start-up memory stays small however
+    /// much the store holds (a robot's hour is about 20,000 keyframe records of
+    /// 45 KB and 100,000 poses).
     pub fn heads(&self) -> Result<Vec<SessionHead>, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let sessions = tx.open_table(SESSIONS).map_err(|e| self.err(e))?;

@@ -121,8 +121,9 @@ pub struct TrackerConfig {
     /// frames for hours would hold them all in memory (about 115 KB each with their
     /// features, point links and points: 2.6 GB an hour at 30 Hz) and rank them all
     /// for every frame's local map. Beyond this number one is forgotten for each new
-    /// one, never the bundle-adjustment window, the reference, nor the
-    /// `local_keyframes` nearest the new one (the next frames track on them): of the
+    /// one, never the bundle-adjustment window, the reference, the `local_keyframes`
+    /// nearest the new one (the next frames track on them), nor one a rolling
+    /// shutter's next step must still rectify: of the
     /// 50 newest others, the newest whose points three other keyframes see as well
     /// (90 % of them, ORB-SLAM's redundancy), else the oldest. Forgotten keyframes
     /// are no longer relocalization candidates (500 keyframes are about 80 s of new
