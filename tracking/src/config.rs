@@ -123,13 +123,13 @@ pub struct TrackerConfig {
     /// for every frame's local map. Beyond this number one is forgotten for each new
     /// one, never the bundle-adjustment window, the reference, the `local_keyframes`
     /// nearest the new one (the next frames track on them), nor one a rolling
-    /// shutter's next step must still rectify: of the
-    /// 50 newest others, the newest whose points three other keyframes see as well
-    /// (90 % of them, ORB-SLAM's redundancy), else the oldest. Forgotten keyframes
-    /// are no longer relocalization candidates (500 keyframes are about 80 s of new
-    /// ground at 30 Hz: a robot exploring cannot relocalize where it began; the
-    /// fleet's place recognition still can); the server's store keeps every keyframe
-    /// record. At least `local_keyframes + ba_window + 1` (`ba_window` at least 1).
+    /// shutter's next step must still rectify: of the 50 newest others, the newest
+    /// whose points three other keyframes see as well (90 % of them, ORB-SLAM's
+    /// redundancy), else the oldest. Forgotten keyframes are no longer
+    /// relocalization candidates (500 keyframes are about 80 s of new ground at 30
+    /// Hz: a robot exploring cannot relocalize where it began; the fleet's place
+    /// recognition still can); the server's store keeps every keyframe record. At
+    /// least `local_keyframes + ba_window + 1` (`ba_window` counted as at least 1).
     pub max_keyframes: usize,
     /// New map points created per keyframe, at most.
     pub max_new_points_per_keyframe: usize,
