@@ -782,9 +782,18 @@ impl Store {
     /// The newest `n` keyframe records of session `id`, oldest first.
     pub fn newest_keyframes(&self, id: &str, n: usize) -> Result<Vec<KeyframeRecord>, StoreError> {
         let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-        let keyframes = tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?;
+        self.newest_records(&tx.open_table(KEYFRAMES).map_err(|e| self.err(e))?, id, n)
+    }
+
+    /// [`Store::newest_keyframes`] from an open keyframe table.
+    fn newest_records(
+        &self,
+        table: &redb::ReadOnlyTable<(&str, u64), &[u8]>,
+        id: &str,
+        n: usize,
+    ) -> Result<Vec<KeyframeRecord>, StoreError> {
         let mut out = Vec::new();
-        for k in keyframes.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))?.rev().take(n) {
+        for k in table.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))?.rev().take(n) {
             out.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
         }
         out.reverse();
@@ -817,11 +826,7 @@ impl Store {
             next_pose_place = next_place_after(next_pose_place, k.value().1);
             trajectory.push(pb::PoseStamped::decode(v.value()).map_err(|e| StoreError::Corrupt(format!("session {id} pose: {e}")))?);
         }
-        let mut kfs = Vec::new();
-        for k in keyframes_table.range((id, 0)..=(id, u64::MAX)).map_err(|e| self.err(e))?.rev().take(keyframes) {
-            kfs.push(KeyframeRecord::from_bytes(k.map_err(|e| self.err(e))?.1.value())?);
-        }
-        kfs.reverse();
+        let kfs = self.newest_records(&keyframes_table, id, keyframes)?;
         let mut bl = Vec::new();
         for b in blocks.range((id, i32::MIN, i32::MIN, i32::MIN)..=(id, i32::MAX, i32::MAX, i32::MAX)).map_err(|e| self.err(e))? {
             let (k, v) = b.map_err(|e| self.err(e))?;

@@ -163,11 +163,8 @@ impl Map {
     /// keyframes that first mapped it stay), else the oldest. The scan bounds the
     /// cost where nothing is redundant (a robot exploring).
     pub fn keyframe_to_forget(&self, kept: &HashSet<KeyframeId>, scan: usize) -> Option<KeyframeId> {
-        let mut others = self.keyframes.values().filter(|kf| !kept.contains(&kf.id));
-        let oldest = others.next().map(|kf| kf.id);
-        let newest_redundant =
-            self.keyframes.values().rev().filter(|kf| !kept.contains(&kf.id)).take(scan).find(|kf| self.is_redundant(kf)).map(|kf| kf.id);
-        newest_redundant.or(oldest)
+        let others = || self.keyframes.values().filter(|kf| !kept.contains(&kf.id));
+        others().rev().take(scan).find(|kf| self.is_redundant(kf)).or_else(|| others().next()).map(|kf| kf.id)
     }
 
     /// Picks the observation descriptor with the least median distance to the others,
